@@ -1,0 +1,345 @@
+"""Assembly of the linearised implicit Euler system A dv = b (SPEC.md §2) and the state update.
+
+One step, after Baraff and Witkin 1998 / ARCSim ``implicit_update``:
+    A = (1 + dt alpha) M + dt (dt + beta) H + sum_handles dt^2 k I
+    b = dt (f + m g - alpha M v) - dt (dt + beta) H v - sum_handles dt k ((x - x_target) + dt v)
+with H = -J the PSD stiffness of stretching and bending (Rayleigh damping alpha [1/s], beta [s]).
+Hard pins prescribe dv on their rows; their columns move to the right-hand side so A stays symmetric.
+Kernels add 3x3 blocks into precomputed BSR slots (the sparsity is fixed for a mesh).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from warpcloth.kernels.bending import bending_funcs
+from warpcloth.kernels.stretching import stretching_funcs
+from warpcloth.kernels.types import types
+
+
+@functools.cache
+def implicit_kernels(scalar):
+    t = types(scalar)
+    vec2, vec3, mat22, mat33 = t.vec2, t.vec3, t.mat22, t.mat33
+    st = stretching_funcs(scalar)
+    bd = bending_funcs(scalar)
+
+    @wp.func
+    def add_block(
+        values: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+        pin_dv: wp.array(dtype=vec3),
+        slot: int,
+        row: int,
+        col: int,
+        row_pinned: bool,
+        col_pinned: bool,
+        block: mat33,
+    ):
+        # A pinned row is identity (set by pin_rows); a pinned column is eliminated onto the right-hand side.
+        if not row_pinned:
+            if col_pinned:
+                wp.atomic_sub(rhs, row, block * pin_dv[col])
+            else:
+                wp.atomic_add(values, slot, block)
+
+    @wp.kernel
+    def pin_rows(
+        # Model:
+        pin_particle: wp.array(dtype=wp.int32),
+        particle_diag_slot: wp.array(dtype=wp.int32),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        # Control:
+        pin_target: wp.array(dtype=vec3),
+        pin_offset: wp.array(dtype=vec3),
+        dt: scalar,
+        # out:
+        pin_dv: wp.array(dtype=vec3),
+        values: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+    ):
+        q = wp.tid()
+        p = pin_particle[q]
+        # the velocity change that puts the particle on its target at the end of the step
+        dv = (pin_target[q] + pin_offset[q] - x[p]) / dt - v[p]
+        pin_dv[p] = dv
+        wp.atomic_add(values, particle_diag_slot[p], wp.identity(n=3, dtype=scalar))
+        wp.atomic_add(rhs, p, dv)
+
+    @wp.kernel
+    def faces(
+        # Model:
+        tri_indices: wp.array2d(dtype=wp.int32),
+        tri_material: wp.array(dtype=wp.int32),
+        tri_inv_dm: wp.array(dtype=mat22),
+        tri_area: wp.array(dtype=scalar),
+        tri_block_slot: wp.array2d(dtype=wp.int32),
+        particle_pin: wp.array(dtype=wp.int32),
+        material_density: wp.array(dtype=scalar),
+        material_stretching: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        lut_weight: wp.array(dtype=vec3),
+        lut_row: wp.array(dtype=wp.int32),
+        gravity: wp.array(dtype=vec3),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        pin_dv: wp.array(dtype=vec3),
+        dt: scalar,
+        damping_mass: scalar,
+        damping_stiffness: scalar,
+        # out:
+        values: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+    ):
+        f = wp.tid()
+        i0 = tri_indices[f, 0]
+        i1 = tri_indices[f, 1]
+        i2 = tri_indices[f, 2]
+        idx = wp.vec3i(i0, i1, i2)
+        mat = tri_material[f]
+        area = tri_area[f]
+        thicken = material_thicken[mat]
+        inv_dm = tri_inv_dm[f]
+
+        du, dv = st.shape_gradients(inv_dm)
+        xu, xv, G00, G11, G01 = st.deformation(x[i0], x[i1], x[i2], inv_dm)
+        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
+
+        # lumped mass: a third of the face's mass to each node (ARCSim compute_masses)
+        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        g = gravity[0]
+        c = dt * (dt + damping_stiffness)
+        eye = wp.identity(n=3, dtype=scalar)
+        for a in range(3):
+            pa = particle_pin[idx[a]] >= 0
+            hv = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+            for b in range(3):
+                h_ab = st.hessian_block(a, b, du, dv, xu, xv, k, G00, G11, area)
+                hv += h_ab * v[idx[b]]
+                add_block(values, rhs, pin_dv, tri_block_slot[f, 3 * a + b], idx[a], idx[b], pa,
+                          particle_pin[idx[b]] >= 0, c * h_ab)
+            if not pa:
+                fa = st.node_force(a, du, dv, xu, xv, k, G00, G11, G01, area)
+                b_a = dt * (fa + node_mass * g - damping_mass * node_mass * v[idx[a]]) - c * hv
+                wp.atomic_add(rhs, idx[a], b_a)
+                wp.atomic_add(values, tri_block_slot[f, 4 * a], ((scalar(1.0) + dt * damping_mass) * node_mass) * eye)
+
+    @wp.kernel
+    def hinges(
+        # Model:
+        hinge_indices: wp.array2d(dtype=wp.int32),
+        hinge_material: wp.array(dtype=wp.int32),
+        hinge_rest_angle: wp.array(dtype=scalar),
+        hinge_rest_length: wp.array(dtype=scalar),
+        hinge_rest_area: wp.array(dtype=scalar),
+        hinge_direction: wp.array(dtype=vec2),
+        hinge_block_slot: wp.array2d(dtype=wp.int32),
+        particle_pin: wp.array(dtype=wp.int32),
+        material_bending: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        pin_dv: wp.array(dtype=vec3),
+        dt: scalar,
+        damping_stiffness: scalar,
+        # out:
+        values: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+    ):
+        e = wp.tid()
+        idx = wp.vec4i(hinge_indices[e, 0], hinge_indices[e, 1], hinge_indices[e, 2], hinge_indices[e, 3])
+        x0 = x[idx[0]]
+        x1 = x[idx[1]]
+        x2 = x[idx[2]]
+        x3 = x[idx[3]]
+        mat = hinge_material[e]
+        length = hinge_rest_length[e]
+        area = hinge_rest_area[e]
+        theta = bd.dihedral_angle(x0, x1, x2, x3)
+        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
+        # kappa = -ke l^2 / (4 (A0 + A1)); f = kappa (theta - rest) dtheta; H = -kappa dtheta dtheta^T (Gauss-Newton)
+        kappa = -ke * length * length / (scalar(4.0) * area)
+        g0, g1, g2, g3 = bd.angle_gradient(x0, x1, x2, x3)
+        grads = wp.matrix_from_rows(g0, g1, g2, g3)
+        gv = wp.dot(g0, v[idx[0]]) + wp.dot(g1, v[idx[1]]) + wp.dot(g2, v[idx[2]]) + wp.dot(g3, v[idx[3]])
+        c = dt * (dt + damping_stiffness)
+        for a in range(4):
+            ga = grads[a]
+            pa = particle_pin[idx[a]] >= 0
+            if not pa:
+                b_a = dt * kappa * (theta - hinge_rest_angle[e]) * ga + (c * kappa * gv) * ga
+                wp.atomic_add(rhs, idx[a], b_a)
+            for b in range(4):
+                blk = (-c * kappa) * wp.outer(ga, grads[b])
+                add_block(values, rhs, pin_dv, hinge_block_slot[e, 4 * a + b], idx[a], idx[b], pa,
+                          particle_pin[idx[b]] >= 0, blk)
+
+    @wp.kernel
+    def wind(
+        # Model:
+        tri_indices: wp.array2d(dtype=wp.int32),
+        tri_area: wp.array(dtype=scalar),
+        particle_pin: wp.array(dtype=wp.int32),
+        wind_velocity: wp.array(dtype=vec3),
+        wind_density: wp.array(dtype=scalar),
+        wind_drag: wp.array(dtype=scalar),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        dt: scalar,
+        # out:
+        rhs: wp.array(dtype=vec3),
+    ):
+        # ARCSim wind_force (SPEC §1.4): normal pressure rho A |vn| vn n plus tangential drag; no Jacobian.
+        f = wp.tid()
+        i0 = tri_indices[f, 0]
+        i1 = tri_indices[f, 1]
+        i2 = tri_indices[f, 2]
+        n = wp.normalize(wp.cross(x[i1] - x[i0], x[i2] - x[i0]))
+        v_rel = wind_velocity[0] - (v[i0] + v[i1] + v[i2]) / scalar(3.0)
+        vn = wp.dot(n, v_rel)
+        area = tri_area[f]
+        force = wind_density[0] * area * wp.abs(vn) * vn * n + wind_drag[0] * area * (v_rel - vn * n)
+        share = (dt / scalar(3.0)) * force
+        if particle_pin[i0] < 0:
+            wp.atomic_add(rhs, i0, share)
+        if particle_pin[i1] < 0:
+            wp.atomic_add(rhs, i1, share)
+        if particle_pin[i2] < 0:
+            wp.atomic_add(rhs, i2, share)
+
+    @wp.kernel
+    def handles(
+        # Model:
+        handle_particle: wp.array(dtype=wp.int32),
+        handle_stiffness: wp.array(dtype=scalar),
+        particle_diag_slot: wp.array(dtype=wp.int32),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        # Control:
+        handle_target: wp.array(dtype=vec3),
+        handle_offset: wp.array(dtype=vec3),
+        dt: scalar,
+        # out:
+        values: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+    ):
+        # soft penalty spring 1/2 k |x - target|^2 (ARCSim EqCon per axis), linearised implicitly
+        h = wp.tid()
+        p = handle_particle[h]
+        k = handle_stiffness[h]
+        c = x[p] - (handle_target[h] + handle_offset[h])
+        wp.atomic_add(values, particle_diag_slot[p], (dt * dt * k) * wp.identity(n=3, dtype=scalar))
+        wp.atomic_sub(rhs, p, (dt * k) * (c + dt * v[p]))
+
+    @wp.kernel
+    def external_forces(
+        particle_pin: wp.array(dtype=wp.int32),
+        # Control:
+        particle_force: wp.array(dtype=vec3),
+        dt: scalar,
+        # out:
+        rhs: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_pin[i] < 0:
+            wp.atomic_add(rhs, i, dt * particle_force[i])
+
+    @wp.kernel
+    def integrate(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        dv: wp.array(dtype=vec3),
+        dt: scalar,
+        # out:
+        x_out: wp.array(dtype=vec3),
+        v_out: wp.array(dtype=vec3),
+    ):
+        # v <- v + dv; x <- x + dt v (ARCSim step_mesh)
+        i = wp.tid()
+        v_new = v[i] + dv[i]
+        v_out[i] = v_new
+        x_out[i] = x[i] + dt * v_new
+
+    @wp.kernel
+    def face_energy(
+        tri_indices: wp.array2d(dtype=wp.int32),
+        tri_material: wp.array(dtype=wp.int32),
+        tri_inv_dm: wp.array(dtype=mat22),
+        tri_area: wp.array(dtype=scalar),
+        material_density: wp.array(dtype=scalar),
+        material_stretching: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        lut_weight: wp.array(dtype=vec3),
+        lut_row: wp.array(dtype=wp.int32),
+        gravity: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        # out: [kinetic, stretching, gravity potential]
+        energy: wp.array(dtype=scalar),
+    ):
+        f = wp.tid()
+        i0 = tri_indices[f, 0]
+        i1 = tri_indices[f, 1]
+        i2 = tri_indices[f, 2]
+        mat = tri_material[f]
+        area = tri_area[f]
+        thicken = material_thicken[mat]
+        xu, xv, G00, G11, G01 = st.deformation(x[i0], x[i1], x[i2], tri_inv_dm[f])
+        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
+        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        vv = wp.dot(v[i0], v[i0]) + wp.dot(v[i1], v[i1]) + wp.dot(v[i2], v[i2])
+        wp.atomic_add(energy, 0, scalar(0.5) * node_mass * vv)
+        wp.atomic_add(energy, 1, area * st.energy_density(k, G00, G11, G01))
+        wp.atomic_add(energy, 2, -node_mass * wp.dot(gravity[0], x[i0] + x[i1] + x[i2]))
+
+    @wp.kernel
+    def hinge_energy(
+        hinge_indices: wp.array2d(dtype=wp.int32),
+        hinge_material: wp.array(dtype=wp.int32),
+        hinge_rest_angle: wp.array(dtype=scalar),
+        hinge_rest_length: wp.array(dtype=scalar),
+        hinge_rest_area: wp.array(dtype=scalar),
+        hinge_direction: wp.array(dtype=vec2),
+        material_bending: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        x: wp.array(dtype=vec3),
+        # out: [bending]
+        energy: wp.array(dtype=scalar),
+    ):
+        e = wp.tid()
+        x0 = x[hinge_indices[e, 0]]
+        x1 = x[hinge_indices[e, 1]]
+        x2 = x[hinge_indices[e, 2]]
+        x3 = x[hinge_indices[e, 3]]
+        mat = hinge_material[e]
+        length = hinge_rest_length[e]
+        area = hinge_rest_area[e]
+        theta = bd.dihedral_angle(x0, x1, x2, x3)
+        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
+        d = theta - hinge_rest_angle[e]
+        # E = ke l^2 / (8 (A0 + A1)) (theta - rest)^2 (Bridson et al. 2003 as in ARCSim)
+        wp.atomic_add(energy, 0, ke * length * length / (scalar(8.0) * area) * d * d)
+
+    return SimpleNamespace(
+        pin_rows=pin_rows,
+        faces=faces,
+        hinges=hinges,
+        wind=wind,
+        handles=handles,
+        external_forces=external_forces,
+        integrate=integrate,
+        face_energy=face_energy,
+        hinge_energy=hinge_energy,
+    )
+
+
+# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
+for _scalar in (wp.float32, wp.float64):
+    implicit_kernels(_scalar)

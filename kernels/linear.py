@@ -1,0 +1,157 @@
+"""Conjugate-gradient kernels for the 3x3-block system, and the scatter of the solve's adjoint onto A.
+
+Why a whole CG in one launch: on the CPU Warp runs each kernel on one thread and a launch costs ~20 us, while
+``warp.optim.linear.cg`` spends most of its time in tile-based dot products that are slow there (measured in
+``benchmarks/cg_solvers.py``). One sequential launch that loops over rows and iterations avoids both costs.
+On CUDA the library solver (many threads, graph capture) is the right tool, and the host code uses it there.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from warpcloth.kernels.types import types
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def linear_kernels(scalar):
+    t = types(scalar)
+    vec3, mat33 = t.vec3, t.mat33
+
+    @wp.func
+    def jacobi_inverse(block: mat33, use_block: int):
+        if use_block != 0:
+            return wp.inverse(block)
+        zero = scalar(0.0)
+        return mat33(
+            scalar(1.0) / block[0, 0], zero, zero,
+            zero, scalar(1.0) / block[1, 1], zero,
+            zero, zero, scalar(1.0) / block[2, 2],
+        )
+
+    @wp.kernel
+    def cg_sequential(
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        values: wp.array(dtype=mat33),
+        diag_slot: wp.array(dtype=wp.int32),
+        b: wp.array(dtype=vec3),
+        rtol: wp.float64,
+        atol: wp.float64,
+        max_iters: int,
+        block_jacobi: int,
+        # scratch:
+        r: wp.array(dtype=vec3),
+        z: wp.array(dtype=vec3),
+        p: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        precond: wp.array(dtype=mat33),
+        # out:
+        x: wp.array(dtype=vec3),
+        info: wp.array(dtype=wp.float64),
+    ):
+        # Launched with dim 1: the whole preconditioned CG loop runs on one thread. Dot products accumulate in
+        # float64 so float32 systems still reach tight relative tolerances.
+        n = b.shape[0]
+        bb = wp.float64(0.0)
+        rz = wp.float64(0.0)
+        for i in range(n):
+            precond[i] = jacobi_inverse(values[diag_slot[i]], block_jacobi)
+            x[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+            r[i] = b[i]
+            z[i] = precond[i] * b[i]
+            p[i] = z[i]
+            bb += wp.float64(wp.dot(b[i], b[i]))
+            rz += wp.float64(wp.dot(b[i], z[i]))
+        threshold = wp.max(rtol * wp.sqrt(bb), atol)
+        rnorm = wp.sqrt(bb)
+        it = int(0)
+        while it < max_iters and rnorm > threshold:
+            pq = wp.float64(0.0)
+            for i in range(n):
+                acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+                for k in range(offsets[i], offsets[i + 1]):
+                    acc += values[k] * p[columns[k]]
+                q[i] = acc
+                pq += wp.float64(wp.dot(p[i], acc))
+            alpha = scalar(rz / pq)
+            rr = wp.float64(0.0)
+            rz_new = wp.float64(0.0)
+            for i in range(n):
+                x[i] = x[i] + alpha * p[i]
+                r[i] = r[i] - alpha * q[i]
+                z[i] = precond[i] * r[i]
+                rr += wp.float64(wp.dot(r[i], r[i]))
+                rz_new += wp.float64(wp.dot(r[i], z[i]))
+            beta = scalar(rz_new / rz)
+            rz = rz_new
+            for i in range(n):
+                p[i] = z[i] + beta * p[i]
+            rnorm = wp.sqrt(rr)
+            it += 1
+        info[0] = wp.float64(it)
+        info[1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
+
+    @wp.kernel
+    def residual_norms(
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        values: wp.array(dtype=mat33),
+        b: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        # out: [|b - A x|^2, |b|^2]
+        sums: wp.array(dtype=wp.float64),
+    ):
+        i = wp.tid()
+        acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        for k in range(offsets[i], offsets[i + 1]):
+            acc += values[k] * x[columns[k]]
+        r = b[i] - acc
+        wp.atomic_add(sums, 0, wp.float64(wp.dot(r, r)))
+        wp.atomic_add(sums, 1, wp.float64(wp.dot(b[i], b[i])))
+
+    @wp.kernel
+    def solve_adjoint_scatter(
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        lam: wp.array(dtype=vec3),
+        solution: wp.array(dtype=vec3),
+        # out:
+        values_grad: wp.array(dtype=mat33),
+        b_grad: wp.array(dtype=vec3),
+    ):
+        # dL/db = lam and dL/dA_ij = -lam_i dv_j^T on stored blocks (SPEC §4.1)
+        i = wp.tid()
+        b_grad[i] = b_grad[i] + lam[i]
+        for k in range(offsets[i], offsets[i + 1]):
+            values_grad[k] = values_grad[k] - wp.outer(lam[i], solution[columns[k]])
+
+    @wp.kernel
+    def check_state(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        max_speed: scalar,
+        # out: [first bad particle + 1 (0 if none)]
+        status: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        xi = x[i]
+        vi = v[i]
+        finite = wp.isfinite(xi) and wp.isfinite(vi)
+        if not finite or wp.length(vi) > max_speed:
+            wp.atomic_max(status, 0, i + 1)
+
+    return SimpleNamespace(
+        cg_sequential=cg_sequential,
+        residual_norms=residual_norms,
+        solve_adjoint_scatter=solve_adjoint_scatter,
+        check_state=check_state,
+    )
+
+
+# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
+for _scalar in (wp.float32, wp.float64):
+    linear_kernels(_scalar)

@@ -1,0 +1,19 @@
+"""Vector and matrix types for one scalar precision."""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+
+@functools.cache
+def types(scalar):
+    """Return the vec/mat types used by the kernels for ``scalar`` (``wp.float32`` or ``wp.float64``)."""
+    return SimpleNamespace(
+        scalar=scalar,
+        vec2=wp.types.vector(2, scalar),
+        vec3=wp.types.vector(3, scalar),
+        vec4=wp.types.vector(4, scalar),
+        mat22=wp.types.matrix((2, 2), scalar),
+        mat33=wp.types.matrix((3, 3), scalar),
+    )

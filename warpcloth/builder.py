@@ -1,0 +1,426 @@
+"""Host-side ModelBuilder: collects cloth meshes, materials, handles and scene forces, then finalises a Model."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import warp as wp
+
+from warpcloth.lookup import fold_direction, stretching_lut
+from warpcloth.materials import Material
+from warpcloth.model import Model, Motion
+from warpcloth import mesh_io
+
+DEFAULT_HANDLE_STIFFNESS = 1.0e3
+"""ARCSim's ``magic.handle_stiffness`` [N/m]."""
+
+
+def _finite_vector(name: str, value, length: int = 3) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (length,):
+        raise ValueError(f"{name} must have {length} components, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has a non-finite component: {arr.tolist()}")
+    return arr
+
+
+def _motion(name: str, motion) -> Motion | None:
+    if motion is None:
+        return None
+    keys = list(motion)
+    if not keys:
+        raise ValueError(f"{name}: motion needs at least one (time, offset) keyframe")
+    times = np.array([float(k[0]) for k in keys])
+    offsets = np.array([_finite_vector(f"{name} motion offset {i}", k[1]) for i, k in enumerate(keys)])
+    if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0.0):
+        raise ValueError(f"{name}: motion key times must be finite and strictly increasing, got {times.tolist()}")
+    return Motion(times, offsets)
+
+
+def _local_frame_uv(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Material coordinates for meshes without ``vt``: each triangle in its own 2D frame (rest = initial shape)."""
+    x0, x1, x2 = (positions[triangles[:, c]] for c in range(3))
+    e1, e2 = x1 - x0, x2 - x0
+    l1 = np.linalg.norm(e1, axis=1)
+    n = np.cross(e1, e2)
+    nn = np.linalg.norm(n, axis=1)
+    bad = np.flatnonzero((l1 <= 0.0) | (nn <= 1e-300))
+    if bad.size:
+        t = int(bad[0])
+        raise ValueError(f"triangle {t} {triangles[t].tolist()} is degenerate (zero area) in its initial shape")
+    u = e1 / l1[:, None]
+    v = np.cross(n / nn[:, None], u)
+    uv = np.zeros((len(triangles), 3, 2))
+    uv[:, 1, 0] = l1
+    uv[:, 2, 0] = np.einsum("ij,ij->i", e2, u)
+    uv[:, 2, 1] = np.einsum("ij,ij->i", e2, v)
+    return uv
+
+
+class ModelBuilder:
+    """Collects a scene on the host (NumPy) and ``finalize``s it into a device ``Model``.
+
+    Example:
+        >>> b = ModelBuilder()
+        >>> b.add_cloth_grid((16, 16), (1.0, 1.0), material=preset("gray-interlock"))
+        >>> model = b.finalize(device="cpu", requires_grad=True)
+    """
+
+    def __init__(self, *, gravity: Sequence[float] = (0.0, 0.0, -9.8)):
+        self.gravity = _finite_vector("gravity", gravity)
+        self._positions: list[np.ndarray] = []
+        self._velocities: list[np.ndarray] = []
+        self._triangles: list[np.ndarray] = []
+        self._tri_uv: list[np.ndarray] = []
+        self._tri_material: list[np.ndarray] = []
+        self._rest_angle_initial: list[bool] = []
+        self._materials: list[Material] = []
+        self._particle_count = 0
+        self._handles: list[tuple[int, float, Motion | None]] = []
+        self._pins: list[tuple[int, Motion | None]] = []
+        self.wind: tuple[np.ndarray, float, float] | None = None
+        self.damping_mass = 0.0
+        self.damping_stiffness = 0.0
+
+    @property
+    def particle_count(self) -> int:
+        return self._particle_count
+
+    # -- cloth -----------------------------------------------------------------------------------------------------
+    def add_material(self, material: Material) -> int:
+        """Register a material (validated) and return its index; the same object is registered once."""
+        for i, m in enumerate(self._materials):
+            if m is material:
+                return i
+        material.validate()
+        self._materials.append(material)
+        return len(self._materials) - 1
+
+    def add_cloth_mesh(
+        self,
+        mesh: mesh_io.TriangleMesh,
+        *,
+        material: Material,
+        vel: Sequence[float] = (0.0, 0.0, 0.0),
+        rest_angle: str = "flat",
+    ) -> int:
+        """Add a cloth from a triangle mesh (positions used as given) and return the index of its first particle.
+
+        Args:
+            mesh: positions [m], triangles, and optional per-corner material coordinates ``tri_uv`` [m]. Without
+                ``tri_uv`` each triangle's rest shape is its initial shape, in an arbitrary in-plane frame (so
+                anisotropic materials have no consistent warp/weft direction: prefer isotropic ones).
+            material: the cloth's material.
+            vel: initial velocity of every particle [m/s].
+            rest_angle: ``"flat"`` (ARCSim's default: rest dihedral angle 0) or ``"initial"`` (the initial shape's).
+        """
+        if rest_angle not in ("flat", "initial"):
+            raise ValueError(f"rest_angle must be 'flat' or 'initial', got {rest_angle!r}")
+        positions = np.asarray(mesh.positions, dtype=np.float64)
+        triangles = np.asarray(mesh.triangles, dtype=np.int64)
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"mesh positions must have shape (N, 3), got {positions.shape}")
+        if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
+            raise ValueError(f"mesh triangles must have shape (T, 3) with T > 0, got {triangles.shape}")
+        tri_uv = None if mesh.tri_uv is None else np.asarray(mesh.tri_uv, dtype=np.float64)
+        mesh_io.validate_triangles(positions, triangles, tri_uv)
+        if tri_uv is None:
+            tri_uv = _local_frame_uv(positions, triangles)
+        velocity = _finite_vector("vel", vel)
+        mat = self.add_material(material)
+        self._positions.append(positions)
+        self._velocities.append(np.tile(velocity, (len(positions), 1)))
+        self._triangles.append(triangles + self._particle_count)
+        self._tri_uv.append(tri_uv)
+        self._tri_material.append(np.full(len(triangles), mat, dtype=np.int32))
+        self._rest_angle_initial.append(rest_angle == "initial")
+        first = self._particle_count
+        self._particle_count += len(positions)
+        return first
+
+    def add_cloth_grid(
+        self,
+        res: Sequence[int],
+        size: Sequence[float],
+        *,
+        material: Material,
+        pos: Sequence[float] = (0.0, 0.0, 0.0),
+        rot: np.ndarray | None = None,
+        vel: Sequence[float] = (0.0, 0.0, 0.0),
+    ) -> int:
+        """Add a flat rectangular cloth of ``res`` = (cells_x, cells_y) cells and ``size`` = (width, height) [m].
+
+        The grid lies in its local XY plane with its corner at the origin (material coordinates = local XY),
+        vertices row-major with x fastest; it is rotated by ``rot`` (3x3) and then translated by ``pos``.
+        """
+        res = tuple(int(r) for r in res)
+        if len(res) != 2 or min(res) < 1:
+            raise ValueError(f"res must be two positive cell counts, got {res}")
+        size = _finite_vector("size", size, 2)
+        if np.any(size <= 0.0):
+            raise ValueError(f"size must be positive, got {size.tolist()}")
+        mesh = mesh_io.grid_mesh(res[0], res[1], float(size[0]), float(size[1]))
+        R = np.eye(3) if rot is None else np.asarray(rot, dtype=np.float64)
+        if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise ValueError("rot must be a 3x3 rotation matrix")
+        mesh.positions = mesh.positions @ R.T + _finite_vector("pos", pos)
+        return self.add_cloth_mesh(mesh, material=material, vel=vel)
+
+    def add_cloth_obj(
+        self,
+        path,
+        *,
+        material: Material,
+        scale: float = 1.0,
+        rot: np.ndarray | None = None,
+        pos: Sequence[float] = (0.0, 0.0, 0.0),
+        vel: Sequence[float] = (0.0, 0.0, 0.0),
+    ) -> int:
+        """Add a cloth from an OBJ file (``vt`` = material coordinates), transformed like ARCSim's ``transform``:
+        scale (positions and material coordinates), then rotate, then translate."""
+        mesh = mesh_io.load_obj(path, scale=scale)
+        if rot is not None:
+            mesh.positions = mesh.positions @ np.asarray(rot, dtype=np.float64).T
+        mesh.positions = mesh.positions + _finite_vector("pos", pos)
+        return self.add_cloth_mesh(mesh, material=material, vel=vel)
+
+    def add_cloth_usd(self, path, *, material: Material, prim_path: str | None = None,
+                      vel: Sequence[float] = (0.0, 0.0, 0.0)) -> int:
+        """Add a cloth from a USD mesh prim (material coordinates from its ``st``/``uv`` primvar if present)."""
+        return self.add_cloth_mesh(mesh_io.load_usd_mesh(path, prim_path=prim_path), material=material, vel=vel)
+
+    # -- handles -----------------------------------------------------------------------------------------------------
+    def _check_particle(self, what: str, particle: int) -> int:
+        p = int(particle)
+        if not 0 <= p < self._particle_count:
+            raise ValueError(f"{what}: particle {particle} out of range [0, {self._particle_count})")
+        return p
+
+    def add_handle(self, particle: int, *, stiffness: float = DEFAULT_HANDLE_STIFFNESS, motion=None) -> int:
+        """Hold ``particle`` near a target with a soft penalty spring ``1/2 k |x - target|^2`` (ARCSim handles).
+
+        The target starts at the particle's initial position; ``Control.handle_target`` can move it, and
+        ``motion`` (a list of ``(time [s], (dx, dy, dz) [m])`` keyframes, piecewise linear) adds a scripted offset.
+        """
+        p = self._check_particle("add_handle", particle)
+        k = float(stiffness)
+        if not math.isfinite(k) or k < 0.0:
+            raise ValueError(f"handle on particle {p}: stiffness must be finite and >= 0, got {stiffness}")
+        self._handles.append((p, k, _motion(f"handle on particle {p}", motion)))
+        return len(self._handles) - 1
+
+    def add_pin(self, particle: int, *, motion=None) -> int:
+        """Fix ``particle`` exactly to a target (hard constraint: its velocity is prescribed each step)."""
+        p = self._check_particle("add_pin", particle)
+        if any(q == p for q, _ in self._pins):
+            raise ValueError(f"particle {p} is pinned twice")
+        self._pins.append((p, _motion(f"pin on particle {p}", motion)))
+        return len(self._pins) - 1
+
+    # -- scene forces --------------------------------------------------------------------------------------------
+    def set_wind(self, velocity: Sequence[float], *, density: float = 1.0, drag: float = 0.0) -> None:
+        """Constant wind (ARCSim ``wind_force``): normal pressure ``density*A*|vn|*vn`` and tangential ``drag*A*vt``.
+
+        ARCSim's defaults are density 1 (not air's 1.2) and drag 0.
+        """
+        v = _finite_vector("wind velocity", velocity)
+        for name, val in (("wind density", density), ("wind drag", drag)):
+            if not math.isfinite(val) or val < 0.0:
+                raise ValueError(f"{name} must be finite and >= 0, got {val}")
+        self.wind = (v, float(density), float(drag))
+
+    def set_damping(self, *, mass: float = 0.0, stiffness: float = 0.0) -> None:
+        """Rayleigh damping: ``mass`` alpha [1/s] (force -alpha M v), ``stiffness`` beta [s] (force -beta K v)."""
+        for name, val in (("damping mass", mass), ("damping stiffness", stiffness)):
+            if not math.isfinite(val) or val < 0.0:
+                raise ValueError(f"{name} must be finite and >= 0, got {val}")
+        self.damping_mass = float(mass)
+        self.damping_stiffness = float(stiffness)
+
+    # -- finalize ---------------------------------------------------------------------------------------------------
+    def finalize(self, device=None, *, requires_grad: bool = False, dtype=wp.float32) -> Model:
+        """Build the device Model.
+
+        Args:
+            device: Warp device (``"cpu"``, ``"cuda:0"``, ...); default: Warp's default device.
+            requires_grad: allocate gradients for the differentiable arrays (materials, gravity, wind, states).
+            dtype: ``wp.float32`` (default) or ``wp.float64``.
+        """
+        if not self._triangles:
+            raise ValueError("the model has no cloth: add one with add_cloth_grid/add_cloth_mesh first")
+        if dtype not in (wp.float32, wp.float64):
+            raise ValueError(f"dtype must be wp.float32 or wp.float64, got {dtype}")
+        device = wp.get_device(device)
+        from warpcloth.kernels.types import types
+
+        t = types(dtype)
+        positions = np.concatenate(self._positions)
+        velocities = np.concatenate(self._velocities)
+        triangles = np.concatenate(self._triangles).astype(np.int32)
+        tri_uv = np.concatenate(self._tri_uv)
+        tri_material = np.concatenate(self._tri_material)
+        n = len(positions)
+
+        dm = np.stack([tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]], axis=-1)  # (T, 2, 2) columns
+        det = np.linalg.det(dm)
+        area = 0.5 * det
+        inv_dm = np.linalg.inv(dm)
+
+        hinges, h_uv0, h_uv1, h_area, h_mat = self._hinges(triangles, tri_uv, area, tri_material)
+        rest_length = np.linalg.norm(h_uv0[:, 1] - h_uv0[:, 0], axis=1) if len(hinges) else np.zeros(0)
+        direction = (
+            np.stack([fold_direction(h_uv0[:, 1] - h_uv0[:, 0]), fold_direction(h_uv1[:, 1] - h_uv1[:, 0])], -1)
+            if len(hinges)
+            else np.zeros((0, 2))
+        )
+        rest_angle = np.zeros(len(hinges))
+        initial = np.concatenate([np.full(len(tr), f) for tr, f in zip(self._triangles, self._rest_angle_initial)])
+        if len(hinges) and initial.any():
+            theta = _dihedral_angles(positions, hinges)
+            face0_initial = initial[self._hinge_face0]
+            rest_angle = np.where(face0_initial, theta, 0.0)
+
+        offsets, columns, tri_slot, hinge_slot, diag_slot = _block_structure(n, triangles, hinges)
+
+        pin_of = np.full(n, -1, dtype=np.int32)
+        for q, (p, _) in enumerate(self._pins):
+            pin_of[p] = q
+        for p, _, _ in self._handles:
+            if pin_of[p] >= 0:
+                raise ValueError(f"particle {p} has both a hard pin and a soft handle; keep one")
+
+        def arr(values, dtype_, rg=False):
+            return wp.array(values, dtype=dtype_, device=device, requires_grad=rg and requires_grad)
+
+        scalar = t.scalar
+        lut_w, lut_r = stretching_lut()
+        mats = self._materials
+        model = Model(
+            device=device,
+            scalar=scalar,
+            requires_grad=requires_grad,
+            particle_count=n,
+            particle_x0=arr(positions, t.vec3, True),
+            particle_v0=arr(velocities, t.vec3, True),
+            particle_pin=arr(pin_of, wp.int32),
+            particle_diag_slot=arr(diag_slot, wp.int32),
+            tri_count=len(triangles),
+            tri_indices=arr(triangles, wp.int32),
+            tri_material=arr(tri_material, wp.int32),
+            tri_inv_dm=arr(inv_dm, t.mat22),
+            tri_area=arr(area, scalar),
+            tri_block_slot=arr(tri_slot, wp.int32),
+            hinge_count=len(hinges),
+            hinge_indices=arr(hinges.reshape(-1, 4), wp.int32),
+            hinge_material=arr(h_mat, wp.int32),
+            hinge_rest_angle=arr(rest_angle, scalar),
+            hinge_rest_length=arr(rest_length, scalar),
+            hinge_rest_area=arr(h_area, scalar),
+            hinge_direction=arr(direction.reshape(-1, 2), t.vec2),
+            hinge_block_slot=arr(hinge_slot.reshape(-1, 16), wp.int32),
+            material_count=len(mats),
+            material_names=[m.name for m in mats],
+            material_density=arr(np.array([m.density for m in mats]), scalar, True),
+            material_stretching=arr(np.array([m.stretching for m in mats]), scalar, True),
+            material_bending=arr(np.array([m.bending for m in mats]), scalar, True),
+            material_thicken=arr(np.array([m.thicken for m in mats]), scalar),
+            lut_weight=arr(lut_w, t.vec3),
+            lut_row=arr(lut_r, wp.int32),
+            gravity=arr(self.gravity[None, :], t.vec3, True),
+            wind_velocity=None if self.wind is None else arr(self.wind[0][None, :], t.vec3, True),
+            wind_density=None if self.wind is None else arr(np.array([self.wind[1]]), scalar, True),
+            wind_drag=None if self.wind is None else arr(np.array([self.wind[2]]), scalar, True),
+            damping_mass=self.damping_mass,
+            damping_stiffness=self.damping_stiffness,
+            handle_count=len(self._handles),
+            handle_particle=arr(np.array([h[0] for h in self._handles], dtype=np.int32), wp.int32),
+            handle_stiffness=arr(np.array([h[1] for h in self._handles]), scalar, True),
+            handle_rest_target=positions[[h[0] for h in self._handles]].reshape(-1, 3),
+            handle_motion=[h[2] for h in self._handles],
+            pin_count=len(self._pins),
+            pin_particle=arr(np.array([p[0] for p in self._pins], dtype=np.int32), wp.int32),
+            pin_rest_target=positions[[p[0] for p in self._pins]].reshape(-1, 3),
+            pin_motion=[p[1] for p in self._pins],
+            bsr_offsets=arr(offsets, wp.int32),
+            bsr_columns=arr(columns, wp.int32),
+            triangles_np=triangles,
+        )
+        return model
+
+    def _hinges(self, triangles, tri_uv, area, tri_material):
+        """Interior edges as (x0, x1, x2, x3) hinges, with each face's material coordinates of the edge."""
+        T = len(triangles)
+        a = triangles.reshape(-1)
+        b = triangles[:, [1, 2, 0]].reshape(-1)
+        c = triangles[:, [2, 0, 1]].reshape(-1)
+        face = np.repeat(np.arange(T), 3)
+        corner = np.tile(np.arange(3), T)
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        key = lo.astype(np.int64) * (int(a.max()) + 1) + hi
+        order = np.argsort(key, kind="stable")
+        key_sorted = key[order]
+        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+        counts = np.diff(np.r_[starts, len(key_sorted)])
+        if np.any(counts > 2):
+            g = int(np.flatnonzero(counts > 2)[0])
+            members = order[starts[g]: starts[g] + counts[g]]
+            raise ValueError(
+                f"non-manifold edge ({a[members[0]]}, {b[members[0]]}) is shared by triangles "
+                f"{sorted(int(face[m]) for m in members)}; an edge may border at most two triangles"
+            )
+        pairs = starts[counts == 2]
+        e0 = order[pairs]
+        e1 = order[pairs + 1]
+        same_direction = a[e0] == a[e1]
+        if np.any(same_direction):
+            g = int(np.flatnonzero(same_direction)[0])
+            raise ValueError(
+                f"triangles {int(face[e0[g]])} and {int(face[e1[g]])} traverse their shared edge "
+                f"({a[e0[g]]}, {b[e0[g]]}) in the same direction: the mesh winding is inconsistent"
+            )
+        hinges = np.stack([a[e0], b[e0], c[e0], c[e1]], axis=1).astype(np.int32)
+        f0, f1 = face[e0], face[e1]
+        k0, k1 = corner[e0], corner[e1]
+        uv0 = np.stack([tri_uv[f0, k0], tri_uv[f0, (k0 + 1) % 3]], axis=1)
+        uv1 = np.stack([tri_uv[f1, (k1 + 1) % 3], tri_uv[f1, k1]], axis=1)  # face 1 runs b -> a
+        self._hinge_face0 = f0
+        return hinges, uv0, uv1, area[f0] + area[f1], tri_material[f0].astype(np.int32)
+
+
+def _dihedral_angles(positions: np.ndarray, hinges: np.ndarray) -> np.ndarray:
+    x0, x1, x2, x3 = (positions[hinges[:, c]] for c in range(4))
+    n0 = np.cross(x1 - x0, x2 - x0)
+    n1 = np.cross(x3 - x0, x1 - x0)
+    n0 /= np.linalg.norm(n0, axis=1, keepdims=True)
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    e = x0 - x1
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    return np.arctan2(np.einsum("ij,ij->i", e, np.cross(n0, n1)), np.einsum("ij,ij->i", n0, n1))
+
+
+def _block_structure(n, triangles, hinges):
+    """Fixed block-sparse pattern of A: every vertex pair that shares a triangle or a hinge.
+
+    Returns CSR ``offsets``/``columns`` and the block slot of each element's vertex pairs.
+    """
+    tri_rows = np.repeat(triangles, 3, axis=1).reshape(-1)
+    tri_cols = np.tile(triangles, (1, 3)).reshape(-1)
+    h_rows = np.repeat(hinges, 4, axis=1).reshape(-1)
+    h_cols = np.tile(hinges, (1, 4)).reshape(-1)
+    diag = np.arange(n)
+    rows = np.concatenate([tri_rows, h_rows, diag]).astype(np.int64)
+    cols = np.concatenate([tri_cols, h_cols, diag]).astype(np.int64)
+    keys = np.unique(rows * n + cols)
+    columns = (keys % n).astype(np.int32)
+    offsets = np.zeros(n + 1, dtype=np.int32)
+    np.add.at(offsets, (keys // n) + 1, 1)
+    offsets = np.cumsum(offsets).astype(np.int32)
+
+    def slot(r, c):
+        return np.searchsorted(keys, r.astype(np.int64) * n + c).astype(np.int32)
+
+    tri_slot = slot(tri_rows, tri_cols).reshape(-1, 9)
+    hinge_slot = slot(h_rows, h_cols).reshape(-1, 16)
+    return offsets, columns, tri_slot, hinge_slot, slot(diag, diag)

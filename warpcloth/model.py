@@ -1,0 +1,196 @@
+"""Model (static), State (per step) and Control (what users optimise), after Newton's data model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from warpcloth.kernels.types import types
+
+
+class State:
+    """Particle state at one instant; the simulator writes a new one every step (never in place on a tape)."""
+
+    def __init__(self, particle_x: wp.array, particle_v: wp.array, time: float = 0.0):
+        self.particle_x = particle_x
+        """Particle positions [m], shape (particle_count,), vec3."""
+        self.particle_v = particle_v
+        """Particle velocities [m/s], shape (particle_count,), vec3."""
+        self.time = time
+        """Simulated time [s] (host value)."""
+
+    def numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities as NumPy arrays (particle_count, 3)."""
+        return self.particle_x.numpy(), self.particle_v.numpy()
+
+
+class Control:
+    """Inputs applied during a step; every array here can carry gradients."""
+
+    def __init__(self, particle_force: wp.array | None, handle_target: wp.array, pin_target: wp.array):
+        self.particle_force = particle_force
+        """External force per particle [N], shape (particle_count,), or None (then nothing is launched for it)."""
+        self.handle_target = handle_target
+        """Base target of each soft handle [m], shape (handle_count,); scripted motion adds to it."""
+        self.pin_target = pin_target
+        """Base target of each hard pin [m], shape (pin_count,); scripted motion adds to it."""
+
+
+@dataclass
+class Motion:
+    """Piecewise-linear keyframed displacement of a handle or pin target (held constant outside the keys)."""
+
+    times: np.ndarray
+    """Key times [s], increasing, shape (K,)."""
+    offsets: np.ndarray
+    """Target displacement at each key [m], shape (K, 3)."""
+
+    def at(self, t: float) -> np.ndarray:
+        return np.array([np.interp(t, self.times, self.offsets[:, d]) for d in range(3)])
+
+
+@dataclass
+class Model:
+    """Everything about a scene that does not change while it is simulated. Built by ``ModelBuilder.finalize``."""
+
+    device: wp.context.Device
+    scalar: type
+    """Scalar type of every float array (wp.float32 or wp.float64)."""
+    requires_grad: bool
+
+    particle_count: int
+    particle_x0: wp.array
+    """Initial particle positions [m], (particle_count,) vec3."""
+    particle_v0: wp.array
+    """Initial particle velocities [m/s], (particle_count,) vec3."""
+    particle_pin: wp.array
+    """Index of the hard pin holding each particle, or -1, (particle_count,) int32."""
+    particle_diag_slot: wp.array
+    """BSR block slot of each particle's diagonal block, (particle_count,) int32."""
+
+    tri_count: int
+    tri_indices: wp.array
+    """Triangle vertex indices, (tri_count, 3) int32."""
+    tri_material: wp.array
+    """Material index of each triangle, (tri_count,) int32."""
+    tri_inv_dm: wp.array
+    """Inverse material-space edge matrix Dm^-1 [1/m], (tri_count,) mat22."""
+    tri_area: wp.array
+    """Material-space (rest) area [m^2], (tri_count,)."""
+    tri_block_slot: wp.array
+    """BSR slots of the 9 vertex-pair blocks of each triangle (row-major a*3+b), (tri_count, 9) int32."""
+
+    hinge_count: int
+    hinge_indices: wp.array
+    """Interior edges as (x0, x1, x2, x3): edge x0-x1, x2 opposite in face 0, x3 in face 1; (hinge_count, 4) int32."""
+    hinge_material: wp.array
+    """Material of each hinge (that of face 0), (hinge_count,) int32."""
+    hinge_rest_angle: wp.array
+    """Rest dihedral angle [rad], (hinge_count,)."""
+    hinge_rest_length: wp.array
+    """Material-space edge length [m], (hinge_count,)."""
+    hinge_rest_area: wp.array
+    """Sum of the two faces' rest areas A0 + A1 [m^2], (hinge_count,)."""
+    hinge_direction: wp.array
+    """Bending-table direction index of the edge in each face's material frame, in [0, 2], (hinge_count,) vec2."""
+    hinge_block_slot: wp.array
+    """BSR slots of the 16 vertex-pair blocks of each hinge, (hinge_count, 16) int32."""
+
+    material_count: int
+    material_names: list[str]
+    material_density: wp.array
+    """Area density [kg/m^2] before thicken, (material_count,)."""
+    material_stretching: wp.array
+    """Stretching table [N/m] before thicken, (material_count, 6, 4)."""
+    material_bending: wp.array
+    """Bending table [N*m] before thicken, (material_count, 3, 5)."""
+    material_thicken: wp.array
+    """ARCSim thicken factor on density, stretching and bending, (material_count,)."""
+    lut_weight: wp.array
+    """Stretching lookup: weights of table rows (0, r+1, r+2) per cell, (27000,) vec3."""
+    lut_row: wp.array
+    """Stretching lookup: angle row r per cell, (27000,) int32."""
+
+    gravity: wp.array
+    """Gravitational acceleration [m/s^2], (1,) vec3."""
+    wind_velocity: wp.array | None
+    """Wind velocity [m/s], (1,) vec3; None when the scene has no wind."""
+    wind_density: wp.array | None
+    """Air density of the wind's normal pressure [kg/m^3], (1,)."""
+    wind_drag: wp.array | None
+    """Tangential drag coefficient [kg/(m^2 s)], (1,)."""
+    damping_mass: float
+    """Rayleigh mass-proportional damping alpha [1/s]."""
+    damping_stiffness: float
+    """Rayleigh stiffness-proportional damping beta [s] (ARCSim's material ``damping``)."""
+
+    handle_count: int
+    handle_particle: wp.array | None
+    """Particle held by each soft handle, (handle_count,) int32."""
+    handle_stiffness: wp.array | None
+    """Soft handle stiffness [N/m], (handle_count,)."""
+    handle_rest_target: np.ndarray
+    """Default handle targets (the particles' initial positions) [m], (handle_count, 3)."""
+    handle_motion: list[Motion | None]
+    pin_count: int
+    pin_particle: wp.array | None
+    """Particle held by each hard pin, (pin_count,) int32."""
+    pin_rest_target: np.ndarray
+    """Default pin targets [m], (pin_count, 3)."""
+    pin_motion: list[Motion | None]
+
+    bsr_offsets: wp.array
+    """Row offsets of the fixed block-sparse structure, (particle_count + 1,) int32."""
+    bsr_columns: wp.array
+    """Block column of each stored block, (nnz,) int32."""
+    triangles_np: np.ndarray = field(repr=False, default=None)
+    """Host copy of tri_indices, for I/O."""
+
+    @property
+    def types(self):
+        return types(self.scalar)
+
+    @property
+    def bsr_nnz(self) -> int:
+        return self.bsr_columns.shape[0]
+
+    def state(self, *, requires_grad: bool | None = None) -> State:
+        """A new State at the model's initial positions and velocities."""
+        rg = self.requires_grad if requires_grad is None else requires_grad
+        return State(
+            wp.clone(self.particle_x0, requires_grad=rg),
+            wp.clone(self.particle_v0, requires_grad=rg),
+        )
+
+    def empty_state(self, *, requires_grad: bool | None = None) -> State:
+        """A State whose arrays are allocated but uninitialised, for a step to write into."""
+        rg = self.requires_grad if requires_grad is None else requires_grad
+        vec3 = self.types.vec3
+        return State(
+            wp.empty(self.particle_count, dtype=vec3, device=self.device, requires_grad=rg),
+            wp.empty(self.particle_count, dtype=vec3, device=self.device, requires_grad=rg),
+        )
+
+    def control(self, *, particle_force: bool = False, requires_grad: bool | None = None) -> Control:
+        """A Control with handle and pin targets at their defaults, and optionally zero external forces."""
+        rg = self.requires_grad if requires_grad is None else requires_grad
+        vec3 = self.types.vec3
+        forces = None
+        if particle_force:
+            forces = wp.zeros(self.particle_count, dtype=vec3, device=self.device, requires_grad=rg)
+        return Control(
+            forces,
+            wp.array(self.handle_rest_target, dtype=vec3, device=self.device, requires_grad=rg),
+            wp.array(self.pin_rest_target, dtype=vec3, device=self.device, requires_grad=rg),
+        )
+
+    def particle_mass(self) -> np.ndarray:
+        """Lumped particle masses [kg] (host), a third of each face's mass per vertex."""
+        dens = self.material_density.numpy() * self.material_thicken.numpy()
+        face_mass = self.tri_area.numpy() * dens[self.tri_material.numpy()]
+        mass = np.zeros(self.particle_count)
+        for c in range(3):
+            np.add.at(mass, self.triangles_np[:, c], face_mass / 3.0)
+        return mass

@@ -1,0 +1,50 @@
+"""Run many steps, on the active tape if there is one."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from warpcloth.model import Control, State
+from warpcloth.simulator import Simulator
+
+
+def rollout(
+    sim: Simulator,
+    state: State,
+    control: Control | Sequence[Control] | Callable[[int], Control] | None = None,
+    *,
+    steps: int,
+    progress: bool = False,
+) -> list[State]:
+    """Simulate ``steps`` steps from ``state`` and return the trajectory ``[state, s1, ..., s_steps]``.
+
+    Every step writes a fresh State, so a surrounding ``wp.Tape`` can differentiate the whole trajectory.
+
+    Args:
+        sim: the Simulator.
+        state: the initial State (kept as the trajectory's first entry).
+        control: one Control for every step, a sequence with one per step, or a function of the step index.
+        steps: number of steps (>= 0).
+        progress: show a tqdm progress bar.
+    """
+    if int(steps) != steps or steps < 0:
+        raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
+    if isinstance(control, Sequence) and len(control) < steps:
+        raise ValueError(f"control has {len(control)} entries but {steps} steps were asked for")
+    trajectory = [state]
+    indices = range(int(steps))
+    if progress:
+        from tqdm import tqdm
+
+        indices = tqdm(indices, desc="simulate", unit="step")
+    for i in indices:
+        if callable(control):
+            c = control(i)
+        elif isinstance(control, Sequence):
+            c = control[i]
+        else:
+            c = control
+        nxt = sim.model.empty_state()
+        sim.step(trajectory[-1], nxt, c)
+        trajectory.append(nxt)
+    return trajectory

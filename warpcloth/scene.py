@@ -1,0 +1,536 @@
+"""Scenes: small TOML files that describe one cloth, its material, handles, pins and scene forces.
+
+Schema (every key is checked: an unknown key or a wrong type is a ``ValueError`` naming the key path)::
+
+    name = "hanging-wind"              # required
+    description = "..."                # optional
+    gravity = [0.0, 0.0, -9.8]         # optional [m/s^2], default (0, 0, -9.8); Z is up
+
+    [sim]                              # required
+    dt = 0.02                          # time step [s], > 0
+    steps = 50                         # number of steps, >= 1
+
+    [solver]                           # optional: fields of warpcloth.simulator.SolverOptions
+    cg_tol = 1e-5
+
+    [cloth]                            # required; exactly one of grid / mesh
+    grid = { res = [16, 16], size = [1.0, 1.0] }    # cells, metres; corner at the origin, in the local XY plane
+    # mesh = "cloth.obj"  or  mesh = { path = "cloth.obj", scale = 1.0 }   # .obj/.usd*, relative to the scene file
+    rot_deg = [90.0, 0.0, 90.0]        # optional rotation, degrees about world X, then Y, then Z (R = Rz Ry Rx)
+    pos = [0.0, -0.5, -0.5]            # optional translation [m], applied after the rotation
+    vel = [0.0, 0.0, 0.0]              # optional initial velocity [m/s]
+    material = "gray-interlock"        # a preset name, or a table (below)
+    thicken = 2.0                      # optional, default 1 (ARCSim's thicken; the seed demos use 2)
+
+    # material tables:
+    #   { mean = ["gray-interlock", "11oz-black-denim"] }                    element-wise mean of presets
+    #   { file = "mat.json", stretching_mult = 1.0, bending_mult = 1.0 }     ARCSim JSON (relative to the scene)
+    #   { density = 0.2, stretching = [[...] x6], bending = [[...] x3] }    raw tables (see warpcloth.materials)
+    #   { density = 0.2, stretch_stiffness = 50.0, shear_stiffness = 10.0,
+    #     poisson_coupling = 0.0, bend_stiffness = 1e-5 }                    Material.isotropic
+
+    [[handles]]                        # soft penalty springs; any number
+    grid_vertex = [0, -1]              # selector, exactly one of: particle = i | grid_vertex = [i, j] |
+                                       #   grid_row = j | grid_column = i   (grid_* need a grid cloth;
+                                       #   negative values count from the end, as in Python)
+    stiffness = 1000.0                 # optional [N/m], default 1e3 (ARCSim)
+    motion = [[0.0, [0, 0, 0]], [1.0, [0, 0, 0.2]]]   # optional keyframes (time [s], offset [m])
+
+    [[pins]]                           # hard pins; same selectors and motion, no stiffness
+    particle = 0
+
+    [wind]                             # optional
+    velocity = [5.0, 0.0, 0.0]         # [m/s], required in the table
+    density = 1.0                      # optional, default 1 (ARCSim)
+    drag = 0.0                         # optional, default 0
+
+    [damping]                          # optional Rayleigh damping
+    mass = 0.0                         # alpha [1/s]
+    stiffness = 0.0                    # beta [s]
+
+A ``grid_row``/``grid_column`` selector adds one handle (or pin) per vertex of that row/column, all with the same
+stiffness and motion. Particle indices are those of the cloth (the scene's only one). Embedded scenes live in
+``warpcloth/scenes/*.toml``; their names are :data:`SCENE_NAMES`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+import os
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from warpcloth import materials as _materials
+from warpcloth import mesh_io
+
+__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "Scene", "load_scene", "scene_from_toml"]
+
+DEFAULT_SCENE = "hanging-wind"
+"""The scene ``warpcloth simulate`` runs when none is named."""
+
+SCENE_NAMES: tuple[str, ...] = tuple(
+    sorted(p.name[: -len(".toml")] for p in resources.files("warpcloth.scenes").iterdir() if p.name.endswith(".toml"))
+)
+"""Names of the embedded scenes."""
+
+_DEFAULT_GRAVITY = (0.0, 0.0, -9.8)
+_DEFAULT_HANDLE_STIFFNESS = 1.0e3  # ARCSim's magic.handle_stiffness [N/m]
+
+
+@dataclass
+class Scene:
+    """A loaded scene: its builder (already holding the cloth, handles and forces) and run settings.
+
+    Attributes:
+        name: Scene name.
+        description: One-line description.
+        dt: Time step [s].
+        steps: Number of steps to simulate.
+        model_builder: A ``ModelBuilder`` with everything added; ``build`` finalises it.
+        solver_options: ``SolverOptions`` for the simulator.
+        source: Where the scene came from (file path, or ``embedded:<name>``).
+        grid_res: (cells_x, cells_y) of a grid cloth, else None; grid vertex (i, j) is particle
+            ``j * (cells_x + 1) + i``.
+    """
+
+    name: str
+    description: str
+    dt: float
+    steps: int
+    model_builder: Any
+    solver_options: Any
+    source: str = "<string>"
+    grid_res: tuple[int, int] | None = None
+
+    def build(self, device=None, requires_grad: bool = False):
+        """Finalises the model and creates its simulator.
+
+        Args:
+            device: Warp device; Warp's default when None.
+            requires_grad: Allocate gradient arrays in the model.
+
+        Returns:
+            ``(model, sim)``: the ``Model`` and a ``Simulator`` with this scene's ``dt`` and solver options.
+        """
+        from warpcloth.simulator import Simulator
+
+        model = self.model_builder.finalize(device=device, requires_grad=requires_grad)
+        sim = Simulator(model, dt=self.dt, options=self.solver_options)
+        return model, sim
+
+
+def load_scene(name_or_path: str | os.PathLike) -> Scene:
+    """Loads an embedded scene by name, or a scene file by path.
+
+    Args:
+        name_or_path: One of :data:`SCENE_NAMES`, or a path to a ``.toml`` file.
+
+    Raises:
+        ValueError: for an unknown name (listing the embedded ones) or an invalid scene (naming the key path).
+        FileNotFoundError: when a path does not exist.
+    """
+    if isinstance(name_or_path, str) and name_or_path in SCENE_NAMES:
+        resource = resources.files("warpcloth.scenes").joinpath(f"{name_or_path}.toml")
+        base = Path(str(resources.files("warpcloth.scenes")))
+        return scene_from_toml(resource.read_text(encoding="utf-8"), source=f"embedded:{name_or_path}", base_dir=base)
+    path = Path(name_or_path)
+    if path.suffix != ".toml" and not path.exists():
+        raise ValueError(
+            f"unknown scene {os.fspath(name_or_path)!r}; embedded scenes: {', '.join(SCENE_NAMES)} "
+            "(or give the path of a .toml scene file)"
+        )
+    text = path.read_text(encoding="utf-8")
+    return scene_from_toml(text, source=os.fspath(path), base_dir=path.resolve().parent)
+
+
+def scene_from_toml(text: str, *, source: str = "<string>", base_dir: str | os.PathLike | None = None) -> Scene:
+    """Parses a scene from TOML text (schema in this module's docstring).
+
+    Args:
+        text: TOML document.
+        source: Name used in error messages.
+        base_dir: Directory against which relative mesh and material paths are resolved (the current directory
+            when None).
+
+    Raises:
+        ValueError: ``"<source>: <key path>: <problem>"`` for invalid TOML, an unknown key, a missing key, a wrong
+            type or an invalid value.
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{source}: invalid TOML: {exc}") from None
+    try:
+        return _parse(data, source=source, base_dir=Path(base_dir) if base_dir is not None else Path.cwd())
+    except _SceneError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Parsing helpers. Each takes the key path of the value it checks, so every error names it.
+
+
+class _SceneError(ValueError):
+    pass
+
+
+def _err(path: str, message: str) -> _SceneError:
+    return _SceneError(f"{path}: {message}" if path else message)
+
+
+def _type_name(value: Any) -> str:
+    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array", dict: "table"}.get(
+        type(value), type(value).__name__
+    )
+
+
+def _table(value: Any, path: str) -> dict:
+    if not isinstance(value, dict):
+        raise _err(path, f"expected a table, got {_type_name(value)}")
+    return value
+
+
+def _check_keys(table: dict, path: str, allowed: tuple[str, ...], required: tuple[str, ...] = ()) -> None:
+    for key in table:
+        if key not in allowed:
+            full = f"{path}.{key}" if path else key
+            raise _err(full, f"unknown key; allowed here: {', '.join(allowed)}")
+    for key in required:
+        if key not in table:
+            full = f"{path}.{key}" if path else key
+            raise _err(full, "missing required key")
+
+
+def _float(value: Any, path: str, *, min_value: float | None = None, strict: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _err(path, f"expected a number, got {_type_name(value)}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise _err(path, f"must be finite, got {x}")
+    if min_value is not None and (x < min_value or (strict and x == min_value)):
+        raise _err(path, f"must be {'>' if strict else '>='} {min_value}, got {x}")
+    return x
+
+
+def _int(value: Any, path: str, *, min_value: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise _err(path, f"expected an integer, got {_type_name(value)}")
+    if min_value is not None and value < min_value:
+        raise _err(path, f"must be >= {min_value}, got {value}")
+    return value
+
+
+def _str(value: Any, path: str) -> str:
+    if not isinstance(value, str):
+        raise _err(path, f"expected a string, got {_type_name(value)}")
+    return value
+
+
+def _vector(value: Any, path: str, n: int = 3) -> tuple[float, ...]:
+    if not isinstance(value, list) or len(value) != n:
+        got = f"an array of {len(value)}" if isinstance(value, list) else _type_name(value)
+        raise _err(path, f"expected an array of {n} numbers, got {got}")
+    return tuple(_float(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+
+def _rotation_xyz_deg(angles: tuple[float, float, float]) -> np.ndarray:
+    """Rotation by angles[0] about X, then angles[1] about Y, then angles[2] about Z (fixed axes)."""
+    ax, ay, az = np.radians(angles)
+    cx, sx, cy, sy, cz, sz = np.cos(ax), np.sin(ax), np.cos(ay), np.sin(ay), np.cos(az), np.sin(az)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    return rz @ ry @ rx
+
+
+class _Context:
+    """Re-raises a ValueError from library code (materials, mesh loading, builder) under a key path."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None and issubclass(exc_type, ValueError) and not isinstance(exc, _SceneError):
+            raise _err(self.path, str(exc)) from None
+        return False
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
+    from warpcloth.builder import ModelBuilder
+
+    _check_keys(
+        data,
+        "",
+        ("name", "description", "gravity", "sim", "solver", "cloth", "handles", "pins", "wind", "damping"),
+        required=("name", "sim", "cloth"),
+    )
+    name = _str(data["name"], "name")
+    description = _str(data.get("description", ""), "description")
+    gravity = _vector(data["gravity"], "gravity") if "gravity" in data else _DEFAULT_GRAVITY
+
+    sim = _table(data["sim"], "sim")
+    _check_keys(sim, "sim", ("dt", "steps"), required=("dt", "steps"))
+    dt = _float(sim["dt"], "sim.dt", min_value=0.0, strict=True)
+    steps = _int(sim["steps"], "sim.steps", min_value=1)
+
+    solver_options = _parse_solver(data.get("solver", {}))
+
+    builder = ModelBuilder(gravity=gravity)
+    first, grid_res, count = _parse_cloth(builder, _table(data["cloth"], "cloth"), base_dir)
+
+    for kind in ("handles", "pins"):
+        entries = data.get(kind, [])
+        if not isinstance(entries, list):
+            raise _err(kind, f"expected an array of tables ([[{kind}]]), got {_type_name(entries)}")
+        for k, entry in enumerate(entries):
+            _parse_attachment(builder, kind, f"{kind}[{k}]", _table(entry, f"{kind}[{k}]"), first, count, grid_res)
+
+    if "wind" in data:
+        wind = _table(data["wind"], "wind")
+        _check_keys(wind, "wind", ("velocity", "density", "drag"), required=("velocity",))
+        velocity = _vector(wind["velocity"], "wind.velocity")
+        density = _float(wind.get("density", 1.0), "wind.density", min_value=0.0)
+        drag = _float(wind.get("drag", 0.0), "wind.drag", min_value=0.0)
+        with _Context("wind"):
+            builder.set_wind(velocity, density=density, drag=drag)
+
+    if "damping" in data:
+        damping = _table(data["damping"], "damping")
+        _check_keys(damping, "damping", ("mass", "stiffness"))
+        mass = _float(damping.get("mass", 0.0), "damping.mass", min_value=0.0)
+        stiffness = _float(damping.get("stiffness", 0.0), "damping.stiffness", min_value=0.0)
+        with _Context("damping"):
+            builder.set_damping(mass=mass, stiffness=stiffness)
+
+    return Scene(
+        name=name,
+        description=description,
+        dt=dt,
+        steps=steps,
+        model_builder=builder,
+        solver_options=solver_options,
+        source=source,
+        grid_res=grid_res,
+    )
+
+
+def _parse_solver(value: Any):
+    """Builds SolverOptions from the [solver] table, checking each key against its fields and their defaults' types."""
+    from warpcloth.simulator import SolverOptions
+
+    table = _table(value, "solver")
+    if dataclasses.is_dataclass(SolverOptions):
+        defaults = {
+            f.name: (f.default if f.default is not dataclasses.MISSING else None) for f in dataclasses.fields(SolverOptions)
+        }
+    else:
+        params = inspect.signature(SolverOptions).parameters
+        defaults = {k: (p.default if p.default is not inspect.Parameter.empty else None) for k, p in params.items()}
+    _check_keys(table, "solver", tuple(defaults))
+    kwargs = {}
+    for key, v in table.items():
+        path = f"solver.{key}"
+        default = defaults[key]
+        if isinstance(default, bool):
+            if not isinstance(v, bool):
+                raise _err(path, f"expected a boolean, got {_type_name(v)}")
+        elif isinstance(default, int):
+            v = _int(v, path)
+        elif isinstance(default, float):
+            v = _float(v, path)
+        elif isinstance(default, str):
+            v = _str(v, path)
+        kwargs[key] = v
+    with _Context("solver"):
+        return SolverOptions(**kwargs)
+
+
+def _parse_cloth(builder, cloth: dict, base_dir: Path) -> tuple[int, tuple[int, int] | None, int]:
+    """Adds the cloth; returns (first particle, grid resolution or None, particle count)."""
+    _check_keys(cloth, "cloth", ("grid", "mesh", "pos", "rot_deg", "vel", "material", "thicken"), required=("material",))
+    if ("grid" in cloth) == ("mesh" in cloth):
+        raise _err("cloth", "give exactly one of 'grid' and 'mesh'")
+    pos = _vector(cloth["pos"], "cloth.pos") if "pos" in cloth else (0.0, 0.0, 0.0)
+    rot = _rotation_xyz_deg(_vector(cloth["rot_deg"], "cloth.rot_deg")) if "rot_deg" in cloth else np.eye(3)
+    vel = _vector(cloth["vel"], "cloth.vel") if "vel" in cloth else (0.0, 0.0, 0.0)
+    thicken = _float(cloth.get("thicken", 1.0), "cloth.thicken", min_value=0.0, strict=True)
+    material = _parse_material(cloth["material"], "cloth.material", thicken, base_dir)
+
+    before = builder.particle_count
+    if "grid" in cloth:
+        grid = _table(cloth["grid"], "cloth.grid")
+        _check_keys(grid, "cloth.grid", ("res", "size"), required=("res", "size"))
+        res = grid["res"]
+        if not isinstance(res, list) or len(res) != 2:
+            raise _err("cloth.grid.res", f"expected an array of 2 integers, got {_type_name(res)}")
+        res = tuple(_int(r, f"cloth.grid.res[{i}]", min_value=1) for i, r in enumerate(res))
+        size = _vector(grid["size"], "cloth.grid.size", 2)
+        for i, s in enumerate(size):
+            if s <= 0.0:
+                raise _err(f"cloth.grid.size[{i}]", f"must be > 0, got {s}")
+        with _Context("cloth"):
+            first = builder.add_cloth_grid(res, size, material=material, pos=pos, rot=rot, vel=vel)
+        grid_res = res
+    else:
+        mesh_value = cloth["mesh"]
+        if isinstance(mesh_value, str):
+            mesh_table = {"path": mesh_value}
+        else:
+            mesh_table = _table(mesh_value, "cloth.mesh")
+        _check_keys(mesh_table, "cloth.mesh", ("path", "scale"), required=("path",))
+        mesh_path = base_dir / _str(mesh_table["path"], "cloth.mesh.path")
+        scale = _float(mesh_table.get("scale", 1.0), "cloth.mesh.scale", min_value=0.0, strict=True)
+        with _Context("cloth.mesh"):
+            if not mesh_path.is_file():
+                raise ValueError(f"file not found: {mesh_path}")
+            if mesh_path.suffix.lower() == ".obj":
+                mesh = mesh_io.load_obj(mesh_path, scale=scale)
+            elif mesh_path.suffix.lower() in (".usd", ".usda", ".usdc"):
+                mesh = mesh_io.load_usd_mesh(mesh_path)
+                mesh.positions = mesh.positions * scale
+                if mesh.tri_uv is not None:
+                    mesh.tri_uv = mesh.tri_uv * scale
+            else:
+                raise ValueError(f"unsupported mesh format {mesh_path.suffix!r} (need .obj, .usd, .usda or .usdc)")
+        # ARCSim's transform order: scale (done on load), rotate, translate.
+        mesh.positions = mesh.positions @ rot.T + np.asarray(pos)
+        with _Context("cloth"):
+            first = builder.add_cloth_mesh(mesh, material=material, vel=vel)
+        grid_res = None
+    return first, grid_res, builder.particle_count - before
+
+
+_MATERIAL_FORMS = (
+    "a preset name",
+    "{ mean = [names] }",
+    "{ file = ..., stretching_mult, bending_mult }",
+    "{ density, stretching, bending }",
+    "{ density, stretch_stiffness, shear_stiffness, poisson_coupling, bend_stiffness }",
+)
+
+
+def _parse_material(value: Any, path: str, thicken: float, base_dir: Path) -> _materials.Material:
+    if isinstance(value, str):
+        with _Context(path):
+            return _materials.preset(value, thicken=thicken)
+    table = _table(value, path) if isinstance(value, dict) else None
+    if table is None:
+        raise _err(path, f"expected a string or a table, got {_type_name(value)}")
+    if "file" in table:
+        _check_keys(table, path, ("file", "stretching_mult", "bending_mult"))
+        file = base_dir / _str(table["file"], f"{path}.file")
+        smult = _float(table.get("stretching_mult", 1.0), f"{path}.stretching_mult", min_value=0.0)
+        bmult = _float(table.get("bending_mult", 1.0), f"{path}.bending_mult", min_value=0.0)
+        with _Context(path):
+            if not file.is_file():
+                raise ValueError(f"file not found: {file}")
+            return _materials.load_material_json(file, stretching_mult=smult, bending_mult=bmult, thicken=thicken)
+    if "mean" in table:
+        _check_keys(table, path, ("mean",))
+        names = table["mean"]
+        if not isinstance(names, list) or not names:
+            raise _err(f"{path}.mean", "expected a non-empty array of preset names")
+        names = [_str(n, f"{path}.mean[{i}]") for i, n in enumerate(names)]
+        with _Context(f"{path}.mean"):
+            return _materials.mean_material(names, thicken=thicken)
+    if "stretching" in table or "bending" in table:
+        _check_keys(table, path, ("density", "stretching", "bending", "name"), required=("density", "stretching", "bending"))
+        density = _float(table["density"], f"{path}.density")
+        tables = {}
+        for key, shape in (("stretching", _materials.STRETCHING_SHAPE), ("bending", _materials.BENDING_SHAPE)):
+            rows = table[key]
+            if not isinstance(rows, list) or len(rows) != shape[0]:
+                raise _err(f"{path}.{key}", f"expected {shape[0]} rows of {shape[1]} numbers")
+            tables[key] = [_vector(r, f"{path}.{key}[{i}]", shape[1]) for i, r in enumerate(rows)]
+        name = _str(table.get("name", "custom"), f"{path}.name")
+        with _Context(path):
+            return _materials.Material(density=density, thicken=thicken, name=name, **tables)
+    if "stretch_stiffness" in table:
+        keys = ("density", "stretch_stiffness", "shear_stiffness", "poisson_coupling", "bend_stiffness", "name")
+        _check_keys(table, path, keys, required=("density", "stretch_stiffness", "shear_stiffness", "bend_stiffness"))
+        kwargs = {k: _float(table[k], f"{path}.{k}") for k in keys[:-1] if k in table}
+        name = _str(table.get("name", "isotropic"), f"{path}.name")
+        with _Context(path):
+            return _materials.Material.isotropic(thicken=thicken, name=name, **kwargs)
+    raise _err(path, "unrecognised material table; use one of: " + "; ".join(_MATERIAL_FORMS))
+
+
+_SELECTORS = ("particle", "grid_vertex", "grid_row", "grid_column")
+
+
+def _grid_index(value: int, extent: int, path: str) -> int:
+    """Python-style index into 0..extent-1."""
+    if not -extent <= value < extent:
+        raise _err(path, f"index {value} out of range for {extent} vertices")
+    return value % extent
+
+
+def _parse_attachment(builder, kind: str, path: str, entry: dict, first: int, count: int, grid_res) -> None:
+    allowed = _SELECTORS + (("stiffness", "motion") if kind == "handles" else ("motion",))
+    _check_keys(entry, path, allowed)
+    given = [s for s in _SELECTORS if s in entry]
+    if len(given) != 1:
+        raise _err(path, f"give exactly one of {', '.join(_SELECTORS)}")
+    selector = given[0]
+    if selector != "particle" and grid_res is None:
+        raise _err(f"{path}.{selector}", "needs a grid cloth (cloth.grid)")
+    nx = grid_res[0] + 1 if grid_res else 0
+    ny = grid_res[1] + 1 if grid_res else 0
+    sel_path = f"{path}.{selector}"
+    value = entry[selector]
+    if selector == "particle":
+        p = _int(value, sel_path, min_value=0)
+        if p >= count:
+            raise _err(sel_path, f"particle {p} out of range: the cloth has {count} particles")
+        particles = [p]
+    elif selector == "grid_vertex":
+        if not isinstance(value, list) or len(value) != 2:
+            raise _err(sel_path, f"expected an array of 2 integers [i, j], got {_type_name(value)}")
+        i = _grid_index(_int(value[0], f"{sel_path}[0]"), nx, f"{sel_path}[0]")
+        j = _grid_index(_int(value[1], f"{sel_path}[1]"), ny, f"{sel_path}[1]")
+        particles = [j * nx + i]
+    elif selector == "grid_row":
+        j = _grid_index(_int(value, sel_path), ny, sel_path)
+        particles = [j * nx + i for i in range(nx)]
+    else:
+        i = _grid_index(_int(value, sel_path), nx, sel_path)
+        particles = [j * nx + i for j in range(ny)]
+
+    motion = None
+    if "motion" in entry:
+        motion = _parse_motion(entry["motion"], f"{path}.motion")
+    with _Context(path):
+        for p in particles:
+            if kind == "handles":
+                stiffness = _float(entry.get("stiffness", _DEFAULT_HANDLE_STIFFNESS), f"{path}.stiffness", min_value=0.0)
+                builder.add_handle(first + p, stiffness=stiffness, motion=motion)
+            else:
+                builder.add_pin(first + p, motion=motion)
+
+
+def _parse_motion(value: Any, path: str) -> list[tuple[float, tuple[float, float, float]]]:
+    if not isinstance(value, list) or not value:
+        raise _err(path, "expected a non-empty array of [time, [dx, dy, dz]] keyframes")
+    keys = []
+    for k, key in enumerate(value):
+        kp = f"{path}[{k}]"
+        if not isinstance(key, list) or len(key) != 2:
+            raise _err(kp, "expected [time, [dx, dy, dz]]")
+        t = _float(key[0], f"{kp}[0]")
+        if keys and t <= keys[-1][0]:
+            raise _err(f"{kp}[0]", f"key times must increase, got {t} after {keys[-1][0]}")
+        keys.append((t, _vector(key[1], f"{kp}[1]")))
+    return keys

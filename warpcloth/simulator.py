@@ -1,0 +1,346 @@
+"""The implicit Euler simulator: one linearised backward-Euler step per time step, differentiable on a wp.Tape.
+
+Per step (SPEC.md §2): assemble the 3x3 block-sparse system A dv = b from per-element kernels, solve it with
+preconditioned conjugate gradients, then x <- x + dt (v + dv). The CG iterations are not taped: the solve records a
+custom adjoint (one adjoint CG solve with the same matrix, SPEC §4.1), and Warp's autodiff of the assembly kernels
+carries the gradient on to positions, velocities, materials, gravity, wind, forces and handle targets.
+A collision stage will slot in after ``_integrate`` (SPEC §3).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, replace
+
+import numpy as np
+import warp as wp
+
+from warpcloth.kernels.implicit import implicit_kernels
+from warpcloth.kernels.linear import linear_kernels
+from warpcloth.model import Control, Model, State
+from warpcloth.tape import active_tape, record_adjoint
+
+
+class SimulationError(RuntimeError):
+    """The simulation diverged (NaN/inf or a speed beyond ``SolverOptions.max_speed``) or a solve failed."""
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Options of the linear solve and of the divergence guard."""
+
+    cg_tol: float = 1.0e-6
+    """Relative residual tolerance |b - A dv| <= cg_tol |b| of the forward and the adjoint CG solves."""
+    cg_atol: float = 1.0e-12
+    """Absolute residual floor (in the units of b, N*s)."""
+    cg_max_iters: int = 1000
+    """Iteration cap of each CG solve."""
+    preconditioner: str = "block_jacobi"
+    """``"block_jacobi"`` (inverse 3x3 diagonal blocks) or ``"jacobi"`` (inverse scalar diagonal)."""
+    cg_backend: str = "auto"
+    """``"sequential"`` (whole CG in one launch: fastest on the CPU), ``"warp"`` (``warp.optim.linear.cg``:
+    for CUDA), or ``"auto"`` (sequential on the CPU, warp on CUDA). See benchmarks/cg_solvers.py."""
+    on_cg_failure: str = "warn"
+    """What a solve that misses its tolerance does: ``"warn"`` (with the residual) or ``"raise"``."""
+    max_speed: float = 1.0e3
+    """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
+
+    def validate(self) -> None:
+        for name in ("cg_tol", "cg_atol", "max_speed"):
+            val = getattr(self, name)
+            if not math.isfinite(val) or val <= 0.0:
+                raise ValueError(f"SolverOptions.{name} must be finite and > 0, got {val}")
+        if int(self.cg_max_iters) < 1:
+            raise ValueError(f"SolverOptions.cg_max_iters must be >= 1, got {self.cg_max_iters}")
+        choices = {
+            "preconditioner": ("block_jacobi", "jacobi"),
+            "cg_backend": ("auto", "sequential", "warp"),
+            "on_cg_failure": ("warn", "raise"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"SolverOptions.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+
+
+class Simulator:
+    """Implicit Euler cloth solver with the contract ``step(state_in, state_out, control)``.
+
+    Args:
+        model: the Model to simulate.
+        dt: time step [s], > 0.
+        options: SolverOptions (tolerances, preconditioner, CG backend, divergence guard).
+    """
+
+    def __init__(self, model: Model, dt: float, *, options: SolverOptions | None = None):
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+        self.model = model
+        self.dt = float(dt)
+        self.options = options or SolverOptions()
+        self.options.validate()
+        self.device = model.device
+        self.kernels = implicit_kernels(model.scalar)
+        self.linear = linear_kernels(model.scalar)
+        backend = self.options.cg_backend
+        if backend == "auto":
+            backend = "sequential" if self.device.is_cpu else "warp"
+        self.cg_backend = backend
+        self.step_count = 0
+        """Steps taken by this simulator (names the step in error messages)."""
+        self.last_cg_iterations = 0
+        self.last_cg_residual = 0.0
+        self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
+        n = model.particle_count
+        vec3, mat33 = model.types.vec3, model.types.mat33
+        # scratch that no gradient reads: reused every step
+        self._cg_scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
+        self._precond = wp.empty(n, dtype=mat33, device=self.device)
+        self._cg_info = wp.zeros(2, dtype=wp.float64, device=self.device)
+        self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self._step_buffers = None
+        self._warp_matrix = None
+        self._zero_offsets = {
+            "handle": wp.zeros(model.handle_count, dtype=vec3, device=self.device),
+            "pin": wp.zeros(model.pin_count, dtype=vec3, device=self.device),
+        }
+
+    # -- public ------------------------------------------------------------------------------------------------------
+    def step(self, state_in: State, state_out: State, control: Control | None = None) -> None:
+        """Advance ``state_in`` by one time step into ``state_out`` (records on the active tape, if any)."""
+        if state_out is state_in:
+            raise ValueError("step() needs distinct state_in and state_out (a tape cannot record in-place updates)")
+        model = self.model
+        control = control if control is not None else self._default_control()
+        dt = model.scalar(self.dt)
+        values, rhs, dv, pin_dv = self._buffers()
+        t_next = state_in.time + self.dt
+        k = self.kernels
+
+        self._assemble(state_in, control, t_next, values, rhs, pin_dv)
+        self._solve_recorded(values, rhs, dv)
+
+        wp.launch(k.integrate, model.particle_count, device=self.device,
+                  inputs=[state_in.particle_x, state_in.particle_v, dv, dt],
+                  outputs=[state_out.particle_x, state_out.particle_v])
+        state_out.time = t_next
+        self.step_count += 1
+        self.stats["steps"] += 1
+        self._check(state_out)
+
+    def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
+        """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
+
+        Stretching and bending use the stiffness looked up at the current strain, which is the exact elastic energy
+        when the material's tables are constant (e.g. ``Material.isotropic``).
+        """
+        model = self.model
+        out = wp.zeros(3, dtype=model.scalar, device=self.device)
+        wp.launch(self.kernels.face_energy, model.tri_count, device=self.device,
+                  inputs=[model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area,
+                          model.material_density, model.material_stretching, model.material_thicken,
+                          model.lut_weight, model.lut_row, model.gravity, state.particle_x, state.particle_v],
+                  outputs=[out], record_tape=False)
+        bend = wp.zeros(1, dtype=model.scalar, device=self.device)
+        if model.hinge_count:
+            wp.launch(self.kernels.hinge_energy, model.hinge_count, device=self.device,
+                      inputs=[model.hinge_indices, model.hinge_material, model.hinge_rest_angle,
+                              model.hinge_rest_length, model.hinge_rest_area, model.hinge_direction,
+                              model.material_bending, model.material_thicken, state.particle_x],
+                      outputs=[bend], record_tape=False)
+        kinetic, stretching, gravity = (float(e) for e in out.numpy())
+        handle = 0.0
+        if model.handle_count:
+            control = control if control is not None else self._default_control()
+            x = state.particle_x.numpy()[model.handle_particle.numpy()]
+            target = control.handle_target.numpy() + self._offsets("handle", state.time).numpy()
+            handle = float(0.5 * np.sum(model.handle_stiffness.numpy() * np.sum((x - target) ** 2, axis=1)))
+        e = {"kinetic": kinetic, "stretching": stretching, "bending": float(bend.numpy()[0]),
+             "gravity": gravity, "handles": handle}
+        e["total"] = sum(e.values())
+        return e
+
+    def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The step's system A (3n x 3n) and b (3n) as dense NumPy arrays, for inspection and tests (small n)."""
+        control = control if control is not None else self._default_control()
+        values, rhs, _, pin_dv = self._buffers()
+        with wp.ScopedDevice(self.device):
+            self._assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
+        n = self.model.particle_count
+        offsets, columns = self.model.bsr_offsets.numpy(), self.model.bsr_columns.numpy()
+        blocks = values.numpy()
+        A = np.zeros((n, 3, n, 3))
+        for i in range(n):
+            for s in range(offsets[i], offsets[i + 1]):
+                A[i, :, columns[s], :] = blocks[s]
+        return A.reshape(3 * n, 3 * n), rhs.numpy().reshape(-1).astype(np.float64)
+
+    # -- internals -----------------------------------------------------------------------------------------------
+
+    def _assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv) -> None:
+        """Fill ``values`` (BSR blocks of A) and ``rhs`` (b) of the implicit system for one step."""
+        model = self.model
+        dt = model.scalar(self.dt)
+        k = self.kernels
+        rhs.zero_()
+        values.zero_()
+        if model.pin_count:
+            pin_dv.zero_()
+            wp.launch(k.pin_rows, model.pin_count, device=self.device,
+                      inputs=[model.pin_particle, model.particle_diag_slot, state_in.particle_x, state_in.particle_v,
+                              control.pin_target, self._offsets("pin", t_next), dt],
+                      outputs=[pin_dv, values, rhs])
+        wp.launch(k.faces, model.tri_count, device=self.device,
+                  inputs=[model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area,
+                          model.tri_block_slot, model.particle_pin, model.material_density, model.material_stretching,
+                          model.material_thicken, model.lut_weight, model.lut_row, model.gravity,
+                          state_in.particle_x, state_in.particle_v, pin_dv, dt,
+                          model.scalar(model.damping_mass), model.scalar(model.damping_stiffness)],
+                  outputs=[values, rhs])
+        if model.hinge_count:
+            wp.launch(k.hinges, model.hinge_count, device=self.device,
+                      inputs=[model.hinge_indices, model.hinge_material, model.hinge_rest_angle,
+                              model.hinge_rest_length, model.hinge_rest_area, model.hinge_direction,
+                              model.hinge_block_slot, model.particle_pin, model.material_bending,
+                              model.material_thicken, state_in.particle_x, state_in.particle_v, pin_dv, dt,
+                              model.scalar(model.damping_stiffness)],
+                      outputs=[values, rhs])
+        if model.wind_velocity is not None:
+            wp.launch(k.wind, model.tri_count, device=self.device,
+                      inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.wind_velocity,
+                              model.wind_density, model.wind_drag, state_in.particle_x, state_in.particle_v, dt],
+                      outputs=[rhs])
+        if model.handle_count:
+            wp.launch(k.handles, model.handle_count, device=self.device,
+                      inputs=[model.handle_particle, model.handle_stiffness, model.particle_diag_slot,
+                              state_in.particle_x, state_in.particle_v, control.handle_target,
+                              self._offsets("handle", t_next), dt],
+                      outputs=[values, rhs])
+        if control.particle_force is not None:
+            wp.launch(k.external_forces, model.particle_count, device=self.device,
+                      inputs=[model.particle_pin, control.particle_force, dt], outputs=[rhs])
+
+    def _default_control(self) -> Control:
+        if not hasattr(self, "_control_default"):
+            self._control_default = self.model.control(requires_grad=False)
+        return self._control_default
+
+    def _buffers(self):
+        """System buffers of one step. While a tape records, each step gets its own (the backward pass reads them)."""
+        model = self.model
+        vec3, mat33 = model.types.vec3, model.types.mat33
+        recording = active_tape() is not None and model.requires_grad
+        if not recording and self._step_buffers is not None:
+            return self._step_buffers
+        n = model.particle_count
+        bufs = (
+            wp.empty(model.bsr_nnz, dtype=mat33, device=self.device, requires_grad=recording),
+            wp.empty(n, dtype=vec3, device=self.device, requires_grad=recording),
+            wp.zeros(n, dtype=vec3, device=self.device, requires_grad=recording),
+            wp.zeros(n, dtype=vec3, device=self.device, requires_grad=recording),
+        )
+        if not recording:
+            self._step_buffers = bufs
+        return bufs
+
+    def _offsets(self, kind: str, t: float) -> wp.array:
+        """Scripted target offsets of the handles or pins at time ``t`` (a shared zero array when none move)."""
+        motions = self.model.handle_motion if kind == "handle" else self.model.pin_motion
+        if not any(m is not None for m in motions):
+            return self._zero_offsets[kind]
+        values = np.array([np.zeros(3) if m is None else m.at(t) for m in motions])
+        return wp.array(values, dtype=self.model.types.vec3, device=self.device)
+
+    def _solve_recorded(self, values: wp.array, rhs: wp.array, dv: wp.array) -> None:
+        """Solve A dv = b; on a tape, record the implicit adjoint instead of the CG iterations."""
+        iters, residual = self._cg(values, rhs, dv)
+        self.last_cg_iterations, self.last_cg_residual = iters, residual
+        self.stats["cg_iterations"] += iters
+        self._check_solve("forward", iters, residual)
+        if active_tape() is None or not values.requires_grad:
+            return
+
+        def adjoint():
+            # A is symmetric: solve A lam = dL/d(dv) with the same solver; dL/db = lam, dL/dA_ij = -lam_i dv_j^T
+            lam = wp.zeros_like(dv, requires_grad=False)
+            it, res = self._cg(values, dv.grad, lam)
+            self.stats["adjoint_cg_iterations"] += it
+            self._check_solve("adjoint", it, res)
+            wp.launch(self.linear.solve_adjoint_scatter, self.model.particle_count, device=self.device,
+                      inputs=[self.model.bsr_offsets, self.model.bsr_columns, lam, dv],
+                      outputs=[values.grad, rhs.grad], record_tape=False)
+
+        record_adjoint(adjoint, arrays=[values, rhs, dv])
+
+    def _cg(self, values: wp.array, b: wp.array, x: wp.array) -> tuple[int, float]:
+        opt = self.options
+        model = self.model
+        block = 1 if opt.preconditioner == "block_jacobi" else 0
+        if self.cg_backend == "sequential":
+            r, z, p, q = self._cg_scratch
+            wp.launch(self.linear.cg_sequential, 1, device=self.device,
+                      inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
+                              float(opt.cg_tol), float(opt.cg_atol), int(opt.cg_max_iters), block,
+                              r, z, p, q, self._precond],
+                      outputs=[x, self._cg_info], record_tape=False)
+            info = self._cg_info.numpy()
+            return int(info[0]), float(info[1])
+        return self._cg_warp(values, b, x)
+
+    def _cg_warp(self, values, b, x) -> tuple[int, float]:
+        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path)."""
+        import warp.optim.linear as wl
+        import warp.sparse as ws
+
+        model = self.model
+        if self._warp_matrix is None:
+            A = ws.bsr_zeros(model.particle_count, model.particle_count, model.types.mat33, device=self.device)
+            rows = np.repeat(np.arange(model.particle_count, dtype=np.int32), np.diff(model.bsr_offsets.numpy()))
+            ws.bsr_set_from_triplets(
+                A, wp.array(rows, dtype=wp.int32, device=self.device), model.bsr_columns,
+                wp.zeros(model.bsr_nnz, dtype=model.types.mat33, device=self.device), prune_numerical_zeros=False)
+            if not np.array_equal(A.columns.numpy()[: model.bsr_nnz], model.bsr_columns.numpy()):
+                raise RuntimeError("warp.sparse reordered the block structure; the slot map would be wrong")
+            self._warp_matrix = A
+        A = self._warp_matrix
+        A.values = values
+        x.zero_()
+        M = wl.preconditioner(A, "diag")
+        opt = self.options
+        # warp's cg tests |r| <= max(tol |b|, atol); check_every=1 reports the exact iteration count
+        iters, residual, _ = wl.cg(A, b, x, tol=opt.cg_tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters, M=M,
+                                   check_every=1, use_cuda_graph=False)
+        bnorm = float(np.linalg.norm(b.numpy()))
+        return int(iters), float(residual) / max(bnorm, 1e-300)
+
+    def _check_solve(self, which: str, iters: int, residual: float) -> None:
+        opt = self.options
+        if iters >= opt.cg_max_iters and residual > opt.cg_tol:
+            msg = (f"{which} CG solve of step {self.step_count} did not converge: relative residual {residual:.3e} "
+                   f"after {iters} iterations (cg_tol {opt.cg_tol:g}); raise cg_max_iters or lower dt")
+            if not math.isfinite(residual) or opt.on_cg_failure == "raise":
+                raise SimulationError(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=3)
+        elif not math.isfinite(residual):
+            raise SimulationError(f"{which} CG solve of step {self.step_count} produced a non-finite residual; "
+                                  "the system is not positive definite or the state is already invalid")
+
+    def _check(self, state: State) -> None:
+        self._status.zero_()
+        wp.launch(self.linear.check_state, self.model.particle_count, device=self.device,
+                  inputs=[state.particle_x, state.particle_v, self.model.scalar(self.options.max_speed)],
+                  outputs=[self._status], record_tape=False)
+        bad = int(self._status.numpy()[0])
+        if bad:
+            p = bad - 1
+            x = state.particle_x.numpy()[p]
+            v = state.particle_v.numpy()[p]
+            raise SimulationError(
+                f"simulation diverged at step {self.step_count} (t = {state.time:.4g} s): particle {p} has "
+                f"x = {x.tolist()}, v = {v.tolist()} (speed limit {self.options.max_speed:g} m/s); "
+                "lower dt, raise damping, or check the material and forces")
+
+
+def with_options(sim: Simulator, **changes) -> Simulator:
+    """A new Simulator on the same model and dt with some options changed."""
+    return Simulator(sim.model, sim.dt, options=replace(sim.options, **changes))
