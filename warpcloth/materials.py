@@ -227,7 +227,9 @@ def _as_float_table(value, fname: str, shape: tuple[int, int], name: str) -> np.
     try:
         table = np.array(value, dtype=np.float64)  # copy: a material never aliases the caller's array
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"material '{name}': {fname} must be a {shape[0]}x{shape[1]} table of numbers ({exc})") from None
+        raise ValueError(
+            f"material '{name}': {fname} must be a {shape[0]}x{shape[1]} table of numbers ({exc})"
+        ) from None
     if table.shape != shape:
         raise ValueError(f"material '{name}': {fname} must have shape {shape}, got {table.shape}")
     return table
@@ -408,7 +410,9 @@ _PRESETS: dict[str, tuple[float, tuple[tuple[float, ...], ...], tuple[tuple[floa
 PRESET_NAMES: tuple[str, ...] = tuple(_PRESETS)
 """The ten measured fabrics, named as ARCSim's material files."""
 
-SEED_INITIAL_GUESS_NAMES: tuple[str, ...] = tuple(n for n in PRESET_NAMES if n not in ("royal-target", "white-dots-on-blk"))
+SEED_INITIAL_GUESS_NAMES: tuple[str, ...] = tuple(
+    n for n in PRESET_NAMES if n not in ("royal-target", "white-dots-on-blk")
+)
 """The 8 fabrics whose mean is the seed's optimisation start point ``init_mat.json`` (all but royal-target and
 white-dots-on-blk)."""
 
@@ -492,7 +496,9 @@ def load_material_json(
             raise ValueError(f"{path}: missing key {key!r}")
     unknown = sorted(set(data) - set(required))
     if unknown:
-        raise ValueError(f"{path}: unsupported key(s) {', '.join(map(repr, unknown))}; supported: {', '.join(required)}")
+        raise ValueError(
+            f"{path}: unsupported key(s) {', '.join(map(repr, unknown))}; supported: {', '.join(required)}"
+        )
     name = os.path.splitext(os.path.basename(os.fspath(path)))[0]
     try:
         stretching = _as_float_table(data["stretching"], "stretching", STRETCHING_SHAPE, name)

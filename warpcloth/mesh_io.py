@@ -88,7 +88,8 @@ def validate_triangles(positions: np.ndarray, triangles: np.ndarray, tri_uv: np.
     if len(bad):
         t, k = (int(i) for i in bad[0])
         raise ValueError(f"triangle {t} {triangles[t].tolist()}: index {int(triangles[t, k])} out of range [0, {n})")
-    repeated = (triangles[:, 0] == triangles[:, 1]) | (triangles[:, 1] == triangles[:, 2]) | (triangles[:, 0] == triangles[:, 2])
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    repeated = (a == b) | (b == c) | (a == c)
     bad = np.flatnonzero(repeated)
     if len(bad):
         t = int(bad[0])
@@ -252,7 +253,9 @@ def load_obj(path: str | os.PathLike, *, scale: float = 1.0, validate: bool = Tr
     vel = None
     if velocities:
         if len(velocities) != len(positions):
-            raise ValueError(f"{path}: {len(velocities)} 'nv' lines for {len(positions)} 'v' lines; need one per vertex")
+            raise ValueError(
+                f"{path}: {len(velocities)} 'nv' lines for {len(positions)} 'v' lines; need one per vertex"
+            )
         vel = np.array(velocities, dtype=np.float64)
     if validate:
         try:
@@ -328,7 +331,9 @@ def load_usd_mesh(
         f = int(np.flatnonzero(counts < 3)[0])
         raise ValueError(f"{where}: face {f} has {counts[f]} vertices; need at least 3")
     if counts.sum() != len(indices):
-        raise ValueError(f"{where}: faceVertexCounts sum to {counts.sum()} but there are {len(indices)} faceVertexIndices")
+        raise ValueError(
+            f"{where}: faceVertexCounts sum to {counts.sum()} but there are {len(indices)} faceVertexIndices"
+        )
 
     # Fan triangulation, kept as face-vertex (corner) numbers so faceVarying primvars can be gathered the same way.
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
@@ -357,14 +362,20 @@ def load_usd_mesh(
         interp = pv.GetInterpolation()
         if interp == UsdGeom.Tokens.faceVarying:
             if len(values) != len(indices):
-                raise ValueError(f"{where}: faceVarying primvar {name!r} has {len(values)} values for {len(indices)} face vertices")
+                raise ValueError(
+                    f"{where}: faceVarying primvar {name!r} has {len(values)} values for {len(indices)} face vertices"
+                )
             tri_uv = values[corners]
         elif interp in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
             if len(values) != len(points):
-                raise ValueError(f"{where}: {interp} primvar {name!r} has {len(values)} values for {len(points)} points")
+                raise ValueError(
+                    f"{where}: {interp} primvar {name!r} has {len(values)} values for {len(points)} points"
+                )
             tri_uv = values[tris]
         else:
-            raise ValueError(f"{where}: primvar {name!r} has unsupported interpolation {interp!r} (need faceVarying or vertex)")
+            raise ValueError(
+                f"{where}: primvar {name!r} has unsupported interpolation {interp!r} (need faceVarying or vertex)"
+            )
         break
 
     if np.any(tris > np.iinfo(np.int32).max):

@@ -291,12 +291,14 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     builder = ModelBuilder(gravity=gravity)
     first, grid_res, count = _parse_cloth(builder, _table(data["cloth"], "cloth"), base_dir)
 
+    attached: dict[int, str] = {}  # particle -> the entry that holds it, to name both entries in a conflict
     for kind in ("handles", "pins"):
         entries = data.get(kind, [])
         if not isinstance(entries, list):
             raise _err(kind, f"expected an array of tables ([[{kind}]]), got {_type_name(entries)}")
         for k, entry in enumerate(entries):
-            _parse_attachment(builder, kind, f"{kind}[{k}]", _table(entry, f"{kind}[{k}]"), first, count, grid_res)
+            path = f"{kind}[{k}]"
+            _parse_attachment(builder, kind, path, _table(entry, path), first, count, grid_res, attached)
 
     if "wind" in data:
         wind = _table(data["wind"], "wind")
@@ -334,7 +336,8 @@ def _parse_solver(value: Any):
     table = _table(value, "solver")
     if dataclasses.is_dataclass(SolverOptions):
         defaults = {
-            f.name: (f.default if f.default is not dataclasses.MISSING else None) for f in dataclasses.fields(SolverOptions)
+            f.name: (f.default if f.default is not dataclasses.MISSING else None)
+            for f in dataclasses.fields(SolverOptions)
         }
     else:
         params = inspect.signature(SolverOptions).parameters
@@ -360,7 +363,8 @@ def _parse_solver(value: Any):
 
 def _parse_cloth(builder, cloth: dict, base_dir: Path) -> tuple[int, tuple[int, int] | None, int]:
     """Adds the cloth; returns (first particle, grid resolution or None, particle count)."""
-    _check_keys(cloth, "cloth", ("grid", "mesh", "pos", "rot_deg", "vel", "material", "thicken"), required=("material",))
+    allowed = ("grid", "mesh", "pos", "rot_deg", "vel", "material", "thicken")
+    _check_keys(cloth, "cloth", allowed, required=("material",))
     if ("grid" in cloth) == ("mesh" in cloth):
         raise _err("cloth", "give exactly one of 'grid' and 'mesh'")
     pos = _vector(cloth["pos"], "cloth.pos") if "pos" in cloth else (0.0, 0.0, 0.0)
@@ -447,7 +451,8 @@ def _parse_material(value: Any, path: str, thicken: float, base_dir: Path) -> _m
         with _Context(f"{path}.mean"):
             return _materials.mean_material(names, thicken=thicken)
     if "stretching" in table or "bending" in table:
-        _check_keys(table, path, ("density", "stretching", "bending", "name"), required=("density", "stretching", "bending"))
+        required = ("density", "stretching", "bending")
+        _check_keys(table, path, required + ("name",), required=required)
         density = _float(table["density"], f"{path}.density")
         tables = {}
         for key, shape in (("stretching", _materials.STRETCHING_SHAPE), ("bending", _materials.BENDING_SHAPE)):
@@ -478,7 +483,9 @@ def _grid_index(value: int, extent: int, path: str) -> int:
     return value % extent
 
 
-def _parse_attachment(builder, kind: str, path: str, entry: dict, first: int, count: int, grid_res) -> None:
+def _parse_attachment(
+    builder, kind: str, path: str, entry: dict, first: int, count: int, grid_res, attached: dict[int, str]
+) -> None:
     allowed = _SELECTORS + (("stiffness", "motion") if kind == "handles" else ("motion",))
     _check_keys(entry, path, allowed)
     given = [s for s in _SELECTORS if s in entry]
@@ -509,13 +516,23 @@ def _parse_attachment(builder, kind: str, path: str, entry: dict, first: int, co
         i = _grid_index(_int(value, sel_path), nx, sel_path)
         particles = [j * nx + i for j in range(ny)]
 
+    # A particle may carry several soft handles (their springs add up), but a pin excludes any other attachment.
+    for p in particles:
+        other = attached.get(p)
+        if other is not None and (kind == "pins" or other.startswith("pins")):
+            verb = "pinned" if other.startswith("pins") else "held"
+            raise _err(path, f"particle {p} is also {verb} by {other}; a pinned particle takes no other handle or pin")
+        attached.setdefault(p, path)
+
     motion = None
     if "motion" in entry:
         motion = _parse_motion(entry["motion"], f"{path}.motion")
+    stiffness = None
+    if kind == "handles":
+        stiffness = _float(entry.get("stiffness", _DEFAULT_HANDLE_STIFFNESS), f"{path}.stiffness", min_value=0.0)
     with _Context(path):
         for p in particles:
             if kind == "handles":
-                stiffness = _float(entry.get("stiffness", _DEFAULT_HANDLE_STIFFNESS), f"{path}.stiffness", min_value=0.0)
                 builder.add_handle(first + p, stiffness=stiffness, motion=motion)
             else:
                 builder.add_pin(first + p, motion=motion)

@@ -1,0 +1,43 @@
+"""Shared scene for the gradient, physics and error tests: a small cloth hanging in a vertical plane."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+
+wp.config.quiet = True
+
+VERTICAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+"""Rotation taking the grid's local XY plane to world XZ (local y -> world z, so the grid hangs in a wall)."""
+
+
+def top_corners(res: int) -> tuple[int, int]:
+    """Particle indices of the top-left and top-right vertices of a res x res grid."""
+    return res * (res + 1), res * (res + 1) + res
+
+
+def hanging_builder(*, res=4, size=0.5, material=None, gravity=(0.0, 0.0, -2.0), handle_stiffness=300.0,
+                    wind=(0.5, 2.0, 0.0), moving_pin=False) -> wc.ModelBuilder:
+    """res x res cloth in the XZ plane, top edge at z = 0, held at its top corners by two soft handles.
+
+    ``wind`` (None for none) blows mostly across the plane so the cloth bends; with ``moving_pin`` the top-left
+    corner is a hard pin with scripted motion instead of a handle.
+    """
+    b = wc.ModelBuilder(gravity=gravity)
+    material = material if material is not None else wc.preset("gray-interlock", thicken=2)
+    b.add_cloth_grid((res, res), (size, size), material=material, rot=VERTICAL, pos=(0.0, 0.0, -size))
+    left, right = top_corners(res)
+    if moving_pin:
+        b.add_pin(left, motion=[(0.0, (0.0, 0.0, 0.0)), (0.1, (0.02, 0.04, 0.03)), (1.0, (0.02, 0.04, 0.03))])
+    else:
+        b.add_handle(left, stiffness=handle_stiffness)
+    b.add_handle(right, stiffness=handle_stiffness)
+    if wind is not None:
+        b.set_wind(wind, density=1.0, drag=0.1)
+    return b
+
+
+@pytest.fixture
+def hanging():
+    return hanging_builder
