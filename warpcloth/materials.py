@@ -104,9 +104,7 @@ class Material:
         """
         where = f"material '{self.name}'"
         for fname in ("density", "thicken"):
-            value = getattr(self, fname)
-            if not isinstance(value, (float, int)) or isinstance(value, bool):
-                raise ValueError(f"{where}: {fname} must be a number, got {type(value).__name__}")
+            value = _as_float_scalar(getattr(self, fname), fname, self.name)
             if not math.isfinite(value):
                 raise ValueError(f"{where}: {fname} is not finite ({value})")
             if value <= 0.0:
