@@ -43,6 +43,7 @@ def linear_kernels(scalar):
         atol: wp.float64,
         max_iters: int,
         block_jacobi: int,
+        warm_start: int,
         # scratch:
         r: wp.array(dtype=vec3),
         z: wp.array(dtype=vec3),
@@ -55,19 +56,28 @@ def linear_kernels(scalar):
     ):
         # Launched with dim 1: the whole preconditioned CG loop runs on one thread. Dot products accumulate in
         # float64 so float32 systems still reach tight relative tolerances.
+        # With warm_start, x holds the initial guess (the previous step's solution): consecutive steps' velocity
+        # changes are close, so CG starts near the answer.
         n = b.shape[0]
         bb = wp.float64(0.0)
+        rr = wp.float64(0.0)
         rz = wp.float64(0.0)
         for i in range(n):
             precond[i] = jacobi_inverse(values[diag_slot[i]], block_jacobi)
-            x[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            r[i] = b[i]
-            z[i] = precond[i] * b[i]
+            ri = b[i]
+            if warm_start != 0:
+                for k in range(offsets[i], offsets[i + 1]):
+                    ri -= values[k] * x[columns[k]]
+            else:
+                x[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+            r[i] = ri
+            z[i] = precond[i] * ri
             p[i] = z[i]
             bb += wp.float64(wp.dot(b[i], b[i]))
-            rz += wp.float64(wp.dot(b[i], z[i]))
+            rr += wp.float64(wp.dot(ri, ri))
+            rz += wp.float64(wp.dot(ri, z[i]))
         threshold = wp.max(rtol * wp.sqrt(bb), atol)
-        rnorm = wp.sqrt(bb)
+        rnorm = wp.sqrt(rr)
         it = int(0)
         while it < max_iters and rnorm > threshold:
             pq = wp.float64(0.0)
@@ -130,6 +140,12 @@ def linear_kernels(scalar):
             values_grad[k] = values_grad[k] - wp.outer(lam[i], solution[columns[k]])
 
     @wp.kernel
+    def copy_guess(src: wp.array(dtype=vec3), dst: wp.array(dtype=vec3)):
+        # a plain copy that no tape records: a warm start's initial guess carries no gradient
+        i = wp.tid()
+        dst[i] = src[i]
+
+    @wp.kernel
     def check_state(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
@@ -149,6 +165,7 @@ def linear_kernels(scalar):
         residual_norms=residual_norms,
         solve_adjoint_scatter=solve_adjoint_scatter,
         check_state=check_state,
+        copy_guess=copy_guess,
     )
 
 

@@ -45,7 +45,8 @@ def test_hanging_wind_matches_the_seed_setup():
     assert model.particle_count == 289 and model.handle_count == 2 and model.pin_count == 0
     x = model.particle_x0.numpy()
     top = x[model.handle_particle.numpy()]
-    np.testing.assert_allclose(top, [[0.0, -0.5, 0.5], [0.0, 0.5, 0.5]], atol=1e-6)  # the two top corners
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))  # the sheet is turned 30 degrees out of the wind
+    np.testing.assert_allclose(top, [[-0.5 * c, -0.5 * s, 0.5], [0.5 * c, 0.5 * s, 0.5]], atol=1e-6)  # top corners
     assert x[:, 2].min() == pytest.approx(-0.5, abs=1e-6)
     np.testing.assert_allclose(model.gravity.numpy()[0], [0.0, 0.0, -9.8], rtol=1e-6)
     np.testing.assert_allclose(model.wind_velocity.numpy()[0], [5.0, 0.0, 0.0])

@@ -1,11 +1,13 @@
 """warpcloth: differentiable implicit cloth simulation in NVIDIA Warp (Liang, Lin and Koltun, NeurIPS 2019)."""
 
 from warpcloth.builder import ModelBuilder
-from warpcloth.materials import PRESET_NAMES, Material, mean_material, preset
-from warpcloth.mesh_io import TriangleMesh, load_obj, load_usd_mesh
+from warpcloth.materials import PRESET_NAMES, Material, load_material_json, mean_material, preset
+from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_usd_mesh
 from warpcloth.model import Control, Model, State
 from warpcloth.rollout import rollout
+from warpcloth.scene import SCENE_NAMES, Scene, load_scene
 from warpcloth.simulator import SimulationError, Simulator, SolverOptions
+from warpcloth.usd import read_usd_points, write_usd
 
 __all__ = [
     "Control",
@@ -13,14 +15,21 @@ __all__ = [
     "Model",
     "ModelBuilder",
     "PRESET_NAMES",
+    "SCENE_NAMES",
+    "Scene",
     "SimulationError",
     "Simulator",
     "SolverOptions",
     "State",
     "TriangleMesh",
+    "grid_mesh",
+    "load_material_json",
     "load_obj",
+    "load_scene",
     "load_usd_mesh",
     "mean_material",
     "preset",
+    "read_usd_points",
     "rollout",
+    "write_usd",
 ]

@@ -103,7 +103,7 @@ class ModelBuilder:
         mesh: mesh_io.TriangleMesh,
         *,
         material: Material,
-        vel: Sequence[float] = (0.0, 0.0, 0.0),
+        vel: Sequence[float] | None = None,
         rest_angle: str = "flat",
     ) -> int:
         """Add a cloth from a triangle mesh (positions used as given) and return the index of its first particle.
@@ -113,7 +113,8 @@ class ModelBuilder:
                 ``tri_uv`` each triangle's rest shape is its initial shape, in an arbitrary in-plane frame (so
                 anisotropic materials have no consistent warp/weft direction: prefer isotropic ones).
             material: the cloth's material.
-            vel: initial velocity of every particle [m/s].
+            vel: initial velocity of every particle [m/s]; default: the mesh's own ``velocities`` (ARCSim ``nv``
+                lines) if it has them, else zero.
             rest_angle: ``"flat"`` (ARCSim's default: rest dihedral angle 0) or ``"initial"`` (the initial shape's).
         """
         if rest_angle not in ("flat", "initial"):
@@ -128,10 +129,18 @@ class ModelBuilder:
         mesh_io.validate_triangles(positions, triangles, tri_uv)
         if tri_uv is None:
             tri_uv = _local_frame_uv(positions, triangles)
-        velocity = _finite_vector("vel", vel)
+        if vel is not None:
+            velocities = np.tile(_finite_vector("vel", vel), (len(positions), 1))
+        elif getattr(mesh, "velocities", None) is not None:
+            velocities = np.asarray(mesh.velocities, dtype=np.float64).reshape(len(positions), 3)
+            bad = np.flatnonzero(~np.all(np.isfinite(velocities), axis=1))
+            if bad.size:
+                raise ValueError(f"vertex {int(bad[0])} has a non-finite velocity {velocities[bad[0]].tolist()}")
+        else:
+            velocities = np.zeros((len(positions), 3))
         mat = self.add_material(material)
         self._positions.append(positions)
-        self._velocities.append(np.tile(velocity, (len(positions), 1)))
+        self._velocities.append(velocities)
         self._triangles.append(triangles + self._particle_count)
         self._tri_uv.append(tri_uv)
         self._tri_material.append(np.full(len(triangles), mat, dtype=np.int32))
@@ -176,18 +185,20 @@ class ModelBuilder:
         scale: float = 1.0,
         rot: np.ndarray | None = None,
         pos: Sequence[float] = (0.0, 0.0, 0.0),
-        vel: Sequence[float] = (0.0, 0.0, 0.0),
+        vel: Sequence[float] | None = None,
     ) -> int:
         """Add a cloth from an OBJ file (``vt`` = material coordinates), transformed like ARCSim's ``transform``:
         scale (positions and material coordinates), then rotate, then translate."""
         mesh = mesh_io.load_obj(path, scale=scale)
         if rot is not None:
             mesh.positions = mesh.positions @ np.asarray(rot, dtype=np.float64).T
+            if mesh.velocities is not None:
+                mesh.velocities = mesh.velocities @ np.asarray(rot, dtype=np.float64).T
         mesh.positions = mesh.positions + _finite_vector("pos", pos)
         return self.add_cloth_mesh(mesh, material=material, vel=vel)
 
     def add_cloth_usd(self, path, *, material: Material, prim_path: str | None = None,
-                      vel: Sequence[float] = (0.0, 0.0, 0.0)) -> int:
+                      vel: Sequence[float] | None = None) -> int:
         """Add a cloth from a USD mesh prim (material coordinates from its ``st``/``uv`` primvar if present)."""
         return self.add_cloth_mesh(mesh_io.load_usd_mesh(path, prim_path=prim_path), material=material, vel=vel)
 

@@ -94,11 +94,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         return _error(str(exc), _RUNTIME_ERROR)
 
-    stats = getattr(sim, "stats", {})
-    total_cg = stats.get("cg_iterations_total", stats.get("cg_iterations"))
+    total_cg = sim.stats["cg_iterations"]
     print(f"{scene.name}: {scene.steps} steps of {scene.dt:g} s on {model.device} in {wall:.2f} s wall time")
-    if total_cg is not None:
-        print(f"CG iterations: {total_cg} total, {total_cg / scene.steps:.1f} per step")
+    print(f"CG iterations: {total_cg} total, {total_cg / scene.steps:.1f} per step")
     print(f"wrote {os.path.abspath(usd_path)} ({len(frames)} frames)")
     return 0
 
@@ -113,6 +111,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         The exit status (0 success, 1 simulation failure, 2 usage error). Invalid arguments make argparse exit
         with status 2.
     """
+    import warp as wp
+
+    wp.config.quiet = True  # no Warp banner or module-load lines in the tool's output
     parser = _parser()
     args = parser.parse_args(argv)
     if args.command == "simulate":

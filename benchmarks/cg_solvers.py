@@ -1,0 +1,287 @@
+"""CG solvers on the implicit systems of the hanging-cloth scene (16^2 and 64^2 grids): time per solve and per iteration.
+
+The system A dv = b is taken from a real step (step SPINUP+1 of benchmarks/step_time.py's scene, the Simulator's
+reused non-tape buffers). Compared, all to cg_tol 1e-6 (|b - A x| <= 1e-6 |b|) from x0 = 0:
+  (a) warp.optim.linear.cg with its "diag" preconditioner, as Simulator(cg_backend="warp") calls it (check_every=1,
+      preconditioner rebuilt per solve), and raw with warp's default check_every=10;
+  (b) the one-launch sequential CG (cg_backend="sequential") with jacobi and with block_jacobi;
+  (c) warp.sparse.bsr_mv alone, per call;
+  (d) candidates that are NOT in the library, run here as a kernel of this file to size possible gains: warm start
+      from the previous step's dv, and a block SSOR preconditioner (symmetric Gauss-Seidel sweeps are natural in a
+      one-thread kernel).
+"true res" is |b - A x| / |b| recomputed after the solve.
+
+Usage: python benchmarks/cg_solvers.py [--json PATH] [--sizes 16,64]
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import warp as wp
+import warp.optim.linear as wl
+import warp.sparse as ws
+
+import common
+from common import wc
+
+SPINUP = 10
+TOL = 1.0e-6
+
+wp.set_module_options({"enable_backward": False})
+
+vec3, mat33 = wp.types.vector(3, wp.float32), wp.types.matrix((3, 3), wp.float32)
+
+
+@wp.func
+def _block_inv(a: mat33, block: int):
+    if block != 0:
+        return wp.inverse(a)
+    return mat33(1.0 / a[0, 0], 0.0, 0.0, 0.0, 1.0 / a[1, 1], 0.0, 0.0, 0.0, 1.0 / a[2, 2])
+
+
+@wp.func
+def _apply_precond(
+    kind: int, omega: wp.float32, n: int, offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=mat33), diag_slot: wp.array(dtype=wp.int32), dinv: wp.array(dtype=mat33),
+    r: wp.array(dtype=vec3), z: wp.array(dtype=vec3),
+):
+    """z = M^-1 r. kind 0/1: (block) Jacobi; kind 2: block SSOR(omega), M ~ (D/w + L) D^-1 (D/w + U)."""
+    if kind < 2:
+        for i in range(n):
+            z[i] = dinv[i] * r[i]
+    else:
+        for i in range(n):  # forward sweep: (D/w + L) y = r
+            acc = r[i]
+            for k in range(offsets[i], offsets[i + 1]):
+                j = columns[k]
+                if j < i:
+                    acc -= values[k] * z[j]
+            z[i] = omega * (dinv[i] * acc)
+        for ii in range(n):  # backward sweep: (D/w + U) z = D y, in place
+            i = n - 1 - ii
+            acc = values[diag_slot[i]] * z[i]
+            for k in range(offsets[i], offsets[i + 1]):
+                j = columns[k]
+                if j > i:
+                    acc -= values[k] * z[j]
+            z[i] = omega * (dinv[i] * acc)
+
+
+@wp.kernel
+def pcg_candidate(
+    offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), values: wp.array(dtype=mat33),
+    diag_slot: wp.array(dtype=wp.int32), b: wp.array(dtype=vec3), rtol: wp.float64, atol: wp.float64,
+    max_iters: int, kind: int, omega: wp.float32, warm: int,
+    r: wp.array(dtype=vec3), z: wp.array(dtype=vec3), p: wp.array(dtype=vec3), q: wp.array(dtype=vec3),
+    dinv: wp.array(dtype=mat33), x: wp.array(dtype=vec3), info: wp.array(dtype=wp.float64),
+):
+    # the library's cg_sequential (float64 dots, same stopping test) plus an initial guess and an SSOR option
+    n = b.shape[0]
+    bb = wp.float64(0.0)
+    rr = wp.float64(0.0)
+    for i in range(n):
+        dinv[i] = _block_inv(values[diag_slot[i]], wp.where(kind == 0, 0, 1))
+        if warm == 0:
+            x[i] = vec3(0.0, 0.0, 0.0)
+    for i in range(n):
+        acc = b[i]
+        if warm != 0:
+            for k in range(offsets[i], offsets[i + 1]):
+                acc -= values[k] * x[columns[k]]
+        r[i] = acc
+        bb += wp.float64(wp.dot(b[i], b[i]))
+        rr += wp.float64(wp.dot(acc, acc))
+    _apply_precond(kind, omega, n, offsets, columns, values, diag_slot, dinv, r, z)
+    rz = wp.float64(0.0)
+    for i in range(n):
+        p[i] = z[i]
+        rz += wp.float64(wp.dot(r[i], z[i]))
+    threshold = wp.max(rtol * wp.sqrt(bb), atol)
+    rnorm = wp.sqrt(rr)
+    it = int(0)
+    while it < max_iters and rnorm > threshold:
+        pq = wp.float64(0.0)
+        for i in range(n):
+            acc = vec3(0.0, 0.0, 0.0)
+            for k in range(offsets[i], offsets[i + 1]):
+                acc += values[k] * p[columns[k]]
+            q[i] = acc
+            pq += wp.float64(wp.dot(p[i], acc))
+        alpha = wp.float32(rz / pq)
+        rr = wp.float64(0.0)
+        for i in range(n):
+            x[i] = x[i] + alpha * p[i]
+            r[i] = r[i] - alpha * q[i]
+            rr += wp.float64(wp.dot(r[i], r[i]))
+        _apply_precond(kind, omega, n, offsets, columns, values, diag_slot, dinv, r, z)
+        rz_new = wp.float64(0.0)
+        for i in range(n):
+            rz_new += wp.float64(wp.dot(r[i], z[i]))
+        beta = wp.float32(rz_new / rz)
+        rz = rz_new
+        for i in range(n):
+            p[i] = z[i] + beta * p[i]
+        rnorm = wp.sqrt(rr)
+        it += 1
+    info[0] = wp.float64(it)
+    info[1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
+
+
+def capture_system(res):
+    """Model, sequential Simulator and (values, rhs, dv, dv of the previous step) of one real step."""
+    m = common.hanging_cloth(res)
+    sim = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="sequential"))
+    s = common.advance(sim, m.state(), SPINUP)
+    if not (isinstance(sim._step_buffers, tuple) and len(sim._step_buffers) == 4):
+        raise SystemExit("Simulator._step_buffers is no longer (values, rhs, dv, pin_dv): update capture_system()")
+    dv_prev = wp.clone(sim._step_buffers[2])
+    common.advance(sim, s, 1)
+    values, rhs, dv, _ = (wp.clone(a) for a in sim._step_buffers)
+    return m, sim, values, rhs, dv, dv_prev
+
+
+def true_residual(sim, values, rhs, x) -> float:
+    sums = wp.zeros(2, dtype=wp.float64)
+    m = sim.model
+    wp.launch(sim.linear.residual_norms, m.particle_count,
+              inputs=[m.bsr_offsets, m.bsr_columns, values, rhs, x], outputs=[sums])
+    rr, bb = sums.numpy()
+    return float(np.sqrt(rr / bb))
+
+
+def bench_size(res, reps):
+    m, sim0, values, rhs, dv_ref, dv_prev = capture_system(res)
+    n = m.particle_count
+    x = wp.zeros(n, dtype=vec3)
+    records = []
+
+    def record(name, solve, reps_, note=""):
+        iters = solve()  # warm-up (compiles) and iteration count
+        t = common.median_time(solve, reps=reps_, warmup=0)
+        it = iters[0]
+        rec = {"n": n, "res": res, "solver": name, "iters": it, "ms_per_solve": t * 1e3,
+               "ms_per_iter": t * 1e3 / max(it, 1), "reported_res": iters[1],
+               "true_res": true_residual(sim0, values, rhs, x), "note": note}
+        records.append(rec)
+        print(f"  {res}x{res} {name}: {it} it, {rec['ms_per_solve']:.2f} ms", flush=True)
+        return rec
+
+    # (b) library sequential CG
+    for pre in ("jacobi", "block_jacobi"):
+        s = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, preconditioner=pre,
+                                                                 cg_backend="sequential"))
+        record(f"sequential {pre}", lambda s=s: s._cg(values, rhs, x), reps)
+
+    # (a) warp.optim.linear.cg, as the library's warp backend calls it
+    sw = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="warp"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sw_short = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="warp",
+                                                                         cg_max_iters=3))
+        sw_short._cg(values, rhs, x)  # compiles warp.sparse / warp.optim kernels
+    warp_reps = 3 if res <= 16 else 1
+    record("warp cg diag (library call)", lambda: sw._cg(values, rhs, x), warp_reps,
+           "check_every=1, preconditioner rebuilt and b copied to host per solve")
+    sw._cg(values, rhs, x)
+    A = sw._warp_matrix
+    A.values = values
+    M = wl.preconditioner(A, "diag")
+
+    def warp_raw():
+        x.zero_()
+        it, resid, _ = wl.cg(A, rhs, x, tol=TOL, atol=1e-12, maxiter=1000, M=M, check_every=10,
+                             use_cuda_graph=False)
+        return int(it), float("nan")
+
+    record("warp cg diag (check_every=10)", warp_raw, warp_reps, "preconditioner built once")
+    t_pre = common.median_time(lambda: wl.preconditioner(A, "diag"), reps=20)
+
+    # launches per warp cg iteration (one profiled solve)
+    with common.launch_profile() as launches:
+        it = sw._cg(values, rhs, x)[0]
+    top = sorted(launches.items(), key=lambda kv: -kv[1][1])
+    n_launch = sum(c for c, _ in launches.values())
+    t_launch = sum(s for _, s in launches.values())
+    prof = {"iters": it, "launches_per_iter": n_launch / it, "launch_ms_per_iter": t_launch / it * 1e3,
+            "top": [(k, c / it, s / it * 1e3) for k, (c, s) in top[:6]]}
+
+    # (c) bsr_mv alone
+    y = wp.zeros(n, dtype=vec3)
+    p = wp.clone(dv_ref)
+    t_mv = common.median_time(lambda: ws.bsr_mv(A, p, y), reps=50, warmup=3, min_time=0.2)
+    empty = wp.zeros(1, dtype=wp.float32)
+    t_launch0 = common.median_time(lambda: empty.zero_(), reps=50, warmup=3, min_time=0.1)
+
+    # (d) candidates
+    scratch = [wp.empty(n, dtype=vec3) for _ in range(4)]
+    dinv = wp.empty(n, dtype=mat33)
+    info = wp.zeros(2, dtype=wp.float64)
+
+    def candidate(kind, omega, warm):
+        def solve():
+            if warm:
+                wp.copy(x, dv_prev)
+            wp.launch(pcg_candidate, 1, inputs=[m.bsr_offsets, m.bsr_columns, values, m.particle_diag_slot, rhs,
+                                                TOL, 1e-12, 1000, kind, omega, int(warm), *scratch, dinv],
+                      outputs=[x, info])
+            i = info.numpy()
+            return int(i[0]), float(i[1])
+        return solve
+
+    for name, kind, omega, warm in (("cand. block_jacobi (check)", 1, 1.0, False),
+                                    ("cand. block_jacobi + warm start", 1, 1.0, True),
+                                    ("cand. block SSOR w=1.0 (SGS)", 2, 1.0, False),
+                                    ("cand. block SSOR w=1.5", 2, 1.5, False),
+                                    ("cand. block SSOR w=1.5 + warm start", 2, 1.5, True)):
+        record(name, candidate(kind, omega, warm), reps, "not in the library")
+
+    extra = {"n": n, "res": res, "bsr_blocks": m.bsr_nnz, "bsr_mv_ms": t_mv * 1e3,
+             "warp_diag_preconditioner_ms": t_pre * 1e3, "trivial_launch_us": t_launch0 * 1e6,
+             "warp_cg_profile": prof}
+    return records, extra
+
+
+def main():
+    args = common.parse_args(__doc__.splitlines()[0], sizes="16,64")
+    info = common.machine_info()
+    common.print_machine(info)
+    all_recs, extras = [], []
+    for res in (int(s) for s in args.sizes.split(",")):
+        recs, extra = bench_size(res, reps=5 if res <= 16 else 3)
+        all_recs += recs
+        extras.append(extra)
+
+    for ex in extras:
+        recs = [r for r in all_recs if r["res"] == ex["res"]]
+        warp_t = next(r["ms_per_solve"] for r in recs if r["solver"].startswith("warp cg diag (library"))
+        rows = [[r["solver"], r["iters"], r["ms_per_solve"], r["ms_per_iter"], r["true_res"],
+                 warp_t / r["ms_per_solve"]] for r in recs]
+        rows.append(["warp.sparse.bsr_mv alone (per call)", None, None, ex["bsr_mv_ms"], None, None])
+        common.print_table(["solver", "iters", "ms/solve", "ms/iter", "true res", "x vs warp"], rows,
+                           ["", "d", ".2f", ".4f", ".1e", ".1f"],
+                           title=f"{ex['res']}x{ex['res']} grid: {ex['n']} vertices, {ex['bsr_blocks']} 3x3 blocks, "
+                                 f"tol {TOL:g}")
+        pr = ex["warp_cg_profile"]
+        print(f"warp cg: {pr['launches_per_iter']:.1f} launches/iteration taking {pr['launch_ms_per_iter']:.2f} ms; "
+              f"top: " + "; ".join(f"{k} {c:.1f}x {ms:.3f} ms" for k, c, ms in pr["top"][:4]))
+        print(f"diag preconditioner build {ex['warp_diag_preconditioner_ms']:.3f} ms; trivial launch "
+              f"(array.zero_ of 1 float) {ex['trivial_launch_us']:.1f} us")
+
+    print()
+    for ex in extras:
+        recs = {r["solver"]: r for r in all_recs if r["res"] == ex["res"]}
+        w = recs["warp cg diag (library call)"]
+        s = recs["sequential block_jacobi"]
+        print(f"conclusion {ex['n']} vertices: warp cg {w['ms_per_iter']:.3f} ms/iter vs sequential "
+              f"{s['ms_per_iter']:.4f} ms/iter ({w['ms_per_iter'] / s['ms_per_iter']:.0f}x), bsr_mv alone "
+              f"{ex['bsr_mv_ms']:.3f} ms = {ex['bsr_mv_ms'] / s['ms_per_iter']:.1f} sequential iterations; "
+              f"whole solve {w['ms_per_solve'] / s['ms_per_solve']:.0f}x faster sequential")
+    print("=> on the CPU the one-launch sequential CG is the right backend: warp's cg pays per-iteration launch and "
+          "reduction overheads that exceed the whole sequential iteration.")
+    common.write_json(args.json, {"machine": info, "tol": TOL, "solves": all_recs, "sizes": extras})
+
+
+if __name__ == "__main__":
+    main()
