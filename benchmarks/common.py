@@ -157,7 +157,8 @@ def median(values) -> float:
 # -- profiling -------------------------------------------------------------------------------------------------------
 @contextlib.contextmanager
 def launch_profile():
-    """Time every ``wp.launch`` (CPU launches are synchronous, so wall time = kernel + launch overhead).
+    """Time every ``wp.launch`` and recorded ``wp.Launch.launch`` (CPU launches are synchronous, so wall time =
+    kernel + launch overhead).
 
     Yields a dict ``{kernel key (+ " [adj]" for adjoint launches): [calls, seconds]}``. Patches ``warp.launch``,
     which the simulator and ``Tape.backward`` both look up at call time.
@@ -176,11 +177,24 @@ def launch_profile():
             s[0] += 1
             s[1] += time.perf_counter() - t0
 
+    orig_cmd = wp.Launch.launch
+
+    def launch_cmd(self, *args, **kwargs):  # recorded launches (record_cmd=True), e.g. warp.optim's dot products
+        t0 = time.perf_counter()
+        try:
+            return orig_cmd(self, *args, **kwargs)
+        finally:
+            s = stats[getattr(self.kernel, "key", "?").split("__locals__")[-1] + " [cmd]"]
+            s[0] += 1
+            s[1] += time.perf_counter() - t0
+
     wp.launch = launch
+    wp.Launch.launch = launch_cmd
     try:
         yield stats
     finally:
         wp.launch = orig
+        wp.Launch.launch = orig_cmd
 
 
 @contextlib.contextmanager

@@ -1,7 +1,6 @@
 """Shared scene for the gradient, physics and error tests: a small cloth hanging in a vertical plane."""
 
 import numpy as np
-import pytest
 import warp as wp
 
 import warpcloth as wc
@@ -38,6 +37,5 @@ def hanging_builder(*, res=4, size=0.5, material=None, gravity=(0.0, 0.0, -2.0),
     return b
 
 
-@pytest.fixture
-def hanging():
-    return hanging_builder
+DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+"""Every device the suite runs on: the CPU always, CUDA when present."""

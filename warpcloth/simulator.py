@@ -49,7 +49,11 @@ class SolverOptions:
     max_speed: float = 1.0e3
     """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
 
+    def __post_init__(self):
+        self.validate()
+
     def validate(self) -> None:
+        """Raise ValueError naming the first option out of range."""
         for name in ("cg_tol", "cg_atol", "max_speed"):
             val = getattr(self, name)
             if not math.isfinite(val) or val <= 0.0:
@@ -265,7 +269,8 @@ class Simulator:
         self._previous_dv = dv
         self.last_cg_iterations, self.last_cg_residual = iters, residual
         self.stats["cg_iterations"] += iters
-        self._check_solve("forward", iters, residual)
+        step = self.step_count + 1  # the step being taken, as the divergence guard counts it
+        self._check_solve("forward", step, iters, residual)
         if active_tape() is None or not values.requires_grad:
             return
 
@@ -274,7 +279,7 @@ class Simulator:
             lam = wp.zeros_like(dv, requires_grad=False)
             it, res = self._cg(values, dv.grad, lam)
             self.stats["adjoint_cg_iterations"] += it
-            self._check_solve("adjoint", it, res)
+            self._check_solve("adjoint", step, it, res)
             wp.launch(self.linear.solve_adjoint_scatter, self.model.particle_count, device=self.device,
                       inputs=[self.model.bsr_offsets, self.model.bsr_columns, lam, dv],
                       outputs=[values.grad, rhs.grad], record_tape=False)
@@ -324,16 +329,16 @@ class Simulator:
         bnorm = float(np.linalg.norm(b.numpy()))
         return int(iters), float(residual) / max(bnorm, 1e-300)
 
-    def _check_solve(self, which: str, iters: int, residual: float) -> None:
+    def _check_solve(self, which: str, step: int, iters: int, residual: float) -> None:
         opt = self.options
         if iters >= opt.cg_max_iters and residual > opt.cg_tol:
-            msg = (f"{which} CG solve of step {self.step_count} did not converge: relative residual {residual:.3e} "
+            msg = (f"{which} CG solve of step {step} did not converge: relative residual {residual:.3e} "
                    f"after {iters} iterations (cg_tol {opt.cg_tol:g}); raise cg_max_iters or lower dt")
             if not math.isfinite(residual) or opt.on_cg_failure == "raise":
                 raise SimulationError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
         elif not math.isfinite(residual):
-            raise SimulationError(f"{which} CG solve of step {self.step_count} produced a non-finite residual; "
+            raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual; "
                                   "the system is not positive definite or the state is already invalid")
 
     def _check(self, state: State) -> None:
