@@ -198,6 +198,26 @@ def launch_profile():
 
 
 @contextlib.contextmanager
+def alloc_profile():
+    """Count host allocations of Warp arrays on the CPU device: yields ``{"count": n, "bytes": b}``."""
+    from warp._src.context import CpuDefaultAllocator
+
+    stats = {"count": 0, "bytes": 0}
+    orig = CpuDefaultAllocator.allocate
+
+    def allocate(self, size_in_bytes):
+        stats["count"] += 1
+        stats["bytes"] += int(size_in_bytes)
+        return orig(self, size_in_bytes)
+
+    CpuDefaultAllocator.allocate = allocate
+    try:
+        yield stats
+    finally:
+        CpuDefaultAllocator.allocate = orig
+
+
+@contextlib.contextmanager
 def method_profile(obj, names):
     """Time calls of the bound methods ``names`` of ``obj`` (instance attributes shadow the class's)."""
     stats = defaultdict(lambda: [0, 0.0])

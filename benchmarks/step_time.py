@@ -1,20 +1,26 @@
 """Time per implicit step, forward and backward, of a hanging cloth in the wind, for grids 16^2 .. 128^2.
 
 Scene: 1 m square, vertical (facing the +x wind), soft handles (k 1e3) on the two top corners, gravity, wind 5 m/s,
-gray-interlock thicken 2, dt 0.02, no collisions, float32, default SolverOptions (cg_tol 1e-6, block Jacobi, the
-"auto" backend = one-launch sequential CG on the CPU). Timed rollouts start after an untimed spin-up of SPINUP steps
+gray-interlock thicken 2, dt 0.02, no collisions, float32, the library's default SolverOptions (printed; on the CPU
+the "auto" backend is the one-launch sequential CG). Timed rollouts start after an untimed spin-up of SPINUP steps
 (the first steps from the flat sheet need fewer CG iterations than the flapping cloth).
 
     forward_ms          rollout without tape (requires_grad=False model), per step
     taped_forward_ms    rollout recorded on a wp.Tape (requires_grad=True model), per step
     backward_ms         tape.backward of that rollout (loss = sum of final positions), per step
     forward_backward_ms taped_forward_ms + backward_ms
-    cg_iters            mean forward CG iterations per step; adjoint_cg_iters the same for the adjoint solves
+    cg_iters            mean forward CG iterations per step (adjoint_cg_iters: the adjoint solves;
+                        cg_iters_cold: forward with warm_start=False)
+
+Profiles (--profile-res) time every kernel launch and count array allocations per step.
 
 Usage: python benchmarks/step_time.py [--json PATH] [--profile-res 16,64]
 """
 
 from __future__ import annotations
+
+import dataclasses
+import warnings
 
 import numpy as np
 import warp as wp
@@ -32,6 +38,7 @@ TARGET_FWD_BWD_MS_16 = 3.0
 def forward_rollouts(sim, s0, steps, reps):
     times, iters = [], []
     for _ in range(reps):
+        sim._previous_dv = None  # every repetition starts the same way (no warm start from the last rollout)
         before = sim.stats["cg_iterations"]
         t, _ = common.timed(wc.rollout, sim, s0, steps=steps)
         times.append(t / steps)
@@ -39,74 +46,73 @@ def forward_rollouts(sim, s0, steps, reps):
     return times, iters
 
 
+def record(tape, sim, s0, control, steps):
+    sim._previous_dv = None
+    with tape:
+        return wc.rollout(sim, s0, control, steps=steps)
+
+
+def loss_seed(traj):
+    """d(loss)/d(x_final) for loss = sum of the final positions."""
+    return {traj[-1].particle_x: wp.ones_like(traj[-1].particle_x, requires_grad=False)}
+
+
 def taped_rollout(sim, s0, control, steps):
-    """(forward s, backward s, forward iters, adjoint iters, d(sum x_final)/d(density)) of one taped rollout."""
+    """(forward s, backward s, forward iters, adjoint iters) of one taped rollout and its backward pass."""
     st = sim.stats
     it0, adj0 = st["cg_iterations"], st["adjoint_cg_iterations"]
     tape = wp.Tape()
-
-    def fwd():
-        with tape:
-            return wc.rollout(sim, s0, control, steps=steps)
-
-    t_fwd, traj = common.timed(fwd)
-    seed = {traj[-1].particle_x: wp.ones_like(traj[-1].particle_x, requires_grad=False)}
-    t_bwd, _ = common.timed(tape.backward, grads=seed)
-    g = float(sim.model.material_density.grad.numpy()[0])
+    t_fwd, traj = common.timed(record, tape, sim, s0, control, steps)
+    t_bwd, _ = common.timed(tape.backward, grads=loss_seed(traj))
     tape.zero()
     tape.reset()
-    return t_fwd, t_bwd, st["cg_iterations"] - it0, st["adjoint_cg_iterations"] - adj0, g
+    return t_fwd, t_bwd, st["cg_iterations"] - it0, st["adjoint_cg_iterations"] - adj0
 
 
 def profile(res, steps, sim, s0, simg, s0g, control):
-    """Per-kernel wall time per step of one forward, one taped forward and its backward."""
+    """Per-kernel wall time per step of one forward, one taped forward and its backward; allocations per step."""
+    phases = ("forward", "taped", "backward")
     out = {}
-    with common.launch_profile() as launches, common.method_profile(sim, ["_buffers", "_cg", "_check"]) as meth:
+    names = ["_buffers", "_cg", "_check"]
+    with common.launch_profile() as la, common.method_profile(sim, names) as me, common.alloc_profile() as al:
+        sim._previous_dv = None
         t, _ = common.timed(wc.rollout, sim, s0, steps=steps)
-    out["forward"] = (t, dict(launches), dict(meth))
+    out["forward"] = (t, dict(la), dict(me), dict(al))
     tape = wp.Tape()
-    with common.launch_profile() as launches, common.method_profile(simg, ["_buffers", "_cg", "_check"]) as meth:
-        wp.synchronize()
-        t, traj = common.timed(lambda: _record(tape, simg, s0g, control, steps))
-    out["taped"] = (t, dict(launches), dict(meth))
-    seed = {traj[-1].particle_x: wp.ones_like(traj[-1].particle_x, requires_grad=False)}
-    with common.launch_profile() as launches, common.method_profile(simg, ["_cg"]) as meth:
+    with common.launch_profile() as la, common.method_profile(simg, names) as me, common.alloc_profile() as al:
+        t, traj = common.timed(record, tape, simg, s0g, control, steps)
+    out["taped"] = (t, dict(la), dict(me), dict(al))
+    seed = loss_seed(traj)
+    with common.launch_profile() as la, common.method_profile(simg, ["_cg"]) as me, common.alloc_profile() as al:
         t, _ = common.timed(tape.backward, grads=seed)
-    out["backward"] = (t, dict(launches), dict(meth))
+    out["backward"] = (t, dict(la), dict(me), dict(al))
     tape.zero()
     tape.reset()
 
-    keys = sorted({k for _, l, _ in out.values() for k in l}, key=lambda k: (k.endswith("[adj]"), k))
+    def per_step(p, table, key, idx=1):
+        entry = out[p][table].get(key)
+        return None if entry is None else entry[idx] / steps * (1e3 if idx == 1 else 1)
+
+    keys = sorted({k for p in phases for k in out[p][1]}, key=lambda k: (k.endswith("[adj]"), k))
     rows = []
     for k in keys:
-        row = [k]
-        calls = None
-        for phase in ("forward", "taped", "backward"):
-            c, s = out[phase][1].get(k, (0, 0.0))
-            calls = calls or (c / steps if c else None)
-            row.append(s / steps * 1e3 if c else None)
-        rows.append([row[0], calls, *row[1:]])
-    launch_sum = {p: sum(s for _, s in out[p][1].values()) for p in out}
-    meth_rows = []
-    for name in ("_buffers", "_check", "_cg"):
-        meth_rows.append([f"Simulator.{name} (whole call)", None,
-                          *(out[p][2].get(name, (0, 0.0))[1] / steps * 1e3 if name in out[p][2] else None
-                            for p in ("forward", "taped", "backward"))])
-    rows += meth_rows
+        calls = next(c for c in (per_step(p, 1, k, 0) for p in phases) if c)
+        rows.append([k, calls, *(per_step(p, 1, k) for p in phases)])
+    for name in names:
+        rows.append([f"Simulator.{name} (whole call)", None, *(per_step(p, 2, name) for p in phases)])
     rows.append(["host time outside launches", None,
-                 *((out[p][0] - launch_sum[p]) / steps * 1e3 for p in ("forward", "taped", "backward"))])
-    rows.append(["TOTAL", None, *(out[p][0] / steps * 1e3 for p in ("forward", "taped", "backward"))])
+                 *((out[p][0] - sum(s for _, s in out[p][1].values())) / steps * 1e3 for p in phases)])
+    rows.append(["TOTAL", None, *(out[p][0] / steps * 1e3 for p in phases)])
+    rows.append(["array allocations / step", None, *(out[p][3]["count"] / steps for p in phases)])
+    rows.append(["allocated KiB / step", None, *(out[p][3]["bytes"] / steps / 1024 for p in phases)])
     common.print_table(["kernel / phase", "launches/step", "forward ms", "taped fwd ms", "backward ms"], rows,
                        ["", ".1f", ".3f", ".3f", ".3f"],
-                       title=f"profile {res}x{res} ({steps} steps; per step; cg_sequential in 'backward' is the "
-                             "adjoint solve)")
+                       title=f"profile {res}x{res}, per step over {steps} steps (wall time around each launch; "
+                             "cg_sequential under 'backward' is the adjoint solve)")
     return {p: {"total_ms": out[p][0] / steps * 1e3,
-                "launch_ms": {k: s / steps * 1e3 for k, (c, s) in out[p][1].items()}} for p in out}
-
-
-def _record(tape, sim, s0, control, steps):
-    with tape:
-        return wc.rollout(sim, s0, control, steps=steps)
+                "launch_ms": {k: s / steps * 1e3 for k, (c, s) in out[p][1].items()},
+                "allocations_per_step": out[p][3]["count"] / steps,
+                "allocated_bytes_per_step": out[p][3]["bytes"] / steps} for p in phases}
 
 
 def main():
@@ -114,30 +120,29 @@ def main():
     info = common.machine_info()
     common.print_machine(info)
     prof_res = {int(r) for r in args.profile_res.split(",") if r}
-    print(f"scene: hanging 1 m sheet, wind (5,0,0), gray-interlock x2, dt {common.DT}, float32, "
-          f"default SolverOptions; timed after {SPINUP} spin-up steps")
+    options = wc.SolverOptions()
+    print(f"scene: hanging 1 m sheet, wind (5,0,0), gray-interlock x2, dt {common.DT}, float32; timed after {SPINUP} "
+          f"spin-up steps\noptions: {options}")
 
-    records, profiles = [], {}
+    records = []
     for res, (steps, reps) in CASES.items():
-        m = common.hanging_cloth(res, requires_grad=False)
-        sim = wc.Simulator(m, common.DT)
-        s0 = common.advance(sim, m.state(), SPINUP)  # also compiles
-        wc.rollout(sim, s0, steps=1)
-        fwd, iters = forward_rollouts(sim, s0, steps, reps)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            m = common.hanging_cloth(res, requires_grad=False)
+            sim = wc.Simulator(m, common.DT, options=options)
+            s0 = common.advance(sim, m.state(), SPINUP)  # also compiles
+            fwd, iters = forward_rollouts(sim, s0, steps, reps)
+            cold = wc.Simulator(m, common.DT, options=dataclasses.replace(options, warm_start=False))
+            _, cold_iters = forward_rollouts(cold, s0, steps, 1)
 
-        mg = common.hanging_cloth(res, requires_grad=True)
-        simg = wc.Simulator(mg, common.DT)
-        s0g = common.copy_state(mg, s0, requires_grad=True)
-        control = mg.control()
-        taped_rollout(simg, s0g, control, 1)  # warm-up (adjoint kernels)
-        tf, tb, fi, ai, grads = [], [], [], [], []
-        for _ in range(reps):
-            a, b, c, d, g = taped_rollout(simg, s0g, control, steps)
-            tf.append(a / steps)
-            tb.append(b / steps)
-            fi.append(c / steps)
-            ai.append(d / steps)
-            grads.append(g)
+            mg = common.hanging_cloth(res, requires_grad=True)
+            simg = wc.Simulator(mg, common.DT, options=options)
+            s0g = common.copy_state(mg, s0, requires_grad=True)
+            control = mg.control()
+            taped_rollout(simg, s0g, control, 1)  # warm-up (adjoint kernels)
+            runs = [taped_rollout(simg, s0g, control, steps) for _ in range(reps)]
+            tf, tb = [r[0] / steps for r in runs], [r[1] / steps for r in runs]
+        unconverged = [str(w.message) for w in caught if "did not converge" in str(w.message)]
         rec = {
             "res": res,
             "particles": m.particle_count,
@@ -150,17 +155,22 @@ def main():
             "backward_ms": common.median(tb) * 1e3,
             "forward_backward_ms": common.median([a + b for a, b in zip(tf, tb)]) * 1e3,
             "cg_iters": float(np.mean(iters)),
-            "taped_cg_iters": float(np.mean(fi)),
-            "adjoint_cg_iters": float(np.mean(ai)),
-            "dsumx_ddensity": grads[-1],
+            "cg_iters_cold": float(np.mean(cold_iters)),
+            "taped_cg_iters": float(np.mean([r[2] for r in runs])) / steps,
+            "adjoint_cg_iters": float(np.mean([r[3] for r in runs])) / steps,
+            "unconverged_solves": len(unconverged),
+            "unconverged_example": unconverged[0] if unconverged else None,
+            "options": dataclasses.asdict(options),
             "machine": info,
         }
         records.append(rec)
         print(f"  {res}x{res}: forward {rec['forward_ms']:.2f} ms/step, backward {rec['backward_ms']:.2f} ms/step, "
-              f"{rec['cg_iters']:.0f} CG it/step", flush=True)
+              f"{rec['cg_iters']:.0f} CG it/step" + (f"; {len(unconverged)} solves missed cg_tol, e.g. "
+                                                      f"{unconverged[0]}" if unconverged else ""), flush=True)
         if res in prof_res:
-            profiles[res] = profile(res, steps, sim, s0, simg, s0g, control)
-        rec["profile"] = profiles.get(res)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                rec["profile"] = profile(res, steps, sim, s0, simg, s0g, control)
 
     rows = []
     for r in records:
@@ -171,13 +181,14 @@ def main():
             ok = r["forward_backward_ms"] <= TARGET_FWD_BWD_MS_16
             target = f"fwd+bwd <= {TARGET_FWD_BWD_MS_16:g} ms: {'PASS' if ok else 'FAIL'}"
         rows.append([f"{r['res']}x{r['res']}", r["particles"], r["steps"], r["forward_ms"], r["taped_forward_ms"],
-                     r["backward_ms"], r["forward_backward_ms"], r["cg_iters"], r["adjoint_cg_iters"],
-                     r["forward_ms"] / max(r["cg_iters"], 1) * 1e3, target])
+                     r["backward_ms"], r["forward_backward_ms"], r["cg_iters"], r["cg_iters_cold"],
+                     r["adjoint_cg_iters"], r["forward_ms"] / max(r["cg_iters"], 1) * 1e3, target])
     common.print_table(
         ["grid", "particles", "steps", "forward ms", "taped fwd ms", "backward ms", "fwd+bwd ms", "CG it",
-         "adj CG it", "fwd us/CG it", "target"],
-        rows, ["", "d", "d", ".2f", ".2f", ".2f", ".2f", ".1f", ".1f", ".1f", ""],
-        title="per-step wall time (medians over repetitions; CG iterations are means per step)")
+         "CG it cold", "adj CG it", "fwd us/CG it", "target"],
+        rows, ["", "d", "d", ".2f", ".2f", ".2f", ".2f", ".1f", ".1f", ".1f", ".1f", ""],
+        title="per-step wall time (medians over repetitions; CG iterations are means per step; 'cold' = "
+              "warm_start=False)")
     common.write_json(args.json, records)
 
 

@@ -188,8 +188,8 @@ def implicit_kernels(scalar):
         wind_velocity: wp.array(dtype=vec3),
         wind_density: wp.array(dtype=scalar),
         wind_drag: wp.array(dtype=scalar),
-        # State in:
-        x: wp.array(dtype=vec3),
+        # State in: (x_normal: positions the face normals are taken from)
+        x_normal: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
         dt: scalar,
         # out:
@@ -200,7 +200,7 @@ def implicit_kernels(scalar):
         i0 = tri_indices[f, 0]
         i1 = tri_indices[f, 1]
         i2 = tri_indices[f, 2]
-        n = wp.normalize(wp.cross(x[i1] - x[i0], x[i2] - x[i0]))
+        n = wp.normalize(wp.cross(x_normal[i1] - x_normal[i0], x_normal[i2] - x_normal[i0]))
         v_rel = wind_velocity[0] - (v[i0] + v[i1] + v[i2]) / scalar(3.0)
         vn = wp.dot(n, v_rel)
         area = tri_area[f]

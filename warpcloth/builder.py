@@ -81,6 +81,7 @@ class ModelBuilder:
         self._handles: list[tuple[int, float, Motion | None]] = []
         self._pins: list[tuple[int, Motion | None]] = []
         self.wind: tuple[np.ndarray, float, float] | None = None
+        self.wind_lagged_normals = False
         self.damping_mass = 0.0
         self.damping_stiffness = 0.0
 
@@ -231,16 +232,20 @@ class ModelBuilder:
         return len(self._pins) - 1
 
     # -- scene forces --------------------------------------------------------------------------------------------
-    def set_wind(self, velocity: Sequence[float], *, density: float = 1.0, drag: float = 0.0) -> None:
+    def set_wind(self, velocity: Sequence[float], *, density: float = 1.0, drag: float = 0.0,
+                 lagged_normals: bool = False) -> None:
         """Constant wind (ARCSim ``wind_force``): normal pressure ``density*A*|vn|*vn`` and tangential ``drag*A*vt``.
 
-        ARCSim's defaults are density 1 (not air's 1.2) and drag 0.
+        ARCSim's defaults are density 1 (not air's 1.2) and drag 0. With ``lagged_normals`` the face normals come
+        from the previous step's start positions, as ARCSim computes them (SPEC §2: ``compute_ws_data`` runs before
+        ``step_mesh``); use it to reproduce the seed's trajectories, not for new work.
         """
         v = _finite_vector("wind velocity", velocity)
         for name, val in (("wind density", density), ("wind drag", drag)):
             if not math.isfinite(val) or val < 0.0:
                 raise ValueError(f"{name} must be finite and >= 0, got {val}")
         self.wind = (v, float(density), float(drag))
+        self.wind_lagged_normals = bool(lagged_normals)
 
     def set_damping(self, *, mass: float = 0.0, stiffness: float = 0.0) -> None:
         """Rayleigh damping: ``mass`` alpha [1/s] (force -alpha M v), ``stiffness`` beta [s] (force -beta K v)."""
@@ -343,6 +348,7 @@ class ModelBuilder:
             wind_velocity=None if self.wind is None else arr(self.wind[0][None, :], t.vec3, True),
             wind_density=None if self.wind is None else arr(np.array([self.wind[1]]), scalar, True),
             wind_drag=None if self.wind is None else arr(np.array([self.wind[2]]), scalar, True),
+            wind_lagged_normals=self.wind_lagged_normals,
             damping_mass=self.damping_mass,
             damping_stiffness=self.damping_stiffness,
             handle_count=len(self._handles),

@@ -121,6 +121,8 @@ class Model:
     """Air density of the wind's normal pressure [kg/m^3], (1,)."""
     wind_drag: wp.array | None
     """Tangential drag coefficient [kg/(m^2 s)], (1,)."""
+    wind_lagged_normals: bool
+    """Wind uses face normals of the previous step's start positions (ARCSim's lag), else the current ones."""
     damping_mass: float
     """Rayleigh mass-proportional damping alpha [1/s]."""
     damping_stiffness: float

@@ -107,6 +107,8 @@ class Simulator:
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._step_buffers = None
         self._previous_dv = None
+        self._previous_in: State | None = None  # state_in and state_out of the last step (ARCSim's lagged normals)
+        self._previous_out: State | None = None
         self._warp_matrix = None
         self._zero_offsets = {
             "handle": wp.zeros(model.handle_count, dtype=vec3, device=self.device),
@@ -132,6 +134,7 @@ class Simulator:
                   inputs=[state_in.particle_x, state_in.particle_v, dv, dt],
                   outputs=[state_out.particle_x, state_out.particle_v])
         state_out.time = t_next
+        self._previous_in, self._previous_out = state_in, state_out
         self.step_count += 1
         self.stats["steps"] += 1
         self._check(state_out)
@@ -214,9 +217,12 @@ class Simulator:
                               model.scalar(model.damping_stiffness)],
                       outputs=[values, rhs])
         if model.wind_velocity is not None:
+            x_normal = state_in.particle_x
+            if model.wind_lagged_normals and state_in is self._previous_out:
+                x_normal = self._previous_in.particle_x  # continuing a trajectory: the previous step's start
             wp.launch(k.wind, model.tri_count, device=self.device,
                       inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.wind_velocity,
-                              model.wind_density, model.wind_drag, state_in.particle_x, state_in.particle_v, dt],
+                              model.wind_density, model.wind_drag, x_normal, state_in.particle_v, dt],
                       outputs=[rhs])
         if model.handle_count:
             wp.launch(k.handles, model.handle_count, device=self.device,
