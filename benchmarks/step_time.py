@@ -161,6 +161,7 @@ def main():
             "unconverged_solves": len(unconverged),
             "unconverged_example": unconverged[0] if unconverged else None,
             "options": dataclasses.asdict(options),
+            "profile": None,
             "machine": info,
         }
         records.append(rec)

@@ -44,8 +44,8 @@ class SolverOptions:
     on_cg_failure: str = "warn"
     """What a solve that misses its tolerance does: ``"warn"`` (with the residual) or ``"raise"``."""
     warm_start: bool = True
-    """Start each forward CG solve from the previous step's velocity change (fewer iterations; the result differs
-    only within the tolerance)."""
+    """Start each CG solve from the previous solution (forward: the previous step's velocity change; adjoint: the
+    later step's adjoint): fewer iterations, and results that differ only within the tolerance."""
     max_speed: float = 1.0e3
     """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
 
@@ -105,6 +105,7 @@ class Simulator:
         self._precond = wp.empty(n, dtype=mat33, device=self.device)
         self._cg_info = wp.zeros(2, dtype=wp.float64, device=self.device)
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self._adjoint_solution = wp.zeros(n, dtype=vec3, device=self.device)
         self._step_buffers = None
         self._previous_dv = None
         self._previous_in: State | None = None  # state_in and state_out of the last step (ARCSim's lagged normals)
@@ -281,9 +282,12 @@ class Simulator:
             return
 
         def adjoint():
-            # A is symmetric: solve A lam = dL/d(dv) with the same solver; dL/db = lam, dL/dA_ij = -lam_i dv_j^T
-            lam = wp.zeros_like(dv, requires_grad=False)
-            it, res = self._cg(values, dv.grad, lam)
+            # A is symmetric: solve A lam = dL/d(dv) with the same solver; dL/db = lam, dL/dA_ij = -lam_i dv_j^T.
+            # The backward pass runs steps in reverse; the later step's lam (still in the buffer) is the warm start.
+            lam = self._adjoint_solution
+            if not self.options.warm_start:
+                lam.zero_()
+            it, res = self._cg(values, dv.grad, lam, warm_start=self.options.warm_start)
             self.stats["adjoint_cg_iterations"] += it
             self._check_solve("adjoint", step, it, res)
             wp.launch(self.linear.solve_adjoint_scatter, self.model.particle_count, device=self.device,
