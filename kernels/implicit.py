@@ -180,6 +180,135 @@ def implicit_kernels(scalar):
                           particle_pin[idx[b]] >= 0, blk)
 
     @wp.kernel
+    def faces_potential(
+        # Model:
+        tri_indices: wp.array2d(dtype=wp.int32),
+        tri_material: wp.array(dtype=wp.int32),
+        tri_inv_dm: wp.array(dtype=mat22),
+        tri_area: wp.array(dtype=scalar),
+        particle_pin: wp.array(dtype=wp.int32),
+        material_density: wp.array(dtype=scalar),
+        material_stretching: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        lut_weight: wp.array(dtype=vec3),
+        lut_row: wp.array(dtype=wp.int32),
+        gravity: wp.array(dtype=vec3),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        pin_dv: wp.array(dtype=vec3),
+        # Adjoint of the solve (held constant): lam = dL/db, dv = the solution (dL/dA_ab = -lam_a dv_b^T)
+        lam: wp.array(dtype=vec3),
+        dv: wp.array(dtype=vec3),
+        dt: scalar,
+        damping_mass: scalar,
+        damping_stiffness: scalar,
+        # out:
+        phi: wp.array(dtype=scalar),
+    ):
+        # phi = sum_a lam_a . b_a + sum_ab <dL/dA_ab, A_ab> for this face's contributions, so grad(phi) is the
+        # face's share of dL/d(x, v, materials, gravity, pin_dv). The 3x3 blocks never form: with
+        # Lu = sum_a du_a lam_a (etc.), sum_ab lam_a^T H_ab w_b contracts to a few dot products (SPEC §1.2 H).
+        f = wp.tid()
+        i0 = tri_indices[f, 0]
+        i1 = tri_indices[f, 1]
+        i2 = tri_indices[f, 2]
+        idx = wp.vec3i(i0, i1, i2)
+        mat = tri_material[f]
+        area = tri_area[f]
+        thicken = material_thicken[mat]
+        inv_dm = tri_inv_dm[f]
+        du, dv_w = st.shape_gradients(inv_dm)
+        xu, xv, G00, G11, G01 = st.deformation(x[i0], x[i1], x[i2], inv_dm)
+        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
+        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        Lu = zero3
+        Lv = zero3
+        Wu = zero3
+        Wv = zero3
+        inertia = scalar(0.0)
+        for a in range(3):
+            p = idx[a]
+            la = zero3
+            if particle_pin[p] < 0:
+                la = lam[p]
+            w = v[p] + wp.where(particle_pin[p] < 0, dv[p], pin_dv[p])
+            Lu += du[a] * la
+            Lv += dv_w[a] * la
+            Wu += du[a] * w
+            Wv += dv_w[a] * w
+            inertia += wp.dot(la, dt * gravity[0] - dt * damping_mass * v[p]
+                              - (scalar(1.0) + dt * damping_mass) * dv[p])
+        Lxu = wp.dot(Lu, xu)
+        Lxv = wp.dot(Lv, xv)
+        Wxu = wp.dot(Wu, xu)
+        Wxv = wp.dot(Wv, xv)
+        g00 = wp.max(G00, scalar(0.0))
+        g11 = wp.max(G11, scalar(0.0))
+        # sum_a lam_a . f_a (stretching force, SPEC §1.2)
+        force = -area * (k[0] * G00 * Lxu + k[2] * G11 * Lxv + k[1] * (G00 * Lxv + G11 * Lxu)
+                         + k[3] * G01 * (wp.dot(Lu, xv) + wp.dot(Lv, xu)))
+        # sum_ab lam_a^T H_ab w_b
+        hess = area * (
+            k[0] * (Lxu * Wxu + g00 * wp.dot(Lu, Wu))
+            + k[2] * (Lxv * Wxv + g11 * wp.dot(Lv, Wv))
+            + k[1] * (Lxu * Wxv + Lxv * Wxu + g00 * wp.dot(Lv, Wv) + g11 * wp.dot(Lu, Wu))
+            + scalar(0.5) * k[3] * (wp.dot(Lu, xv) + wp.dot(Lv, xu)) * (wp.dot(Wu, xv) + wp.dot(Wv, xu))
+        )
+        c = dt * (dt + damping_stiffness)
+        wp.atomic_add(phi, 0, dt * force + node_mass * inertia - c * hess)
+
+    @wp.kernel
+    def hinges_potential(
+        # Model:
+        hinge_indices: wp.array2d(dtype=wp.int32),
+        hinge_material: wp.array(dtype=wp.int32),
+        hinge_rest_angle: wp.array(dtype=scalar),
+        hinge_rest_length: wp.array(dtype=scalar),
+        hinge_rest_area: wp.array(dtype=scalar),
+        hinge_direction: wp.array(dtype=vec2),
+        particle_pin: wp.array(dtype=wp.int32),
+        material_bending: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        # State in:
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        pin_dv: wp.array(dtype=vec3),
+        # Adjoint of the solve (held constant):
+        lam: wp.array(dtype=vec3),
+        dv: wp.array(dtype=vec3),
+        dt: scalar,
+        damping_stiffness: scalar,
+        # out:
+        phi: wp.array(dtype=scalar),
+    ):
+        # the hinge's share of phi (see faces_potential); with H_ab = -kappa g_a g_b^T everything is rank one
+        e = wp.tid()
+        idx = wp.vec4i(hinge_indices[e, 0], hinge_indices[e, 1], hinge_indices[e, 2], hinge_indices[e, 3])
+        x0 = x[idx[0]]
+        x1 = x[idx[1]]
+        x2 = x[idx[2]]
+        x3 = x[idx[3]]
+        mat = hinge_material[e]
+        length = hinge_rest_length[e]
+        area = hinge_rest_area[e]
+        theta = bd.dihedral_angle(x0, x1, x2, x3)
+        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
+        kappa = -ke * length * length / (scalar(4.0) * area)
+        g0, g1, g2, g3 = bd.angle_gradient(x0, x1, x2, x3)
+        grads = wp.matrix_from_rows(g0, g1, g2, g3)
+        lam_g = scalar(0.0)
+        w_g = scalar(0.0)
+        for a in range(4):
+            p = idx[a]
+            if particle_pin[p] < 0:
+                lam_g += wp.dot(lam[p], grads[a])
+            w_g += wp.dot(grads[a], v[p] + wp.where(particle_pin[p] < 0, dv[p], pin_dv[p]))
+        c = dt * (dt + damping_stiffness)
+        wp.atomic_add(phi, 0, kappa * lam_g * (dt * (theta - hinge_rest_angle[e]) + c * w_g))
+
+    @wp.kernel
     def wind(
         # Model:
         tri_indices: wp.array2d(dtype=wp.int32),
@@ -331,6 +460,8 @@ def implicit_kernels(scalar):
         pin_rows=pin_rows,
         faces=faces,
         hinges=hinges,
+        faces_potential=faces_potential,
+        hinges_potential=hinges_potential,
         wind=wind,
         handles=handles,
         external_forces=external_forces,

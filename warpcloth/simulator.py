@@ -106,6 +106,9 @@ class Simulator:
             raise ValueError("SolverOptions.preconditioner 'block_ssor' needs cg_backend 'sequential' (its sweeps are "
                              "sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
         self.preconditioner = preconditioner
+        self.element_adjoint = "contracted"
+        """How the stretching/bending assembly is differentiated: "contracted" (the rank-one potential, fast) or
+        "autodiff" (Warp's adjoint of the assembly kernels: the reference the contracted one is tested against)."""
         self.step_count = 0
         """Steps taken by this simulator (names the step in error messages)."""
         self.last_cg_iterations = 0
@@ -141,7 +144,7 @@ class Simulator:
         t_next = state_in.time + self.dt
         k = self.kernels
 
-        self._assemble(state_in, control, t_next, values, rhs, pin_dv)
+        self._assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
         self._solve_recorded(values, rhs, dv)
 
         wp.launch(k.integrate, model.particle_count, device=self.device,
@@ -202,8 +205,11 @@ class Simulator:
 
     # -- internals -----------------------------------------------------------------------------------------------
 
-    def _assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv) -> None:
-        """Fill ``values`` (BSR blocks of A) and ``rhs`` (b) of the implicit system for one step."""
+    def _assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv, dv=None) -> None:
+        """Fill ``values`` (BSR blocks of A) and ``rhs`` (b) of the implicit system for one step.
+
+        ``dv`` is the buffer the solve will write; given while recording, the element kernels' adjoint uses it.
+        """
         model = self.model
         dt = model.scalar(self.dt)
         k = self.kernels
@@ -215,21 +221,25 @@ class Simulator:
                       inputs=[model.pin_particle, model.particle_diag_slot, state_in.particle_x, state_in.particle_v,
                               control.pin_target, self._offsets("pin", t_next), dt],
                       outputs=[pin_dv, values, rhs])
-        wp.launch(k.faces, model.tri_count, device=self.device,
-                  inputs=[model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area,
-                          model.tri_block_slot, model.particle_pin, model.material_density, model.material_stretching,
-                          model.material_thicken, model.lut_weight, model.lut_row, model.gravity,
-                          state_in.particle_x, state_in.particle_v, pin_dv, dt,
-                          model.scalar(model.damping_mass), model.scalar(model.damping_stiffness)],
-                  outputs=[values, rhs])
+        face_inputs = [model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area,
+                       model.tri_block_slot, model.particle_pin, model.material_density, model.material_stretching,
+                       model.material_thicken, model.lut_weight, model.lut_row, model.gravity,
+                       state_in.particle_x, state_in.particle_v, pin_dv, dt,
+                       model.scalar(model.damping_mass), model.scalar(model.damping_stiffness)]
+        hinge_inputs = [model.hinge_indices, model.hinge_material, model.hinge_rest_angle, model.hinge_rest_length,
+                        model.hinge_rest_area, model.hinge_direction, model.hinge_block_slot, model.particle_pin,
+                        model.material_bending, model.material_thicken, state_in.particle_x, state_in.particle_v,
+                        pin_dv, dt, model.scalar(model.damping_stiffness)]
+        # Warp's autodiff of these two kernels costs ~10x their forward; when recording, their adjoint is the
+        # contracted potential of _record_element_adjoint instead (tested against Warp's in tests/test_solve.py).
+        custom = dv is not None and self.element_adjoint == "contracted" and active_tape() is not None
+        wp.launch(k.faces, model.tri_count, device=self.device, inputs=face_inputs, outputs=[values, rhs],
+                  record_tape=not custom)
         if model.hinge_count:
-            wp.launch(k.hinges, model.hinge_count, device=self.device,
-                      inputs=[model.hinge_indices, model.hinge_material, model.hinge_rest_angle,
-                              model.hinge_rest_length, model.hinge_rest_area, model.hinge_direction,
-                              model.hinge_block_slot, model.particle_pin, model.material_bending,
-                              model.material_thicken, state_in.particle_x, state_in.particle_v, pin_dv, dt,
-                              model.scalar(model.damping_stiffness)],
-                      outputs=[values, rhs])
+            wp.launch(k.hinges, model.hinge_count, device=self.device, inputs=hinge_inputs, outputs=[values, rhs],
+                      record_tape=not custom)
+        if custom and values.requires_grad:
+            self._record_element_adjoint(state_in, pin_dv, rhs, dv)
         if model.wind_velocity is not None:
             x_normal = state_in.particle_x
             if model.wind_lagged_normals and state_in is self._previous_out:
@@ -247,6 +257,45 @@ class Simulator:
         if control.particle_force is not None:
             wp.launch(k.external_forces, model.particle_count, device=self.device,
                       inputs=[model.particle_pin, control.particle_force, dt], outputs=[rhs])
+
+    def _record_element_adjoint(self, state_in: State, pin_dv, rhs, dv) -> None:
+        """Record the adjoint of the stretching and bending assembly for one step.
+
+        The only consumer of A and b is the solve, whose adjoint gives dL/db = lam and dL/dA_ab = -lam_a dv_b^T.
+        So the elements' share of dL/d(inputs) is the gradient of the scalar
+        phi = sum_a lam_a . b_a - sum_ab lam_a^T A_ab dv_b with lam and dv held fixed, which contracts to a few dot
+        products per element (kernels/implicit.py faces_potential, hinges_potential). Warp differentiates phi.
+        """
+        model = self.model
+        k = self.kernels
+        dt = model.scalar(self.dt)
+
+        def grad(a):
+            return a.grad if isinstance(a, wp.array) and a.requires_grad else None
+
+        def adjoint():
+            lam = rhs.grad
+            phi = wp.zeros(1, dtype=model.scalar, device=self.device)
+            seed = wp.ones(1, dtype=model.scalar, device=self.device)
+            x, v = state_in.particle_x, state_in.particle_v
+            launches = [(k.faces_potential, model.tri_count,
+                         [model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area, model.particle_pin,
+                          model.material_density, model.material_stretching, model.material_thicken,
+                          model.lut_weight, model.lut_row, model.gravity, x, v, pin_dv, lam, dv, dt,
+                          model.scalar(model.damping_mass), model.scalar(model.damping_stiffness)])]
+            if model.hinge_count:
+                launches.append((k.hinges_potential, model.hinge_count,
+                                 [model.hinge_indices, model.hinge_material, model.hinge_rest_angle,
+                                  model.hinge_rest_length, model.hinge_rest_area, model.hinge_direction,
+                                  model.particle_pin, model.material_bending, model.material_thicken, x, v, pin_dv,
+                                  lam, dv, dt, model.scalar(model.damping_stiffness)]))
+            for kernel, dim, inputs in launches:
+                # lam and dv are constants of phi: no adjoint arrays for them
+                adj_inputs = [None if (a is lam or a is dv) else grad(a) for a in inputs]
+                wp.launch(kernel, dim, device=self.device, inputs=inputs, outputs=[phi], adj_inputs=adj_inputs,
+                          adj_outputs=[seed], adjoint=True, record_tape=False)
+
+        record_adjoint(adjoint, arrays=[rhs, dv, pin_dv])
 
     def _default_control(self) -> Control:
         if not hasattr(self, "_control_default"):
