@@ -44,6 +44,55 @@ def implicit_kernels(scalar):
             else:
                 wp.atomic_add(values, slot, block)
 
+    @wp.func
+    def face_element(
+        f: int,
+        tri_indices: wp.array2d(dtype=wp.int32),
+        tri_material: wp.array(dtype=wp.int32),
+        tri_inv_dm: wp.array(dtype=mat22),
+        tri_area: wp.array(dtype=scalar),
+        material_density: wp.array(dtype=scalar),
+        material_stretching: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        lut_weight: wp.array(dtype=vec3),
+        lut_row: wp.array(dtype=wp.int32),
+        x: wp.array(dtype=vec3),
+    ):
+        """Everything a face kernel needs: nodes, shape gradients, F's columns, Green strain, stiffness [N/m],
+        rest area and each node's lumped mass (a third of the face's, ARCSim compute_masses)."""
+        idx = wp.vec3i(tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2])
+        mat = tri_material[f]
+        area = tri_area[f]
+        thicken = material_thicken[mat]
+        inv_dm = tri_inv_dm[f]
+        du, dv = st.shape_gradients(inv_dm)
+        xu, xv, G00, G11, G01 = st.deformation(x[idx[0]], x[idx[1]], x[idx[2]], inv_dm)
+        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
+        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        return idx, du, dv, xu, xv, G00, G11, G01, k, area, node_mass
+
+    @wp.func
+    def hinge_element(
+        e: int,
+        hinge_indices: wp.array2d(dtype=wp.int32),
+        hinge_material: wp.array(dtype=wp.int32),
+        hinge_rest_length: wp.array(dtype=scalar),
+        hinge_rest_area: wp.array(dtype=scalar),
+        hinge_direction: wp.array(dtype=vec2),
+        material_bending: wp.array3d(dtype=scalar),
+        material_thicken: wp.array(dtype=scalar),
+        x: wp.array(dtype=vec3),
+    ):
+        """Nodes, dihedral angle [rad] and kappa = -ke l^2 / (4 (A0 + A1)) of a hinge (Bridson et al. 2003 as in
+        ARCSim): the bending energy is -kappa/2 (theta - rest)^2."""
+        idx = wp.vec4i(hinge_indices[e, 0], hinge_indices[e, 1], hinge_indices[e, 2], hinge_indices[e, 3])
+        mat = hinge_material[e]
+        length = hinge_rest_length[e]
+        area = hinge_rest_area[e]
+        theta = bd.dihedral_angle(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
+        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
+        return idx, theta, -ke * length * length / (scalar(4.0) * area)
+
     @wp.kernel
     def pin_rows(
         # Model:
@@ -96,21 +145,9 @@ def implicit_kernels(scalar):
         rhs: wp.array(dtype=vec3),
     ):
         f = wp.tid()
-        i0 = tri_indices[f, 0]
-        i1 = tri_indices[f, 1]
-        i2 = tri_indices[f, 2]
-        idx = wp.vec3i(i0, i1, i2)
-        mat = tri_material[f]
-        area = tri_area[f]
-        thicken = material_thicken[mat]
-        inv_dm = tri_inv_dm[f]
-
-        du, dv = st.shape_gradients(inv_dm)
-        xu, xv, G00, G11, G01 = st.deformation(x[i0], x[i1], x[i2], inv_dm)
-        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
-
-        # lumped mass: a third of the face's mass to each node (ARCSim compute_masses)
-        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        idx, du, dv, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
+            f, tri_indices, tri_material, tri_inv_dm, tri_area, material_density, material_stretching,
+            material_thicken, lut_weight, lut_row, x)
         g = gravity[0]
         c = dt * (dt + damping_stiffness)
         eye = wp.identity(n=3, dtype=scalar)
@@ -152,19 +189,10 @@ def implicit_kernels(scalar):
         rhs: wp.array(dtype=vec3),
     ):
         e = wp.tid()
-        idx = wp.vec4i(hinge_indices[e, 0], hinge_indices[e, 1], hinge_indices[e, 2], hinge_indices[e, 3])
-        x0 = x[idx[0]]
-        x1 = x[idx[1]]
-        x2 = x[idx[2]]
-        x3 = x[idx[3]]
-        mat = hinge_material[e]
-        length = hinge_rest_length[e]
-        area = hinge_rest_area[e]
-        theta = bd.dihedral_angle(x0, x1, x2, x3)
-        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
-        # kappa = -ke l^2 / (4 (A0 + A1)); f = kappa (theta - rest) dtheta; H = -kappa dtheta dtheta^T (Gauss-Newton)
-        kappa = -ke * length * length / (scalar(4.0) * area)
-        g0, g1, g2, g3 = bd.angle_gradient(x0, x1, x2, x3)
+        idx, theta, kappa = hinge_element(e, hinge_indices, hinge_material, hinge_rest_length, hinge_rest_area,
+                                          hinge_direction, material_bending, material_thicken, x)
+        # f = kappa (theta - rest) dtheta; H = -kappa dtheta dtheta^T (Gauss-Newton)
+        g0, g1, g2, g3 = bd.angle_gradient(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
         grads = wp.matrix_from_rows(g0, g1, g2, g3)
         gv = wp.dot(g0, v[idx[0]]) + wp.dot(g1, v[idx[1]]) + wp.dot(g2, v[idx[2]]) + wp.dot(g3, v[idx[3]])
         c = dt * (dt + damping_stiffness)
@@ -209,19 +237,9 @@ def implicit_kernels(scalar):
         # phi = sum_a lam_a . b_a + sum_ab <dL/dA_ab, A_ab> for this face's contributions, so grad(phi) is the
         # face's share of dL/d(x, v, materials, gravity, pin_dv). The 3x3 blocks never form: with
         # Lu = sum_a du_a lam_a (etc.), sum_ab lam_a^T H_ab w_b contracts to a few dot products (SPEC §1.2 H).
-        f = wp.tid()
-        i0 = tri_indices[f, 0]
-        i1 = tri_indices[f, 1]
-        i2 = tri_indices[f, 2]
-        idx = wp.vec3i(i0, i1, i2)
-        mat = tri_material[f]
-        area = tri_area[f]
-        thicken = material_thicken[mat]
-        inv_dm = tri_inv_dm[f]
-        du, dv_w = st.shape_gradients(inv_dm)
-        xu, xv, G00, G11, G01 = st.deformation(x[i0], x[i1], x[i2], inv_dm)
-        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
-        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        idx, du, dv_w, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
+            wp.tid(), tri_indices, tri_material, tri_inv_dm, tri_area, material_density, material_stretching,
+            material_thicken, lut_weight, lut_row, x)
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         Lu = zero3
         Lv = zero3
@@ -285,18 +303,9 @@ def implicit_kernels(scalar):
     ):
         # the hinge's share of phi (see faces_potential); with H_ab = -kappa g_a g_b^T everything is rank one
         e = wp.tid()
-        idx = wp.vec4i(hinge_indices[e, 0], hinge_indices[e, 1], hinge_indices[e, 2], hinge_indices[e, 3])
-        x0 = x[idx[0]]
-        x1 = x[idx[1]]
-        x2 = x[idx[2]]
-        x3 = x[idx[3]]
-        mat = hinge_material[e]
-        length = hinge_rest_length[e]
-        area = hinge_rest_area[e]
-        theta = bd.dihedral_angle(x0, x1, x2, x3)
-        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
-        kappa = -ke * length * length / (scalar(4.0) * area)
-        g0, g1, g2, g3 = bd.angle_gradient(x0, x1, x2, x3)
+        idx, theta, kappa = hinge_element(e, hinge_indices, hinge_material, hinge_rest_length, hinge_rest_area,
+                                          hinge_direction, material_bending, material_thicken, x)
+        g0, g1, g2, g3 = bd.angle_gradient(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
         grads = wp.matrix_from_rows(g0, g1, g2, g3)
         lam_g = scalar(0.0)
         w_g = scalar(0.0)
@@ -413,20 +422,15 @@ def implicit_kernels(scalar):
         # out: [kinetic, stretching, gravity potential]
         energy: wp.array(dtype=scalar),
     ):
-        f = wp.tid()
-        i0 = tri_indices[f, 0]
-        i1 = tri_indices[f, 1]
-        i2 = tri_indices[f, 2]
-        mat = tri_material[f]
-        area = tri_area[f]
-        thicken = material_thicken[mat]
-        xu, xv, G00, G11, G01 = st.deformation(x[i0], x[i1], x[i2], tri_inv_dm[f])
-        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
-        node_mass = area * material_density[mat] * thicken / scalar(3.0)
-        vv = wp.dot(v[i0], v[i0]) + wp.dot(v[i1], v[i1]) + wp.dot(v[i2], v[i2])
-        wp.atomic_add(energy, 0, scalar(0.5) * node_mass * vv)
+        idx, du, dv, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
+            wp.tid(), tri_indices, tri_material, tri_inv_dm, tri_area, material_density, material_stretching,
+            material_thicken, lut_weight, lut_row, x)
+        v0 = v[idx[0]]
+        v1 = v[idx[1]]
+        v2 = v[idx[2]]
+        wp.atomic_add(energy, 0, scalar(0.5) * node_mass * (wp.dot(v0, v0) + wp.dot(v1, v1) + wp.dot(v2, v2)))
         wp.atomic_add(energy, 1, area * st.energy_density(k, G00, G11, G01))
-        wp.atomic_add(energy, 2, -node_mass * wp.dot(gravity[0], x[i0] + x[i1] + x[i2]))
+        wp.atomic_add(energy, 2, -node_mass * wp.dot(gravity[0], x[idx[0]] + x[idx[1]] + x[idx[2]]))
 
     @wp.kernel
     def hinge_energy(
@@ -443,18 +447,11 @@ def implicit_kernels(scalar):
         energy: wp.array(dtype=scalar),
     ):
         e = wp.tid()
-        x0 = x[hinge_indices[e, 0]]
-        x1 = x[hinge_indices[e, 1]]
-        x2 = x[hinge_indices[e, 2]]
-        x3 = x[hinge_indices[e, 3]]
-        mat = hinge_material[e]
-        length = hinge_rest_length[e]
-        area = hinge_rest_area[e]
-        theta = bd.dihedral_angle(x0, x1, x2, x3)
-        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
+        idx, theta, kappa = hinge_element(e, hinge_indices, hinge_material, hinge_rest_length, hinge_rest_area,
+                                          hinge_direction, material_bending, material_thicken, x)
         d = theta - hinge_rest_angle[e]
-        # E = ke l^2 / (8 (A0 + A1)) (theta - rest)^2 (Bridson et al. 2003 as in ARCSim)
-        wp.atomic_add(energy, 0, ke * length * length / (scalar(8.0) * area) * d * d)
+        # E = ke l^2 / (8 (A0 + A1)) (theta - rest)^2 = -kappa/2 (theta - rest)^2
+        wp.atomic_add(energy, 0, scalar(-0.5) * kappa * d * d)
 
     return SimpleNamespace(
         pin_rows=pin_rows,

@@ -284,7 +284,7 @@ class ModelBuilder:
         area = 0.5 * det
         inv_dm = np.linalg.inv(dm)
 
-        hinges, h_uv0, h_uv1, h_area, h_mat = self._hinges(triangles, tri_uv, area, tri_material)
+        hinges, h_face0, h_uv0, h_uv1, h_area, h_mat = _hinges(triangles, tri_uv, area, tri_material)
         rest_length = np.linalg.norm(h_uv0[:, 1] - h_uv0[:, 0], axis=1) if len(hinges) else np.zeros(0)
         direction = (
             np.stack([fold_direction(h_uv0[:, 1] - h_uv0[:, 0]), fold_direction(h_uv1[:, 1] - h_uv1[:, 0])], -1)
@@ -295,7 +295,7 @@ class ModelBuilder:
         initial = np.concatenate([np.full(len(tr), f) for tr, f in zip(self._triangles, self._rest_angle_initial)])
         if len(hinges) and initial.any():
             theta = _dihedral_angles(positions, hinges)
-            face0_initial = initial[self._hinge_face0]
+            face0_initial = initial[h_face0]
             rest_angle = np.where(face0_initial, theta, 0.0)
 
         offsets, columns, tri_slot, hinge_slot, diag_slot = _block_structure(n, triangles, hinges)
@@ -366,44 +366,44 @@ class ModelBuilder:
         )
         return model
 
-    def _hinges(self, triangles, tri_uv, area, tri_material):
-        """Interior edges as (x0, x1, x2, x3) hinges, with each face's material coordinates of the edge."""
-        T = len(triangles)
-        a = triangles.reshape(-1)
-        b = triangles[:, [1, 2, 0]].reshape(-1)
-        c = triangles[:, [2, 0, 1]].reshape(-1)
-        face = np.repeat(np.arange(T), 3)
-        corner = np.tile(np.arange(3), T)
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        key = lo.astype(np.int64) * (int(a.max()) + 1) + hi
-        order = np.argsort(key, kind="stable")
-        key_sorted = key[order]
-        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
-        counts = np.diff(np.r_[starts, len(key_sorted)])
-        if np.any(counts > 2):
-            g = int(np.flatnonzero(counts > 2)[0])
-            members = order[starts[g]: starts[g] + counts[g]]
-            raise ValueError(
-                f"non-manifold edge ({a[members[0]]}, {b[members[0]]}) is shared by triangles "
-                f"{sorted(int(face[m]) for m in members)}; an edge may border at most two triangles"
-            )
-        pairs = starts[counts == 2]
-        e0 = order[pairs]
-        e1 = order[pairs + 1]
-        same_direction = a[e0] == a[e1]
-        if np.any(same_direction):
-            g = int(np.flatnonzero(same_direction)[0])
-            raise ValueError(
-                f"triangles {int(face[e0[g]])} and {int(face[e1[g]])} traverse their shared edge "
-                f"({a[e0[g]]}, {b[e0[g]]}) in the same direction: the mesh winding is inconsistent"
-            )
-        hinges = np.stack([a[e0], b[e0], c[e0], c[e1]], axis=1).astype(np.int32)
-        f0, f1 = face[e0], face[e1]
-        k0, k1 = corner[e0], corner[e1]
-        uv0 = np.stack([tri_uv[f0, k0], tri_uv[f0, (k0 + 1) % 3]], axis=1)
-        uv1 = np.stack([tri_uv[f1, (k1 + 1) % 3], tri_uv[f1, k1]], axis=1)  # face 1 runs b -> a
-        self._hinge_face0 = f0
-        return hinges, uv0, uv1, area[f0] + area[f1], tri_material[f0].astype(np.int32)
+
+def _hinges(triangles, tri_uv, area, tri_material):
+    """Interior edges as (x0, x1, x2, x3) hinges: face 0's index and material coordinates of the edge in both faces."""
+    T = len(triangles)
+    a = triangles.reshape(-1)
+    b = triangles[:, [1, 2, 0]].reshape(-1)
+    c = triangles[:, [2, 0, 1]].reshape(-1)
+    face = np.repeat(np.arange(T), 3)
+    corner = np.tile(np.arange(3), T)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = lo.astype(np.int64) * (int(a.max()) + 1) + hi
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+    counts = np.diff(np.r_[starts, len(key_sorted)])
+    if np.any(counts > 2):
+        g = int(np.flatnonzero(counts > 2)[0])
+        members = order[starts[g]: starts[g] + counts[g]]
+        raise ValueError(
+            f"non-manifold edge ({a[members[0]]}, {b[members[0]]}) is shared by triangles "
+            f"{sorted(int(face[m]) for m in members)}; an edge may border at most two triangles"
+        )
+    pairs = starts[counts == 2]
+    e0 = order[pairs]
+    e1 = order[pairs + 1]
+    same_direction = a[e0] == a[e1]
+    if np.any(same_direction):
+        g = int(np.flatnonzero(same_direction)[0])
+        raise ValueError(
+            f"triangles {int(face[e0[g]])} and {int(face[e1[g]])} traverse their shared edge "
+            f"({a[e0[g]]}, {b[e0[g]]}) in the same direction: the mesh winding is inconsistent"
+        )
+    hinges = np.stack([a[e0], b[e0], c[e0], c[e1]], axis=1).astype(np.int32)
+    f0, f1 = face[e0], face[e1]
+    k0, k1 = corner[e0], corner[e1]
+    uv0 = np.stack([tri_uv[f0, k0], tri_uv[f0, (k0 + 1) % 3]], axis=1)
+    uv1 = np.stack([tri_uv[f1, (k1 + 1) % 3], tri_uv[f1, k1]], axis=1)  # face 1 runs b -> a
+    return hinges, f0, uv0, uv1, area[f0] + area[f1], tri_material[f0].astype(np.int32)
 
 
 def _dihedral_angles(positions: np.ndarray, hinges: np.ndarray) -> np.ndarray:

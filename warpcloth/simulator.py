@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -428,8 +428,3 @@ class Simulator:
                 f"simulation diverged at step {self.step_count} (t = {state.time:.4g} s): particle {p} has "
                 f"x = {x.tolist()}, v = {v.tolist()} (speed limit {self.options.max_speed:g} m/s); "
                 "lower dt, raise damping, or check the material and forces")
-
-
-def with_options(sim: Simulator, **changes) -> Simulator:
-    """A new Simulator on the same model and dt with some options changed."""
-    return Simulator(sim.model, sim.dt, options=replace(sim.options, **changes))
