@@ -28,8 +28,10 @@ def assembled(sim):
     return traj[-1], A, b, values, rhs, dv
 
 
-@pytest.mark.parametrize("backend", ["sequential", "warp"])
-@pytest.mark.parametrize("preconditioner", ["jacobi", "block_jacobi"])
+@pytest.mark.parametrize("backend, preconditioner", [
+    ("sequential", "jacobi"), ("sequential", "block_jacobi"), ("sequential", "block_ssor"),
+    ("warp", "jacobi"), ("warp", "block_jacobi"),
+])
 def test_cg_matches_dense_solve(backend, preconditioner):
     sim = hanging_sim(cg_tol=1e-12, cg_atol=1e-30, cg_backend=backend, preconditioner=preconditioner)
     _, A, b, values, rhs, dv = assembled(sim)
@@ -39,9 +41,10 @@ def test_cg_matches_dense_solve(backend, preconditioner):
     np.testing.assert_allclose(dv.numpy().reshape(-1), expected, rtol=1e-9, atol=1e-10 * np.abs(expected).max())
 
 
-@pytest.mark.parametrize("backend", ["sequential", "warp"])
-def test_solve_adjoint_matches_dense(backend):
-    sim = hanging_sim(cg_tol=1e-12, cg_backend=backend)
+@pytest.mark.parametrize("backend, preconditioner", [("sequential", "block_ssor"), ("sequential", "block_jacobi"),
+                                                    ("warp", "block_jacobi")])
+def test_solve_adjoint_matches_dense(backend, preconditioner):
+    sim = hanging_sim(cg_tol=1e-12, cg_backend=backend, preconditioner=preconditioner)
     state = assembled(sim)[0]
     model = sim.model
     values = wp.zeros(model.bsr_nnz, dtype=model.types.mat33, requires_grad=True)
@@ -121,3 +124,13 @@ def test_contracted_element_adjoint_equals_warp_autodiff():
     for c, a in zip(contracted, autodiff):
         assert np.abs(a).max() > 0.0
         np.testing.assert_allclose(c, a, rtol=1e-8, atol=1e-10 * np.abs(a).max())
+
+
+def test_ssor_warm_start_from_the_solution_takes_no_iterations():
+    sim = hanging_sim(cg_tol=1e-10, preconditioner="block_ssor")
+    _, A, b, values, rhs, dv = assembled(sim)
+    x = wp.array(np.linalg.solve(A, b).reshape(-1, 3), dtype=sim.model.types.vec3)
+    iters, residual = sim._cg(values, rhs, x, warm_start=True)
+    assert iters == 0 and residual <= 1e-10
+    cold = wp.zeros_like(x)
+    assert sim._cg(values, rhs, cold)[0] > 5
