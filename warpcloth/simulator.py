@@ -119,10 +119,6 @@ class Simulator:
         # scratch that no gradient reads: reused every step
         self._cg_scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
         self._precond = wp.empty(n, dtype=mat33, device=self.device)
-        self._ssor_scratch = []
-        if self.preconditioner == "block_ssor":
-            self._ssor_scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(8)]
-            self._ssor_scratch += [wp.empty(n, dtype=mat33, device=self.device) for _ in range(2)]
         self._cg_info = wp.zeros(3, dtype=wp.float64, device=self.device)
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._adjoint_solution = wp.zeros(n, dtype=vec3, device=self.device)
@@ -370,20 +366,13 @@ class Simulator:
         """
         opt = self.options
         model = self.model
-        block = 1 if self.preconditioner == "block_jacobi" else 0
-        if self.preconditioner == "block_ssor":
-            wp.launch(self.linear.cg_ssor_eisenstat, 1, device=self.device,
-                      inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
-                              float(opt.cg_tol), float(opt.cg_atol), int(opt.cg_max_iters),
-                              model.scalar(opt.ssor_omega), int(warm_start), *self._ssor_scratch],
-                      outputs=[x, self._cg_info], record_tape=False)
-            info = self._cg_info.numpy()
-            return int(info[0]), float(info[1]), bool(info[2])
+        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
         if self.cg_backend == "sequential":
             r, z, p, q = self._cg_scratch
             wp.launch(self.linear.cg_sequential, 1, device=self.device,
                       inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
-                              float(opt.cg_tol), float(opt.cg_atol), int(opt.cg_max_iters), block, int(warm_start),
+                              float(opt.cg_tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
+                              model.scalar(opt.ssor_omega), int(warm_start),
                               r, z, p, q, self._precond],
                       outputs=[x, self._cg_info], record_tape=False)
             info = self._cg_info.numpy()
