@@ -232,13 +232,14 @@ class Simulator:
                         pin_dv, dt, model.scalar(model.damping_stiffness)]
         # Warp's autodiff of these two kernels costs ~10x their forward; when recording, their adjoint is the
         # contracted potential of _record_element_adjoint instead (tested against Warp's in tests/test_solve.py).
-        custom = dv is not None and self.element_adjoint == "contracted" and active_tape() is not None
+        custom = (dv is not None and values.requires_grad and self.element_adjoint == "contracted"
+                  and active_tape() is not None)
         wp.launch(k.faces, model.tri_count, device=self.device, inputs=face_inputs, outputs=[values, rhs],
                   record_tape=not custom)
         if model.hinge_count:
             wp.launch(k.hinges, model.hinge_count, device=self.device, inputs=hinge_inputs, outputs=[values, rhs],
                       record_tape=not custom)
-        if custom and values.requires_grad:
+        if custom:
             self._record_element_adjoint(state_in, pin_dv, rhs, dv)
         if model.wind_velocity is not None:
             x_normal = state_in.particle_x
