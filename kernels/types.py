@@ -16,4 +16,6 @@ def types(scalar):
         vec4=wp.types.vector(4, scalar),
         mat22=wp.types.matrix((2, 2), scalar),
         mat33=wp.types.matrix((3, 3), scalar),
+        quat=wp.quatd if scalar == wp.float64 else wp.quatf,
+        transform=wp.transformd if scalar == wp.float64 else wp.transformf,
     )
