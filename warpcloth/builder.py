@@ -10,11 +10,24 @@ import warp as wp
 
 from warpcloth.lookup import fold_direction, stretching_lut
 from warpcloth.materials import Material
-from warpcloth.model import Model, Motion
+from warpcloth.model import CollisionSettings, Model, Motion
 from warpcloth import mesh_io
+from warpcloth.obstacles import (
+    Obstacle,
+    RigidMotion,
+    _placement,
+    box_mesh,
+    funnel_mesh,
+    plane_mesh,
+    sphere_mesh,
+    unique_edges,
+)
 
 DEFAULT_HANDLE_STIFFNESS = 1.0e3
 """ARCSim's ``magic.handle_stiffness`` [N/m]."""
+
+DEFAULT_COLLISION_THICKNESS = 5.0e-4
+"""Collision thickness delta [m] of the seed's collision handling (SPEC: BVH thickness 5e-4)."""
 
 
 def _finite_vector(name: str, value, length: int = 3) -> np.ndarray:
@@ -84,10 +97,22 @@ class ModelBuilder:
         self.wind_lagged_normals = False
         self.damping_mass = 0.0
         self.damping_stiffness = 0.0
+        self._obstacles: list[Obstacle] = []
+        self.self_collision = False
+        self.collision_thickness = DEFAULT_COLLISION_THICKNESS
 
     @property
     def particle_count(self) -> int:
         return self._particle_count
+
+    @property
+    def obstacle_count(self) -> int:
+        return len(self._obstacles)
+
+    @property
+    def obstacles(self) -> tuple[Obstacle, ...]:
+        """The obstacles added so far (validated), in index order."""
+        return tuple(self._obstacles)
 
     # -- cloth -----------------------------------------------------------------------------------------------------
     def add_material(self, material: Material) -> int:
@@ -231,6 +256,124 @@ class ModelBuilder:
         self._pins.append((p, _motion(f"pin on particle {p}", motion)))
         return len(self._pins) - 1
 
+    # -- obstacles ---------------------------------------------------------------------------------------------------
+    def add_obstacle_mesh(
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        *,
+        name: str | None = None,
+        pos: Sequence[float] = (0.0, 0.0, 0.0),
+        rot=None,
+        motion=None,
+    ) -> int:
+        """Add a rigid obstacle and return its index. Any obstacle turns on cloth-obstacle collisions.
+
+        The mesh need not be closed or manifold; its triangles should be counter-clockwise seen from the side the
+        cloth is on. World position of a body-frame vertex ``u`` at time t (see ``warpcloth.obstacles``):
+        ``x = M(t) (R u + pos)``: first the base placement (rotate by ``rot``, then translate by ``pos``; this is
+        ``Control.obstacle_transform``, differentiable), then the scripted motion ``M(t)``, a rigid transform in
+        world coordinates (its rotation turns about the world origin).
+
+        Args:
+            vertices: body-frame positions [m], shape (V, 3).
+            triangles: vertex indices, shape (T, 3).
+            name: a valid USD identifier, unique among the obstacles; default ``"obstacle<k>"`` (the first free k
+                from the obstacle's index on).
+            pos: base position [m].
+            rot: base rotation: a 3x3 rotation matrix or a unit quaternion (x, y, z, w); default none.
+            motion: a ``RigidMotion``, or keyframes ``[(time [s], (tx, ty, tz) [m], (qx, qy, qz, qw)), ...]``:
+                piecewise-linear translation and slerp rotation, held outside the keys. None: static.
+
+        Raises:
+            ValueError: naming the obstacle for a repeated or invalid name, a bad placement or motion, a
+                non-finite vertex, an index out of range or a degenerate triangle (naming the triangle).
+        """
+        index = len(self._obstacles)
+        taken = {o.name for o in self._obstacles}
+        if name is None:
+            k = index
+            while f"obstacle{k}" in taken:
+                k += 1
+            name = f"obstacle{k}"
+        elif name in taken:
+            raise ValueError(f"obstacle name {name!r} is used twice; obstacle names must be unique")
+        what = f"obstacle {name!r}"
+        transform = _placement(what, pos, rot)
+        if motion is not None and not isinstance(motion, RigidMotion):
+            try:
+                motion = RigidMotion.from_keyframes(motion)
+            except (ValueError, TypeError) as exc:
+                raise ValueError(f"{what}: {exc}") from None
+        self._obstacles.append(Obstacle(name, vertices, triangles, transform, motion))
+        return index
+
+    def add_obstacle_obj(self, path, *, scale: float = 1.0, name: str | None = None,
+                         pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
+        """Add an obstacle from an OBJ file (polygons fan-triangulated, ``vt`` ignored), scaled by ``scale``;
+        the file's coordinates are the body frame. Other options as in :meth:`add_obstacle_mesh`."""
+        mesh = mesh_io.load_obj(path, scale=scale, validate=False)
+        try:
+            return self.add_obstacle_mesh(mesh.positions, mesh.triangles, name=name, pos=pos, rot=rot, motion=motion)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+
+    def add_obstacle_usd(self, path, *, prim_path: str | None = None, scale: float = 1.0, name: str | None = None,
+                         pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
+        """Add an obstacle from a USD mesh prim (the first mesh when ``prim_path`` is None), at its default time.
+
+        The prim's local-to-world transform is applied to its points, and the result scaled by ``scale``; that is the
+        body frame. Other options as in :meth:`add_obstacle_mesh`.
+        """
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+            raise ValueError(f"add_obstacle_usd: scale must be a finite number > 0, got {scale!r}")
+        mesh = mesh_io.load_usd_mesh(path, prim_path=prim_path, validate=False)
+        try:
+            return self.add_obstacle_mesh(mesh.positions * scale, mesh.triangles, name=name, pos=pos, rot=rot,
+                                          motion=motion)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+
+    def add_obstacle_plane(self, size: Sequence[float] = (1.0, 1.0), res: Sequence[int] = (1, 1), *,
+                           name: str | None = None, pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None,
+                           motion=None) -> int:
+        """Add a rectangle (``warpcloth.obstacles.plane_mesh``: centred, body XY plane, facing +z)."""
+        vertices, triangles = plane_mesh(size, res)
+        return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
+
+    def add_obstacle_box(self, half_extents: Sequence[float], *, name: str | None = None,
+                         pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
+        """Add a box of half sizes ``half_extents`` [m] centred on its body origin (``obstacles.box_mesh``)."""
+        vertices, triangles = box_mesh(half_extents)
+        return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
+
+    def add_obstacle_sphere(self, radius: float, subdivisions: int = 3, *, name: str | None = None,
+                            pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
+        """Add an icosphere of ``radius`` [m] centred on its body origin (``obstacles.sphere_mesh``)."""
+        vertices, triangles = sphere_mesh(radius, subdivisions)
+        return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
+
+    def add_obstacle_funnel(self, *, name: str | None = None, pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None,
+                            motion=None) -> int:
+        """Add the seed's funnel (``obstacles.funnel_mesh``; the seed's demo uses ``pos=(-0.5, -1, -0.55)``)."""
+        vertices, triangles = funnel_mesh()
+        return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
+
+    def set_collision(self, *, self_collision: bool = False, thickness: float = DEFAULT_COLLISION_THICKNESS) -> None:
+        """Collision settings: cloth-cloth ``self_collision`` and the collision ``thickness`` delta [m] (> 0).
+
+        Cloth-obstacle collisions are on whenever an obstacle is added; without obstacles and self-collision the
+        model has no collisions (``model.collision is None``).
+        """
+        if not isinstance(self_collision, (bool, np.bool_)):
+            raise ValueError(f"self_collision must be a boolean, got {self_collision!r}")
+        if isinstance(thickness, bool) or not isinstance(thickness, (int, float, np.integer, np.floating)):
+            raise ValueError(f"collision thickness must be a number [m], got {thickness!r}")
+        if not math.isfinite(thickness) or thickness <= 0.0:
+            raise ValueError(f"collision thickness must be finite and > 0 [m], got {thickness}")
+        self.self_collision = bool(self_collision)
+        self.collision_thickness = float(thickness)
+
     # -- scene forces --------------------------------------------------------------------------------------------
     def set_wind(self, velocity: Sequence[float], *, density: float = 1.0, drag: float = 0.0,
                  lagged_normals: bool = False) -> None:
@@ -261,7 +404,8 @@ class ModelBuilder:
 
         Args:
             device: Warp device (``"cpu"``, ``"cuda:0"``, ...); default: Warp's default device.
-            requires_grad: allocate gradients for the differentiable arrays (materials, gravity, wind, states).
+            requires_grad: allocate gradients for the differentiable arrays (materials, gravity, wind, states,
+                obstacle body-frame vertices).
             dtype: ``wp.float32`` (default) or ``wp.float64``.
         """
         if not self._triangles:
@@ -313,6 +457,14 @@ class ModelBuilder:
         scalar = t.scalar
         lut_w, lut_r = stretching_lut()
         mats = self._materials
+        edges = unique_edges(triangles)
+        obstacle_fields = self._obstacle_fields(arr, t)
+        collision = None
+        if self._obstacles or self.self_collision:
+            collision = CollisionSettings(
+                obstacles=bool(self._obstacles), self_collision=self.self_collision,
+                thickness=self.collision_thickness,
+            )
         model = Model(
             device=device,
             scalar=scalar,
@@ -363,8 +515,43 @@ class ModelBuilder:
             bsr_offsets=arr(offsets, wp.int32),
             bsr_columns=arr(columns, wp.int32),
             triangles_np=triangles,
+            edge_count=len(edges),
+            edge_indices=arr(edges, wp.int32),
+            collision=collision,
+            **obstacle_fields,
         )
         return model
+
+    def _obstacle_fields(self, arr, t) -> dict:
+        """The Model's obstacle fields: all obstacles' meshes concatenated (arrays None without obstacles)."""
+        obs = self._obstacles
+        if not obs:
+            return {}
+        v_start = np.cumsum([0] + [o.vertex_count for o in obs]).astype(np.int64)
+        t_start = np.cumsum([0] + [o.triangle_count for o in obs]).astype(np.int64)
+        local = np.concatenate([o.vertices for o in obs])
+        body = np.repeat(np.arange(len(obs), dtype=np.int32), [o.vertex_count for o in obs])
+        tris = np.concatenate([o.triangles.astype(np.int64) + v_start[b] for b, o in enumerate(obs)])
+        if v_start[-1] > np.iinfo(np.int32).max:
+            raise ValueError(f"the obstacles have {v_start[-1]} vertices in all; at most 2**31 - 1 fit int32 indices")
+        tris = tris.astype(np.int32)
+        edges = unique_edges(tris)
+        return dict(
+            obstacle_count=len(obs),
+            obstacle_names=[o.name for o in obs],
+            obstacle_vertex_count=len(local),
+            obstacle_vertex_local=arr(local, t.vec3, True),
+            obstacle_vertex_body=arr(body, wp.int32),
+            obstacle_vertex_start=v_start,
+            obstacle_tri_count=len(tris),
+            obstacle_tri_indices=arr(tris, wp.int32),
+            obstacle_tri_start=t_start,
+            obstacle_edge_count=len(edges),
+            obstacle_edge_indices=arr(edges, wp.int32),
+            obstacle_rest_transform=np.stack([o.transform for o in obs]),
+            obstacle_motion=[o.motion for o in obs],
+            obstacle_triangles_np=tris,
+        )
 
 
 def _hinges(triangles, tri_uv, area, tri_material):

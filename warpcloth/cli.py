@@ -56,6 +56,7 @@ def _cmd_scenes() -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    from warpcloth.obstacles import obstacle_meshes_numpy
     from warpcloth.rollout import rollout
     from warpcloth.scene import load_scene
     from warpcloth.simulator import SimulationError
@@ -89,8 +90,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - start
 
     frames = [s.particle_x.numpy() for s in traj]
+    # Obstacles: static ones once, moving ones at every frame's time (at the control's base placements).
+    obstacles = obstacle_meshes_numpy(model, [s.time for s in traj])
     try:
-        write_usd(usd_path, triangles=model.tri_indices.numpy(), frames=frames, fps=1.0 / scene.dt)
+        write_usd(usd_path, triangles=model.tri_indices.numpy(), frames=frames, fps=1.0 / scene.dt,
+                  obstacles=obstacles)
     except (ValueError, OSError) as exc:
         return _error(str(exc), _RUNTIME_ERROR)
 

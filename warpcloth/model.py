@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from warpcloth.kernels.types import types
+
+if TYPE_CHECKING:  # pragma: no cover
+    from warpcloth.obstacles import RigidMotion
 
 
 class State:
@@ -29,13 +34,40 @@ class State:
 class Control:
     """Inputs applied during a step; every array here can carry gradients."""
 
-    def __init__(self, particle_force: wp.array | None, handle_target: wp.array, pin_target: wp.array):
+    def __init__(
+        self,
+        particle_force: wp.array | None,
+        handle_target: wp.array,
+        pin_target: wp.array,
+        *,
+        obstacle_transform: wp.array | None = None,
+    ):
         self.particle_force = particle_force
         """External force per particle [N], shape (particle_count,), or None (then nothing is launched for it)."""
         self.handle_target = handle_target
         """Base target of each soft handle [m], shape (handle_count,); scripted motion adds to it."""
         self.pin_target = pin_target
         """Base target of each hard pin [m], shape (pin_count,); scripted motion adds to it."""
+        self.obstacle_transform = obstacle_transform
+        """Base placement of each obstacle (position [m], unit quaternion (x, y, z, w)), shape (obstacle_count,)
+        transform (``wp.transformf``/``wp.transformd``); scripted motion is applied on top of it (see
+        ``warpcloth.obstacles``). None when the model has no obstacles."""
+
+
+@dataclass(frozen=True)
+class CollisionSettings:
+    """Which collisions a model has and how thick they are."""
+
+    obstacles: bool
+    """Cloth-obstacle collisions (on whenever the model has an obstacle)."""
+    self_collision: bool
+    """Cloth-cloth collisions."""
+    thickness: float
+    """Collision thickness delta [m], > 0: the distance the response keeps between the cloth and what it touches."""
+
+    def __post_init__(self):
+        if not math.isfinite(self.thickness) or self.thickness <= 0.0:
+            raise ValueError(f"collision thickness must be finite and > 0 [m], got {self.thickness}")
 
 
 @dataclass
@@ -150,6 +182,42 @@ class Model:
     triangles_np: np.ndarray = field(repr=False, default=None)
     """Host copy of tri_indices, for I/O."""
 
+    edge_count: int = 0
+    edge_indices: wp.array | None = None
+    """Unique undirected cloth edges (lo, hi) with lo < hi, rows sorted, each edge once; (edge_count, 2) int32."""
+
+    collision: CollisionSettings | None = None
+    """Collision settings; None when the model has neither obstacles nor self-collision."""
+
+    # Obstacles. All obstacles' meshes are concatenated; with no obstacle every array below is None.
+    obstacle_count: int = 0
+    obstacle_names: list[str] = field(default_factory=list)
+    """Name of each obstacle (a valid USD identifier), (obstacle_count,)."""
+    obstacle_vertex_count: int = 0
+    obstacle_vertex_local: wp.array | None = None
+    """Obstacle vertices in their obstacle's body frame [m], (obstacle_vertex_count,) vec3; has a gradient when the
+    model requires one."""
+    obstacle_vertex_body: wp.array | None = None
+    """Obstacle index of each obstacle vertex, (obstacle_vertex_count,) int32."""
+    obstacle_vertex_start: np.ndarray | None = field(repr=False, default=None)
+    """First vertex of each obstacle in the concatenated list, and the total, (obstacle_count + 1,) int64 (host)."""
+    obstacle_tri_count: int = 0
+    obstacle_tri_indices: wp.array | None = None
+    """Obstacle triangles, indices into the concatenated vertex list, (obstacle_tri_count, 3) int32."""
+    obstacle_tri_start: np.ndarray | None = field(repr=False, default=None)
+    """First triangle of each obstacle, and the total, (obstacle_count + 1,) int64 (host)."""
+    obstacle_edge_count: int = 0
+    obstacle_edge_indices: wp.array | None = None
+    """Unique undirected obstacle edges (lo, hi), lo < hi, into the concatenated vertex list (an edge never joins
+    two obstacles), (obstacle_edge_count, 2) int32."""
+    obstacle_rest_transform: np.ndarray | None = None
+    """Base placement of each obstacle (px, py, pz [m], qx, qy, qz, qw), (obstacle_count, 7) float64 (host);
+    ``control()`` copies it into ``Control.obstacle_transform``."""
+    obstacle_motion: list[RigidMotion | None] = field(default_factory=list)
+    """Scripted motion of each obstacle, or None for a static one, (obstacle_count,)."""
+    obstacle_triangles_np: np.ndarray | None = field(repr=False, default=None)
+    """Host copy of obstacle_tri_indices, for I/O."""
+
     @property
     def types(self):
         return types(self.scalar)
@@ -176,7 +244,8 @@ class Model:
         )
 
     def control(self, *, particle_force: bool = False, requires_grad: bool | None = None) -> Control:
-        """A Control with handle and pin targets at their defaults, and optionally zero external forces."""
+        """A Control with handle and pin targets and obstacle placements at their defaults, and optionally zero
+        external forces."""
         rg = self.requires_grad if requires_grad is None else requires_grad
         vec3 = self.types.vec3
         forces = None
@@ -186,6 +255,9 @@ class Model:
             forces,
             wp.array(self.handle_rest_target, dtype=vec3, device=self.device, requires_grad=rg),
             wp.array(self.pin_rest_target, dtype=vec3, device=self.device, requires_grad=rg),
+            obstacle_transform=None if self.obstacle_count == 0 else wp.array(
+                self.obstacle_rest_transform, dtype=self.types.transform, device=self.device, requires_grad=rg
+            ),
         )
 
     def particle_mass(self) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Scenes: small TOML files that describe one cloth, its material, handles, pins and scene forces.
+"""Scenes: small TOML files that describe one cloth, its material, handles, pins, forces, obstacles and collisions.
 
 Schema (every key is checked: an unknown key or a wrong type is a ``ValueError`` naming the key path)::
 
@@ -48,6 +48,25 @@ Schema (every key is checked: an unknown key or a wrong type is a ``ValueError``
     mass = 0.0                         # alpha [1/s]
     stiffness = 0.0                    # beta [s]
 
+    [[obstacles]]                      # rigid obstacles; any number; each turns on cloth-obstacle collisions
+    shape = "sphere"                   # exactly one of shape / mesh; shape parameters by shape:
+    radius = 0.3                       #   "plane":  size = [sx, sy] (default [1, 1]), res = [nx, ny] (default [1, 1])
+    subdivisions = 3                   #   "box":    half_extents = [hx, hy, hz] (required)
+                                       #   "sphere": radius (required), subdivisions (default 3)
+                                       #   "funnel": none (the seed's contain.obj)
+    # mesh = "bowl.obj"  or  mesh = { path = "bowl.usda", scale = 1.0, prim_path = "/World/Bowl" }
+    #                                  # .obj/.usd*, relative to the scene file; prim_path only for USD
+    name = "ball"                      # optional, a valid USD identifier, unique; default "obstacle<k>"
+    rot_deg = [0.0, 0.0, 0.0]          # optional base rotation, degrees, as for the cloth (R = Rz Ry Rx)
+    pos = [0.0, 0.0, 0.0]              # optional base position [m], applied after the rotation
+    motion = [[0.0, [0, 0, 0], [0, 0, 0, 1]], [1.0, [0, 0, 0.1], [0, 0, 0, 1]]]
+                                       # optional rigid keyframes [time [s], translation [m], quaternion (x,y,z,w)],
+                                       #   applied on top of the base placement (warpcloth.obstacles)
+
+    [collision]                        # optional
+    self_collision = false             # cloth-cloth collisions, default false
+    thickness = 5e-4                   # collision thickness [m], > 0, default 5e-4
+
 A ``grid_row``/``grid_column`` selector adds one handle (or pin) per vertex of that row/column, all with the same
 stiffness and motion. Particle indices are those of the cloth (the scene's only one). Embedded scenes live in
 ``warpcloth/scenes/*.toml``; their names are :data:`SCENE_NAMES`.
@@ -69,6 +88,7 @@ import numpy as np
 
 from warpcloth import materials as _materials
 from warpcloth import mesh_io
+from warpcloth.obstacles import QUAT_UNIT_TOL
 
 __all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "Scene", "load_scene", "scene_from_toml"]
 
@@ -274,7 +294,10 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     _check_keys(
         data,
         "",
-        ("name", "description", "gravity", "sim", "solver", "cloth", "handles", "pins", "wind", "damping"),
+        (
+            "name", "description", "gravity", "sim", "solver", "cloth", "handles", "pins", "wind", "damping",
+            "obstacles", "collision",
+        ),
         required=("name", "sim", "cloth"),
     )
     name = _str(data["name"], "name")
@@ -316,6 +339,25 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         stiffness = _float(damping.get("stiffness", 0.0), "damping.stiffness", min_value=0.0)
         with _Context("damping"):
             builder.set_damping(mass=mass, stiffness=stiffness)
+
+    entries = data.get("obstacles", [])
+    if not isinstance(entries, list):
+        raise _err("obstacles", f"expected an array of tables ([[obstacles]]), got {_type_name(entries)}")
+    for k, entry in enumerate(entries):
+        path = f"obstacles[{k}]"
+        _parse_obstacle(builder, path, _table(entry, path), base_dir)
+
+    if "collision" in data:
+        collision = _table(data["collision"], "collision")
+        _check_keys(collision, "collision", ("self_collision", "thickness"))
+        self_collision = collision.get("self_collision", False)
+        if not isinstance(self_collision, bool):
+            raise _err("collision.self_collision", f"expected a boolean, got {_type_name(self_collision)}")
+        kwargs = {"self_collision": self_collision}
+        if "thickness" in collision:
+            kwargs["thickness"] = _float(collision["thickness"], "collision.thickness", min_value=0.0, strict=True)
+        with _Context("collision"):
+            builder.set_collision(**kwargs)
 
     return Scene(
         name=name,
@@ -550,4 +592,114 @@ def _parse_motion(value: Any, path: str) -> list[tuple[float, tuple[float, float
         if keys and t <= keys[-1][0]:
             raise _err(f"{kp}[0]", f"key times must increase, got {t} after {keys[-1][0]}")
         keys.append((t, _vector(key[1], f"{kp}[1]")))
+    return keys
+
+
+_OBSTACLE_SHAPES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    # shape: (parameters, required parameters)
+    "plane": (("size", "res"), ()),
+    "box": (("half_extents",), ("half_extents",)),
+    "sphere": (("radius", "subdivisions"), ("radius",)),
+    "funnel": ((), ()),
+}
+_OBSTACLE_COMMON = ("name", "pos", "rot_deg", "motion")
+
+
+def _parse_obstacle(builder, path: str, entry: dict, base_dir: Path) -> None:
+    shape_params = tuple(dict.fromkeys(p for params, _ in _OBSTACLE_SHAPES.values() for p in params))
+    _check_keys(entry, path, ("shape", "mesh") + shape_params + _OBSTACLE_COMMON)
+    if ("shape" in entry) == ("mesh" in entry):
+        raise _err(path, "give exactly one of 'shape' and 'mesh'")
+    options: dict[str, Any] = {}
+    if "name" in entry:
+        options["name"] = _str(entry["name"], f"{path}.name")
+    if "pos" in entry:
+        options["pos"] = _vector(entry["pos"], f"{path}.pos")
+    if "rot_deg" in entry:
+        options["rot"] = _rotation_xyz_deg(_vector(entry["rot_deg"], f"{path}.rot_deg"))
+    if "motion" in entry:
+        options["motion"] = _parse_rigid_motion(entry["motion"], f"{path}.motion")
+
+    if "shape" in entry:
+        shape = _str(entry["shape"], f"{path}.shape")
+        if shape not in _OBSTACLE_SHAPES:
+            raise _err(f"{path}.shape", f"unknown shape {shape!r}; one of: {', '.join(_OBSTACLE_SHAPES)}")
+        params, required = _OBSTACLE_SHAPES[shape]
+        for key in shape_params:
+            if key in entry and key not in params:
+                allowed = ", ".join(params) if params else "none"
+                raise _err(f"{path}.{key}", f"not a parameter of shape {shape!r} (its parameters: {allowed})")
+        for key in required:
+            if key not in entry:
+                raise _err(f"{path}.{key}", f"missing required key for shape {shape!r}")
+        with _Context(path):
+            if shape == "plane":
+                size = _vector(entry["size"], f"{path}.size", 2) if "size" in entry else (1.0, 1.0)
+                for i, v in enumerate(size):
+                    if v <= 0.0:
+                        raise _err(f"{path}.size[{i}]", f"must be > 0, got {v}")
+                res = (1, 1)
+                if "res" in entry:
+                    value = entry["res"]
+                    if not isinstance(value, list) or len(value) != 2:
+                        raise _err(f"{path}.res", f"expected an array of 2 integers, got {_type_name(value)}")
+                    res = tuple(_int(r, f"{path}.res[{i}]", min_value=1) for i, r in enumerate(value))
+                builder.add_obstacle_plane(size, res, **options)
+            elif shape == "box":
+                half = _vector(entry["half_extents"], f"{path}.half_extents")
+                for i, v in enumerate(half):
+                    if v <= 0.0:
+                        raise _err(f"{path}.half_extents[{i}]", f"must be > 0, got {v}")
+                builder.add_obstacle_box(half, **options)
+            elif shape == "sphere":
+                radius = _float(entry["radius"], f"{path}.radius", min_value=0.0, strict=True)
+                subdivisions = _int(entry.get("subdivisions", 3), f"{path}.subdivisions", min_value=0)
+                builder.add_obstacle_sphere(radius, subdivisions, **options)
+            else:
+                builder.add_obstacle_funnel(**options)
+        return
+
+    for key in shape_params:
+        if key in entry:
+            raise _err(f"{path}.{key}", "a shape parameter, but this obstacle is a mesh (give 'shape' instead)")
+    mesh_value = entry["mesh"]
+    mesh_table = {"path": mesh_value} if isinstance(mesh_value, str) else _table(mesh_value, f"{path}.mesh")
+    _check_keys(mesh_table, f"{path}.mesh", ("path", "scale", "prim_path"), required=("path",))
+    mesh_path = base_dir / _str(mesh_table["path"], f"{path}.mesh.path")
+    scale = _float(mesh_table.get("scale", 1.0), f"{path}.mesh.scale", min_value=0.0, strict=True)
+    suffix = mesh_path.suffix.lower()
+    prim_path = None
+    if "prim_path" in mesh_table:
+        prim_path = _str(mesh_table["prim_path"], f"{path}.mesh.prim_path")
+        if suffix == ".obj":
+            raise _err(f"{path}.mesh.prim_path", "only for USD meshes")
+    with _Context(f"{path}.mesh"):
+        if not mesh_path.is_file():
+            raise ValueError(f"file not found: {mesh_path}")
+        if suffix == ".obj":
+            builder.add_obstacle_obj(mesh_path, scale=scale, **options)
+        elif suffix in (".usd", ".usda", ".usdc"):
+            builder.add_obstacle_usd(mesh_path, prim_path=prim_path, scale=scale, **options)
+        else:
+            raise ValueError(f"unsupported mesh format {mesh_path.suffix!r} (need .obj, .usd, .usda or .usdc)")
+
+
+def _parse_rigid_motion(value: Any, path: str) -> list:
+    if not isinstance(value, list) or not value:
+        raise _err(path, "expected a non-empty array of [time, [tx, ty, tz], [qx, qy, qz, qw]] keyframes")
+    keys = []
+    for k, key in enumerate(value):
+        kp = f"{path}[{k}]"
+        if not isinstance(key, list) or len(key) != 3:
+            raise _err(kp, "expected [time, [tx, ty, tz], [qx, qy, qz, qw]]")
+        t = _float(key[0], f"{kp}[0]")
+        if keys and t <= keys[-1][0]:
+            raise _err(f"{kp}[0]", f"key times must increase, got {t} after {keys[-1][0]}")
+        q = _vector(key[2], f"{kp}[2]", 4)
+        norm = math.sqrt(sum(c * c for c in q))
+        if abs(norm - 1.0) > QUAT_UNIT_TOL:
+            raise _err(
+                f"{kp}[2]", f"must be a unit quaternion (x, y, z, w) within {QUAT_UNIT_TOL:g}, norm is {norm:.9g}"
+            )
+        keys.append((t, _vector(key[1], f"{kp}[1]"), q))
     return keys

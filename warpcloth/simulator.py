@@ -4,7 +4,7 @@ Per step (SPEC.md §2): assemble the 3x3 block-sparse system A dv = b from per-e
 preconditioned conjugate gradients, then x <- x + dt (v + dv). The CG iterations are not taped: the solve records a
 custom adjoint (one adjoint CG solve with the same matrix, SPEC §4.1), and Warp's autodiff of the assembly kernels
 carries the gradient on to positions, velocities, materials, gravity, wind, forces and handle targets.
-A collision stage will slot in after ``_integrate`` (SPEC §3).
+Scenes with obstacles or self-collision then run the collision stage (warpcloth/collision.py, SPEC §3).
 """
 
 from __future__ import annotations
@@ -16,14 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warpcloth.collision import CollisionStage
+from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Control, Model, State
 from warpcloth.tape import active_tape, record_adjoint
-
-
-class SimulationError(RuntimeError):
-    """The simulation diverged (NaN/inf or a speed beyond ``SolverOptions.max_speed``) or a solve failed."""
 
 
 @dataclass(frozen=True)
@@ -52,24 +50,37 @@ class SolverOptions:
     later step's adjoint): fewer iterations, and results that differ only within the tolerance."""
     max_speed: float = 1.0e3
     """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
+    collision_rounds: int = 20
+    """Most detect -> project rounds per step; a step still finding new contacts after them raises CollisionError."""
+    contact_capacity: int = 0
+    """Contacts one detection may find (0: 16 per cloth particle and obstacle vertex); more raises CollisionError
+    with the capacity needed."""
+    collision_adjoint: str = "qr"
+    """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
+    dense KKT system of the whole zone: the seed's baseline, for comparison)."""
+    qp_tol: float = 1.0e-10
+    """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
 
     def __post_init__(self):
         self.validate()
 
     def validate(self) -> None:
         """Raise ValueError naming the first option out of range."""
-        for name in ("cg_tol", "cg_atol", "max_speed"):
+        for name in ("cg_tol", "cg_atol", "max_speed", "qp_tol"):
             val = getattr(self, name)
             if not math.isfinite(val) or val <= 0.0:
                 raise ValueError(f"SolverOptions.{name} must be finite and > 0, got {val}")
         if not 0.0 < self.ssor_omega < 2.0:
             raise ValueError(f"SolverOptions.ssor_omega must be in (0, 2), got {self.ssor_omega}")
-        if int(self.cg_max_iters) < 1:
-            raise ValueError(f"SolverOptions.cg_max_iters must be >= 1, got {self.cg_max_iters}")
+        for name, low in (("cg_max_iters", 1), ("collision_rounds", 1), ("contact_capacity", 0)):
+            val = getattr(self, name)
+            if isinstance(val, bool) or int(val) != val or val < low:
+                raise ValueError(f"SolverOptions.{name} must be an integer >= {low}, got {val!r}")
         choices = {
             "preconditioner": ("auto", "block_jacobi", "jacobi", "block_ssor"),
             "cg_backend": ("auto", "sequential", "warp"),
             "on_cg_failure": ("warn", "raise"),
+            "collision_adjoint": ("qr", "kkt"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -127,6 +138,8 @@ class Simulator:
         self._previous_in: State | None = None  # state_in and state_out of the last step (ARCSim's lagged normals)
         self._previous_out: State | None = None
         self._warp_matrix = None
+        self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
+        """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
         self._zero_offsets = {
             "handle": wp.zeros(model.handle_count, dtype=vec3, device=self.device),
             "pin": wp.zeros(model.pin_count, dtype=vec3, device=self.device),
@@ -147,9 +160,16 @@ class Simulator:
         self._assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
         self._solve_recorded(values, rhs, dv)
 
-        wp.launch(k.integrate, model.particle_count, device=self.device,
-                  inputs=[state_in.particle_x, state_in.particle_v, dv, dt],
-                  outputs=[state_out.particle_x, state_out.particle_v])
+        if self.collision is None:
+            wp.launch(k.integrate, model.particle_count, device=self.device,
+                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt],
+                      outputs=[state_out.particle_x, state_out.particle_v])
+        else:
+            candidate = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
+            x_hat, v_hat = candidate.particle_x, candidate.particle_v
+            wp.launch(k.integrate, model.particle_count, device=self.device,
+                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt], outputs=[x_hat, v_hat])
+            self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, self.step_count + 1)
         state_out.time = t_next
         self._previous_in, self._previous_out = state_in, state_out
         self.step_count += 1

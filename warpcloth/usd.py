@@ -56,7 +56,8 @@ def write_usd(
 
     The cloth is one ``UsdGeom.Mesh`` whose ``points`` and ``extent`` are sampled at time codes 0, 1, ...
     (frame index); the stage's ``timeCodesPerSecond`` and ``framesPerSecond`` are ``fps``, ``metersPerUnit`` is 1.
-    Obstacles are static meshes under ``/World/Obstacles/<name>``. The file format follows the extension
+    Obstacles are meshes under ``/World/Obstacles/<name>``: static (points as the default value) when their
+    vertices are (M, 3), time-sampled like the cloth when they are (F, M, 3). The file format follows the extension
     (``.usda`` text, ``.usdc``/``.usd`` binary). Points are stored as float32.
 
     Args:
@@ -64,14 +65,17 @@ def write_usd(
         triangles: Cloth vertex indices, shape (T, 3).
         frames: Cloth positions [m] per frame: a sequence of (N, 3) arrays or an (F, N, 3) array.
         fps: Frames per second (> 0); for one frame per step, ``1 / dt``.
-        obstacles: ``(name, vertices (M, 3), triangles (K, 3))`` per obstacle; names must be valid USD identifiers.
+        obstacles: ``(name, vertices, triangles (K, 3))`` per obstacle, with vertices [m] either (M, 3) (static)
+            or (F, M, 3) (one per cloth frame, same F); names must be valid USD identifiers
+            (``warpcloth.obstacles.obstacle_meshes_numpy`` builds this list from a model).
         up_axis: ``"Z"`` (warpcloth's convention) or ``"Y"``.
         cloth_prim: Prim path of the cloth mesh.
 
     Raises:
         ImportError: when ``pxr`` is missing.
         ValueError: for no frames, frames of different shapes, a non-finite position (naming frame and vertex),
-            an index out of range, a bad ``fps``/``up_axis``/prim path, or an invalid or repeated obstacle name.
+            an index out of range, a bad ``fps``/``up_axis``/prim path, an invalid or repeated obstacle name, or
+            time-sampled obstacle vertices whose frame count differs from the cloth's.
     """
     Gf, Sdf, Usd, UsdGeom, Vt = _import_pxr()
 
@@ -109,11 +113,20 @@ def write_usd(
             raise ValueError(f"write_usd: obstacle name {name!r} is used twice")
         seen.add(name)
         verts = np.asarray(verts, dtype=np.float64)
-        if verts.ndim != 2 or verts.shape[1] != 3:
-            raise ValueError(f"write_usd: obstacle {name!r} vertices must have shape (M, 3), got {verts.shape}")
+        if verts.ndim not in (2, 3) or verts.shape[-1] != 3:
+            raise ValueError(
+                f"write_usd: obstacle {name!r} vertices must have shape (M, 3) or (F, M, 3), got {verts.shape}"
+            )
+        if verts.ndim == 3 and verts.shape[0] != len(frame_list):
+            raise ValueError(
+                f"write_usd: obstacle {name!r} has {verts.shape[0]} frames of vertices, the cloth has "
+                f"{len(frame_list)}; time-sampled obstacles need one per cloth frame"
+            )
         if not np.all(np.isfinite(verts)):
             raise ValueError(f"write_usd: obstacle {name!r} has non-finite vertices")
-        checked_obstacles.append((name, verts, _check_triangles(otris, len(verts), f"write_usd obstacle {name!r}")))
+        checked_obstacles.append(
+            (name, verts, _check_triangles(otris, verts.shape[-2], f"write_usd obstacle {name!r}"))
+        )
 
     # Build in memory and export: Usd.Stage.CreateNew refuses a path whose layer is already open in this process.
     stage = Usd.Stage.CreateInMemory()
@@ -138,9 +151,16 @@ def write_usd(
         UsdGeom.Scope.Define(stage, "/World/Obstacles")
     for name, verts, otris in checked_obstacles:
         mesh = _define_mesh(stage, UsdGeom, f"/World/Obstacles/{name}", otris)
-        pts = verts.astype(np.float32)
-        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
-        mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(axis=0), pts.max(axis=0)])))
+        if verts.ndim == 2:
+            pts = verts.astype(np.float32)
+            mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+            mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(axis=0), pts.max(axis=0)])))
+        else:
+            o_points, o_extent = mesh.CreatePointsAttr(), mesh.CreateExtentAttr()
+            for k, frame in enumerate(verts):
+                pts = frame.astype(np.float32)
+                o_points.Set(Vt.Vec3fArray.FromNumpy(pts), Usd.TimeCode(k))
+                o_extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(axis=0), pts.max(axis=0)])), Usd.TimeCode(k))
 
     if not stage.GetRootLayer().Export(os.fspath(path)):
         raise OSError(f"write_usd: could not write {os.fspath(path)!r}")

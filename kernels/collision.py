@@ -1,0 +1,453 @@
+"""Collision detection: swept bounding boxes, BVH queries, vertex-face and edge-edge proximity and CCD tests.
+
+Nothing here is differentiated (SPEC.md §3: detection only decides *which* constraints exist and freezes their time
+of impact t, side sign and normal mode). The response re-evaluates normals and weights from positions at the frozen t
+in kernels/contact.py, which is differentiated. All tests run in float64 whatever the model's precision, because the
+cubic coplanarity roots and the barycentric tests lose too much in float32.
+
+Positions live in one "node" array: cloth particles first (0..n-1), then obstacle vertices (n..n+V-1).
+
+A contact is (nodes[4], mode, t, sign):
+- mode VF_PLANE: vertex nodes[0] against triangle nodes[1:4]; n = sign * unit face normal at t, weights
+  (1, -b0, -b1, -b2) with b the barycentric coordinates of the vertex's projection on the face plane at t.
+- mode EE_PLANE: edge nodes[0:2] against edge nodes[2:4] at a crossing; n = sign * unit cross product of the edges.
+- mode EE_DIRECTION: closest points of the two segments at t, n = unit vector between them (no sign needed);
+  covers vertex-edge and vertex-vertex proximity as well (clamped segment parameters).
+The constraint is sum_k w_k n . x_k >= thickness at the end positions (kernels/contact.py, warpcloth/projection.py).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from warpcloth.kernels.types import types
+
+wp.set_module_options({"enable_backward": False})
+
+VF_PLANE = wp.constant(0)
+EE_PLANE = wp.constant(1)
+EE_DIRECTION = wp.constant(2)
+
+BARY_EPS = wp.constant(wp.float64(1.0e-6))
+"""Tolerance of the 'inside the face / segment' tests (ARCSim accepts barycentrics >= -1e-6)."""
+
+MIN_EDGE_SINE = wp.constant(wp.float64(1.0e-2))
+"""Crossing edges closer to parallel than this sine (0.57 degrees) are left to the vertex-face tests of their ends:
+the plane they span, and so the constraint's normal, is ill-defined."""
+
+PROXIMITY_MARGIN = wp.constant(wp.float64(1.0 - 1.0e-6))
+"""Proximity contacts need a distance below thickness * margin: pairs the projection just left at the thickness
+are not found again as new contacts in the next round (that would only add dependent constraints)."""
+
+
+@wp.func
+def cubic(c0: wp.float64, c1: wp.float64, c2: wp.float64, c3: wp.float64, t: wp.float64):
+    return ((c3 * t + c2) * t + c1) * t + c0
+
+
+@wp.func
+def bisect_root(c0: wp.float64, c1: wp.float64, c2: wp.float64, c3: wp.float64, lo: wp.float64, hi: wp.float64):
+    """A root of the cubic in [lo, hi], where it changes sign (60 halvings: float64 resolution on [0, 1])."""
+    flo = cubic(c0, c1, c2, c3, lo)
+    if flo == wp.float64(0.0):
+        return lo
+    a = lo
+    b = hi
+    for _ in range(60):
+        m = wp.float64(0.5) * (a + b)
+        fm = cubic(c0, c1, c2, c3, m)
+        if (fm < wp.float64(0.0)) == (flo < wp.float64(0.0)):
+            a = m
+            flo = fm
+        else:
+            b = m
+    return wp.float64(0.5) * (a + b)
+
+
+@wp.func
+def cubic_brackets(c0: wp.float64, c1: wp.float64, c2: wp.float64, c3: wp.float64):
+    """Split [0, 1] at the cubic's critical points: the returned (t0 <= t1 <= t2 <= t3) bound monotone pieces."""
+    one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    r0 = one
+    r1 = one
+    # derivative 3 c3 t^2 + 2 c2 t + c1
+    qa = wp.float64(3.0) * c3
+    qb = wp.float64(2.0) * c2
+    qc = c1
+    if wp.abs(qa) > wp.float64(1.0e-300):
+        disc = qb * qb - wp.float64(4.0) * qa * qc
+        if disc > zero:
+            s = wp.sqrt(disc)
+            # numerically stable pair of roots
+            q = wp.float64(-0.5) * (qb + wp.sign(qb) * s) if qb != zero else wp.float64(-0.5) * s
+            ra = q / qa
+            rb = qc / q if q != zero else ra
+            r0 = wp.min(ra, rb)
+            r1 = wp.max(ra, rb)
+    elif wp.abs(qb) > wp.float64(1.0e-300):
+        r0 = -qc / qb
+    r0 = wp.clamp(r0, zero, one)
+    r1 = wp.clamp(r1, zero, one)
+    if r1 < r0:
+        tmp = r0
+        r0 = r1
+        r1 = tmp
+    return zero, r0, r1, one
+
+
+@wp.func
+def face_barycentric(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
+    """Barycentric coordinates (of a, b, c) of p's projection on the plane of the triangle; (-1,-1,-1) if degenerate."""
+    e1 = b - a
+    e2 = c - a
+    ep = p - a
+    d11 = wp.dot(e1, e1)
+    d12 = wp.dot(e1, e2)
+    d22 = wp.dot(e2, e2)
+    d1p = wp.dot(e1, ep)
+    d2p = wp.dot(e2, ep)
+    det = d11 * d22 - d12 * d12
+    if det <= wp.float64(1.0e-24) * d11 * d22 or det <= wp.float64(0.0):
+        return wp.vec3d(wp.float64(-1.0), wp.float64(-1.0), wp.float64(-1.0))
+    u = (d22 * d1p - d12 * d2p) / det
+    v = (d11 * d2p - d12 * d1p) / det
+    return wp.vec3d(wp.float64(1.0) - u - v, u, v)
+
+
+@wp.func
+def line_parameters(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d):
+    """Parameters (s, u) of the closest points of the infinite lines p0+s(p1-p0), q0+u(q1-q0); valid=False if parallel."""
+    d1 = p1 - p0
+    d2 = q1 - q0
+    r = p0 - q0
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    b = wp.dot(d1, d2)
+    c = wp.dot(d1, r)
+    f = wp.dot(d2, r)
+    den = a * e - b * b
+    if den <= wp.float64(1.0e-20) * a * e or den <= wp.float64(0.0):
+        return wp.float64(0.0), wp.float64(0.0), False
+    s = (b * f - c * e) / den
+    u = (a * f - b * c) / den
+    return s, u, True
+
+
+@wp.func
+def segment_parameters(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d):
+    """Parameters (s, u) in [0, 1] of the closest points of two segments (Ericson, Real-Time Collision Detection 5.1.9)."""
+    d1 = p1 - p0
+    d2 = q1 - q0
+    r = p0 - q0
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    s = zero
+    u = zero
+    tiny = wp.float64(1.0e-30)
+    if a <= tiny and e <= tiny:
+        return zero, zero
+    if a <= tiny:
+        u = wp.clamp(f / e, zero, one)
+        return zero, u
+    c = wp.dot(d1, r)
+    if e <= tiny:
+        s = wp.clamp(-c / a, zero, one)
+        return s, zero
+    b = wp.dot(d1, d2)
+    den = a * e - b * b
+    if den > wp.float64(1.0e-20) * a * e:
+        s = wp.clamp((b * f - c * e) / den, zero, one)
+    u = (b * s + f) / e
+    if u < zero:
+        u = zero
+        s = wp.clamp(-c / a, zero, one)
+    elif u > one:
+        u = one
+        s = wp.clamp((b - c) / a, zero, one)
+    return s, u
+
+
+@wp.func
+def lerp3(x0: wp.vec3d, x1: wp.vec3d, t: wp.float64):
+    return x0 + t * (x1 - x0)
+
+
+@wp.func
+def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
+                     p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d, thickness: wp.float64):
+    """(hit, mode, t, sign, rank) of a vertex against a triangle moving linearly over the step.
+
+    First the earliest coplanarity time t in [0, 1] at which the vertex is inside the face (CCD; the normal is signed
+    against the vertex's motion relative to the face, as in ARCSim); otherwise proximity at the end positions:
+    vertex over the face's interior and closer than the thickness (signed towards the side it is on).
+    rank orders hits by urgency: t - 1 (in [-1, 0]) for a crossing, distance / thickness (in [0, 1)) otherwise.
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    A0 = b0 - a0
+    B0 = c0 - a0
+    C0 = p0 - a0
+    dA = (b1 - a1) - A0
+    dB = (c1 - a1) - B0
+    dC = (p1 - a1) - C0
+    k0 = wp.dot(wp.cross(A0, B0), C0)
+    k1 = wp.dot(wp.cross(dA, B0), C0) + wp.dot(wp.cross(A0, dB), C0) + wp.dot(wp.cross(A0, B0), dC)
+    k2 = wp.dot(wp.cross(dA, dB), C0) + wp.dot(wp.cross(dA, B0), dC) + wp.dot(wp.cross(A0, dB), dC)
+    k3 = wp.dot(wp.cross(dA, dB), dC)
+    scale = wp.abs(k0) + wp.abs(k1) + wp.abs(k2) + wp.abs(k3)
+    if scale > zero:
+        t0, t1, t2, t3 = cubic_brackets(k0, k1, k2, k3)
+        for piece in range(3):
+            lo = t0
+            hi = t1
+            if piece == 1:
+                lo = t1
+                hi = t2
+            elif piece == 2:
+                lo = t2
+                hi = t3
+            flo = cubic(k0, k1, k2, k3, lo)
+            fhi = cubic(k0, k1, k2, k3, hi)
+            if hi > lo and flo * fhi <= zero:
+                t = bisect_root(k0, k1, k2, k3, lo, hi)
+                p = lerp3(p0, p1, t)
+                a = lerp3(a0, a1, t)
+                b = lerp3(b0, b1, t)
+                c = lerp3(c0, c1, t)
+                w = face_barycentric(p, a, b, c)
+                if w[0] >= -BARY_EPS and w[1] >= -BARY_EPS and w[2] >= -BARY_EPS:
+                    n = wp.cross(b - a, c - a)
+                    rel = (p1 - p0) - (w[0] * (a1 - a0) + w[1] * (b1 - b0) + w[2] * (c1 - c0))
+                    sign = one
+                    if wp.dot(n, rel) > zero:
+                        sign = -one
+                    return True, VF_PLANE, t, sign, t - one
+    n1 = wp.cross(b1 - a1, c1 - a1)
+    nl = wp.length(n1)
+    if nl <= zero:
+        return False, VF_PLANE, one, one, wp.float64(2.0)
+    w1 = face_barycentric(p1, a1, b1, c1)
+    if w1[0] < -BARY_EPS or w1[1] < -BARY_EPS or w1[2] < -BARY_EPS:
+        return False, VF_PLANE, one, one, wp.float64(2.0)
+    dist = wp.dot(n1, p1 - a1) / nl
+    if wp.abs(dist) >= thickness * PROXIMITY_MARGIN:
+        return False, VF_PLANE, one, one, wp.float64(2.0)
+    sign = one
+    if dist < zero or (dist == zero and wp.dot(wp.cross(b0 - a0, c0 - a0), p0 - a0) < zero):
+        sign = -one
+    return True, VF_PLANE, one, sign, wp.abs(dist) / thickness
+
+
+@wp.func
+def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
+                   P0: wp.vec3d, P1: wp.vec3d, Q0: wp.vec3d, Q1: wp.vec3d, thickness: wp.float64):
+    """(hit, mode, t, sign, rank) of edge (p0, p1) against edge (q0, q1); lower case at the start, upper at the end.
+
+    CCD: the earliest coplanarity time at which the two segments cross (EE_PLANE, signed against the relative
+    motion); otherwise proximity of the two segments at the end positions (EE_DIRECTION, or EE_PLANE signed by the
+    start side when the segments touch so closely that their connecting direction is undefined).
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    A0 = p1 - p0
+    B0 = q1 - q0
+    C0 = q0 - p0
+    dA = (P1 - P0) - A0
+    dB = (Q1 - Q0) - B0
+    dC = (Q0 - P0) - C0
+    k0 = wp.dot(wp.cross(A0, B0), C0)
+    k1 = wp.dot(wp.cross(dA, B0), C0) + wp.dot(wp.cross(A0, dB), C0) + wp.dot(wp.cross(A0, B0), dC)
+    k2 = wp.dot(wp.cross(dA, dB), C0) + wp.dot(wp.cross(dA, B0), dC) + wp.dot(wp.cross(A0, dB), dC)
+    k3 = wp.dot(wp.cross(dA, dB), dC)
+    scale = wp.abs(k0) + wp.abs(k1) + wp.abs(k2) + wp.abs(k3)
+    if scale > zero:
+        t0, t1, t2, t3 = cubic_brackets(k0, k1, k2, k3)
+        for piece in range(3):
+            lo = t0
+            hi = t1
+            if piece == 1:
+                lo = t1
+                hi = t2
+            elif piece == 2:
+                lo = t2
+                hi = t3
+            flo = cubic(k0, k1, k2, k3, lo)
+            fhi = cubic(k0, k1, k2, k3, hi)
+            if hi > lo and flo * fhi <= zero:
+                t = bisect_root(k0, k1, k2, k3, lo, hi)
+                a = lerp3(p0, P0, t)
+                b = lerp3(p1, P1, t)
+                c = lerp3(q0, Q0, t)
+                d = lerp3(q1, Q1, t)
+                s, u, ok = line_parameters(a, b, c, d)
+                sine = wp.length(wp.cross(b - a, d - c)) / (wp.length(b - a) * wp.length(d - c))
+                if ok and sine > MIN_EDGE_SINE and s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS:
+                    n = wp.cross(b - a, d - c)
+                    rel = ((one - s) * (P0 - p0) + s * (P1 - p1)) - ((one - u) * (Q0 - q0) + u * (Q1 - q1))
+                    sign = one
+                    if wp.dot(n, rel) > zero:
+                        sign = -one
+                    return True, EE_PLANE, t, sign, t - one
+    s, u = segment_parameters(P0, P1, Q0, Q1)
+    gap = ((one - s) * P0 + s * P1) - ((one - u) * Q0 + u * Q1)
+    dist = wp.length(gap)
+    if dist >= thickness * PROXIMITY_MARGIN:
+        return False, EE_DIRECTION, one, one, wp.float64(2.0)
+    gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)
+    if dist > wp.float64(1.0e-3) * thickness:
+        if wp.dot(gap, gap0) <= zero:
+            # the closest points changed sides over the step: a crossing the CCD above did not accept (near
+            # parallel edges); the direction between them would point the wrong way, the ends' vertex-face tests
+            # cover it
+            return False, EE_DIRECTION, one, one, wp.float64(2.0)
+        return True, EE_DIRECTION, one, one, dist / thickness
+    n = wp.cross(P1 - P0, Q1 - Q0)
+    if wp.length(n) <= MIN_EDGE_SINE * wp.length(P1 - P0) * wp.length(Q1 - Q0):
+        return False, EE_DIRECTION, one, one, wp.float64(2.0)  # touching and parallel: the vertex-face tests of the ends cover it
+    sign = one
+    if wp.dot(wp.cross(p1 - p0, q1 - q0), gap0) < zero:
+        sign = -one
+    return True, EE_PLANE, one, sign, dist / thickness
+
+
+@functools.cache
+def collision_kernels(scalar):
+    """Detection kernels for node positions of one precision (``wp.float32`` or ``wp.float64``)."""
+    vec3 = types(scalar).vec3
+
+    @wp.kernel
+    def primitive_bounds(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), prims: wp.array2d(dtype=wp.int32),
+                         corners: int, pad: float,
+                         # out:
+                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+        # swept box of a triangle (corners=3), edge (2) or vertex (1) over the step, grown by pad
+        i = wp.tid()
+        lo = wp.vec3(1.0e30, 1.0e30, 1.0e30)
+        hi = wp.vec3(-1.0e30, -1.0e30, -1.0e30)
+        for c in range(corners):
+            j = prims[i, c]
+            a = wp.vec3(x0[j])
+            b = wp.vec3(x1[j])
+            lo = wp.min(lo, wp.min(a, b))
+            hi = wp.max(hi, wp.max(a, b))
+        # float32 boxes: widen by the rounding of their coordinates too
+        g = pad + 1.0e-6 * (wp.max(wp.abs(lo)) + wp.max(wp.abs(hi)))
+        lowers[i] = lo - wp.vec3(g, g, g)
+        uppers[i] = hi + wp.vec3(g, g, g)
+
+    @wp.func
+    def emit(slot: int, capacity: int, n0: int, n1: int, n2: int, n3: int, mode: int, t: wp.float64,
+             sign: wp.float64, contact_nodes: wp.array2d(dtype=wp.int32), contact_mode: wp.array(dtype=wp.int32),
+             contact_t: wp.array(dtype=wp.float64), contact_sign: wp.array(dtype=wp.float64)):
+        if slot < capacity:
+            contact_nodes[slot, 0] = n0
+            contact_nodes[slot, 1] = n1
+            contact_nodes[slot, 2] = n2
+            contact_nodes[slot, 3] = n3
+            contact_mode[slot] = mode
+            contact_t[slot] = t
+            contact_sign[slot] = sign
+
+    @wp.kernel
+    def vertex_face(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
+                    vertices: wp.array(dtype=wp.int32), faces: wp.array2d(dtype=wp.int32),
+                    query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
+                    skip_incident: int, thickness: wp.float64, capacity: int,
+                    # out:
+                    count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
+                    contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
+                    contact_sign: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        p = vertices[i]
+        query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i])
+        f = int(0)
+        # keep the most urgent contact on each side of the vertex (ARCSim keeps the closest primitive per side);
+        # others that matter are found in the next round, after this one is resolved
+        best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
+        best_face = wp.vec2i(-1, -1)
+        best_t = wp.vec2d()
+        while wp.bvh_query_next(query, f):
+            a = faces[f, 0]
+            b = faces[f, 1]
+            c = faces[f, 2]
+            if skip_incident != 0 and (p == a or p == b or p == c):
+                continue
+            hit, mode, t, sign, rank = vertex_face_test(
+                wp.vec3d(x0[p]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
+                wp.vec3d(x1[p]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]), thickness)
+            side = 0 if sign > wp.float64(0.0) else 1
+            if hit and rank < best[side]:
+                best[side] = rank
+                best_face[side] = f
+                best_t[side] = t
+        for side in range(2):
+            if best_face[side] >= 0:
+                sign = wp.float64(1.0) if side == 0 else wp.float64(-1.0)
+                slot = wp.atomic_add(count, 0, 1)
+                fb = best_face[side]
+                emit(slot, capacity, p, faces[fb, 0], faces[fb, 1], faces[fb, 2], VF_PLANE, best_t[side], sign,
+                     contact_nodes, contact_mode, contact_t, contact_sign)
+
+    @wp.kernel
+    def edge_edge(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
+                  edges: wp.array2d(dtype=wp.int32), targets: wp.array2d(dtype=wp.int32),
+                  query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
+                  same_set: int, thickness: wp.float64, capacity: int,
+                  # out:
+                  count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
+                  contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
+                  contact_sign: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        e0 = edges[i, 0]
+        e1 = edges[i, 1]
+        query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i])
+        j = int(0)
+        # the most urgent contact per side (EE_DIRECTION counts as the + side), as in vertex_face
+        best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
+        best_edge = wp.vec2i(-1, -1)
+        best_t = wp.vec2d()
+        best_mode = wp.vec2i()
+        while wp.bvh_query_next(query, j):
+            f0 = targets[j, 0]
+            f1 = targets[j, 1]
+            if same_set != 0 and (j <= i or e0 == f0 or e0 == f1 or e1 == f0 or e1 == f1):
+                continue  # each pair once; edges sharing a vertex do not collide
+            hit, mode, t, sign, rank = edge_edge_test(
+                wp.vec3d(x0[e0]), wp.vec3d(x0[e1]), wp.vec3d(x0[f0]), wp.vec3d(x0[f1]),
+                wp.vec3d(x1[e0]), wp.vec3d(x1[e1]), wp.vec3d(x1[f0]), wp.vec3d(x1[f1]), thickness)
+            side = 0 if sign > wp.float64(0.0) else 1
+            if hit and rank < best[side]:
+                best[side] = rank
+                best_edge[side] = j
+                best_t[side] = t
+                best_mode[side] = mode
+        for side in range(2):
+            if best_edge[side] >= 0:
+                sign = wp.float64(1.0) if side == 0 else wp.float64(-1.0)
+                slot = wp.atomic_add(count, 0, 1)
+                jb = best_edge[side]
+                emit(slot, capacity, e0, e1, targets[jb, 0], targets[jb, 1], best_mode[side], best_t[side], sign,
+                     contact_nodes, contact_mode, contact_t, contact_sign)
+
+    @wp.kernel
+    def inside_mesh(mesh: wp.uint64, x: wp.array(dtype=vec3), max_dist: float,
+                    # out:
+                    inside: wp.array(dtype=wp.int32)):
+        # generalised winding number > 1/2: the particle is inside the closed mesh
+        i = wp.tid()
+        q = wp.mesh_query_point_sign_winding_number(mesh, wp.vec3(x[i]), max_dist, 2.0, 0.5)
+        if q.result and q.sign < 0.0:
+            inside[i] = 1
+
+    return SimpleNamespace(primitive_bounds=primitive_bounds, vertex_face=vertex_face, edge_edge=edge_edge,
+                           inside_mesh=inside_mesh)
+
+
+# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
+for _scalar in (wp.float32, wp.float64):
+    collision_kernels(_scalar)

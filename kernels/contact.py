@@ -1,0 +1,128 @@
+"""Differentiable contact geometry: the normal and weights of each frozen contact, from positions (SPEC.md §4.2).
+
+Detection (kernels/collision.py) freezes each contact's nodes, mode, time of impact t and side sign. Here the
+positions at t, x(t) = x0 + t (x1 - x0), give the constraint's unit normal n and weights w; Warp's autodiff carries
+dL/dn and dL/dw (from the projection's adjoint) back to the start and end positions of cloth and obstacles.
+The frozen t and sign get no gradient (a change of the active set or of the time of impact is not differentiable).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from warpcloth.kernels.types import types
+
+VF_PLANE = 0
+EE_PLANE = 1
+EE_DIRECTION = 2  # the modes of kernels/collision.py
+
+
+@functools.cache
+def contact_kernels(scalar):
+    t = types(scalar)
+    vec3, vec4 = t.vec3, t.vec4
+    zero = scalar(0.0)
+    one = scalar(1.0)
+
+    @wp.func
+    def segment_parameters(p0: vec3, p1: vec3, q0: vec3, q1: vec3):
+        # closest points of two segments, clamped (Ericson, Real-Time Collision Detection 5.1.9)
+        d1 = p1 - p0
+        d2 = q1 - q0
+        r = p0 - q0
+        a = wp.dot(d1, d1)
+        e = wp.dot(d2, d2)
+        f = wp.dot(d2, r)
+        c = wp.dot(d1, r)
+        b = wp.dot(d1, d2)
+        s = zero
+        den = a * e - b * b
+        if den > scalar(1.0e-12) * a * e:
+            s = wp.clamp((b * f - c * e) / den, zero, one)
+        u = (b * s + f) / e
+        if u < zero:
+            u = zero
+            s = wp.clamp(-c / a, zero, one)
+        elif u > one:
+            u = one
+            s = wp.clamp((b - c) / a, zero, one)
+        return s, u
+
+    @wp.kernel
+    def gather_nodes(cloth_x: wp.array(dtype=vec3), obstacle_x: wp.array(dtype=vec3), cloth_count: int,
+                     # out:
+                     nodes: wp.array(dtype=vec3)):
+        # one array of all positions: cloth particles first, then obstacle vertices
+        i = wp.tid()
+        if i < cloth_count:
+            nodes[i] = cloth_x[i]
+        else:
+            nodes[i] = obstacle_x[i - cloth_count]
+
+    @wp.kernel
+    def geometry(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), contact_nodes: wp.array2d(dtype=wp.int32),
+                 contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=scalar),
+                 contact_sign: wp.array(dtype=scalar),
+                 # out:
+                 normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4)):
+        j = wp.tid()
+        tj = contact_t[j]
+        a = x0[contact_nodes[j, 0]] + tj * (x1[contact_nodes[j, 0]] - x0[contact_nodes[j, 0]])
+        b = x0[contact_nodes[j, 1]] + tj * (x1[contact_nodes[j, 1]] - x0[contact_nodes[j, 1]])
+        c = x0[contact_nodes[j, 2]] + tj * (x1[contact_nodes[j, 2]] - x0[contact_nodes[j, 2]])
+        d = x0[contact_nodes[j, 3]] + tj * (x1[contact_nodes[j, 3]] - x0[contact_nodes[j, 3]])
+        mode = contact_mode[j]
+        if mode == VF_PLANE:
+            # vertex a over face (b, c, d): barycentric coordinates of a's projection on the face plane
+            e1 = c - b
+            e2 = d - b
+            ep = a - b
+            d11 = wp.dot(e1, e1)
+            d12 = wp.dot(e1, e2)
+            d22 = wp.dot(e2, e2)
+            d1p = wp.dot(e1, ep)
+            d2p = wp.dot(e2, ep)
+            det = d11 * d22 - d12 * d12
+            u = (d22 * d1p - d12 * d2p) / det
+            v = (d11 * d2p - d12 * d1p) / det
+            normal[j] = contact_sign[j] * wp.normalize(wp.cross(e1, e2))
+            weight[j] = vec4(one, -(one - u - v), -u, -v)
+        elif mode == EE_PLANE:
+            # crossing edges (a, b) and (c, d): the normal of the plane they span, lines' closest points
+            d1 = b - a
+            d2 = d - c
+            r = a - c
+            aa = wp.dot(d1, d1)
+            ee = wp.dot(d2, d2)
+            bb = wp.dot(d1, d2)
+            cc = wp.dot(d1, r)
+            ff = wp.dot(d2, r)
+            den = aa * ee - bb * bb
+            s = (bb * ff - cc * ee) / den
+            u = (aa * ff - bb * cc) / den
+            normal[j] = contact_sign[j] * wp.normalize(wp.cross(d1, d2))
+            weight[j] = vec4(one - s, s, -(one - u), -u)
+        else:
+            # closest points of the two segments; the normal points from the second to the first
+            s, u = segment_parameters(a, b, c, d)
+            gap = (a + s * (b - a)) - (c + u * (d - c))
+            normal[j] = wp.normalize(gap)
+            weight[j] = vec4(one - s, s, -(one - u), -u)
+
+    @wp.kernel
+    def apply_projection(x_hat: wp.array(dtype=vec3), v_hat: wp.array(dtype=vec3), z: wp.array(dtype=vec3),
+                         inv_dt: scalar,
+                         # out:
+                         x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
+        # the projected positions, and velocities corrected by the displacement (SPEC §2 step 4)
+        i = wp.tid()
+        x[i] = z[i]
+        v[i] = v_hat[i] + (z[i] - x_hat[i]) * inv_dt
+
+    return SimpleNamespace(gather_nodes=gather_nodes, geometry=geometry, apply_projection=apply_projection)
+
+
+# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
+for _scalar in (wp.float32, wp.float64):
+    contact_kernels(_scalar)

@@ -1,0 +1,190 @@
+"""Collision response end to end: no penetration after any step, no tunnelling, and clear errors for bad set-ups."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+from warpcloth.errors import CollisionError
+from warpcloth.obstacles import obstacle_points_numpy
+
+DELTA = 5e-4
+MATERIAL = wc.Material.isotropic(density=0.2, stretch_stiffness=200.0, shear_stiffness=20.0, bend_stiffness=2e-5)
+
+
+def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Distances (P, T) from points (P, 3) to triangles (T, 3, 3) (Ericson, Real-Time Collision Detection 5.1.5)."""
+    a, b, c = (tri[None, :, k, :] for k in range(3))
+    p = p[:, None, :]
+    ab, ac, ap = b - a, c - a, p - a
+
+    def dot(u, v):
+        return np.sum(u * v, axis=-1)
+
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    bp, cp = p - b, p - c
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = vb / denom
+        w = vc / denom
+        q = a + ab * v[..., None] + ac * w[..., None]  # interior
+        # edges
+        t_ab = np.clip(d1 / (d1 - d3), 0, 1)
+        t_ac = np.clip(d2 / (d2 - d6), 0, 1)
+        t_bc = np.clip((d4 - d3) / ((d4 - d3) + (d5 - d6)), 0, 1)
+    q_ab = a + ab * np.nan_to_num(t_ab)[..., None]
+    q_ac = a + ac * np.nan_to_num(t_ac)[..., None]
+    q_bc = b + (c - b) * np.nan_to_num(t_bc)[..., None]
+    dist = np.linalg.norm(p - q, axis=-1)
+    outside = (va < 0) | (vb < 0) | (vc < 0) | ~np.isfinite(dist)
+    edge = np.minimum.reduce([np.linalg.norm(p - q_ab, axis=-1), np.linalg.norm(p - q_ac, axis=-1),
+                              np.linalg.norm(p - q_bc, axis=-1)])
+    return np.where(outside, edge, dist)
+
+
+def min_obstacle_distance(model, state) -> float:
+    x = state.particle_x.numpy().astype(np.float64)
+    pts = obstacle_points_numpy(model, state.time)
+    tris = pts[model.obstacle_triangles_np]
+    return float(point_triangle_distance(x, tris).min())
+
+
+def min_self_distance(model, state) -> float:
+    """Smallest distance from a cloth vertex to a cloth face it is not a corner of."""
+    x = state.particle_x.numpy().astype(np.float64)
+    tri_idx = model.triangles_np
+    d = point_triangle_distance(x, x[tri_idx])
+    incident = np.zeros_like(d, dtype=bool)
+    for k in range(3):
+        incident[tri_idx[:, k], np.arange(len(tri_idx))] = True
+    return float(d[~incident].min())
+
+
+def run(builder, steps, dt, *, dtype=wp.float64, options=None, check=None):
+    model = builder.finalize("cpu", dtype=dtype)
+    sim = wc.Simulator(model, dt, options=options)
+    state = model.state()
+    for _ in range(steps):
+        nxt = model.empty_state()
+        sim.step(state, nxt)
+        state = nxt
+        if check is not None:
+            check(model, state, sim)
+    return model, sim, state
+
+
+def no_penetration(model, state, sim, tolerance=0.02):
+    d = min_obstacle_distance(model, state) if model.obstacle_count else np.inf
+    assert d >= DELTA * (1 - tolerance), f"step {sim.step_count}: a vertex is {d:.3e} m from an obstacle face"
+    if model.collision.self_collision:
+        d = min_self_distance(model, state)
+        assert d >= DELTA * (1 - tolerance), f"step {sim.step_count}: a vertex is {d:.3e} m from a cloth face"
+
+
+def flat_cloth(res=8, size=0.5, z=0.05, center=(0.0, 0.0), vel=None):
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((res, res), (size, size), material=MATERIAL,
+                     pos=(center[0] - size / 2, center[1] - size / 2, z), vel=vel)
+    return b
+
+
+def test_cloth_dropped_on_a_plane_rests_on_it():
+    b = flat_cloth(z=0.02)
+    b.add_obstacle_plane((2.0, 2.0))
+    model, sim, state = run(b, 30, 0.01, check=no_penetration)
+    z = state.particle_x.numpy()[:, 2]
+    assert np.all(z > 0) and np.all(z < 2 * DELTA + 1e-6)  # on the plane, not bounced off nor sunk
+    assert np.abs(state.particle_v.numpy()[:, 2]).max() < 0.05
+
+
+def test_cloth_draped_on_a_sphere():
+    b = flat_cloth(res=12, size=1.0, z=0.32)
+    b.add_obstacle_sphere(0.3, subdivisions=3)
+    model, sim, state = run(b, 40, 0.01, check=no_penetration)
+    x = state.particle_x.numpy()
+    assert x[:, 2].min() < 0.1  # the corners fell past the sphere's equator
+    assert sim.collision.last["contacts"] > 0
+
+
+def test_cloth_falls_into_the_funnel():
+    b = flat_cloth(res=8, size=0.6, z=-0.5, center=(0.0, -0.5))
+    b.add_obstacle_funnel(pos=(-0.5, -1.0, -0.55))
+    model, sim, state = run(b, 40, 0.01, check=no_penetration)
+    x = state.particle_x.numpy()
+    assert x[:, 2].max() < -0.55  # below the rim: held by the funnel's walls
+    assert x[:, 2].min() > -1.2165 - 1e-6  # never below the apex
+
+
+def test_strip_falling_on_the_ground_folds_onto_itself():
+    # a vertical strip falls onto the ground and buckles: self-collision keeps its layers apart
+    b = wc.ModelBuilder()
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    b.add_cloth_grid((3, 16), (0.1, 0.4), material=MATERIAL, rot=rot, pos=(0.0, 0.0, 0.002))
+    b.add_obstacle_plane((2.0, 2.0))
+    b.set_collision(self_collision=True)
+    model, sim, state = run(b, 40, 0.01, check=no_penetration)
+    assert state.particle_x.numpy()[:, 2].max() < 0.2  # it came down
+
+
+def test_cloth_thrown_at_20_m_s_does_not_tunnel_through_a_thin_plate():
+    b = flat_cloth(res=6, size=0.3, z=0.1, vel=(0.0, 0.0, -20.0))
+    b.add_obstacle_plane((1.0, 1.0))
+    model, sim, state = run(b, 5, 0.02, check=no_penetration)
+    assert np.all(state.particle_x.numpy()[:, 2] > 0.0)
+
+
+def test_moving_obstacle_pushes_the_cloth():
+    b = flat_cloth(res=6, size=0.3, z=0.01)
+    b.add_obstacle_plane((1.0, 1.0), motion=[(0.0, (0, 0, 0), (0, 0, 0, 1)), (1.0, (0, 0, 1.0), (0, 0, 0, 1))])
+    b.set_collision()
+    model, sim, state = run(b, 20, 0.01, check=no_penetration)
+    assert state.particle_x.numpy()[:, 2].min() > 0.2 - 1e-3  # lifted with the plane (z = t)
+
+
+def test_contact_overflow_names_the_capacity():
+    b = flat_cloth(z=0.0002)
+    b.add_obstacle_plane((2.0, 2.0))
+    with pytest.raises(CollisionError, match="contact_capacity"):
+        run(b, 1, 0.01, options=wc.SolverOptions(contact_capacity=3))
+
+
+def test_cloth_starting_inside_a_closed_obstacle_is_rejected():
+    b = flat_cloth(res=4, size=0.2, z=0.0)
+    b.add_obstacle_box((0.5, 0.5, 0.5))
+    model = b.finalize("cpu")
+    with pytest.raises(ValueError, match="starts inside obstacle 'obstacle0'"):
+        wc.Simulator(model, 0.01)
+
+
+def test_zero_or_negative_thickness_is_an_error():
+    b = flat_cloth()
+    for bad in (0.0, -1e-3, float("nan")):
+        with pytest.raises(ValueError, match="thickness"):
+            b.set_collision(thickness=bad)
+
+
+def test_overlapping_obstacles_act_as_their_union():
+    # two overlapping boxes: obstacles do not collide with each other; the cloth rests on whichever is higher
+    b = flat_cloth(res=8, size=0.6, z=0.12)
+    b.add_obstacle_box((0.2, 0.2, 0.05), pos=(-0.1, 0.0, 0.0))
+    b.add_obstacle_box((0.2, 0.2, 0.1), pos=(0.1, 0.0, 0.0))
+    model, sim, state = run(b, 25, 0.01, check=no_penetration)
+
+
+def test_cloth_trapped_between_two_obstacles_closer_than_twice_the_thickness_raises():
+    b = flat_cloth(res=4, size=0.2, z=0.0)
+    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, -0.4 * DELTA))
+    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, 0.4 * DELTA), rot=(1.0, 0.0, 0.0, 0.0))  # facing down
+    with pytest.raises(CollisionError, match="zone"):
+        run(b, 1, 0.01)
+
+
+def test_scene_without_collisions_builds_no_collision_stage():
+    model = flat_cloth().finalize("cpu")
+    assert model.collision is None
+    assert wc.Simulator(model, 0.01).collision is None

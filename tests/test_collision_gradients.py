@@ -1,0 +1,142 @@
+"""Gradients through the collision response: tape vs central finite differences, QR adjoint vs dense KKT adjoint.
+
+The scenes keep every contact clearly active and every non-contact clearly apart, so the small perturbations of the
+finite differences do not change the set of contacts (the one thing the gradient deliberately ignores).
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+
+MATERIAL = wc.Material.isotropic(density=0.2, stretch_stiffness=200.0, shear_stiffness=20.0, bend_stiffness=2e-5)
+TILT = np.array([np.sin(0.001), 0.0, 0.0, np.cos(0.001)])  # 0.002 rad about x
+
+
+def stretched_grid(b, res, size, *, pos, rot=np.eye(3), vel=(0.0, 0.0, 0.0), stretch=1.03):
+    """A flat grid stretched 3 % in its plane: away from the rest state, where the stretching model's compression
+    branch makes the forces non-differentiable (finite differences would see the kink)."""
+    mesh = wc.grid_mesh(res, res, size, size)
+    mesh.positions = (mesh.positions * [stretch, stretch, 1.0]) @ np.asarray(rot).T + np.asarray(pos)
+    b.add_cloth_mesh(mesh, material=MATERIAL, vel=vel)
+
+
+def plane_scene():
+    """A 0.1 m cloth 0.6 mm over a slightly tilted plane, far from the plane's diagonal edge: all vertex-face."""
+    b = wc.ModelBuilder()
+    # the plane's height under the cloth's centre (y = -0.4) is -0.4 sin(0.002)
+    stretched_grid(b, 3, 0.1, pos=(0.3, -0.45, 0.0006 - 0.4 * np.sin(0.002)))
+    b.add_obstacle_plane((2.0, 2.0), rot=TILT)
+    return b
+
+
+def layers_scene():
+    """Two free sheets in zero gravity: a 2 cm square moving onto a 20 cm one, inside one of its triangles and far
+    from its edges: cloth-cloth vertex-face contacts between free particles on both sides."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    stretched_grid(b, 1, 0.2, pos=(-0.1, -0.1, 0.0))
+    stretched_grid(b, 1, 0.02, pos=(-0.01, -0.09, 0.0006), vel=(0.0, 0.0, -0.05))
+    b.set_collision(self_collision=True)
+    return b
+
+
+def loss_fn(model, steps, dt, adjoint="qr"):
+    """Build a simulator and a function (x0, v0, transforms) -> (loss, contact counts) with a random linear loss."""
+    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000, collision_adjoint=adjoint)
+    sim = wc.Simulator(model, dt, options=options)
+    rng = np.random.default_rng(3)
+    cx = rng.standard_normal((model.particle_count, 3))
+    cv = rng.standard_normal((model.particle_count, 3)) * 1e-3
+
+    def run(x0, v0, transforms, tape=None):
+        vec3 = model.types.vec3
+        state = wc.State(wp.array(x0, dtype=vec3, requires_grad=True), wp.array(v0, dtype=vec3, requires_grad=True))
+        control = model.control(requires_grad=True)
+        if transforms is not None:
+            control.obstacle_transform = wp.array(transforms, dtype=model.types.transform, requires_grad=True)
+        sim._previous_dv = None  # identical warm starts for every evaluation
+        sim._adjoint_solution.zero_()
+        keys = []
+        traj = [state]
+        for _ in range(steps):
+            nxt = model.empty_state()
+            sim.step(traj[-1], nxt, control)
+            traj.append(nxt)
+            keys.append(sim.collision.last["contacts"])
+        x, v = traj[-1].particle_x.numpy(), traj[-1].particle_v.numpy()
+        loss = float(np.sum(cx * x) + np.sum(cv * v))
+        if tape is not None:
+            return loss, keys, traj, control, (wp.array(cx, dtype=vec3), wp.array(cv, dtype=vec3))
+        return loss, keys
+
+    return sim, run
+
+
+def tape_gradients(model, run, x0, v0, transforms):
+    tape = wp.Tape()
+    with tape:
+        loss, keys, traj, control, (cx, cv) = run(x0, v0, transforms, tape=True)
+    last = traj[-1]
+    tape.backward(grads={last.particle_x: cx, last.particle_v: cv})
+    g = {"x0": traj[0].particle_x.grad.numpy().copy(), "v0": traj[0].particle_v.grad.numpy().copy()}
+    if transforms is not None:
+        g["transform"] = control.obstacle_transform.grad.numpy().copy()
+    tape.zero()
+    return loss, keys, g
+
+
+def fd_check(run, base, grads, name, eps, rng, directions=2):
+    x0, v0, tf = base
+    for _ in range(directions):
+        arg = {"x0": x0, "v0": v0, "transform": tf}[name]
+        d = rng.standard_normal(arg.shape)
+
+        def at(sign):
+            args = dict(x0=x0, v0=v0, transform=tf)
+            args[name] = arg + sign * eps * d
+            return run(args["x0"], args["v0"], args["transform"])
+
+        (lp, kp), (lm, km) = at(+1), at(-1)
+        assert kp == km, f"the perturbation of {name} changed the contacts ({kp} vs {km}); the test scene is too tight"
+        fd = (lp - lm) / (2 * eps)
+        an = float(np.sum(grads[name] * d))
+        assert an == pytest.approx(fd, rel=1e-5, abs=1e-9), f"d loss / d {name}: tape {an}, finite differences {fd}"
+
+
+@pytest.mark.parametrize("steps", [1, 3])
+def test_obstacle_contact_gradients_match_finite_differences(steps):
+    model = plane_scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+    sim, run = loss_fn(model, steps, 0.005)
+    x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
+    tf = model.obstacle_rest_transform.copy()
+    loss, keys, g = tape_gradients(model, run, x0, v0, tf)
+    assert keys[0] == model.particle_count  # every vertex in contact with the plane
+    rng = np.random.default_rng(0)
+    for name, eps in (("x0", 1e-7), ("v0", 1e-4), ("transform", 1e-7)):
+        fd_check(run, (x0, v0, tf), g, name, eps, rng)
+    assert np.abs(g["transform"]).max() > 0  # the obstacle's placement matters
+
+
+def test_cloth_cloth_contact_gradients_match_finite_differences():
+    model = layers_scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+    sim, run = loss_fn(model, 1, 0.005)
+    x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
+    loss, keys, g = tape_gradients(model, run, x0, v0, None)
+    assert keys[0] > 0
+    rng = np.random.default_rng(1)
+    for name, eps in (("x0", 1e-7), ("v0", 1e-4)):
+        fd_check(run, (x0, v0, None), g, name, eps, rng)
+
+
+@pytest.mark.parametrize("scene", [plane_scene, layers_scene])
+def test_qr_adjoint_equals_dense_kkt_adjoint_in_a_step(scene):
+    grads = {}
+    for mode in ("qr", "kkt"):
+        model = scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+        sim, run = loss_fn(model, 2, 0.005, adjoint=mode)
+        tf = model.obstacle_rest_transform.copy() if model.obstacle_count else None
+        _, _, grads[mode] = tape_gradients(model, run, model.particle_x0.numpy(), model.particle_v0.numpy(), tf)
+    for name in grads["qr"]:
+        np.testing.assert_allclose(grads["qr"][name], grads["kkt"][name], rtol=1e-8, atol=1e-10 * np.abs(
+            grads["kkt"][name]).max())

@@ -1,0 +1,156 @@
+"""Collision detection kernels (vertex-face and edge-edge, CCD and proximity) and the contact geometry."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpcloth.kernels.collision import collision_kernels
+from warpcloth.kernels.contact import EE_DIRECTION, EE_PLANE, VF_PLANE, contact_kernels
+
+DELTA = 5e-4
+
+
+def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.float64):
+    """Run one detection kernel on node positions x0 -> x1; returns (count, nodes, mode, t, sign)."""
+    k = collision_kernels(dtype)
+    vec3 = wp.types.vector(3, dtype)
+    X0 = wp.array(x0, dtype=vec3)
+    X1 = wp.array(x1, dtype=vec3)
+    q = wp.array(np.asarray(queries, dtype=np.int32).reshape(len(queries), -1), dtype=wp.int32)
+    tg = wp.array(np.asarray(targets, dtype=np.int32), dtype=wp.int32)
+    bounds = []
+    for prims in (q, tg):
+        lo = wp.zeros(prims.shape[0], dtype=wp.vec3)
+        hi = wp.zeros(prims.shape[0], dtype=wp.vec3)
+        wp.launch(k.primitive_bounds, prims.shape[0], inputs=[X0, X1, prims, prims.shape[1], 0.5 * DELTA],
+                  outputs=[lo, hi])
+        bounds.append((lo, hi))
+    bvh = wp.Bvh(*bounds[1])
+    count = wp.zeros(1, dtype=wp.int32)
+    nodes = wp.zeros((capacity, 4), dtype=wp.int32)
+    mode = wp.zeros(capacity, dtype=wp.int32)
+    t = wp.zeros(capacity, dtype=wp.float64)
+    sign = wp.zeros(capacity, dtype=wp.float64)
+    kernel = k.vertex_face if kind == "vf" else k.edge_edge
+    query_index = q.flatten() if kind == "vf" else q
+    wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, query_index, tg, bounds[0][0], bounds[0][1], flag,
+                                          wp.float64(DELTA), capacity],
+              outputs=[count, nodes, mode, t, sign])
+    c = int(count.numpy()[0])
+    m = min(c, capacity)
+    return c, nodes.numpy()[:m], mode.numpy()[:m], t.numpy()[:m], sign.numpy()[:m]
+
+
+def _geometry(x0, x1, nodes, mode, t, sign, dtype=wp.float64):
+    k = contact_kernels(dtype)
+    vec3 = wp.types.vector(3, dtype)
+    vec4 = wp.types.vector(4, dtype)
+    m = len(mode)
+    n_out = wp.zeros(m, dtype=vec3)
+    w_out = wp.zeros(m, dtype=vec4)
+    wp.launch(k.geometry, m, inputs=[wp.array(x0, dtype=vec3), wp.array(x1, dtype=vec3),
+                                     wp.array(nodes, dtype=wp.int32), wp.array(mode, dtype=wp.int32),
+                                     wp.array(t, dtype=dtype), wp.array(sign, dtype=dtype)],
+              outputs=[n_out, w_out])
+    return n_out.numpy(), w_out.numpy()
+
+
+def _constraint(x, nodes, n, w):
+    """sum_k w_k n . x_k per contact: the separation the projection keeps >= thickness."""
+    return np.einsum("ma,mc,mac->m", w, n, x[nodes])
+
+
+TRI = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64])
+def test_vertex_crossing_a_face_is_found_with_time_and_side(dtype):
+    # vertex 3 falls from z = 0.1 to z = -0.3 through the face: crossing at t = 0.25, from the +z side
+    x0 = np.vstack([TRI, [0.2, 0.2, 0.1]])
+    x1 = np.vstack([TRI, [0.2, 0.2, -0.3]])
+    c, nodes, mode, t, sign = _detect(x0, x1, [3], [[0, 1, 2]], "vf", dtype=dtype)
+    assert c == 1 and mode[0] == VF_PLANE and nodes[0].tolist() == [3, 0, 1, 2]
+    assert t[0] == pytest.approx(0.25, abs=1e-9 if dtype == wp.float64 else 1e-7)  # float32 inputs
+    n, w = _geometry(x0, x1, nodes, mode, t.astype(np.float64), sign)
+    np.testing.assert_allclose(n[0], [0.0, 0.0, 1.0], atol=1e-12)  # points to where the vertex came from
+    np.testing.assert_allclose(w[0], [1.0, -0.6, -0.2, -0.2], atol=1e-12)
+    # the constraint is violated at the end (-0.3 < delta): the projection will lift the vertex
+    assert _constraint(x1, nodes, n, w)[0] == pytest.approx(-0.3)
+
+
+def test_vertex_near_a_face_from_below_gets_a_downward_normal():
+    x0 = np.vstack([TRI, [0.3, 0.3, -0.01]])
+    x1 = np.vstack([TRI, [0.3, 0.3, -0.2 * DELTA]])
+    c, nodes, mode, t, sign = _detect(x0, x1, [3], [[0, 1, 2]], "vf")
+    assert c == 1 and t[0] == 1.0 and sign[0] == -1.0
+    n, w = _geometry(x0, x1, nodes, mode, t, sign)
+    np.testing.assert_allclose(n[0], [0.0, 0.0, -1.0], atol=1e-12)
+    assert _constraint(x1, nodes, n, w)[0] == pytest.approx(0.2 * DELTA)
+
+
+def test_far_or_outside_vertices_are_not_contacts():
+    x0 = np.vstack([TRI, [0.3, 0.3, 0.1], [2.0, 2.0, 1e-4], [0.3, 0.3, 3 * DELTA]])
+    x1 = x0.copy()
+    c, *_ = _detect(x0, x1, [3, 4, 5], [[0, 1, 2]], "vf")
+    assert c == 0
+
+
+def test_fast_vertex_does_not_tunnel_through_a_thin_plate():
+    # 20 m/s for 0.02 s: 0.4 m in one step through a plate of two triangles
+    plate = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    x0 = np.vstack([plate, [0.1, 0.05, 0.2]])
+    x1 = np.vstack([plate, [0.1, 0.05, -0.2]])
+    c, nodes, mode, t, sign = _detect(x0, x1, [4], [[0, 1, 2], [0, 2, 3]], "vf")
+    assert c >= 1 and np.all(t == pytest.approx(0.5))
+
+
+def test_moving_face_hits_resting_vertex():
+    # the face moves up through a vertex at rest: relative motion decides the side (vertex ends below)
+    x0 = np.vstack([TRI - [0, 0, 0.1], [0.2, 0.2, 0.0]])
+    x1 = np.vstack([TRI + [0, 0, 0.1], [0.2, 0.2, 0.0]])
+    c, nodes, mode, t, sign = _detect(x0, x1, [3], [[0, 1, 2]], "vf")
+    assert c == 1 and t[0] == pytest.approx(0.5)
+    n, w = _geometry(x0, x1, nodes, mode, t, sign)
+    np.testing.assert_allclose(n[0], [0.0, 0.0, 1.0], atol=1e-12)
+    assert _constraint(x1, nodes, n, w)[0] == pytest.approx(-0.1)
+
+
+def test_crossing_edges_are_found():
+    # edge (0,1) along x at z = 0.1 moving down through edge (2,3) along y at z = 0
+    x0 = np.array([[-1.0, 0.3, 0.1], [1.0, 0.3, 0.1], [0.2, -1.0, 0.0], [0.2, 1.0, 0.0]])
+    x1 = x0.copy()
+    x1[:2, 2] -= 0.4
+    c, nodes, mode, t, sign = _detect(x0, x1, [[0, 1]], [[2, 3]], "ee")
+    assert c == 1 and mode[0] == EE_PLANE and t[0] == pytest.approx(0.25)
+    n, w = _geometry(x0, x1, nodes, mode, t, sign)
+    np.testing.assert_allclose(np.abs(n[0]), [0.0, 0.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(w[0], [0.4, 0.6, -0.35, -0.65], atol=1e-12)
+    assert n[0][2] > 0  # edge (0,1) came from above
+    assert _constraint(x1, nodes, n, w)[0] == pytest.approx(-0.3)
+
+
+def test_close_segments_get_the_direction_between_closest_points():
+    # segment end near the middle of another: vertex-edge proximity through clamped parameters
+    x0 = np.array([[0.0, 0.0, 0.3 * DELTA], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    c, nodes, mode, t, sign = _detect(x0, x0, [[0, 1]], [[2, 3]], "ee")
+    assert c == 1 and mode[0] == EE_DIRECTION
+    n, w = _geometry(x0, x0, nodes, mode, t, sign)
+    np.testing.assert_allclose(n[0], [0.0, 0.0, 1.0], atol=1e-12)
+    assert _constraint(x0, nodes, n, w)[0] == pytest.approx(0.3 * DELTA)
+
+
+def test_self_queries_skip_incident_faces_and_shared_edges():
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    c, *_ = _detect(x, x, [0, 1, 2, 3], [[0, 1, 2], [1, 3, 2]], "vf", flag=1)
+    assert c == 0
+    edges = [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    c, *_ = _detect(x, x, edges, edges, "ee", flag=1)
+    assert c == 0
+
+
+def test_overflow_is_counted_beyond_the_capacity():
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0.05, 0.4, 20), rng.uniform(0.05, 0.4, 20), np.full(20, 0.5 * DELTA)])
+    x = np.vstack([TRI, pts])
+    c, nodes, *_ = _detect(x, x, list(range(3, 23)), [[0, 1, 2]], "vf", capacity=5)
+    assert c == 20 and len(nodes) == 5

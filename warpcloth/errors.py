@@ -1,0 +1,9 @@
+"""Errors a running simulation raises (bad input raises ValueError where it is given)."""
+
+
+class SimulationError(RuntimeError):
+    """The simulation diverged (NaN/inf or a speed beyond ``SolverOptions.max_speed``) or a solve failed."""
+
+
+class CollisionError(SimulationError):
+    """The collision response could not make a step collision-free, or a contact buffer overflowed."""
