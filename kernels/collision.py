@@ -183,8 +183,9 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     """(hit, mode, t, sign, rank) of a vertex against a triangle moving linearly over the step.
 
     First the earliest coplanarity time t in [0, 1] at which the vertex is inside the face (CCD; the normal is signed
-    against the vertex's motion relative to the face, as in ARCSim); otherwise proximity at the end positions:
-    vertex over the face's interior and closer than the thickness (signed towards the side it is on).
+    towards the side the vertex started on, where ARCSim uses the net relative motion); otherwise proximity at the
+    end positions:
+    vertex over the face's interior and closer than the thickness (signed towards the side it started on).
     rank orders hits by urgency: t - 1 (in [-1, 0]) for a crossing, distance / thickness (in [0, 1)) otherwise.
     """
     zero = wp.float64(0.0)
@@ -222,9 +223,11 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
                 w = face_barycentric(p, a, b, c)
                 if w[0] >= -BARY_EPS and w[1] >= -BARY_EPS and w[2] >= -BARY_EPS:
                     n = wp.cross(b - a, c - a)
-                    rel = (p1 - p0) - (w[0] * (a1 - a0) + w[1] * (b1 - b0) + w[2] * (c1 - c0))
+                    # the normal points to the side the vertex started on (a double crossing that ends back on
+                    # that side then asks for nothing new; the net relative motion would give no clear side)
+                    gap0 = p0 - (w[0] * a0 + w[1] * b0 + w[2] * c0)
                     sign = one
-                    if wp.dot(n, rel) > zero:
+                    if wp.dot(n, gap0) < zero:
                         sign = -one
                     return True, VF_PLANE, t, sign, t - one
     n1 = wp.cross(b1 - a1, c1 - a1)
@@ -237,8 +240,11 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     dist = wp.dot(n1, p1 - a1) / nl
     if wp.abs(dist) >= thickness * PROXIMITY_MARGIN:
         return False, VF_PLANE, one, one, wp.float64(2.0)
+    # the side the vertex started on: a vertex that crossed the face's plane outside the face (through a
+    # neighbour, whose CCD test catches it) must come back to that side here too, not be pushed on through
+    side0 = wp.dot(wp.cross(b0 - a0, c0 - a0), p0 - a0)
     sign = one
-    if dist < zero or (dist == zero and wp.dot(wp.cross(b0 - a0, c0 - a0), p0 - a0) < zero):
+    if side0 < zero or (side0 == zero and dist < zero):
         sign = -one
     return True, VF_PLANE, one, sign, wp.abs(dist) / thickness
 
@@ -248,8 +254,8 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
                    P0: wp.vec3d, P1: wp.vec3d, Q0: wp.vec3d, Q1: wp.vec3d, thickness: wp.float64):
     """(hit, mode, t, sign, rank) of edge (p0, p1) against edge (q0, q1); lower case at the start, upper at the end.
 
-    CCD: the earliest coplanarity time at which the two segments cross (EE_PLANE, signed against the relative
-    motion); otherwise proximity of the two segments at the end positions (EE_DIRECTION, or EE_PLANE signed by the
+    CCD: the earliest coplanarity time at which the two segments cross (EE_PLANE, signed by the start side);
+    otherwise proximity of the two segments at the end positions (EE_DIRECTION, or EE_PLANE signed by the
     start side when the segments touch so closely that their connecting direction is undefined).
     """
     zero = wp.float64(0.0)
@@ -288,9 +294,9 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
                 sine = wp.length(wp.cross(b - a, d - c)) / (wp.length(b - a) * wp.length(d - c))
                 if ok and sine > MIN_EDGE_SINE and s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS:
                     n = wp.cross(b - a, d - c)
-                    rel = ((one - s) * (P0 - p0) + s * (P1 - p1)) - ((one - u) * (Q0 - q0) + u * (Q1 - q1))
+                    gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)  # start side, as for vertices
                     sign = one
-                    if wp.dot(n, rel) > zero:
+                    if wp.dot(n, gap0) < zero:
                         sign = -one
                     return True, EE_PLANE, t, sign, t - one
     s, u = segment_parameters(P0, P1, Q0, Q1)

@@ -3,8 +3,8 @@
 After the implicit step has moved the cloth from x0 to x̂, each round
 1. detects contacts between the start positions x0 and the current end positions (BVH broad phase over swept boxes;
    vertex-face and edge-edge CCD and proximity within the thickness δ: kernels/collision.py, not differentiated);
-2. evaluates every contact found so far at its frozen time of impact: unit normal n and weights w
-   (kernels/contact.py, differentiated by Warp);
+2. evaluates the new contacts at their frozen time of impact, from the positions they were found at: unit normal n
+   and weights w (kernels/contact.py, differentiated by Warp); they stay frozen in later rounds;
 3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over impact zones (warpcloth/projection.py, NumPy),
    recording the QR (or dense KKT) adjoint on the tape.
 Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
@@ -22,6 +22,7 @@ import time
 import numpy as np
 import warp as wp
 
+from warpcloth import projection
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.collision import collision_kernels
 from warpcloth.kernels.contact import contact_kernels
@@ -178,18 +179,17 @@ class CollisionStage:
         start = gather(state_in.particle_x, obstacle_start)
         z = x_hat
         contacts = None
+        geometry = []  # (normal, weight) arrays of each round's new contacts, evaluated where they were found
         keys: set[bytes] = set()
         stats = {"rounds": 0, "contacts": 0, "zones": []}
         opt = self.options
         for round_index in range(opt.collision_rounds + 1):
             end = gather(z, obstacle_end)
             found = self.detect(start, end)
-            fresh = []
-            for j, row in enumerate(found["nodes"]):
-                key = row.tobytes() + found["mode"][j].tobytes()
-                if key not in keys:
-                    keys.add(key)
-                    fresh.append(j)
+            # A pair found again is violated again (the projection leaves resolved pairs exactly at the thickness,
+            # which proximity detection does not count): its new linearisation joins the old one.
+            fresh = list(range(len(found["mode"])))
+            keys.update(row.tobytes() for row in found["nodes"])
             if not fresh:
                 break
             if round_index == opt.collision_rounds:
@@ -199,55 +199,64 @@ class CollisionStage:
                     f"{found['nodes'][fresh[0]].tolist()}; raise SolverOptions.collision_rounds, lower dt, or check "
                     "for cloth trapped between obstacles")
             new = {name: arr[fresh] for name, arr in found.items()}
+            geometry.append(self._geometry(start, end, new, recording, step))
             contacts = new if contacts is None else {name: np.concatenate([contacts[name], new[name]])
                                                      for name in new}
-            z = self._project(x_hat, start, end, obstacle_end, contacts, recording, stats, step)
+            z = self._project(x_hat, obstacle_end, contacts, geometry, recording, stats, step)
             stats["rounds"] = round_index + 1
         stats["contacts"] = 0 if contacts is None else len(contacts["mode"])
         self.last = stats
         wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
                   outputs=[state_out.particle_x, state_out.particle_v])
 
-    def _project(self, x_hat, start, end, obstacle_end, contacts, recording, stats, step) -> wp.array:
+    def _geometry(self, start, end, contacts, recording, step) -> tuple[wp.array, wp.array]:
+        """Normals and weights of new contacts at their frozen time of impact, from the positions they were found
+        at (they stay frozen in later rounds, as in ARCSim's impact zones)."""
         model = self.model
         scalar, vec3, vec4 = model.scalar, model.types.vec3, model.types.vec4
         dev = self.device
         m = len(contacts["mode"])
-        nodes = wp.array(contacts["nodes"], dtype=wp.int32, device=dev)
         normal = wp.empty(m, dtype=vec3, device=dev, requires_grad=recording)
         weight = wp.empty(m, dtype=vec4, device=dev, requires_grad=recording)
         wp.launch(self.kernels.geometry, m, device=dev,
-                  inputs=[start, end, nodes, wp.array(contacts["mode"], dtype=wp.int32, device=dev),
+                  inputs=[start, end, wp.array(contacts["nodes"], dtype=wp.int32, device=dev),
+                          wp.array(contacts["mode"], dtype=wp.int32, device=dev),
                           wp.array(contacts["t"], dtype=scalar, device=dev),
                           wp.array(contacts["sign"], dtype=scalar, device=dev)],
                   outputs=[normal, weight])
-        normals = normal.numpy().astype(np.float64)
-        bad = np.flatnonzero(~np.all(np.isfinite(normals), axis=1))
-        if bad.size:
-            j = int(bad[0])
-            raise CollisionError(f"step {step}: contact {j} (nodes {contacts['nodes'][j].tolist()}) has a degenerate "
-                                 "normal; a triangle or edge of the cloth or of an obstacle collapsed")
-        from warpcloth import projection  # TODO(lead): top-level import once projection.py lands
+        ok = np.all(np.isfinite(normal.numpy()), axis=1) & np.all(np.isfinite(weight.numpy()), axis=1)
+        if not ok.all():
+            j = int(np.flatnonzero(~ok)[0])
+            raise CollisionError(f"step {step}: a contact between nodes {contacts['nodes'][j].tolist()} has a "
+                                 "degenerate normal; a triangle or edge of the cloth or of an obstacle collapsed")
+        return normal, weight
 
+    def _project(self, x_hat, obstacle_end, contacts, geometry, recording, stats, step) -> wp.array:
+        """Project x̂ onto all contacts found so far; on a tape, record the projection's adjoint."""
+        model = self.model
+        normals = np.concatenate([g[0].numpy() for g in geometry]).astype(np.float64)
+        weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
         try:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), self.mass, self.fixed,
                 obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts["nodes"].astype(np.int64),
-                weight.numpy().astype(np.float64), normals, self.thickness, tol=self.options.qp_tol)
+                weights, normals, self.thickness, tol=self.options.qp_tol)
         except projection.ProjectionError as err:
             raise CollisionError(f"step {step}: {err}") from err
         stats["zones"] = result.zones_stats()
-        z = wp.array(result.z, dtype=vec3, device=dev, requires_grad=recording)
+        z = wp.array(result.z, dtype=model.types.vec3, device=self.device, requires_grad=recording)
         if recording:
             mode = self.options.collision_adjoint
+            sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
 
             def adjoint():
                 t0 = time.perf_counter()
                 gx, gw, gn, gob = projection.backward(result, z.grad.numpy().astype(np.float64), mode=mode)
                 self.backward_seconds += time.perf_counter() - t0
                 _accumulate(x_hat, gx)
-                _accumulate(weight, gw)
-                _accumulate(normal, gn)
+                for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
+                    _accumulate(normal, gn[lo:hi])
+                    _accumulate(weight, gw[lo:hi])
                 if obstacle_end.shape[0]:
                     _accumulate(obstacle_end, gob)
 

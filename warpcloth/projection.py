@@ -492,7 +492,8 @@ class _ZoneSolver:
             neg = P & (trial <= 0.0)
             if not neg.any():
                 return trial, P
-            ratio = lam[neg] / (lam[neg] - trial[neg])
+            gap = lam[neg] - trial[neg]  # ≥ 0; 0 only where both are 0
+            ratio = np.divide(lam[neg], gap, out=np.zeros_like(gap), where=gap > 0.0)
             alpha = float(np.min(ratio))
             lam = lam + alpha * (trial - lam)
             hit = np.flatnonzero(neg)[ratio <= alpha]
@@ -589,10 +590,16 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
     x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness = _check_inputs(
         x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness)
     for name, val in (("tol", tol), ("active_tol", active_tol)):
-        if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
+        try:
+            ok = math.isfinite(float(val)) and float(val) > 0.0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
             raise ValueError(f"{name} must be finite and > 0, got {val!r}")
-    if int(max_iterations) != max_iterations or max_iterations < 1:
-        raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+    tol, active_tol = float(tol), float(active_tol)
+    for name, val, low in (("max_iterations", max_iterations, 1), ("warm_sweeps", warm_sweeps, 0)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {val!r}")
     n, m = x_hat.shape[0], nodes.shape[0]
     positions = np.concatenate([x_hat, obstacle_x])  # constants (and x̂ for free particles)
     free_ext = np.concatenate([~fixed, np.zeros(obstacle_x.shape[0], dtype=bool)])
