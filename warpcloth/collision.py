@@ -179,6 +179,7 @@ class CollisionStage:
         start = gather(state_in.particle_x, obstacle_start)
         z = x_hat
         contacts = None
+        lam = np.zeros(0)  # the last round's multipliers: the next round starts from them
         geometry = []  # (normal, weight) arrays of each round's new contacts, evaluated where they were found
         keys: set[bytes] = set()
         stats = {"rounds": 0, "contacts": 0, "zones": []}
@@ -202,7 +203,7 @@ class CollisionStage:
             geometry.append(self._geometry(start, end, new, recording, step))
             contacts = new if contacts is None else {name: np.concatenate([contacts[name], new[name]])
                                                      for name in new}
-            z = self._project(x_hat, obstacle_end, contacts, geometry, recording, stats, step)
+            z, lam = self._project(x_hat, obstacle_end, contacts, geometry, lam, recording, stats, step)
             stats["rounds"] = round_index + 1
         stats["contacts"] = 0 if contacts is None else len(contacts["mode"])
         self.last = stats
@@ -231,8 +232,10 @@ class CollisionStage:
                                  "degenerate normal; a triangle or edge of the cloth or of an obstacle collapsed")
         return normal, weight
 
-    def _project(self, x_hat, obstacle_end, contacts, geometry, recording, stats, step) -> wp.array:
-        """Project x̂ onto all contacts found so far; on a tape, record the projection's adjoint."""
+    def _project(self, x_hat, obstacle_end, contacts, geometry, lam, recording, stats, step):
+        """Project x̂ onto all contacts found so far; on a tape, record the projection's adjoint.
+
+        ``lam`` are the previous round's multipliers (its contacts come first). Returns z and the multipliers."""
         model = self.model
         normals = np.concatenate([g[0].numpy() for g in geometry]).astype(np.float64)
         weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
@@ -240,7 +243,8 @@ class CollisionStage:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), self.mass, self.fixed,
                 obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts["nodes"].astype(np.int64),
-                weights, normals, self.thickness, tol=self.options.qp_tol)
+                weights, normals, self.thickness, tol=self.options.qp_tol,
+                lam_init=np.concatenate([lam, np.zeros(len(normals) - len(lam))]))
         except projection.ProjectionError as err:
             raise CollisionError(f"step {step}: {err}") from err
         stats["zones"] = result.zones_stats()
@@ -261,7 +265,7 @@ class CollisionStage:
                     _accumulate(obstacle_end, gob)
 
             record_adjoint(adjoint, arrays=[z])
-        return z
+        return z, result.lam
 
 
 def _accumulate(array: wp.array, grad: np.ndarray) -> None:

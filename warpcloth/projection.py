@@ -559,7 +559,7 @@ def _warm_start(b, s_con, s_node, s_dir, invm, colours, sweeps: int) -> tuple[np
 
 def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, *, tol: float = 1.0e-10,
             max_iterations: int = 500, active_tol: float = 1.0e-9, warm_sweeps: int = 30,
-            precompute_qr: bool = False) -> ProjectionResult:
+            precompute_qr: bool = False, lam_init=None) -> ProjectionResult:
     """Project x̂ onto the non-penetrating set of the contacts, zone by zone (see the module docstring).
 
     Args:
@@ -576,6 +576,8 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
         active_tol: |c_j(z*)| ≤ active_tol [m] makes contact j active in the adjoint (as does λ_j > 0).
         warm_sweeps: most Gauss–Seidel sweeps of the warm start.
         precompute_qr: factorise the adjoint's QR here (True) or in the first :func:`backward` (False).
+        lam_init: (m,) multipliers to start the active-set method from (e.g. the previous collision round's, with
+            zeros for the new contacts); a zone with a positive entry skips the Gauss–Seidel warm start.
 
     Returns:
         A :class:`ProjectionResult`; ``result.stats`` has one record per zone with ``nodes`` (free particles),
@@ -601,6 +603,8 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
         if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {val!r}")
     n, m = x_hat.shape[0], nodes.shape[0]
+    if lam_init is not None:
+        lam_init = _float_array("lam_init", lam_init, (m,))
     positions = np.concatenate([x_hat, obstacle_x])  # constants (and x̂ for free particles)
     free_ext = np.concatenate([~fixed, np.zeros(obstacle_x.shape[0], dtype=bool)])
 
@@ -676,7 +680,9 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
                 lam = np.zeros(k)
             else:
                 lam0 = np.zeros(k)
-                if k >= _WARM_MIN and warm_sweeps > 0:
+                if lam_init is not None and np.any(lam_init[zcons] > 0.0):
+                    lam0 = np.maximum(lam_init[zcons], 0.0)
+                elif k >= _WARM_MIN and warm_sweeps > 0:
                     colours = _colour_classes(k, ci, cj)
                     lam0, sweeps = _warm_start(b, s_con, s_node, s_dir, invm, colours, int(warm_sweeps))
                 lam, best = solver.pdas(lam0, _PDAS_LIMIT)
