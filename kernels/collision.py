@@ -178,6 +178,35 @@ def lerp3(x0: wp.vec3d, x1: wp.vec3d, t: wp.float64):
 
 
 @wp.func
+def coplanarity_roots(A0: wp.vec3d, B0: wp.vec3d, C0: wp.vec3d, dA: wp.vec3d, dB: wp.vec3d, dC: wp.vec3d):
+    """Times t in [0, 1] (ascending, up to 3, padded with 2) at which (A0 + t dA) x (B0 + t dB) . (C0 + t dC) = 0:
+    the moments four linearly moving points are coplanar (Provot 1997; ARCSim's CCD)."""
+    zero = wp.float64(0.0)
+    k0 = wp.dot(wp.cross(A0, B0), C0)
+    k1 = wp.dot(wp.cross(dA, B0), C0) + wp.dot(wp.cross(A0, dB), C0) + wp.dot(wp.cross(A0, B0), dC)
+    k2 = wp.dot(wp.cross(dA, dB), C0) + wp.dot(wp.cross(dA, B0), dC) + wp.dot(wp.cross(A0, dB), dC)
+    k3 = wp.dot(wp.cross(dA, dB), dC)
+    roots = wp.vec3d(wp.float64(2.0), wp.float64(2.0), wp.float64(2.0))
+    count = int(0)
+    if wp.abs(k0) + wp.abs(k1) + wp.abs(k2) + wp.abs(k3) == zero:
+        return roots, count  # coplanar throughout: left to the proximity tests
+    t0, t1, t2, t3 = cubic_brackets(k0, k1, k2, k3)
+    for piece in range(3):
+        lo = t0
+        hi = t1
+        if piece == 1:
+            lo = t1
+            hi = t2
+        elif piece == 2:
+            lo = t2
+            hi = t3
+        if hi > lo and cubic(k0, k1, k2, k3, lo) * cubic(k0, k1, k2, k3, hi) <= zero:
+            roots[count] = bisect_root(k0, k1, k2, k3, lo, hi)
+            count += 1
+    return roots, count
+
+
+@wp.func
 def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
                      p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d, thickness: wp.float64):
     """(hit, mode, t, sign, rank) of a vertex against a triangle moving linearly over the step.
@@ -193,43 +222,23 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     A0 = b0 - a0
     B0 = c0 - a0
     C0 = p0 - a0
-    dA = (b1 - a1) - A0
-    dB = (c1 - a1) - B0
-    dC = (p1 - a1) - C0
-    k0 = wp.dot(wp.cross(A0, B0), C0)
-    k1 = wp.dot(wp.cross(dA, B0), C0) + wp.dot(wp.cross(A0, dB), C0) + wp.dot(wp.cross(A0, B0), dC)
-    k2 = wp.dot(wp.cross(dA, dB), C0) + wp.dot(wp.cross(dA, B0), dC) + wp.dot(wp.cross(A0, dB), dC)
-    k3 = wp.dot(wp.cross(dA, dB), dC)
-    scale = wp.abs(k0) + wp.abs(k1) + wp.abs(k2) + wp.abs(k3)
-    if scale > zero:
-        t0, t1, t2, t3 = cubic_brackets(k0, k1, k2, k3)
-        for piece in range(3):
-            lo = t0
-            hi = t1
-            if piece == 1:
-                lo = t1
-                hi = t2
-            elif piece == 2:
-                lo = t2
-                hi = t3
-            flo = cubic(k0, k1, k2, k3, lo)
-            fhi = cubic(k0, k1, k2, k3, hi)
-            if hi > lo and flo * fhi <= zero:
-                t = bisect_root(k0, k1, k2, k3, lo, hi)
-                p = lerp3(p0, p1, t)
-                a = lerp3(a0, a1, t)
-                b = lerp3(b0, b1, t)
-                c = lerp3(c0, c1, t)
-                w = face_barycentric(p, a, b, c)
-                if w[0] >= -BARY_EPS and w[1] >= -BARY_EPS and w[2] >= -BARY_EPS:
-                    n = wp.cross(b - a, c - a)
-                    # the normal points to the side the vertex started on (a double crossing that ends back on
-                    # that side then asks for nothing new; the net relative motion would give no clear side)
-                    gap0 = p0 - (w[0] * a0 + w[1] * b0 + w[2] * c0)
-                    sign = one
-                    if wp.dot(n, gap0) < zero:
-                        sign = -one
-                    return True, VF_PLANE, t, sign, t - one
+    roots, count = coplanarity_roots(A0, B0, C0, (b1 - a1) - A0, (c1 - a1) - B0, (p1 - a1) - C0)
+    for r in range(count):
+        t = roots[r]
+        p = lerp3(p0, p1, t)
+        a = lerp3(a0, a1, t)
+        b = lerp3(b0, b1, t)
+        c = lerp3(c0, c1, t)
+        w = face_barycentric(p, a, b, c)
+        if w[0] >= -BARY_EPS and w[1] >= -BARY_EPS and w[2] >= -BARY_EPS:
+            n = wp.cross(b - a, c - a)
+            # the normal points to the side the vertex started on (a double crossing that ends back on
+            # that side then asks for nothing new; the net relative motion would give no clear side)
+            gap0 = p0 - (w[0] * a0 + w[1] * b0 + w[2] * c0)
+            sign = one
+            if wp.dot(n, gap0) < zero:
+                sign = -one
+            return True, VF_PLANE, t, sign, t - one
     n1 = wp.cross(b1 - a1, c1 - a1)
     nl = wp.length(n1)
     if nl <= zero:
@@ -263,42 +272,23 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
     A0 = p1 - p0
     B0 = q1 - q0
     C0 = q0 - p0
-    dA = (P1 - P0) - A0
-    dB = (Q1 - Q0) - B0
-    dC = (Q0 - P0) - C0
-    k0 = wp.dot(wp.cross(A0, B0), C0)
-    k1 = wp.dot(wp.cross(dA, B0), C0) + wp.dot(wp.cross(A0, dB), C0) + wp.dot(wp.cross(A0, B0), dC)
-    k2 = wp.dot(wp.cross(dA, dB), C0) + wp.dot(wp.cross(dA, B0), dC) + wp.dot(wp.cross(A0, dB), dC)
-    k3 = wp.dot(wp.cross(dA, dB), dC)
-    scale = wp.abs(k0) + wp.abs(k1) + wp.abs(k2) + wp.abs(k3)
-    if scale > zero:
-        t0, t1, t2, t3 = cubic_brackets(k0, k1, k2, k3)
-        for piece in range(3):
-            lo = t0
-            hi = t1
-            if piece == 1:
-                lo = t1
-                hi = t2
-            elif piece == 2:
-                lo = t2
-                hi = t3
-            flo = cubic(k0, k1, k2, k3, lo)
-            fhi = cubic(k0, k1, k2, k3, hi)
-            if hi > lo and flo * fhi <= zero:
-                t = bisect_root(k0, k1, k2, k3, lo, hi)
-                a = lerp3(p0, P0, t)
-                b = lerp3(p1, P1, t)
-                c = lerp3(q0, Q0, t)
-                d = lerp3(q1, Q1, t)
-                s, u, ok = line_parameters(a, b, c, d)
-                sine = wp.length(wp.cross(b - a, d - c)) / (wp.length(b - a) * wp.length(d - c))
-                if ok and sine > MIN_EDGE_SINE and s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS:
-                    n = wp.cross(b - a, d - c)
-                    gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)  # start side, as for vertices
-                    sign = one
-                    if wp.dot(n, gap0) < zero:
-                        sign = -one
-                    return True, EE_PLANE, t, sign, t - one
+    roots, count = coplanarity_roots(A0, B0, C0, (P1 - P0) - A0, (Q1 - Q0) - B0, (Q0 - P0) - C0)
+    for r in range(count):
+        t = roots[r]
+        a = lerp3(p0, P0, t)
+        b = lerp3(p1, P1, t)
+        c = lerp3(q0, Q0, t)
+        d = lerp3(q1, Q1, t)
+        s, u, ok = line_parameters(a, b, c, d)
+        sine = wp.length(wp.cross(b - a, d - c)) / (wp.length(b - a) * wp.length(d - c))
+        inside = s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS
+        if ok and sine > MIN_EDGE_SINE and inside:
+            n = wp.cross(b - a, d - c)
+            gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)  # start side, as for vertices
+            sign = one
+            if wp.dot(n, gap0) < zero:
+                sign = -one
+            return True, EE_PLANE, t, sign, t - one
     s, u = segment_parameters(P0, P1, Q0, Q1)
     gap = ((one - s) * P0 + s * P1) - ((one - u) * Q0 + u * Q1)
     dist = wp.length(gap)

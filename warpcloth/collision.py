@@ -90,6 +90,8 @@ class CollisionStage:
             self._check_start_outside(model)
         self.last = {}
         """Statistics of the last step: rounds, contacts, and the projection's per-zone records."""
+        self.last_projections: list[tuple[projection.ProjectionResult, wp.array]] = []
+        """(result, z) of each round of the last step (z.grad holds dL/dz after a backward pass): for benchmarks."""
         self.backward_seconds = 0.0
         """Wall time spent in the projection's adjoint (accumulates over backward passes)."""
 
@@ -183,6 +185,7 @@ class CollisionStage:
         geometry = []  # (normal, weight) arrays of each round's new contacts, evaluated where they were found
         keys: set[bytes] = set()
         stats = {"rounds": 0, "contacts": 0, "zones": []}
+        self.last_projections = []
         opt = self.options
         for round_index in range(opt.collision_rounds + 1):
             end = gather(z, obstacle_end)
@@ -249,6 +252,7 @@ class CollisionStage:
             raise CollisionError(f"step {step}: {err}") from err
         stats["zones"] = result.zones_stats()
         z = wp.array(result.z, dtype=model.types.vec3, device=self.device, requires_grad=recording)
+        self.last_projections.append((result, z))
         if recording:
             mode = self.options.collision_adjoint
             sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
