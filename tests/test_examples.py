@@ -30,3 +30,13 @@ def test_estimate_wind_reduces_loss():
     losses = [example.step() for _ in range(6)]
     assert losses[-1] < 0.5 * losses[0]
     assert 1.5 < example.model.wind_velocity.numpy()[0, 0] <= 4.5  # moved from the 1.0 guess towards 4.0
+
+
+def test_estimate_material_example():
+    result, truth = load("example_estimate_material").main("tango-red-jet-set", iters=4, steps=4, device="cpu")
+    assert min(result.losses) < result.losses[0]
+
+
+def test_throw_example(tmp_path):
+    result = load("example_throw_into_basket").main(iters=2, steps=300, usd=str(tmp_path / "t.usda"), device="cpu")
+    assert len(result.errors_pct) == 2 and (tmp_path / "t.usda").exists()

@@ -1,4 +1,5 @@
-"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD; ``warpcloth scenes`` lists scenes.
+"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD; ``warpcloth scenes`` lists scenes;
+``warpcloth estimate`` fits a fabric's material to a trajectory; ``warpcloth control`` throws a cloth into a basket.
 
 Exit status: 0 on success, 2 for a usage error (bad arguments, unknown scene, invalid scene file), 1 when the
 simulation itself fails (diverges). Errors are one line on stderr, without a traceback.
@@ -37,7 +38,38 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
     sub.add_parser("scenes", help="list the embedded scenes")
+
+    from warpcloth.estimation import OPTIMIZERS
+    from warpcloth.materials import PRESET_NAMES
+
+    est = sub.add_parser("estimate", help="estimate a fabric's material from a hanging cloth's motion in the wind")
+    what = est.add_mutually_exclusive_group()
+    what.add_argument("--material", default=None, choices=PRESET_NAMES, metavar="NAME",
+                      help="ground truth simulated by warpcloth with this fabric (default: gray-interlock); "
+                      f"one of {', '.join(PRESET_NAMES)}")
+    what.add_argument("--target", metavar="DIR", default=None,
+                      help="fit an OBJ sequence instead (frame 0 = the start shape with vt coordinates, one frame per "
+                      "0.04 s, such as the seed's targets)")
+    est.add_argument("--optimizer", default="lbfgs", choices=OPTIMIZERS, help="default: lbfgs")
+    est.add_argument("--iters", type=int, default=100, help="forward+backward evaluations (default: 100)")
+    est.add_argument("--steps", type=int, default=50, help="steps of 0.02 s compared (default: 50, the seed's)")
+    est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
+    _add_outputs(est)
+
+    ctl = sub.add_parser("control", help="find corner pushes that throw a cloth over a wall into a basket")
+    ctl.add_argument("--controller", default="open-loop", choices=("open-loop", "mlp"),
+                     help="open-loop: 36 corner accelerations (Adam); mlp: a PyTorch MLP of the cloth's state, "
+                     "trained through the simulator (needs the torch extra)")
+    ctl.add_argument("--iters", type=int, default=None, help="simulations (default: 50 open-loop, 100 mlp)")
+    _add_outputs(ctl)
     return parser
+
+
+def _add_outputs(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", metavar="PATH", default=None, help="write the result as JSON")
+    parser.add_argument("--plot", metavar="PNG", default=None, help="write the loss curve")
+    parser.add_argument("--usd", metavar="PATH", default=None, help="write the final trajectory")
+    parser.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
 
 def _error(message: str, status: int) -> int:
@@ -105,6 +137,162 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_outputs(args: argparse.Namespace) -> str | None:
+    if args.iters is not None and args.iters < 1:
+        return f"--iters must be >= 1, got {args.iters}"
+    for flag, suffixes in (("json", (".json",)), ("plot", (".png", ".pdf", ".svg")),
+                           ("usd", (".usd", ".usda", ".usdc"))):
+        path = getattr(args, flag)
+        if path is not None and not path.lower().endswith(suffixes):
+            return f"--{flag} {path!r}: expected a file ending in {' or '.join(suffixes)}"
+    return None
+
+
+def _print_table(header: Sequence[str], rows: Sequence[Sequence]) -> None:
+    cells = [[str(c) for c in header]] + [[c if isinstance(c, str) else f"{c:.3g}" for c in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    for k, r in enumerate(cells):
+        print("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))))
+        if k == 0:
+            print("  ".join("-" * w for w in widths))
+
+
+def _plot_losses(path: str, curves: dict, ylabel: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, values in curves.items():
+        ax.semilogy(range(1, len(values) + 1), values, label=label)
+    ax.set_xlabel("forward + backward simulations")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _write_json(path: str, record: dict) -> None:
+    import json
+
+    with open(path, "w") as f:
+        json.dump(record, f, indent=2)
+
+
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from warpcloth import estimation as E
+    from warpcloth.materials import preset
+    from warpcloth.simulator import SimulationError
+    from warpcloth.usd import write_usd
+
+    try:
+        initial = E.initial_guess()
+        if args.target is not None:
+            files = E.target_files(args.target)
+            frames = E.load_target_sequence(files)
+            handles = [int(h) for h in args.handles.split(",")]
+            model = E.hanging_cloth(initial, mesh_path=files[0], handles=handles, device=args.device)
+            truth = None
+        else:
+            truth = preset(args.material or "gray-interlock", thicken=E.THICKEN)
+            model = E.hanging_cloth(truth, device=args.device)
+            frames = E.TrajectoryFit.simulate_targets(model, truth, steps=args.steps)
+        fit = E.TrajectoryFit(model, frames, steps=args.steps)
+    except (ValueError, OSError, RuntimeError) as exc:
+        return _error(str(exc), _USAGE_ERROR)
+    source = args.target if truth is None else f"{truth.name} simulated by warpcloth"
+    print(f"estimating the material of {source}: {args.steps} steps of {E.DT} s, optimizer {args.optimizer}, "
+          f"{args.iters} forward+backward simulations, start: the mean of 8 fabrics")
+    try:
+        result = E.estimate_material(fit, initial=initial, optimizer=args.optimizer, iters=args.iters, progress=True)
+    except SimulationError as exc:
+        return _error(str(exc), _RUNTIME_ERROR)
+
+    record = {"source": source, "optimizer": args.optimizer, "iters": args.iters, "steps": args.steps,
+              "runtime_s_per_step_iter": result.seconds_per_step_iter,
+              "sim_err_pct_initial": result.initial_simulation_error_pct,
+              "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
+              "estimate": {"density": result.material.density, "stretching": result.material.stretching.tolist(),
+                           "bending": result.material.bending.tolist()}}
+    seed = E.SEED_PUBLISHED
+    rows = [["runtime [s/step/iter]", "-", result.seconds_per_step_iter, seed["runtime_s_per_step_iter"]]]
+    if truth is not None:
+        before, after = E.parameter_errors(initial, truth), E.parameter_errors(result.material, truth)
+        record.update(after)
+        for key, label in E.ERROR_LABELS.items():
+            rows.append([label, before[key], after[key], seed[key]])
+    rows.append(["simulation error [%]", result.initial_simulation_error_pct, result.simulation_error_pct,
+                 seed["sim_err_pct"]])
+    print()
+    _print_table(["", "start (mean fabric)", "warpcloth", "seed (published, mean of 10)"], rows)
+    if truth is not None:
+        print("bending and the non-linear stretching rows are barely identifiable from this motion: see the README")
+    if args.json:
+        _write_json(args.json, record)
+        print(f"wrote {os.path.abspath(args.json)}")
+    if args.plot:
+        _plot_losses(args.plot, {args.optimizer: result.losses}, "loss [m^2]", f"material estimation: {source}")
+        print(f"wrote {os.path.abspath(args.plot)}")
+    if args.usd:
+        sim_frames = fit.trajectory(result.material)[:: fit.frame_stride]
+        target = np.stack([np.asarray(x, dtype=np.float64) for x in frames[: len(sim_frames)]])
+        tris = model.tri_indices.numpy()
+        write_usd(args.usd, triangles=tris, frames=sim_frames, fps=1.0 / (E.DT * fit.frame_stride),
+                  obstacles=[("Target", target, tris)])
+        print(f"wrote {os.path.abspath(args.usd)} (the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
+    return 0
+
+
+def _cmd_control(args: argparse.Namespace) -> int:
+    from warpcloth import control as C
+    from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.simulator import SimulationError
+    from warpcloth.usd import write_usd
+
+    iters = args.iters or (50 if args.controller == "open-loop" else 100)
+    try:
+        task = C.ThrowTask(C.basket_scene(args.device))
+    except (ValueError, RuntimeError) as exc:
+        return _error(str(exc), _USAGE_ERROR)
+    print(f"throwing a cloth into a basket: {task.steps} steps of {C.DT} s, controller {args.controller}, "
+          f"{iters} forward+backward simulations")
+    try:
+        if args.controller == "open-loop":
+            result = C.optimize_open_loop(task, iters=iters, progress=True)
+        else:
+            try:
+                result = C.train_mlp(task, iters=iters, progress=True)
+            except ImportError as exc:
+                return _error(str(exc), _USAGE_ERROR)
+    except SimulationError as exc:
+        return _error(str(exc), _RUNTIME_ERROR)
+    seed = C.SEED_PUBLISHED[args.controller]
+    print()
+    _print_table(["", "warpcloth", "seed (published)", "target"],
+                 [["error [%]", result.error_pct, seed["error_pct"], seed["target_error_pct"]],
+                  ["simulations to reach it", result.simulations, seed["simulations"], seed["target_simulations"]]])
+    record = {"controller": args.controller, "error_pct": result.error_pct, "simulations": result.simulations,
+              "iters": iters, "seconds": result.seconds, "losses": result.losses, "errors_pct": result.errors_pct}
+    if args.json:
+        _write_json(args.json, record)
+        print(f"wrote {os.path.abspath(args.json)}")
+    if args.plot:
+        _plot_losses(args.plot, {args.controller: result.errors_pct}, "error [%]", "throwing a cloth into a basket")
+        print(f"wrote {os.path.abspath(args.plot)}")
+    if args.usd:
+        frames = result.trajectory(task)
+        times = [i * C.DT for i in range(len(frames))]
+        write_usd(args.usd, triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / C.DT,
+                  obstacles=obstacle_meshes_numpy(task.model, times))
+        print(f"wrote {os.path.abspath(args.usd)}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs the ``warpcloth`` command line.
 
@@ -124,6 +312,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _cmd_simulate(args)
     if args.command == "scenes":
         return _cmd_scenes()
+    if args.command in ("estimate", "control"):
+        error = _check_outputs(args)
+        if error:
+            return _error(error, _USAGE_ERROR)
+        return _cmd_estimate(args) if args.command == "estimate" else _cmd_control(args)
     parser.print_help(sys.stderr)
     return _USAGE_ERROR
 

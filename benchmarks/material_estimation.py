@@ -1,0 +1,124 @@
+"""The seed's Table 2: estimate each of the 10 measured fabrics from a hanging cloth's motion in the wind.
+
+Scene (SPEC.md §5(b)): the seed's demo_wind.obj (../shared), handles on vertices 2 and 3, gravity, 5 m/s wind, dt
+0.02, 50 steps (the seed's longest horizon), frames compared every 2 steps. Ground truth: each fabric simulated by
+warpcloth. Start: the mean of 8 fabrics (the seed's init_mat.json). Errors as defined at the end of SPEC.md;
+runtime = wall time of the forward + backward evaluations / (evaluations x steps).
+
+Cross-simulator check (``--cross``): fit to the seed's own target sequences (../shared/.../targets, made by the
+seed's C++ code with self-collision, repulsion and lagged wind normals) and report the simulation error.
+
+Usage: python benchmarks/material_estimation.py [--optimizers lbfgs,adam,seed-sgd] [--iters 150]
+       [--materials all|name,...] [--cross 1] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+import common
+from common import wc
+from warpcloth import estimation as E
+
+KEYS = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", "stretch_nonlinear_err_pct",
+        "bending_err_pct", "sim_err_pct")
+SEED_TARGETS = {"11oz": "11oz-black-denim", "gray": "gray-interlock", "tango": "tango-red-jet-set"}
+
+
+def fit_one(truth_name: str, optimizer: str, iters: int) -> dict:
+    truth = wc.preset(truth_name, thicken=E.THICKEN)
+    model = E.hanging_cloth(truth, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj")
+    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth))
+    result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
+    record = {"material": truth_name, "optimizer": optimizer, "iters": iters,
+              "runtime_s_per_step_iter": result.seconds_per_step_iter, **E.parameter_errors(result.material, truth),
+              "sim_err_pct": result.simulation_error_pct, "final_loss": min(result.losses)}
+    baseline = {"material": truth_name, "optimizer": "baseline (start)", "runtime_s_per_step_iter": float("nan"),
+                **E.parameter_errors(result.initial, truth), "sim_err_pct": result.initial_simulation_error_pct}
+    return record, baseline
+
+
+def summarise(records: list[dict], label: str) -> dict:
+    mean = {"optimizer": label}
+    for k in KEYS:
+        vals = [r[k] for r in records]
+        mean[k] = statistics.fmean(vals)
+        mean[k + "_std"] = statistics.pstdev(vals) if len(vals) > 1 else 0.0
+    return mean
+
+
+def cross_check(optimizer: str, iters: int) -> list[dict]:
+    rows = []
+    for short, name in SEED_TARGETS.items():
+        files = E.target_files(common.seed_dir() / "targets" / short)
+        frames = E.load_target_sequence(files)
+        model = E.hanging_cloth(E.initial_guess(), mesh_path=files[0])
+        fit = E.TrajectoryFit(model, frames)
+        result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
+        truth = wc.preset(name, thicken=E.THICKEN)
+        oracle = fit.simulation_error(truth)  # the true fabric in warpcloth against the seed's trajectory
+        rows.append({"target": short, "sim_err_pct_start": result.initial_simulation_error_pct,
+                     "sim_err_pct_fitted": result.simulation_error_pct, "sim_err_pct_true_material": oracle,
+                     **E.parameter_errors(result.material, truth)})
+    return rows
+
+
+def main():
+    args = common.parse_args(__doc__.splitlines()[0], optimizers="lbfgs", iters=150, materials="all", cross=1)
+    names = list(wc.PRESET_NAMES) if args.materials == "all" else args.materials.split(",")
+    optimizers = args.optimizers.split(",")
+    per_material, means = [], []
+    baselines = []
+    t0 = time.perf_counter()
+    for opt in optimizers:
+        records = []
+        for name in names:
+            record, baseline = fit_one(name, opt, args.iters)
+            records.append(record)
+            if opt == optimizers[0]:
+                baselines.append(baseline)
+            print(f"{opt:8s} {name:20s} " + "  ".join(f"{k.replace('_pct', '')} {record[k]:.3g}" for k in KEYS),
+                  flush=True)
+        per_material += records
+        means.append(summarise(records, opt))
+    base = summarise([dict(b, runtime_s_per_step_iter=0.0) for b in baselines], "baseline (start)")
+
+    header = ["method", "s/step/iter", "density %", "linear str %", "non-linear str %", "bending %", "sim err %"]
+
+    def fmt(m, k):
+        return f"{m[k]:.3g} ± {m[k + '_std']:.2g}"
+
+    rows = [["baseline (mean fabric)", "-"] + [fmt(base, k) for k in KEYS[1:]]]
+    rows += [[f"warpcloth {m['optimizer']}"] + [fmt(m, k) for k in KEYS] for m in means]
+    seed = E.SEED_PUBLISHED
+    rows.append(["seed Ours (published)"] + [f"{seed[k]:.3g}" for k in KEYS])
+    rows.append(["seed Baseline (published)", "-"] + [f"{E.SEED_BASELINE[k]:.3g}" for k in KEYS[1:]])
+    print(f"\nmaterial estimation over {len(names)} fabrics, {args.iters} forward+backward evaluations each, "
+          f"{E.STEPS} steps, float32, {common.cpu_model()} ({time.perf_counter() - t0:.0f} s)")
+    common.print_table(header, rows)
+    best = min(means, key=lambda m: m["sim_err_pct"])
+    verdict = ["better than the seed: " + ", ".join(
+        f"{k}: {'ok' if best[k] < seed[k] else 'FAIL'}" for k in KEYS),
+        f"runtime <= 0.02 s/step/iter: {'ok' if best['runtime_s_per_step_iter'] <= 0.02 else 'FAIL'}"]
+    print("\n".join(verdict))
+
+    cross = []
+    if args.cross:
+        cross = cross_check(optimizers[0], args.iters)
+        print("\ncross-simulator check: fitted to the seed's own trajectories (its C++ code, self-collision and "
+              "repulsion on, lagged wind normals)")
+        common.print_table(["target", "sim err % start", "sim err % fitted", "sim err % true fabric",
+                            "density %", "linear str %", "non-linear str %", "bending %"],
+                           [[r["target"]] + [f"{r[k]:.3g}" for k in ("sim_err_pct_start", "sim_err_pct_fitted",
+                            "sim_err_pct_true_material", "density_err_pct", "stretch_linear_err_pct",
+                            "stretch_nonlinear_err_pct", "bending_err_pct")] for r in cross])
+    mean = dict(best)
+    common.write_json(args.json, {"per_material": per_material, "baseline": baselines, "mean": mean,
+                                  "means": means, "seed": seed, "cross_simulator": cross})
+
+
+if __name__ == "__main__":
+    main()

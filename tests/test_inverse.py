@@ -1,0 +1,259 @@
+"""Inverse problems: checkpointed gradients, the material parameterisation and fit, the throw task, their CLIs."""
+
+import json
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+from warpcloth import control as C
+from warpcloth import estimation as E
+from warpcloth.checkpoint import checkpointed_backward
+
+EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
+
+
+@wp.kernel
+def _weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(w[i], x[i]) + wp.float64(0.5) * wp.dot(x[i], x[i]))
+
+
+def _small_hanging(material=None, *, obstacle=False, requires_grad=True):
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((3, 3), (0.3, 0.3), material=material or wc.preset("gray-interlock", thicken=2),
+                     rot=E.GRID_TO_YZ, pos=(0.0, -0.15, -0.15), vel=(0.5, 0.0, 0.0))
+    b.add_handle(12)
+    b.add_handle(15)
+    b.set_wind((3.0, 0.0, 0.0))
+    if obstacle:  # a plate the cloth swings into
+        b.add_obstacle_plane((1.0, 1.0), pos=(0.02, 0.0, 0.0), rot=[[0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    return b.finalize("cpu", requires_grad=requires_grad, dtype=wp.float64)
+
+
+# -- checkpointing ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("segment", [None, 4, 1, 12])
+@pytest.mark.parametrize("obstacle", [False, True])
+def test_checkpointed_gradients_equal_full_tape(segment, obstacle):
+    steps = 12
+    model = _small_hanging(obstacle=obstacle)
+    rng = np.random.default_rng(1)
+    weights = [wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d) for _ in range(steps + 1)]
+
+    def loss_fn(i, state, out):
+        if i % 3 == 0:  # a loss on some intermediate frames, not only the last
+            wp.launch(_weighted_sum, model.particle_count, inputs=[state.particle_x, weights[i]], outputs=[out])
+
+    def gradients(run):
+        sim = wc.Simulator(model, 0.01, options=EXACT)
+        control = model.control(particle_force=True)
+        control.particle_force.fill_(wp.vec3d(0.01, 0.0, 0.02))
+        state = model.state()
+        for arr in (model.material_stretching, model.material_density, model.wind_velocity):
+            arr.grad.zero_()
+        value = run(sim, state, control)
+        return value, [a.grad.numpy().copy() for a in (state.particle_x, state.particle_v, control.particle_force,
+                                                        model.material_stretching, model.material_density,
+                                                        model.wind_velocity)]
+
+    def full(sim, state, control):
+        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            current = state
+            for i in range(steps):
+                nxt = model.empty_state()
+                sim.step(current, nxt, control)
+                loss_fn(i + 1, nxt, out)
+                current = nxt
+        tape.backward(out)
+        return float(out.numpy()[0])
+
+    def checkpointed(sim, state, control):
+        return checkpointed_backward(sim, state, control, steps=steps, loss=loss_fn, segment_steps=segment)[0]
+
+    v_full, g_full = gradients(full)
+    v_ck, g_ck = gradients(checkpointed)
+    assert v_ck == pytest.approx(v_full, rel=1e-12)
+    for name, a, b in zip(("x0", "v0", "force", "stretching", "density", "wind"), g_full, g_ck):
+        assert np.linalg.norm(a) > 0, name
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(), err_msg=name)
+
+
+def test_checkpointed_backward_rejects_bad_arguments():
+    model = _small_hanging()
+    sim = wc.Simulator(model, 0.01)
+    with pytest.raises(ValueError, match="steps"):
+        checkpointed_backward(sim, model.state(), None, steps=0, loss=lambda *a: None)
+    with pytest.raises(ValueError, match="segment_steps"):
+        checkpointed_backward(sim, model.state(), None, steps=3, loss=lambda *a: None, segment_steps=0)
+
+
+# -- material parameterisation ---------------------------------------------------------------------------------------
+def test_parameterization_round_trip_and_validity():
+    param = E.MaterialParameterization(E.initial_guess())
+    assert np.all(param.encode(E.initial_guess()) == 0.0)
+    truth = wc.preset("navy-sparkle-sweat", thicken=2)
+    theta = param.encode(truth)
+    back = param.decode(theta)
+    np.testing.assert_allclose(back.stretching, truth.stretching, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(back.bending, truth.bending, rtol=1e-12)
+    assert back.density == pytest.approx(truth.density)
+    # any theta gives a valid material: positive density, warp/weft stretch and bending
+    wild = param.decode(np.random.default_rng(0).normal(scale=20.0, size=E.N_PARAMS))
+    assert wild.density > 0 and np.all(wild.bending > 0) and np.all(wild.stretching[:, [0, 2]] > 0)
+    with pytest.raises(ValueError, match="non-finite"):
+        param.decode(np.full(E.N_PARAMS, np.nan))
+    with pytest.raises(ValueError, match="shape"):
+        param.decode(np.zeros(3))
+
+
+def test_parameterization_chain_rule_matches_finite_differences():
+    param = E.MaterialParameterization(E.initial_guess())
+    rng = np.random.default_rng(2)
+    theta = rng.normal(scale=0.3, size=E.N_PARAMS)
+    wd, ws, wb = rng.normal(), rng.normal(size=(6, 4)), rng.normal(size=(3, 5))
+
+    def f(t):  # a smooth function of the raw material
+        m = param.decode(t)
+        return wd * m.density**2 + np.sum(ws * m.stretching) * 1e-2 + np.sum(wb * m.bending) * 1e5
+
+    m = param.decode(theta)
+    grad = param.chain(theta, 2 * wd * m.density, ws * 1e-2, wb * 1e5)
+    eps = 1e-6
+    fd = np.array([(f(theta + eps * e) - f(theta - eps * e)) / (2 * eps) for e in np.eye(E.N_PARAMS)])
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)
+
+
+def test_parameter_errors():
+    truth = wc.preset("gray-interlock", thicken=2)
+    assert all(v == 0.0 for v in E.parameter_errors(truth, truth).values())
+    errors = E.parameter_errors(truth.scaled(density=1.1, bending=0.5), truth)
+    assert errors["density_err_pct"] == pytest.approx(10.0)
+    assert errors["bending_err_pct"] == pytest.approx(50.0)
+    assert errors["stretch_linear_err_pct"] == 0.0
+
+
+# -- the material fit ------------------------------------------------------------------------------------------------
+def _small_fit(steps=6):
+    truth = wc.preset("tango-red-jet-set", thicken=2)
+    model = _small_hanging()
+    targets = E.TrajectoryFit.simulate_targets(model, truth, steps=steps)
+    return E.TrajectoryFit(model, targets, steps=steps, options=EXACT), truth
+
+
+def test_fit_gradient_matches_finite_differences():
+    fit, _ = _small_fit()
+    param = E.MaterialParameterization(E.initial_guess())
+    theta = np.random.default_rng(3).normal(scale=0.1, size=E.N_PARAMS)
+    loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta))
+    grad = param.chain(theta, gd, gs, gb)
+    assert loss > 0
+    eps = 1e-5
+    for k in (0, 1, 2, 4, 5, 8, 25, 39):  # density, stretching (log and linear columns, rows 0 and 1), bending
+        e = np.zeros(E.N_PARAMS)
+        e[k] = eps
+        fd = (fit.loss(param.decode(theta + e)) - fit.loss(param.decode(theta - e))) / (2 * eps)
+        assert grad[k] == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(grad).max()), k
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "adam", "seed-sgd"])
+def test_estimation_reduces_the_loss(optimizer):
+    fit, truth = _small_fit()
+    result = E.estimate_material(fit, optimizer=optimizer, iters=12)
+    assert len(result.losses) == 12 and result.seconds > 0
+    # the seed's SGD is slow (that is the point of the other two) and its curriculum starts at 2 steps
+    assert min(result.losses) < (0.99 if optimizer == "seed-sgd" else 0.5) * result.losses[0]
+    assert result.simulation_error_pct < result.initial_simulation_error_pct
+    if optimizer == "lbfgs":  # density is the best-identified parameter
+        before = E.parameter_errors(result.initial, truth)["density_err_pct"]
+        assert E.parameter_errors(result.material, truth)["density_err_pct"] < 0.5 * before
+
+
+def test_fit_rejects_mismatched_targets(tmp_path):
+    model = _small_hanging()
+    with pytest.raises(ValueError, match="only 1"):
+        E.TrajectoryFit(model, [np.zeros((model.particle_count, 3))] * 2, steps=4)
+    with pytest.raises(ValueError, match="frame 1 has shape"):
+        E.TrajectoryFit(model, [np.zeros((model.particle_count, 3)), np.zeros((3, 3))], steps=2)
+    with pytest.raises(ValueError, match="multiple"):
+        E.TrajectoryFit(model, [np.zeros((model.particle_count, 3))] * 3, steps=3)
+    with pytest.raises(ValueError, match="does not exist"):
+        E.target_files(tmp_path / "missing")
+    with pytest.raises(ValueError, match="0 .obj"):
+        E.target_files(tmp_path)
+    with pytest.raises(ValueError, match="unknown optimizer"):
+        E.estimate_material(E.TrajectoryFit(model, [np.zeros((model.particle_count, 3))] * 2, steps=2),
+                            optimizer="newton")
+
+
+# -- the throw -------------------------------------------------------------------------------------------------------
+def test_throw_scene_geometry():
+    model = C.basket_scene("cpu", requires_grad=False)
+    x = model.particle_x0.numpy()
+    np.testing.assert_allclose(x.min(axis=0), [-3.7, 0.0, 2.0], atol=1e-6)
+    np.testing.assert_allclose(x.max(axis=0), [-3.0, 0.7, 2.0], atol=1e-6)
+    assert model.particle_count == 81 and model.obstacle_count == 2
+    corners = x[list(C.CORNERS)]
+    expected = np.array([(-3.7, 0.0), (-3.0, 0.0), (-3.7, 0.7), (-3.0, 0.7)])
+    np.testing.assert_allclose(np.sort(corners[:, :2], axis=0), np.sort(expected, axis=0), atol=1e-6)
+
+
+def test_throw_gradient_matches_finite_differences():
+    # float64, a short horizon in free flight (contacts are covered by the collision gradient tests)
+    task = C.ThrowTask(C.basket_scene("cpu", dtype=wp.float64), steps=150, options=EXACT, segment_steps=40)
+    params = np.random.default_rng(4).normal(scale=3.0, size=C.N_PARAMS)
+    loss, grad, com = task.loss_and_grad(params)
+    assert loss == pytest.approx(0.5 * np.sum((com - C.TARGET) ** 2), rel=1e-12)
+    eps = 1e-4
+    for k in (0, 5, 14, 23):  # the second second's pushes act from step 100; the third's never in 150 steps
+        e = np.zeros(C.N_PARAMS)
+        e[k] = eps
+        fd = (task.loss_and_grad(params + e)[0] - task.loss_and_grad(params - e)[0]) / (2 * eps)
+        assert grad[k] == pytest.approx(fd, rel=1e-5, abs=1e-9), k
+    assert np.all(grad[24:] == 0.0)
+
+
+def test_open_loop_optimisation_improves():
+    task = C.ThrowTask(C.basket_scene("cpu"), steps=300)
+    result = C.optimize_open_loop(task, iters=4)
+    assert result.simulations >= 1 and len(result.errors_pct) == 4
+    assert result.error_pct < result.errors_pct[0]
+
+
+def test_mlp_controller_trains():
+    pytest.importorskip("torch")
+    task = C.ThrowTask(C.basket_scene("cpu"), steps=300)
+    result = C.train_mlp(task, iters=3)
+    assert len(result.errors_pct) == 3
+    assert result.errors_pct[-1] < result.errors_pct[0]
+
+
+# -- command line ----------------------------------------------------------------------------------------------------
+def test_cli_estimate_writes_outputs(tmp_path, capsys):
+    from warpcloth.cli import main
+
+    out = {k: tmp_path / f"e.{k}" for k in ("json", "png", "usda")}
+    assert main(["estimate", "--material", "tango-red-jet-set", "--iters", "2", "--steps", "4",
+                 "--json", str(out["json"]), "--plot", str(out["png"]), "--usd", str(out["usda"])]) == 0
+    text = capsys.readouterr().out
+    assert "seed (published" in text and "density error" in text
+    record = json.loads(out["json"].read_text())
+    assert len(record["losses"]) == 2 and record["sim_err_pct"] >= 0
+    assert out["png"].stat().st_size > 0
+    frames = wc.read_usd_points(str(out["usda"]))
+    assert len(frames) == 3
+
+
+def test_cli_estimate_and_control_usage_errors(capsys):
+    from warpcloth.cli import main
+
+    assert main(["estimate", "--iters", "0"]) == 2
+    assert main(["estimate", "--json", "out.txt"]) == 2
+    assert main(["estimate", "--target", "/nonexistent/dir"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["estimate", "--material", "silk"])
+    with pytest.raises(SystemExit):
+        main(["control", "--controller", "ppo"])

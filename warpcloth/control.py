@@ -1,0 +1,368 @@
+"""Motion control: throw a cloth over a wall into a basket by pushing its corners (SPEC §5(c)).
+
+The control is the seed's: for each of the first 3 seconds, one push per corner (36 numbers), applied every step as
+a force on the 4 corner particles. The seed adds a velocity increment to each corner every step (a corner
+acceleration); here the push is a force ``F = (M / 4) p``, with M the cloth's mass, so ``p`` [m/s^2] is the
+acceleration four such pushes would give the whole cloth: ``p = (0, 0, 9.8)`` on every corner holds it up. This is a
+fixed linear rescaling of the seed's control (corner acceleration = ``M p / (4 m_corner)``, about 95 p here) that
+puts the parameters on the scale of gravity. The loss is ``1/2 |com_T - (0, 0, -0.7)|^2`` on the centre of mass (vertex mean) after 700 steps
+of 0.01 s, with the cloth colliding with the basket and the wall. Gradients come from a checkpointed rollout
+(warpcloth.checkpoint), so the 700 steps back-propagate with O(sqrt(T)) stored states.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from warpcloth.builder import ModelBuilder
+from warpcloth.checkpoint import checkpointed_backward
+from warpcloth.materials import preset
+from warpcloth.model import Control, Model, State
+from warpcloth.simulator import Simulator, SolverOptions
+
+DT = 0.01
+STEPS = 700
+SECONDS_CONTROLLED = 3
+STEPS_PER_SECOND = 100
+TARGET = (0.0, 0.0, -0.7)
+"""Bottom centre of the basket [m]."""
+CELLS = 8
+SIZE = 0.7
+CORNERS = (0, CELLS, CELLS * (CELLS + 1), CELLS * (CELLS + 1) + CELLS)
+"""Corner particles of the 8x8 grid (row-major, x fastest)."""
+N_PARAMS = SECONDS_CONTROLLED * len(CORNERS) * 3
+
+
+def basket_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
+    """The seed's bucket.obj: an open-top box 0.98 x 0.98 m centred at the origin, z in [-0.7, 0.7]."""
+    h, lo, hi = 0.49, -0.7, 0.7
+    v = np.array([[x, y, z] for z in (lo, hi) for y in (-h, h) for x in (-h, h)])  # index = 4*z + 2*y + x
+    quads = [(0, 2, 3, 1), (0, 1, 5, 4), (1, 3, 7, 5), (3, 2, 6, 7), (2, 0, 4, 6)]  # bottom, 4 walls (inward)
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    return v, np.array(tris, dtype=np.int32)
+
+
+def wall_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
+    """The seed's bucketobs.obj: a vertical plate at x = -0.562, y in [-0.615, 0.615], z in [0.598, 1.828]."""
+    x = -0.562206
+    v = np.array([[x, -0.615245, 0.597941], [x, 0.615245, 0.597941], [x, 0.615245, 1.828432],
+                  [x, -0.615245, 1.828432]])
+    return v, np.array([(0, 1, 2), (0, 2, 3)], dtype=np.int32)
+
+
+def basket_scene(device=None, *, dtype=wp.float32, requires_grad: bool = True) -> Model:
+    """The seed's throw scene: a 0.7 m gray-interlock cloth (8x8 cells, thicken 2) flat at z = 2 over
+    x in [-3.7, -3], y in [0, 0.7]; the basket and the wall; gravity; no wind, no handles."""
+    b = ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    b.add_cloth_grid((CELLS, CELLS), (SIZE, SIZE), material=preset("gray-interlock", thicken=2.0),
+                     pos=(-3.0 - SIZE, 0.0, 2.0))
+    b.add_obstacle_mesh(*basket_vertices_triangles(), name="basket")
+    b.add_obstacle_mesh(*wall_vertices_triangles(), name="wall")
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+
+
+def error_pct(com_final: np.ndarray, com_initial: np.ndarray) -> float:
+    """|com_T - target| / |com_0 - target| x 100 (100 % = no better than doing nothing)."""
+    target = np.asarray(TARGET)
+    return 100.0 * float(np.linalg.norm(com_final - target) / np.linalg.norm(com_initial - target))
+
+
+@wp.kernel
+def _corner_forces(push: wp.array(dtype=Any), second: int, corners: wp.array(dtype=wp.int32), quarter_mass: Any,
+                   force: wp.array(dtype=Any)):
+    j = wp.tid()
+    force[corners[j]] = quarter_mass * push[second * corners.shape[0] + j]
+
+
+@wp.kernel
+def _centre_of_mass(x: wp.array(dtype=Any), inv_n: Any, com: wp.array(dtype=Any)):
+    # the loss squares the mean, so the mean is accumulated first and squared by _half_squared_distance
+    wp.atomic_add(com, 0, inv_n * x[wp.tid()])
+
+
+@wp.kernel
+def _component(com: wp.array(dtype=Any), k: int, loss: wp.array(dtype=Any)):
+    loss[0] = loss[0] + com[0][k]
+
+
+@wp.kernel
+def _half_squared_distance(com: wp.array(dtype=Any), target: Any, half: Any, loss: wp.array(dtype=Any)):
+    d = com[0] - target
+    loss[0] = loss[0] + half * wp.dot(d, d)
+
+
+class ThrowTask:
+    """The throw: loss, gradient and trajectory as functions of the 36 corner accelerations ``a[second, corner, xyz]``."""
+
+    def __init__(self, model: Model | None = None, *, steps: int = STEPS, options: SolverOptions | None = None,
+                 segment_steps: int | None = None):
+        self.model = model or basket_scene()
+        self.steps = steps
+        self.segment_steps = segment_steps
+        self.sim = Simulator(self.model, DT, options=options or SolverOptions(cg_tol=1e-6))
+        device = self.model.device
+        self.corners = wp.array(CORNERS, dtype=wp.int32, device=device)
+        self.quarter_mass = float(self.model.particle_mass().sum()) / len(CORNERS)
+        self.target = self.model.types.vec3(*TARGET)
+        self.com_initial = self.model.particle_x0.numpy().mean(axis=0)
+        self.simulations = 0
+        self.seconds = 0.0
+
+    def _forces(self, accel: wp.array) -> list[wp.array]:
+        forces = []
+        for s in range(SECONDS_CONTROLLED):
+            f = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
+                         requires_grad=True)
+            wp.launch(_corner_forces, len(CORNERS),
+                      inputs=[accel, s, self.corners, self.model.scalar(self.quarter_mass)], outputs=[f],
+                      device=self.model.device)
+            forces.append(f)
+        return forces
+
+    def _control_fn(self, forces: list[wp.array]):
+        base = self.model.control(requires_grad=False)
+        controls = [Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
+                    for f in forces]
+
+        def control(i: int) -> Control:
+            s = i // STEPS_PER_SECOND
+            return controls[s] if s < SECONDS_CONTROLLED else base
+
+        return control
+
+    def _accel_array(self, params: np.ndarray) -> wp.array:
+        params = np.asarray(params, dtype=np.float64).reshape(-1)
+        if params.shape != (N_PARAMS,) or not np.all(np.isfinite(params)):
+            raise ValueError(f"control parameters must be {N_PARAMS} finite numbers, got shape {params.shape}")
+        return wp.array(params.reshape(-1, 3), dtype=self.model.types.vec3, device=self.model.device,
+                        requires_grad=True)
+
+    def _loss_fn(self, component: int | None = None):
+        model = self.model
+        com = wp.zeros(1, dtype=model.types.vec3, device=model.device, requires_grad=True)
+
+        def loss(i: int, state: State, out: wp.array) -> None:
+            if i == self.steps:
+                com.zero_()
+                wp.launch(_centre_of_mass, model.particle_count,
+                          inputs=[state.particle_x, model.scalar(1.0 / model.particle_count)], outputs=[com])
+                if component is None:
+                    wp.launch(_half_squared_distance, 1, inputs=[com, self.target, model.scalar(0.5)], outputs=[out])
+                else:
+                    wp.launch(_component, 1, inputs=[com, component], outputs=[out])
+
+        return loss, com
+
+    def loss_and_grad(self, params: np.ndarray, *, component: int | None = None
+                      ) -> tuple[float, np.ndarray, np.ndarray]:
+        """(loss [m^2], d loss / d params (36,), final centre of mass (3,)); one simulation. With ``component``
+        (0, 1, 2) the "loss" is that coordinate of the final centre of mass instead."""
+        t0 = time.perf_counter()
+        accel = self._accel_array(params)
+        tape = wp.Tape()
+        with tape:
+            forces = self._forces(accel)
+        loss_fn, com = self._loss_fn(component)
+        value, _ = checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
+                                         steps=self.steps, loss=loss_fn, segment_steps=self.segment_steps)
+        tape.backward(grads={f: f.grad for f in forces})
+        self.simulations += 1
+        self.seconds += time.perf_counter() - t0
+        return value, accel.grad.numpy().astype(np.float64).reshape(-1), com.numpy()[0].astype(np.float64)
+
+    def forward_com(self, params: np.ndarray) -> np.ndarray:
+        """Final centre of mass (3,) from a forward pass only (counted as a simulation)."""
+        self.simulations += 1
+        return self.trajectory(params, keep=False)[-1].mean(axis=0).astype(np.float64)
+
+    def trajectory(self, params: np.ndarray, *, keep: bool = True) -> list[np.ndarray]:
+        """Positions (n, 3) of every step, from a forward pass only."""
+        control = self._control_fn(self._forces(self._accel_array(params)))
+        state = self.model.state(requires_grad=False)
+        frames = [state.particle_x.numpy()]
+        for i in range(self.steps):
+            nxt = self.model.empty_state(requires_grad=False)
+            self.sim.step(state, nxt, control(i))
+            state = nxt
+            if keep:
+                frames.append(state.particle_x.numpy())
+        return frames if keep else [state.particle_x.numpy()]
+
+
+@dataclass
+class ControlResult:
+    params: np.ndarray
+    """Corner pushes [m/s^2], shape (3 seconds, 4 corners, 3) (see the module docstring)."""
+    losses: list[float] = field(default_factory=list)
+    errors_pct: list[float] = field(default_factory=list)
+    simulations: int = 0
+    """Forward + backward simulations until the best result."""
+    error_pct: float = math.nan
+    seconds: float = 0.0
+
+    def trajectory(self, task: ThrowTask) -> list[np.ndarray]:
+        """Positions of every step with the best pushes (forward only; the MLP's pushes replayed open-loop)."""
+        return task.trajectory(self.params.reshape(-1))
+
+
+def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
+                       progress: bool = False, callback=None) -> ControlResult:
+    """Damped Gauss-Newton on the 36 corner pushes, from zero. ``iters`` bounds the simulations (forward + backward)
+    spent; returns the best iterate and the simulations spent to reach it.
+
+    The loss is 1/2 |r|^2 with r = com_T - target (3 numbers). Without contact com_T is an affine function of the
+    pushes (they are external forces), so one Gauss-Newton step (the least-norm push change that zeroes r in the
+    linearisation) solves it; contacts make it nonlinear, and the step is halved until the loss drops. Each
+    iteration costs three simulations (one reverse pass per coordinate of com_T: the 3x36 Jacobian) plus one per
+    step tried. ``max_step`` [m/s^2] bounds how far one step moves any push.
+    """
+    result = ControlResult(params=np.zeros((SECONDS_CONTROLLED, len(CORNERS), 3)))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=iters, desc="control (open-loop)", unit="sim")
+    t0 = time.perf_counter()
+    target = np.asarray(TARGET)
+
+    def record(params, com) -> float:
+        r = com - target
+        loss = 0.5 * float(r @ r)
+        err = error_pct(com, task.com_initial)
+        result.losses.append(loss)
+        result.errors_pct.append(err)
+        k = len(result.losses)
+        if k == 1 or err < result.error_pct:
+            result.params = params.reshape(SECONDS_CONTROLLED, len(CORNERS), 3).copy()
+            result.simulations, result.error_pct = k, err
+        if bar is not None:
+            bar.update()
+            bar.set_postfix(loss=f"{loss:.3e}", err=f"{err:.1f}%")
+        if callback is not None:
+            callback(k, loss, err, params)
+        return loss
+
+    params = np.zeros(N_PARAMS)
+    jac = np.zeros((3, N_PARAMS))
+    com = None
+    loss = math.inf
+    while len(result.losses) + 3 <= iters:
+        for k in range(3):
+            _, jac[k], com_k = task.loss_and_grad(params, component=k)
+            if k == 0:
+                com = com_k
+                loss = record(params, com)
+            else:
+                result.losses.append(result.losses[-1])
+                result.errors_pct.append(result.errors_pct[-1])
+                if bar is not None:
+                    bar.update()
+        r = com - target
+        step = -jac.T @ np.linalg.solve(jac @ jac.T + damping * np.trace(jac @ jac.T) / 3 * np.eye(3), r)
+        step *= min(1.0, max_step / max(np.abs(step).max(), 1e-30))
+        while len(result.losses) < iters:
+            trial = params + step
+            trial_com = task.forward_com(trial)
+            trial_loss = record(trial, trial_com)
+            if trial_loss < loss:
+                params = trial
+                break
+            step *= 0.5
+        else:
+            break
+    if bar is not None:
+        bar.close()
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+SEED_PUBLISHED = {
+    "open-loop": {"error_pct": 17.0, "simulations": 53, "target_error_pct": 10.0, "target_simulations": 50},
+    "mlp": {"error_pct": 39.0, "simulations": 108, "target_error_pct": 20.0, "target_simulations": 100},
+}
+"""The seed's Table 3 ("Ours" and "Ours + FC"; talk slides) and this project's targets."""
+
+
+def _push_to_force(push, quarter_mass: float, n: int):
+    """(4, 3) torch pushes -> (n, 3) particle forces on the corners (differentiable)."""
+    import torch
+
+    force = torch.zeros((n, 3), dtype=push.dtype, device=push.device)
+    return force.index_put((torch.tensor(CORNERS, device=push.device),), quarter_mass * push)
+
+
+def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: int = 200, seed: int = 0,
+              progress: bool = False) -> ControlResult:
+    """Train a PyTorch MLP controller through the simulator (warpcloth.torch): every second of the first three, the
+    MLP maps the cloth's state (positions relative to the target and velocities of all particles) to the 4 corner
+    pushes, applied for that second (the seed's "Ours + FC": Linear -> ReLU -> Linear). Adam on the weights; each
+    iteration is one forward + backward simulation of the whole throw."""
+    import torch
+
+    from warpcloth.torch import simulate
+
+    torch.manual_seed(seed)
+    model = task.model
+    n = model.particle_count
+    net = torch.nn.Sequential(torch.nn.Linear(6 * n, hidden), torch.nn.ReLU(), torch.nn.Linear(hidden, 12))
+    with torch.no_grad():  # start from "no push", as the open-loop optimisation does
+        net[2].weight.zero_()
+        net[2].bias.zero_()
+    net = net.to(torch.float32)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    x0 = torch.tensor(model.particle_x0.numpy(), dtype=torch.float32)
+    v0 = torch.tensor(model.particle_v0.numpy(), dtype=torch.float32)
+    target = torch.tensor(TARGET, dtype=torch.float32)
+    push_scale = 10.0  # network outputs of order one -> pushes of order gravity [m/s^2]
+
+    def policy(x, v):
+        features = torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
+        return push_scale * net(features).reshape(len(CORNERS), 3)
+
+    result = ControlResult(params=np.zeros((SECONDS_CONTROLLED, len(CORNERS), 3)))
+    best = math.inf
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=iters, desc="control (mlp)", unit="sim")
+    t0 = time.perf_counter()
+    for k in range(1, iters + 1):
+        x, v = x0, v0
+        pushes = []
+        for s in range(SECONDS_CONTROLLED):
+            push = policy(x, v)
+            pushes.append(push)
+            xs, vs = simulate(task.sim, x, v, steps=STEPS_PER_SECOND, time=s * STEPS_PER_SECOND * DT,
+                              particle_force=_push_to_force(push, task.quarter_mass, n))
+            x, v = xs[-1], vs[-1]
+        rest = task.steps - SECONDS_CONTROLLED * STEPS_PER_SECOND
+        if rest > 0:
+            xs, vs = simulate(task.sim, x, v, steps=rest, time=SECONDS_CONTROLLED * STEPS_PER_SECOND * DT)
+            x = xs[-1]
+        com = x.mean(dim=0)
+        loss = 0.5 * ((com - target) ** 2).sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        task.simulations += 1
+        err = error_pct(com.detach().numpy().astype(np.float64), task.com_initial)
+        result.losses.append(float(loss.detach()))
+        result.errors_pct.append(err)
+        if err < best:
+            best = err
+            result.params = torch.stack(pushes).detach().numpy().astype(np.float64)
+            result.simulations, result.error_pct = k, err
+        if bar is not None:
+            bar.update()
+            bar.set_postfix(loss=f"{float(loss):.3e}", err=f"{err:.1f}%")
+    if bar is not None:
+        bar.close()
+    result.seconds = time.perf_counter() - t0
+    return result

@@ -1,0 +1,380 @@
+"""Material estimation: recover a fabric's density, stretching and bending tables from how it moves (SPEC §5(b)).
+
+The scene is the seed's hanging cloth in the wind; the unknowns are the 40 numbers of a Material (1 density, 6x4
+stretching, 3x5 bending). The optimiser works on an unconstrained vector ``theta`` (MaterialParameterization):
+density, warp/weft stretch and bending in log space (so they stay positive whatever the step), coupling and shear
+linearly (the model applies relu to the interpolated stiffness, so any value gives a valid, PSD-projected
+stretching force), every entry scaled to order one. Gradients come from Warp's tape through the whole rollout.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from warpcloth.builder import ModelBuilder
+from warpcloth.materials import (
+    BENDING_SHAPE,
+    SEED_INITIAL_GUESS_NAMES,
+    STRETCHING_SHAPE,
+    Material,
+    mean_material,
+    preset,
+)
+from warpcloth.mesh_io import load_obj
+from warpcloth.model import Model
+from warpcloth.optim import adam, lbfgs
+from warpcloth.rollout import rollout
+from warpcloth.simulator import Simulator, SolverOptions
+
+# -- the scene (SPEC §5(b)) ------------------------------------------------------------------------------------------
+WIND = (5.0, 0.0, 0.0)
+"""Wind velocity [m/s] of the seed's material-estimation scene."""
+DT = 0.02
+"""Time step [s]."""
+STEPS = 50
+"""Steps of the seed's longest horizon (1 s)."""
+FRAME_STRIDE = 2
+"""Steps per compared frame: the seed's targets are saved every 0.04 s."""
+THICKEN = 2.0
+"""ARCSim thicken of every seed demo."""
+HANDLE_STIFFNESS = 1.0e3
+SEED_HANDLES = (2, 3)
+"""The handled vertices (top corners) of the seed's demo_wind.obj."""
+GRID_RES = 16
+GRID_TO_YZ = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def hanging_cloth(material: Material, *, mesh_path: str | Path | None = None, handles: Sequence[int] | None = None,
+                  device=None, dtype=wp.float32, requires_grad: bool = True) -> Model:
+    """The seed's material-estimation scene: a 1 m cloth held at its two top corners by soft handles (1e3 N/m),
+    gravity, 5 m/s wind along +x, starting at rest.
+
+    Without ``mesh_path`` the cloth is a flat 16x16-cell square made in code, hanging in the x = 0 plane (the seed's
+    demo_wind.obj is the same grid already draped, top corners 0.8 m apart). With ``mesh_path`` (an OBJ with ``vt``
+    material coordinates, such as demo_wind.obj or frame 0 of a target sequence) the cloth starts in that shape and
+    ``handles`` (default: the seed's vertices 2 and 3) are held.
+
+    Self-collision is off: a cloth hanging in a steady wind does not touch itself (the seed's targets were made with
+    it on; their cross-simulator fit shows what that costs).
+    """
+    b = ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    if mesh_path is None:
+        b.add_cloth_grid((GRID_RES, GRID_RES), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
+        top = GRID_RES * (GRID_RES + 1)
+        handles = (top, top + GRID_RES) if handles is None else handles
+    else:
+        b.add_cloth_obj(mesh_path, material=material, vel=(0.0, 0.0, 0.0))
+        handles = SEED_HANDLES if handles is None else handles
+    for p in handles:
+        b.add_handle(int(p), stiffness=HANDLE_STIFFNESS)
+    b.set_wind(WIND, density=1.0, drag=0.0)
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+
+
+def initial_guess() -> Material:
+    """The seed's start point: the element-wise mean of 8 of the 10 measured fabrics (SPEC §1.5)."""
+    return mean_material(SEED_INITIAL_GUESS_NAMES, thicken=THICKEN)
+
+
+def target_files(directory: str | Path) -> list[Path]:
+    """The .obj files of a target sequence, sorted by name (frame 0 first: the start shape)."""
+    if not Path(directory).is_dir():
+        raise ValueError(f"target directory {str(directory)!r} does not exist")
+    files = sorted(Path(directory).glob("*.obj"))
+    if len(files) < 2:
+        raise ValueError(f"target directory {str(directory)!r} holds {len(files)} .obj files; need a sequence of >= 2")
+    return files
+
+
+def load_target_sequence(files: Sequence[Path]) -> list[np.ndarray]:
+    """Vertex positions (n, 3) [m] of each frame file."""
+    frames = [load_obj(f, validate=False).positions for f in files]
+    for f, x in zip(files, frames):
+        if x.shape != frames[0].shape:
+            raise ValueError(f"target frame {f.name} has {len(x)} vertices, frame 0 has {len(frames[0])}")
+    return frames
+
+
+# -- parameterisation ------------------------------------------------------------------------------------------------
+_POSITIVE_COLUMNS = (0, 2)  # warp and weft stretch: log space; coupling and shear (1, 3): linear
+N_PARAMS = 1 + STRETCHING_SHAPE[0] * STRETCHING_SHAPE[1] + BENDING_SHAPE[0] * BENDING_SHAPE[1]
+
+
+class MaterialParameterization:
+    """Maps a Material to an unconstrained vector ``theta`` (N_PARAMS = 40) and back, with the chain rule.
+
+    theta = [log(density/ref), stretching entries (log(k/ref) for warp/weft, (k - ref)/scale for coupling and
+    shear, scale = the rms of the reference row), log(bending/ref)]; theta = 0 is the reference material.
+    """
+
+    def __init__(self, reference: Material):
+        self.reference = reference
+        s = reference.stretching
+        self._log_mask = np.zeros(STRETCHING_SHAPE, dtype=bool)
+        self._log_mask[:, _POSITIVE_COLUMNS] = True
+        if np.any(s[self._log_mask] <= 0.0) or np.any(reference.bending <= 0.0):
+            raise ValueError(f"reference material {reference.name!r}: warp/weft stretch and bending must be > 0 "
+                             "(they are estimated in log space)")
+        self._row_scale = np.broadcast_to(np.sqrt(np.mean(s**2, axis=1, keepdims=True)), STRETCHING_SHAPE)
+
+    def encode(self, m: Material) -> np.ndarray:
+        ref = self.reference
+        lin = (m.stretching - ref.stretching) / self._row_scale
+        with np.errstate(divide="raise"):
+            logs = np.log(np.where(self._log_mask, m.stretching, 1.0) / np.where(self._log_mask, ref.stretching, 1.0))
+            return np.concatenate([[math.log(m.density / ref.density)],
+                                   np.where(self._log_mask, logs, lin).ravel(),
+                                   np.log(m.bending / ref.bending).ravel()])
+
+    def split(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        theta = np.asarray(theta, dtype=np.float64)
+        if theta.shape != (N_PARAMS,):
+            raise ValueError(f"theta must have shape ({N_PARAMS},), got {theta.shape}")
+        if not np.all(np.isfinite(theta)):
+            raise ValueError(f"theta has non-finite entries at {np.flatnonzero(~np.isfinite(theta)).tolist()}")
+        ns = STRETCHING_SHAPE[0] * STRETCHING_SHAPE[1]
+        return theta[0], theta[1:1 + ns].reshape(STRETCHING_SHAPE), theta[1 + ns:].reshape(BENDING_SHAPE)
+
+    def decode(self, theta: np.ndarray, name: str = "estimate") -> Material:
+        ref = self.reference
+        td, ts, tb = self.split(theta)
+        stretching = np.where(self._log_mask, ref.stretching * np.exp(np.where(self._log_mask, ts, 0.0)),
+                              ref.stretching + ts * self._row_scale)
+        return Material(density=ref.density * math.exp(td), stretching=stretching,
+                        bending=ref.bending * np.exp(tb), thicken=ref.thicken, name=name)
+
+    def chain(self, theta: np.ndarray, g_density: float, g_stretching: np.ndarray, g_bending: np.ndarray) -> np.ndarray:
+        """d loss / d theta from the gradients with respect to the material's raw density and tables."""
+        m = self.decode(theta)
+        gs = np.where(self._log_mask, g_stretching * m.stretching, g_stretching * self._row_scale)
+        return np.concatenate([[g_density * m.density], gs.ravel(), (g_bending * m.bending).ravel()])
+
+
+SEED_PUBLISHED = {"runtime_s_per_step_iter": 2.03, "density_err_pct": 1.8, "stretch_linear_err_pct": 45.0,
+                  "stretch_nonlinear_err_pct": 57.0, "bending_err_pct": 77.0, "sim_err_pct": 1.6}
+"""The seed's "Ours" row of Table 2 (mean over 10 fabrics; talk slides, SPEC.md)."""
+SEED_BASELINE = {"density_err_pct": 68.0, "stretch_linear_err_pct": 160.0, "stretch_nonlinear_err_pct": 74.0,
+                 "bending_err_pct": 70.0, "sim_err_pct": 12.0}
+"""The seed's "Baseline" row (the mean-material start)."""
+ERROR_LABELS = {"density_err_pct": "density error [%]", "stretch_linear_err_pct": "linear stretching error [%]",
+                "stretch_nonlinear_err_pct": "non-linear stretching error [%]", "bending_err_pct": "bending error [%]"}
+
+
+# -- errors (SPEC.md, published numbers) -------------------------------------------------------------------------------
+def parameter_errors(estimate: Material, truth: Material) -> dict[str, float]:
+    """Relative Frobenius errors [%]: density, stretching row 0 ("linear"), rows 1-5 ("non-linear"), bending."""
+
+    def rel(a, b):
+        return 100.0 * float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(b))
+
+    return {
+        "density_err_pct": rel(estimate.density, truth.density),
+        "stretch_linear_err_pct": rel(estimate.stretching[0], truth.stretching[0]),
+        "stretch_nonlinear_err_pct": rel(estimate.stretching[1:], truth.stretching[1:]),
+        "bending_err_pct": rel(estimate.bending, truth.bending),
+    }
+
+
+# -- the fit ---------------------------------------------------------------------------------------------------------
+@wp.kernel
+def _squared_distance(x: wp.array(dtype=Any), target: wp.array(dtype=Any), scale: Any, loss: wp.array(dtype=Any)):
+    i = wp.tid()
+    d = x[i] - target[i]
+    wp.atomic_add(loss, 0, scale * wp.dot(d, d))
+
+
+class TrajectoryFit:
+    """Loss and gradient of a material against an observed trajectory.
+
+    loss = mean over compared frames of mean over vertices of |x_sim - x_target|^2 [m^2] (the seed's loss); frames
+    are every ``frame_stride`` steps up to ``steps``.
+    """
+
+    def __init__(self, model: Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
+                 frame_stride: int = FRAME_STRIDE, dt: float = DT, options: SolverOptions | None = None):
+        if model.material_count != 1:
+            raise ValueError(f"TrajectoryFit estimates one material; the model has {model.material_count}")
+        if steps % frame_stride:
+            raise ValueError(f"steps ({steps}) must be a multiple of frame_stride ({frame_stride})")
+        frames = steps // frame_stride
+        if len(targets) < frames + 1:
+            raise ValueError(f"{steps} steps compare {frames} frames after frame 0, but the target has only "
+                             f"{len(targets) - 1}")
+        for k, x in enumerate(targets[: frames + 1]):
+            if np.shape(x) != (model.particle_count, 3):
+                raise ValueError(f"target frame {k} has shape {np.shape(x)}, the cloth has {model.particle_count} "
+                                 "particles")
+        self.model, self.steps, self.frame_stride = model, steps, frame_stride
+        self.sim = Simulator(model, dt, options=options or SolverOptions(cg_tol=1e-6))
+        self.targets = [wp.array(np.asarray(x, dtype=np.float64), dtype=model.types.vec3, device=model.device)
+                        for x in targets[: frames + 1]]
+        self.evaluations = 0
+        self.seconds = 0.0
+
+    @staticmethod
+    def simulate_targets(model: Model, truth: Material, *, steps: int = STEPS, frame_stride: int = FRAME_STRIDE,
+                         dt: float = DT) -> list[np.ndarray]:
+        """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout."""
+        dummy = [np.zeros((model.particle_count, 3))] * (steps // frame_stride + 1)
+        fit = TrajectoryFit(model, dummy, steps=steps, frame_stride=frame_stride, dt=dt,
+                            options=SolverOptions(cg_tol=1e-8))
+        return fit.trajectory(truth)[::frame_stride]
+
+    def set_material(self, m: Material) -> None:
+        model = self.model
+        model.material_density.assign(np.array([m.density]))
+        model.material_stretching.assign(m.stretching[None])
+        model.material_bending.assign(m.bending[None])
+
+    def _rollout_loss(self, steps: int):
+        model = self.model
+        frames = steps // self.frame_stride
+        loss = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
+        trajectory = rollout(self.sim, model.state(), steps=steps)
+        scale = model.scalar(1.0 / (frames * model.particle_count))
+        for k in range(1, frames + 1):
+            wp.launch(_squared_distance, model.particle_count,
+                      inputs=[trajectory[k * self.frame_stride].particle_x, self.targets[k], scale], outputs=[loss])
+        return loss, trajectory
+
+    def loss(self, m: Material, steps: int | None = None) -> float:
+        self.set_material(m)
+        loss, _ = self._rollout_loss(steps or self.steps)
+        return float(loss.numpy()[0])
+
+    def loss_and_grad(self, m: Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """(loss, d/d density, d/d stretching (6, 4), d/d bending (3, 5)) in raw units."""
+        model = self.model
+        self.set_material(m)
+        t0 = time.perf_counter()
+        tape = wp.Tape()
+        with tape:
+            loss, _ = self._rollout_loss(steps or self.steps)
+        tape.backward(loss)
+        grads = (float(model.material_density.grad.numpy()[0]), model.material_stretching.grad.numpy()[0].astype(float),
+                 model.material_bending.grad.numpy()[0].astype(float))
+        tape.zero()
+        for arr in (model.material_density, model.material_stretching, model.material_bending):
+            arr.grad.zero_()
+        self.seconds += time.perf_counter() - t0
+        self.evaluations += 1
+        return (float(loss.numpy()[0]), *grads)
+
+    def simulation_error(self, m: Material) -> float:
+        """RMS vertex distance to the target over the compared frames, per metre of cloth side, in %."""
+        return 100.0 * math.sqrt(self.loss(m))
+
+    def trajectory(self, m: Material, steps: int | None = None) -> list[np.ndarray]:
+        self.set_material(m)
+        return [s.particle_x.numpy() for s in rollout(self.sim, self.model.state(), steps=steps or self.steps)]
+
+
+# -- one estimation --------------------------------------------------------------------------------------------------
+OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
+
+
+@dataclass
+class EstimationResult:
+    material: Material
+    initial: Material
+    losses: list[float] = field(default_factory=list)
+    """Loss [m^2] of every forward + backward evaluation, in order."""
+    horizons: list[int] = field(default_factory=list)
+    """Steps simulated by each evaluation (the seed's curriculum grows them)."""
+    seconds: float = 0.0
+    """Wall time of the forward + backward evaluations."""
+    simulation_error_pct: float = math.nan
+    initial_simulation_error_pct: float = math.nan
+
+    @property
+    def seconds_per_step_iter(self) -> float:
+        return self.seconds / max(sum(self.horizons), 1)
+
+
+def estimate_material(fit: TrajectoryFit, *, initial: Material | None = None, optimizer: str = "lbfgs",
+                      iters: int = 60, progress: bool = False) -> EstimationResult:
+    """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
+
+    Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
+    SGD with momentum 0.9 on the seed's scaled units, lr 0.1 for density and stretching and 10 for bending, with the
+    growing-horizon curriculum: 2 steps more each time the loss drops under 1e-4 m^2). ``iters`` counts forward +
+    backward evaluations.
+    """
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    if int(iters) != iters or iters < 1:
+        raise ValueError(f"iters must be a positive integer, got {iters!r}")
+    initial = initial or initial_guess()
+    param = MaterialParameterization(initial)
+    result = EstimationResult(material=initial, initial=initial)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=iters, desc=f"estimate ({optimizer})", unit="iter")
+
+    def record(loss: float, steps: int) -> None:
+        result.losses.append(loss)
+        result.horizons.append(steps)
+        if bar is not None:
+            bar.update()
+            bar.set_postfix(loss=f"{loss:.3e}", steps=steps)
+
+    def objective(theta: np.ndarray, steps: int | None = None) -> tuple[float, np.ndarray]:
+        steps = steps or fit.steps
+        loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta), steps)
+        record(loss, steps)
+        return loss, param.chain(theta, gd, gs, gb)
+
+    seconds0 = fit.seconds
+    theta0 = np.zeros(N_PARAMS)
+    if optimizer == "lbfgs":
+        theta = lbfgs(objective, theta0, iters=iters)
+    elif optimizer == "adam":
+        theta = adam(objective, theta0, iters=iters)
+    else:
+        theta = _seed_sgd(fit, param, objective, iters)
+    result.seconds = fit.seconds - seconds0
+    if bar is not None:
+        bar.close()
+    result.material = param.decode(theta, name=f"estimate ({optimizer})")
+    result.simulation_error_pct = fit.simulation_error(result.material)
+    result.initial_simulation_error_pct = fit.simulation_error(initial)
+    return result
+
+
+def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:
+    # The seed optimises density, stretching/1e3 and bending*1e4 directly (its "scaled units", SPEC §1.5).
+    from warpcloth.materials import DIFFCLOTH_BENDING_SCALE, DIFFCLOTH_STRETCHING_SCALE
+
+    ref = param.reference
+    scaled = np.concatenate([[ref.density], (ref.stretching / DIFFCLOTH_STRETCHING_SCALE).ravel(),
+                             (ref.bending / DIFFCLOTH_BENDING_SCALE).ravel()])
+    unit = np.concatenate([[1.0], np.full(24, DIFFCLOTH_STRETCHING_SCALE), np.full(15, DIFFCLOTH_BENDING_SCALE)])
+    lr = np.concatenate([[0.1], np.full(24, 0.1), np.full(15, 10.0)])
+    velocity = np.zeros(N_PARAMS)
+    steps = 2
+    theta = np.zeros(N_PARAMS)
+    for _ in range(iters):
+        raw = scaled * unit
+        m = Material(density=max(raw[0], 1e-6), stretching=np.maximum(raw[1:25].reshape(6, 4),
+                     np.where(param._log_mask, 1e-6, -np.inf)), bending=np.maximum(raw[25:].reshape(3, 5), 1e-12),
+                     thicken=ref.thicken)
+        theta = param.encode(m)
+        loss, g_theta = objective(theta, steps)
+        # back from theta to the seed's scaled units: d/d raw = g_theta / (d theta / d raw), d/d scaled = * unit
+        d_raw = param.chain(theta, 1.0, np.ones(STRETCHING_SHAPE), np.ones(BENDING_SHAPE))
+        g_scaled = g_theta / d_raw * unit
+        velocity = 0.9 * velocity + g_scaled
+        scaled = scaled - lr * velocity
+        if loss < 1e-4 and steps < fit.steps:
+            steps = min(fit.steps, steps + 2)
+    return theta
