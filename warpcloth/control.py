@@ -22,6 +22,7 @@ import warp as wp
 
 from warpcloth.builder import ModelBuilder
 from warpcloth.checkpoint import checkpointed_backward
+from warpcloth.errors import CollisionError
 from warpcloth.materials import preset
 from warpcloth.model import Control, Model, State
 from warpcloth.simulator import Simulator, SolverOptions
@@ -105,7 +106,8 @@ class ThrowTask:
         self.model = model or basket_scene()
         self.steps = steps
         self.segment_steps = segment_steps
-        self.sim = Simulator(self.model, DT, options=options or SolverOptions(cg_tol=1e-6))
+        # hard throws pile the cloth into the basket's corners: allow more projection rounds than the default
+        self.sim = Simulator(self.model, DT, options=options or SolverOptions(cg_tol=1e-6, collision_rounds=50))
         device = self.model.device
         self.corners = wp.array(CORNERS, dtype=wp.int32, device=device)
         self.quarter_mass = float(self.model.particle_mass().sum()) / len(CORNERS)
@@ -176,12 +178,7 @@ class ThrowTask:
         self.seconds += time.perf_counter() - t0
         return value, accel.grad.numpy().astype(np.float64).reshape(-1), com.numpy()[0].astype(np.float64)
 
-    def forward_com(self, params: np.ndarray) -> np.ndarray:
-        """Final centre of mass (3,) from a forward pass only (counted as a simulation)."""
-        self.simulations += 1
-        return self.trajectory(params, keep=False)[-1].mean(axis=0).astype(np.float64)
-
-    def trajectory(self, params: np.ndarray, *, keep: bool = True) -> list[np.ndarray]:
+    def trajectory(self, params: np.ndarray) -> list[np.ndarray]:
         """Positions (n, 3) of every step, from a forward pass only."""
         control = self._control_fn(self._forces(self._accel_array(params)))
         state = self.model.state(requires_grad=False)
@@ -190,9 +187,8 @@ class ThrowTask:
             nxt = self.model.empty_state(requires_grad=False)
             self.sim.step(state, nxt, control(i))
             state = nxt
-            if keep:
-                frames.append(state.particle_x.numpy())
-        return frames if keep else [state.particle_x.numpy()]
+            frames.append(state.particle_x.numpy())
+        return frames
 
 
 @dataclass
@@ -205,6 +201,8 @@ class ControlResult:
     """Forward + backward simulations until the best result."""
     error_pct: float = math.nan
     seconds: float = 0.0
+    failed_trials: list[str] = field(default_factory=list)
+    """Messages of trial steps whose simulation raised a CollisionError (rejected, counted as simulations)."""
 
     def trajectory(self, task: ThrowTask) -> list[np.ndarray]:
         """Positions of every step with the best pushes (forward only; the MLP's pushes replayed open-loop)."""
@@ -216,11 +214,12 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
     """Damped Gauss-Newton on the 36 corner pushes, from zero. ``iters`` bounds the simulations (forward + backward)
     spent; returns the best iterate and the simulations spent to reach it.
 
-    The loss is 1/2 |r|^2 with r = com_T - target (3 numbers). Without contact com_T is an affine function of the
-    pushes (they are external forces), so one Gauss-Newton step (the least-norm push change that zeroes r in the
-    linearisation) solves it; contacts make it nonlinear, and the step is halved until the loss drops. Each
-    iteration costs three simulations (one reverse pass per coordinate of com_T: the 3x36 Jacobian) plus one per
-    step tried. ``max_step`` [m/s^2] bounds how far one step moves any push.
+    The loss is 1/2 |r|^2 with r = com_T - target (3 numbers). Without contact the mass-weighted centre moves
+    affinely with the pushes (they are external forces) and the vertex mean (the seed's com) nearly so, so a
+    Gauss-Newton step (the least-norm push change that zeroes r in the linearisation) makes most of the way where
+    first-order methods crawl; contacts make it nonlinear, and a step is halved until the loss drops. Each point
+    costs three simulations (one reverse pass per coordinate of com_T: the 3x36 Jacobian), cut short when its loss
+    is worse. ``max_step`` [m/s^2] bounds how far one step moves any push.
     """
     result = ControlResult(params=np.zeros((SECONDS_CONTROLLED, len(CORNERS), 3)))
     bar = None
@@ -248,34 +247,48 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
             callback(k, loss, err, params)
         return loss
 
-    params = np.zeros(N_PARAMS)
-    jac = np.zeros((3, N_PARAMS))
-    com = None
-    loss = math.inf
-    while len(result.losses) + 3 <= iters:
+    def evaluate(params: np.ndarray) -> tuple[float, np.ndarray | None, np.ndarray | None]:
+        """Loss, com_T and the Jacobian at params: three simulations (one reverse pass per coordinate); stops early
+        at a worse loss. A CollisionError counts as an infinite loss (the step is rejected)."""
+        jac = np.zeros((3, N_PARAMS))
+        com = None
         for k in range(3):
-            _, jac[k], com_k = task.loss_and_grad(params, component=k)
+            if len(result.losses) >= iters:
+                return math.inf, None, None
+            try:
+                _, jac[k], com_k = task.loss_and_grad(params, component=k)
+            except CollisionError as exc:
+                result.failed_trials.append(str(exc))
+                result.losses.append(math.inf)
+                result.errors_pct.append(math.inf)
+                return math.inf, None, None
             if k == 0:
                 com = com_k
-                loss = record(params, com)
-            else:
+                trial_loss = record(params, com)
+                if trial_loss >= best_loss:
+                    return trial_loss, None, None
+            else:  # the same point again: keep the per-simulation history aligned
                 result.losses.append(result.losses[-1])
                 result.errors_pct.append(result.errors_pct[-1])
                 if bar is not None:
                     bar.update()
-        r = com - target
-        step = -jac.T @ np.linalg.solve(jac @ jac.T + damping * np.trace(jac @ jac.T) / 3 * np.eye(3), r)
-        step *= min(1.0, max_step / max(np.abs(step).max(), 1e-30))
-        while len(result.losses) < iters:
-            trial = params + step
-            trial_com = task.forward_com(trial)
-            trial_loss = record(trial, trial_com)
-            if trial_loss < loss:
-                params = trial
-                break
-            step *= 0.5
+        return trial_loss, com, jac
+
+    params = np.zeros(N_PARAMS)
+    best_loss = math.inf
+    best_loss, com, jac = evaluate(params)
+    step = None
+    while com is not None and len(result.losses) < iters:
+        if step is None:
+            r = com - target
+            gram = jac @ jac.T
+            step = -jac.T @ np.linalg.solve(gram + damping * np.trace(gram) / 3 * np.eye(3), r)
+            step *= min(1.0, max_step / max(np.abs(step).max(), 1e-30))
+        trial_loss, trial_com, trial_jac = evaluate(params + step)
+        if trial_com is not None:  # accepted: a lower loss with its Jacobian
+            params, best_loss, com, jac, step = params + step, trial_loss, trial_com, trial_jac, None
         else:
-            break
+            step = 0.5 * step
     if bar is not None:
         bar.close()
     result.seconds = time.perf_counter() - t0

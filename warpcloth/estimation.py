@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ from warpcloth.mesh_io import load_obj
 from warpcloth.model import Model
 from warpcloth.optim import adam, lbfgs
 from warpcloth.rollout import rollout
+from warpcloth.errors import SimulationError
 from warpcloth.simulator import Simulator, SolverOptions
 
 # -- the scene (SPEC §5(b)) ------------------------------------------------------------------------------------------
@@ -293,6 +295,8 @@ class EstimationResult:
     """Wall time of the forward + backward evaluations."""
     simulation_error_pct: float = math.nan
     initial_simulation_error_pct: float = math.nan
+    diverged: list[str] = field(default_factory=list)
+    """Messages of trial materials whose simulation diverged (rejected steps, counted as evaluations)."""
 
     @property
     def seconds_per_step_iter(self) -> float:
@@ -330,7 +334,14 @@ def estimate_material(fit: TrajectoryFit, *, initial: Material | None = None, op
 
     def objective(theta: np.ndarray, steps: int | None = None) -> tuple[float, np.ndarray]:
         steps = steps or fit.steps
-        loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta), steps)
+        try:
+            loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta), steps)
+        except SimulationError as exc:  # a trial material that diverges: an infinite loss, so the step is rejected
+            if not result.losses:
+                raise
+            result.diverged.append(str(exc))
+            record(math.inf, steps)
+            return math.inf, np.zeros(N_PARAMS)
         record(loss, steps)
         return loss, param.chain(theta, gd, gs, gb)
 
@@ -365,14 +376,21 @@ def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, it
     theta = np.zeros(N_PARAMS)
     for _ in range(iters):
         raw = scaled * unit
-        m = Material(density=max(raw[0], 1e-6), stretching=np.maximum(raw[1:25].reshape(6, 4),
-                     np.where(param._log_mask, 1e-6, -np.inf)), bending=np.maximum(raw[25:].reshape(3, 5), 1e-12),
+        # plain SGD can step a positive quantity below zero (the seed's code would then simulate a negative
+        # stiffness); this keeps the material valid and says so
+        floor = np.concatenate([[1e-6], np.where(param._log_mask, 1e-6, -np.inf).ravel(), np.full(15, 1e-12)])
+        if np.any(raw < floor):
+            bad = np.flatnonzero(raw < floor)
+            warnings.warn(f"seed-sgd stepped parameters {bad.tolist()} (0 = density, 1-24 stretching, 25-39 bending) "
+                          "below zero; they were raised to a tiny positive value", stacklevel=3)
+            raw = np.maximum(raw, floor)
+        m = Material(density=raw[0], stretching=raw[1:25].reshape(6, 4), bending=raw[25:].reshape(3, 5),
                      thicken=ref.thicken)
         theta = param.encode(m)
         loss, g_theta = objective(theta, steps)
-        # back from theta to the seed's scaled units: d/d raw = g_theta / (d theta / d raw), d/d scaled = * unit
-        d_raw = param.chain(theta, 1.0, np.ones(STRETCHING_SHAPE), np.ones(BENDING_SHAPE))
-        g_scaled = g_theta / d_raw * unit
+        # to the seed's scaled units: d/d raw = (d/d theta) / (d raw / d theta), d/d scaled = d/d raw * unit
+        draw_dtheta = param.chain(theta, 1.0, np.ones(STRETCHING_SHAPE), np.ones(BENDING_SHAPE))
+        g_scaled = g_theta / draw_dtheta * unit
         velocity = 0.9 * velocity + g_scaled
         scaled = scaled - lr * velocity
         if loss < 1e-4 and steps < fit.steps:

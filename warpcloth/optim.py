@@ -20,7 +20,7 @@ def adam(f: Objective, theta: np.ndarray, *, iters: int, lr: float = 0.05, betas
     v = np.zeros_like(theta)
     best = (math.inf, theta)
     for k in range(1, iters + 1):
-        loss, g = f(theta)
+        loss, g = f(theta)  # an infinite loss (a diverged trial) comes with a zero gradient: momentum carries on
         if loss < best[0]:
             best = (loss, theta.copy())
         if callback:

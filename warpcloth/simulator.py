@@ -174,7 +174,11 @@ class Simulator:
         self._previous_in, self._previous_out = state_in, state_out
         self.step_count += 1
         self.stats["steps"] += 1
-        self._check(state_out)
+        try:
+            self._check(state_out)
+        except SimulationError:
+            self._previous_dv = None  # a diverged step's solution must not warm-start the next solve
+            raise
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
         """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
