@@ -15,7 +15,8 @@ from collections.abc import Callable
 
 import warp as wp
 
-from warpcloth.model import Control, State
+from warpcloth.model import State
+from warpcloth.rollout import ControlSchedule, check_schedule, control_at
 from warpcloth.simulator import Simulator
 
 StepLoss = Callable[[int, State, wp.array], None]
@@ -27,18 +28,10 @@ def _clone(state: State, *, requires_grad: bool) -> State:
                  wp.clone(state.particle_v, requires_grad=requires_grad), state.time)
 
 
-def _control_at(control, i: int) -> Control | None:
-    if callable(control):
-        return control(i)
-    if isinstance(control, (list, tuple)):
-        return control[i]
-    return control
-
-
 def checkpointed_backward(
     sim: Simulator,
     state: State,
-    control: Control | list[Control] | Callable[[int], Control] | None,
+    control: ControlSchedule,
     *,
     steps: int,
     loss: StepLoss,
@@ -69,6 +62,7 @@ def checkpointed_backward(
     seg = math.ceil(math.sqrt(steps)) if segment_steps is None else segment_steps
     if int(seg) != seg or seg < 1:
         raise ValueError(f"segment_steps must be a positive integer, got {segment_steps!r}")
+    check_schedule(control, steps)
     if sim.model.wind_lagged_normals:
         # the first step of a re-simulated segment would not see the step before it (ARCSim's lagged normals)
         raise ValueError("checkpointed_backward does not support wind_lagged_normals; record a full wp.Tape instead")
@@ -80,7 +74,7 @@ def checkpointed_backward(
         current = start
         for i in range(first, last):
             nxt = model.empty_state(requires_grad=requires_grad)
-            sim.step(current, nxt, _control_at(control, i))
+            sim.step(current, nxt, control_at(control, i))
             loss(i + 1, nxt, out)
             current = nxt
         return current

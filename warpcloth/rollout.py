@@ -8,10 +8,29 @@ from warpcloth.model import Control, State
 from warpcloth.simulator import Simulator
 
 
+ControlSchedule = Control | Sequence[Control] | Callable[[int], Control] | None
+"""One Control for every step, a sequence with one per step, or a function of the step index."""
+
+
+def check_schedule(control: ControlSchedule, steps: int) -> None:
+    """Raise ValueError when a per-step sequence is shorter than ``steps``."""
+    if isinstance(control, Sequence) and len(control) < steps:
+        raise ValueError(f"control has {len(control)} entries but {steps} steps were asked for")
+
+
+def control_at(control: ControlSchedule, i: int) -> Control | None:
+    """The Control of step ``i`` of a schedule."""
+    if callable(control):
+        return control(i)
+    if isinstance(control, Sequence):
+        return control[i]
+    return control
+
+
 def rollout(
     sim: Simulator,
     state: State,
-    control: Control | Sequence[Control] | Callable[[int], Control] | None = None,
+    control: ControlSchedule = None,
     *,
     steps: int,
     progress: bool = False,
@@ -29,8 +48,7 @@ def rollout(
     """
     if int(steps) != steps or steps < 0:
         raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
-    if isinstance(control, Sequence) and len(control) < steps:
-        raise ValueError(f"control has {len(control)} entries but {steps} steps were asked for")
+    check_schedule(control, steps)
     trajectory = [state]
     indices = range(int(steps))
     if progress:
@@ -38,13 +56,7 @@ def rollout(
 
         indices = tqdm(indices, desc="simulate", unit="step")
     for i in indices:
-        if callable(control):
-            c = control(i)
-        elif isinstance(control, Sequence):
-            c = control[i]
-        else:
-            c = control
         nxt = sim.model.empty_state()
-        sim.step(trajectory[-1], nxt, c)
+        sim.step(trajectory[-1], nxt, control_at(control, i))
         trajectory.append(nxt)
     return trajectory
