@@ -36,9 +36,12 @@ MIN_EDGE_SINE = wp.constant(wp.float64(1.0e-2))
 """Crossing edges closer to parallel than this sine (0.57 degrees) are left to the vertex-face tests of their ends:
 the plane they span, and so the constraint's normal, is ill-defined."""
 
-PROXIMITY_MARGIN = wp.constant(wp.float64(1.0 - 1.0e-6))
+PROXIMITY_MARGIN = wp.constant(wp.float64(1.0 - 1.0e-2))
 """Proximity contacts need a distance below thickness * margin: pairs the projection just left at the thickness
-are not found again as new contacts in the next round (that would only add dependent constraints)."""
+are not found again as new contacts in the next round (that would only add dependent constraints). The 1 % slack
+absorbs the float32 rounding of the projected positions (~1e-7 m at 1 m from the origin) and the error of the
+frozen normals' linearisation; with 1e-6 a cloth resting on a tessellated sphere kept re-finding the same pairs
+for 100 rounds (16x16 on a 0.3 m sphere, dt 0.01)."""
 
 
 @wp.func
