@@ -15,6 +15,7 @@ from warpcloth.obstacles import (
     plane_mesh,
     sphere_mesh,
 )
+from warpcloth.presets import PRESET_SOLVER_NAMES, SolverPreset, solver_preset
 from warpcloth.rollout import rollout
 from warpcloth.scene import SCENE_NAMES, Scene, load_scene
 from warpcloth.simulator import SimulationError, Simulator, SolverOptions
@@ -28,12 +29,14 @@ __all__ = [
     "ModelBuilder",
     "Obstacle",
     "PRESET_NAMES",
+    "PRESET_SOLVER_NAMES",
     "RigidMotion",
     "SCENE_NAMES",
     "Scene",
     "SimulationError",
     "Simulator",
     "SolverOptions",
+    "SolverPreset",
     "State",
     "TriangleMesh",
     "box_mesh",
@@ -51,6 +54,7 @@ __all__ = [
     "preset",
     "read_usd_points",
     "rollout",
+    "solver_preset",
     "sphere_mesh",
     "write_usd",
 ]

@@ -11,6 +11,8 @@ Schema (every key is checked: an unknown key or a wrong type is a ``ValueError``
     steps = 50                         # number of steps, >= 1
 
     [solver]                           # optional: fields of warpcloth.simulator.SolverOptions
+    preset = "balanced"                # optional: start from a preset (warpcloth.presets; its max_dt must not
+                                       #   be below sim.dt); the other keys override single fields
     cg_tol = 1e-5
 
     [cloth]                            # required; exactly one of grid / mesh
@@ -75,7 +77,6 @@ stiffness and motion. Particle indices are those of the cloth (the scene's only 
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import os
 import tomllib
@@ -309,7 +310,7 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     dt = _float(sim["dt"], "sim.dt", min_value=0.0, strict=True)
     steps = _int(sim["steps"], "sim.steps", min_value=1)
 
-    solver_options = _parse_solver(data.get("solver", {}))
+    solver_options = _parse_solver(data.get("solver", {}), dt)
 
     builder = ModelBuilder(gravity=gravity)
     first, grid_res, count = _parse_cloth(builder, _table(data["cloth"], "cloth"), base_dir)
@@ -371,20 +372,25 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     )
 
 
-def _parse_solver(value: Any):
-    """Builds SolverOptions from the [solver] table, checking each key against its fields and their defaults' types."""
+def _parse_solver(value: Any, dt: float):
+    """SolverOptions from the [solver] table: an optional ``preset`` (warpcloth.presets), then single fields, each
+    checked against SolverOptions' fields and their defaults' types."""
+    from warpcloth.presets import PRESET_SOLVER_NAMES, solver_preset
     from warpcloth.simulator import SolverOptions
 
-    table = _table(value, "solver")
-    if dataclasses.is_dataclass(SolverOptions):
-        defaults = {
-            f.name: (f.default if f.default is not dataclasses.MISSING else None)
-            for f in dataclasses.fields(SolverOptions)
-        }
-    else:
-        params = inspect.signature(SolverOptions).parameters
-        defaults = {k: (p.default if p.default is not inspect.Parameter.empty else None) for k, p in params.items()}
-    _check_keys(table, "solver", tuple(defaults))
+    table = dict(_table(value, "solver"))
+    defaults = {f.name: f.default for f in dataclasses.fields(SolverOptions)}
+    _check_keys(table, "solver", ("preset",) + tuple(defaults))
+    base = SolverOptions()
+    if "preset" in table:
+        name = _str(table.pop("preset"), "solver.preset")
+        if name not in PRESET_SOLVER_NAMES:
+            raise _err("solver.preset", f"unknown preset {name!r}; one of: {', '.join(PRESET_SOLVER_NAMES)}")
+        preset = solver_preset(name)
+        if dt > preset.max_dt * (1.0 + 1e-9):
+            raise _err("solver.preset", f"the {name!r} preset steps at most {preset.max_dt:g} s but sim.dt is "
+                                        f"{dt:g} s; lower sim.dt (and raise sim.steps) or choose another preset")
+        base = preset.options
     kwargs = {}
     for key, v in table.items():
         path = f"solver.{key}"
@@ -394,13 +400,13 @@ def _parse_solver(value: Any):
                 raise _err(path, f"expected a boolean, got {_type_name(v)}")
         elif isinstance(default, int):
             v = _int(v, path)
-        elif isinstance(default, float):
+        elif isinstance(default, float) or default is None:  # None: an optional float (adjoint_cg_tol)
             v = _float(v, path)
         elif isinstance(default, str):
             v = _str(v, path)
         kwargs[key] = v
     with _Context("solver"):
-        return SolverOptions(**kwargs)
+        return dataclasses.replace(base, **kwargs)
 
 
 def _parse_cloth(builder, cloth: dict, base_dir: Path) -> tuple[int, tuple[int, int] | None, int]:

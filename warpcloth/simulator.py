@@ -24,12 +24,21 @@ from warpcloth.model import Control, Model, State
 from warpcloth.tape import active_tape, record_adjoint
 
 
+ELONGATED_ASPECT_RATIO = 100.0
+"""Rest aspect ratio (longest edge^2 / (2 area)) from which a failed solve or a divergence names the most elongated
+triangle: its stiffness relative to its mass, and with it the condition of the system, grows with the ratio."""
+
+
 @dataclass(frozen=True)
 class SolverOptions:
     """Options of the linear solve and of the divergence guard."""
 
     cg_tol: float = 1.0e-5
-    """Relative residual tolerance |b - A dv| <= cg_tol |b| of the forward and the adjoint CG solves."""
+    """Relative residual tolerance |b - A dv| <= cg_tol |b| of the forward CG solve (and of the adjoint one, unless
+    ``adjoint_cg_tol`` is given)."""
+    adjoint_cg_tol: float | None = None
+    """Relative residual tolerance of the adjoint CG solve of the backward pass; None: the same as ``cg_tol``.
+    The gradient's error follows it as the trajectory's follows cg_tol (benchmarks/tradeoff.py)."""
     cg_atol: float = 1.0e-12
     """Absolute residual floor (in the units of b, N*s)."""
     cg_max_iters: int = 1000
@@ -66,8 +75,10 @@ class SolverOptions:
 
     def validate(self) -> None:
         """Raise ValueError naming the first option out of range."""
-        for name in ("cg_tol", "cg_atol", "max_speed", "qp_tol"):
+        for name in ("cg_tol", "cg_atol", "max_speed", "qp_tol", "adjoint_cg_tol"):
             val = getattr(self, name)
+            if name == "adjoint_cg_tol" and val is None:
+                continue
             if not math.isfinite(val) or val <= 0.0:
                 raise ValueError(f"SolverOptions.{name} must be finite and > 0, got {val}")
         if not 0.0 < self.ssor_omega < 2.0:
@@ -138,6 +149,7 @@ class Simulator:
         self._previous_in: State | None = None  # state_in and state_out of the last step (ARCSim's lagged normals)
         self._previous_out: State | None = None
         self._warp_matrix = None
+        self._elongated: tuple[int, float, int] | None = None  # (triangle, aspect ratio, count): _mesh_hint
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
         self._zero_offsets = {
@@ -374,7 +386,7 @@ class Simulator:
             lam = self._adjoint_solution
             if not self.options.warm_start:
                 lam.zero_()
-            it, res, ok = self._cg(values, dv.grad, lam, warm_start=self.options.warm_start)
+            it, res, ok = self._cg(values, dv.grad, lam, warm_start=self.options.warm_start, adjoint=True)
             self.stats["adjoint_cg_iterations"] += it
             self._check_solve("adjoint", step, it, res, ok)
             wp.launch(self.linear.solve_adjoint_scatter, self.model.particle_count, device=self.device,
@@ -383,28 +395,29 @@ class Simulator:
 
         record_adjoint(adjoint, arrays=[values, rhs, dv])
 
-    def _cg(self, values: wp.array, b: wp.array, x: wp.array, *, warm_start: bool = False
+    def _cg(self, values: wp.array, b: wp.array, x: wp.array, *, warm_start: bool = False, adjoint: bool = False
             ) -> tuple[int, float, bool]:
         """Solve A x = b; with ``warm_start`` x holds the initial guess on entry.
 
         Returns the iterations, the relative residual |b - A x| / |b| and whether the tolerance was met.
         """
         opt = self.options
+        tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
         model = self.model
         kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
         if self.cg_backend == "sequential":
             r, z, p, q = self._cg_scratch
             wp.launch(self.linear.cg_sequential, 1, device=self.device,
                       inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
-                              float(opt.cg_tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
+                              float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
                               model.scalar(opt.ssor_omega), int(warm_start),
                               r, z, p, q, self._precond],
                       outputs=[x, self._cg_info], record_tape=False)
             info = self._cg_info.numpy()
             return int(info[0]), float(info[1]), bool(info[2])
-        return self._cg_warp(values, b, x, warm_start=warm_start)
+        return self._cg_warp(values, b, x, tol, warm_start=warm_start)
 
-    def _cg_warp(self, values, b, x, *, warm_start: bool = False) -> tuple[int, float, bool]:
+    def _cg_warp(self, values, b, x, tol: float, *, warm_start: bool = False) -> tuple[int, float, bool]:
         """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path)."""
         import warp.optim.linear as wl
         import warp.sparse as ws
@@ -426,7 +439,7 @@ class Simulator:
         M = wl.preconditioner(A, "block_jacobi_direct" if self.preconditioner == "block_jacobi" else "diag")
         opt = self.options
         # warp's cg tests |r| <= max(tol |b|, atol); check_every=1 reports the exact iteration count
-        iters, residual, threshold = wl.cg(A, b, x, tol=opt.cg_tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters,
+        iters, residual, threshold = wl.cg(A, b, x, tol=tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters,
                                            M=M, check_every=1, use_cuda_graph=False)
         bnorm = float(np.linalg.norm(b.numpy()))
         return int(iters), float(residual) / max(bnorm, 1e-300), bool(residual <= threshold)
@@ -434,9 +447,13 @@ class Simulator:
     def _check_solve(self, which: str, step: int, iters: int, residual: float, converged: bool) -> None:
         opt = self.options
         if not converged:
+            name, tol = "cg_tol", opt.cg_tol
+            if which == "adjoint" and opt.adjoint_cg_tol is not None:
+                name, tol = "adjoint_cg_tol", opt.adjoint_cg_tol
             msg = (f"{which} CG solve of step {step} did not converge: relative residual {residual:.3e} "
-                   f"after {iters} iterations (cg_tol {opt.cg_tol:g}); raise cg_max_iters or lower dt, or loosen cg_tol or "
-                   "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)")
+                   f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
+                   "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
+                   + self._mesh_hint())
             if not math.isfinite(residual) or opt.on_cg_failure == "raise":
                 raise SimulationError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
@@ -457,4 +474,46 @@ class Simulator:
             raise SimulationError(
                 f"simulation diverged at step {self.step_count} (t = {state.time:.4g} s): particle {p} has "
                 f"x = {x.tolist()}, v = {v.tolist()} (speed limit {self.options.max_speed:g} m/s); "
-                "lower dt, raise damping, or check the material and forces")
+                "lower dt, raise damping, or check the material and forces" + self._wind_hint() + self._mesh_hint())
+
+    def _wind_hint(self) -> str:
+        """Why the explicit wind force may have diverged: dt beyond its stability limit (else "").
+
+        The wind force has no Jacobian in the system, so per unit area a face's relative normal velocity u changes by
+        -dt (wind density) |u| u / (area density) in a step: it overshoots and grows once dt exceeds
+        2 (area density) / ((wind density) |u|); the tangential drag likewise beyond 2 (area density) / drag.
+        """
+        model = self.model
+        if model.wind_velocity is None:
+            return ""
+        speed = float(np.linalg.norm(model.wind_velocity.numpy()[0]))
+        air, drag = float(model.wind_density.numpy()[0]), float(model.wind_drag.numpy()[0])
+        cloth = float(np.min(model.material_density.numpy() * model.material_thicken.numpy()))
+        limits = {}
+        if air * speed > 0.0:
+            limits["2*(cloth density)/(wind density*|wind|)"] = 2.0 * cloth / (air * speed)
+        if drag > 0.0:
+            limits["2*(cloth density)/(wind drag)"] = 2.0 * cloth / drag
+        if not limits or self.dt <= min(limits.values()):
+            return ""
+        formula, limit = min(limits.items(), key=lambda item: item[1])
+        return (f"; the wind force is explicit: a {speed:.3g} m/s wind (density {air:g}, drag {drag:g}) on cloth of "
+                f"{cloth:.3g} kg/m^2 is stable only for dt < {formula} = {limit:.3g} s: lower dt below that, or the "
+                "wind speed")
+
+    def _mesh_hint(self) -> str:
+        """Name the most elongated rest triangle when it reaches ELONGATED_ASPECT_RATIO (else "")."""
+        model = self.model
+        if self._elongated is None:  # computed on the first failure only
+            dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: material-space edges
+            e1, e2 = dm[:, :, 0], dm[:, :, 1]
+            longest = np.max([np.sum(e * e, axis=1) for e in (e1, e2, e2 - e1)], axis=0)
+            aspect = longest / np.abs(np.linalg.det(dm))  # longest^2 / (2 area): 2 for half a square
+            t = int(np.argmax(aspect))
+            self._elongated = (t, float(aspect[t]), int(np.count_nonzero(aspect >= ELONGATED_ASPECT_RATIO)))
+        t, ratio, count = self._elongated
+        if ratio < ELONGATED_ASPECT_RATIO:
+            return ""
+        return (f"; triangle {t} {model.triangles_np[t].tolist()} is elongated (rest aspect ratio {ratio:.3g}; "
+                f"{count} triangle(s) at or above {ELONGATED_ASPECT_RATIO:g}), which makes the system ill-conditioned: "
+                "remesh it, or use dtype=wp.float64")
