@@ -143,6 +143,9 @@ class Simulator:
         self._precond = wp.empty(n, dtype=mat33, device=self.device)
         self._cg_info = wp.zeros(3, dtype=wp.float64, device=self.device)
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
+        # host views of the two arrays read every step (on the CPU they share memory: no copy, no launch per read)
+        self._cg_info_host = self._cg_info.numpy() if self.device.is_cpu else None
+        self._status_host = self._status.numpy() if self.device.is_cpu else None
         self._adjoint_solution = wp.zeros(n, dtype=vec3, device=self.device)
         self._step_buffers = None
         self._previous_dv = None
@@ -172,25 +175,31 @@ class Simulator:
         self._assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
         self._solve_recorded(values, rhs, dv)
 
+        max_speed = model.scalar(self.options.max_speed)
+        if self._status_host is not None:
+            self._status_host[0] = 0
+        else:
+            self._status.zero_()
         if self.collision is None:
             wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt],
-                      outputs=[state_out.particle_x, state_out.particle_v])
+                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt, max_speed],
+                      outputs=[state_out.particle_x, state_out.particle_v, self._status])
         else:
             candidate = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
             x_hat, v_hat = candidate.particle_x, candidate.particle_v
             wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt], outputs=[x_hat, v_hat])
+                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt, max_speed],
+                      outputs=[x_hat, v_hat, self._status])
+            self._raise_if_diverged(candidate, t_next, self.step_count + 1)  # no NaN or runaway particle reaches the collision stage
             self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, self.step_count + 1)
+            wp.launch(self.linear.check_state, model.particle_count, device=self.device,
+                      inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
+                      record_tape=False)  # the projection's velocity change too
         state_out.time = t_next
         self._previous_in, self._previous_out = state_in, state_out
         self.step_count += 1
         self.stats["steps"] += 1
-        try:
-            self._check(state_out)
-        except SimulationError:
-            self._previous_dv = None  # a diverged step's solution must not warm-start the next solve
-            raise
+        self._raise_if_diverged(state_out, t_next, self.step_count)
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
         """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
@@ -413,7 +422,7 @@ class Simulator:
                               model.scalar(opt.ssor_omega), int(warm_start),
                               r, z, p, q, self._precond],
                       outputs=[x, self._cg_info], record_tape=False)
-            info = self._cg_info.numpy()
+            info = self._cg_info_host if self._cg_info_host is not None else self._cg_info.numpy()
             return int(info[0]), float(info[1]), bool(info[2])
         return self._cg_warp(values, b, x, tol, warm_start=warm_start)
 
@@ -461,18 +470,17 @@ class Simulator:
             raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual; "
                                   "the system is not positive definite or the state is already invalid")
 
-    def _check(self, state: State) -> None:
-        self._status.zero_()
-        wp.launch(self.linear.check_state, self.model.particle_count, device=self.device,
-                  inputs=[state.particle_x, state.particle_v, self.model.scalar(self.options.max_speed)],
-                  outputs=[self._status], record_tape=False)
-        bad = int(self._status.numpy()[0])
+    def _raise_if_diverged(self, state: State, t: float, step: int) -> None:
+        """Raise SimulationError if the divergence guard (``self._status``) flagged a particle of ``state``, the
+        result of step number ``step`` at time ``t``."""
+        bad = int((self._status_host if self._status_host is not None else self._status.numpy())[0])
         if bad:
+            self._previous_dv = None  # a diverged step's solution must not warm-start the next solve
             p = bad - 1
             x = state.particle_x.numpy()[p]
             v = state.particle_v.numpy()[p]
             raise SimulationError(
-                f"simulation diverged at step {self.step_count} (t = {state.time:.4g} s): particle {p} has "
+                f"simulation diverged at step {step} (t = {t:.4g} s): particle {p} has "
                 f"x = {x.tolist()}, v = {v.tolist()} (speed limit {self.options.max_speed:g} m/s); "
                 "lower dt, raise damping, or check the material and forces" + self._wind_hint() + self._mesh_hint())
 
