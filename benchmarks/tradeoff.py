@@ -28,15 +28,18 @@ frictionless sheet slides off the sphere's top in a direction that tiny differen
 A setting the simulator cannot run raises; the row shows the error. The presets (warpcloth.presets) are measured
 the same way. Output: a table per scene, JSON, and a Pareto plot of error against wall time (PNG).
 
-Usage: python benchmarks/tradeoff.py [--json PATH] [--plot PNG] [--quick 1]
+Usage: python benchmarks/tradeoff.py [--json PATH] [--plot PNG] [--quick 1] [--scenes hanging,sphere]
+       python benchmarks/tradeoff.py --from-json PATH [--plot PNG]    (table and plot of an earlier run)
 """
 
 from __future__ import annotations
 
+import json
 import math
 import time
 import traceback
 import warnings
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -196,6 +199,8 @@ def sweeps(scene: str, quick: bool) -> list[tuple[str, str, dict]]:
     return rows
 
 
+OWN_REFERENCE = ("res", "thickness")
+"""Families scored against a reference of their own (finest mesh; same thickness), so not comparable with the rest."""
 SOLVER_FAMILIES = ("cg_tol", "adjoint_cg_tol", "cg_max_iters", "dtype", "collision_rounds", "preset")
 """Rows also scored against the tight float64 solve at their own dt (solve_err_pct, solve_grad_err_pct)."""
 
@@ -272,16 +277,22 @@ def plot(results: dict[str, list[dict]], path: str) -> None:
                                                          ("grad_err_pct", "grad_wall_s", "gradient"))):
             ax = axes[r_i][col]
             ok = [r for r in rows if r.get(err_key) is not None and r.get(time_key) is not None]
-            for family in dict.fromkeys(r["family"] for r in ok):
+            for k, family in enumerate(dict.fromkeys(r["family"] for r in ok)):
                 pts = [r for r in ok if r["family"] == family]
-                ax.scatter([r[time_key] for r in pts], [max(r[err_key], 1e-8) for r in pts], label=family,
-                           marker="*" if family == "preset" else "o", s=90 if family == "preset" else 30)
+                own = family in OWN_REFERENCE
+                ax.scatter([r[time_key] for r in pts], [max(r[err_key], 1e-8) for r in pts],
+                           label=f"{family} (own reference)" if own else family,
+                           marker="*" if family == "preset" else ("s" if own else "o"),
+                           s=90 if family == "preset" else 30, edgecolors=f"C{k}",
+                           facecolors="none" if own else f"C{k}")
                 for r in pts:
                     if family == "preset":
                         ax.annotate(r["label"].split()[-1], (r[time_key], max(r[err_key], 1e-8)), fontsize=8)
-            front = pareto([(r[time_key], max(r[err_key], 1e-8)) for r in ok])
-            ax.plot([ok[i][time_key] for i in front], [max(ok[i][err_key], 1e-8) for i in front], "k--", lw=0.8,
-                    label="Pareto front")
+            # resolution and thickness rows are scored against references of their own: not on the front
+            same_ref = [r for r in ok if r["family"] not in OWN_REFERENCE]
+            front = pareto([(r[time_key], max(r[err_key], 1e-8)) for r in same_ref])
+            ax.plot([same_ref[i][time_key] for i in front], [max(same_ref[i][err_key], 1e-8) for i in front], "k--",
+                    lw=0.8, label="Pareto front")
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel(f"wall time per simulated second [s] ({'forward' if r_i == 0 else 'forward + backward'})")
@@ -295,7 +306,15 @@ def plot(results: dict[str, list[dict]], path: str) -> None:
 
 
 def main():
-    args = common.parse_args(__doc__.splitlines()[0], plot="tradeoff.png", quick=0, scenes="hanging,sphere")
+    args = common.parse_args(__doc__.splitlines()[0], plot="tradeoff.png", quick=0, scenes="hanging,sphere",
+                             from_json="")
+    if args.from_json:  # table and plot again from a previous run's JSON
+        data = json.loads(Path(args.from_json).read_text())
+        for scene, rows in data["scenes"].items():
+            common.print_table(HEADERS, [table_row(r) for r in rows], SPECS, title=scene)
+        if args.plot:
+            plot(data["scenes"], args.plot)
+        return
     info = common.machine_info()
     common.print_machine(info)
     results = {}
