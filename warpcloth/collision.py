@@ -88,6 +88,12 @@ class CollisionStage:
         self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
         if obstacles:
             self._check_start_outside(model)
+        # every triangle's three edges and their rest lengths (material space): the projection-strain guard
+        tris = model.triangles_np
+        dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: rest edges x1 - x0, x2 - x0
+        self._edge_ends = np.concatenate([tris[:, [0, 1]], tris[:, [0, 2]], tris[:, [1, 2]]])
+        self._edge_rest = np.concatenate([np.linalg.norm(dm[:, :, 0], axis=1), np.linalg.norm(dm[:, :, 1], axis=1),
+                                          np.linalg.norm(dm[:, :, 1] - dm[:, :, 0], axis=1)])
         self.last = {}
         """Statistics of the last step: rounds, contacts, and the projection's per-zone records."""
         self.last_projections: list[tuple[projection.ProjectionResult, wp.array]] = []
@@ -210,8 +216,34 @@ class CollisionStage:
             stats["rounds"] = round_index + 1
         stats["contacts"] = 0 if contacts is None else len(contacts["mode"])
         self.last = stats
+        if contacts is not None:
+            self._check_projection_strain(x_hat, z, step)
         wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
                   outputs=[state_out.particle_x, state_out.particle_v])
+
+    def _check_projection_strain(self, x_hat: wp.array, z: wp.array, step: int) -> None:
+        """Raise CollisionError if the projection alone lengthened an edge by more than
+        ``SolverOptions.max_projection_strain`` of its rest length.
+
+        The projection moves particles onto the contacts' linearised constraints; when a step carries the cloth
+        further than an element past an obstacle's curvature (a coarse cloth wrapping a small sphere at speed),
+        neighbours land on different sides, the edges between them are stretched by the projection, and the next
+        implicit step turns that stretch into motion that the next projection stretches again: energy grows step
+        after step (a 20 m/s impact on a 0.25 m sphere at dt 0.01: 66 J to 2600 J in 12 steps). Well-resolved
+        contact stays far below the limit (0.23 at most for that impact at dt 1 ms and a drape at dt 0.01).
+        """
+        zn, xn = z.numpy().astype(np.float64), x_hat.numpy().astype(np.float64)
+        a, b = self._edge_ends[:, 0], self._edge_ends[:, 1]
+        # lengthening only: stopping a falling strip's lowest vertices shortens edges, which buckling absorbs
+        strain = (np.linalg.norm(zn[a] - zn[b], axis=1) - np.linalg.norm(xn[a] - xn[b], axis=1)) / self._edge_rest
+        j = int(np.argmax(strain))
+        limit = self.options.max_projection_strain
+        if strain[j] > limit:
+            raise CollisionError(
+                f"step {step}: the collision response stretched the edge between particles {int(a[j])} and "
+                f"{int(b[j])} by {strain[j]:.3g} of its rest length in one step (SolverOptions.max_projection_strain "
+                f"{limit:g}): the cloth moves too far per step for the contacts' linearisation, which then pumps "
+                "energy into it step after step; lower dt")
 
     def _geometry(self, start, end, contacts, recording, step) -> tuple[wp.array, wp.array]:
         """Normals and weights of new contacts at their frozen time of impact, from the positions they were found

@@ -67,6 +67,10 @@ class SolverOptions:
     collision_adjoint: str = "qr"
     """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
     dense KKT system of the whole zone: the seed's baseline, for comparison)."""
+    max_projection_strain: float = 0.5
+    """Most strain (|change of an edge's vector| / rest length) the collision projection may add to an edge in one
+    step; more raises CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
+    (warpcloth/collision.py, _check_projection_strain)."""
     qp_tol: float = 1.0e-10
     """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
 
@@ -75,7 +79,7 @@ class SolverOptions:
 
     def validate(self) -> None:
         """Raise ValueError naming the first option out of range."""
-        for name in ("cg_tol", "cg_atol", "max_speed", "qp_tol", "adjoint_cg_tol"):
+        for name in ("cg_tol", "cg_atol", "max_speed", "qp_tol", "adjoint_cg_tol", "max_projection_strain"):
             val = getattr(self, name)
             if name == "adjoint_cg_tol" and val is None:
                 continue
