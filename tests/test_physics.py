@@ -178,11 +178,17 @@ def test_absent_components_launch_nothing(monkeypatch):
     b = wc.ModelBuilder()
     b.add_cloth_grid((3, 3), (0.3, 0.3), material=wc.preset("gray-interlock"))
     model = b.finalize("cpu")
-    wc.rollout(wc.Simulator(model, 0.01), model.state(), steps=2)
+    sim = wc.Simulator(model, 0.01)
+    wc.rollout(sim, model.state(), steps=2)
     names = " ".join(launched)
-    for absent in ("wind", "handles", "pin_rows", "external_forces"):
+    for absent in ("wind", "handles", "pin_rows", "external_forces", "check_state", "copy_guess"):
         assert absent not in names, f"{absent} launched for a scene without it: {launched}"
-    assert "faces" in names and "integrate" in names
+    # the bare integrator and nothing else: assembly, the one-launch CG, the update (with the divergence guard)
+    per_step = ["faces", "hinges", "cg_sequential", "integrate"]
+    assert [next((k for k in per_step if k in name), name) for name in launched] == per_step * 2, launched
+    # and no buffers for what is absent
+    assert sim.collision is None and model.collision is None and model.wind_velocity is None
+    assert model.handle_count == 0 and model.pin_count == 0
 
 
 def _wind_sim(lagged, requires_grad=False):
