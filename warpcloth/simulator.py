@@ -68,8 +68,8 @@ class SolverOptions:
     """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
     dense KKT system of the whole zone: the seed's baseline, for comparison)."""
     max_projection_strain: float = 0.5
-    """Most strain (|change of an edge's vector| / rest length) the collision projection may add to an edge in one
-    step; more raises CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
+    """Most an edge may lengthen in the collision projection of one step, in rest lengths; more raises
+    CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
     (warpcloth/collision.py, _check_projection_strain)."""
     qp_tol: float = 1.0e-10
     """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
@@ -194,7 +194,8 @@ class Simulator:
             wp.launch(k.integrate, model.particle_count, device=self.device,
                       inputs=[state_in.particle_x, state_in.particle_v, dv, dt, max_speed],
                       outputs=[x_hat, v_hat, self._status])
-            self._raise_if_diverged(candidate, t_next, self.step_count + 1)  # no NaN or runaway particle reaches the collision stage
+            # no NaN or runaway particle reaches the collision stage
+            self._raise_if_diverged(candidate, t_next, self.step_count + 1)
             self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, self.step_count + 1)
             wp.launch(self.linear.check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
