@@ -221,13 +221,14 @@ def measure(scene: str, quick: bool, progress) -> list[dict]:
                 raise SystemExit(f"{scene}: the reference run failed: {refs[key]['error']}")
         return refs[key]
 
+    settings = sweeps(scene, quick)
+    finest = max((k["res"] for f, _, k in settings if f == "res"), default=None)
     rows = []
-    for family, label, kw in sweeps(scene, quick):
+    for family, label, kw in settings:
         row = run(scene, **kw)
         row.update(family=family, label=label)
         if family == "res":
             # resolution: against the finest mesh at the same dt (the discretisation of space alone)
-            finest = max(k["res"] for f, _, k in sweeps(scene, quick) if f == "res")
             score(row, ref_for(("res", finest), res=finest, dt=row["dt"]), compare_lattice=True)
         elif family == "thickness":
             score(row, ref_for(("thickness", kw["thickness"]), res=16, thickness=kw["thickness"]))
