@@ -27,7 +27,7 @@ import warp as wp
 
 import common
 from common import wc
-from warpcloth import projection
+from warpcloth.collision import projection
 
 SEED = {  # mesh: (baseline size, baseline s, ours size, ours s, speedup)
     "16x16": ("599 ± 76", 0.33, "66 ± 26", 0.013, 25),

@@ -4,7 +4,7 @@ Scene: ``common.hanging_cloth`` (1 m sheet, RESxRES cells, gray-interlock x2, tw
 default SolverOptions), in float32 and float64. Loss: the final mean height of the cloth. Gradients of the loss with
 respect to the initial velocities (2-norm over every particle's three components), the density, and the 6x4
 stretching table (2-norm). Horizons up to TAPE_MAX steps are recorded on one ``wp.Tape``; longer ones go through
-``warpcloth.checkpoint.checkpointed_backward`` (O(sqrt T) stored states).
+``warpcloth.solver.checkpointed_backward`` (O(sqrt T) stored states).
 
     |dL/dv0|, |dL/drho|, |dL/dS|   the norms at each horizon
     growth                         norm / norm at the previous horizon
@@ -24,7 +24,7 @@ import warp as wp
 
 import common
 from common import wc
-from warpcloth.checkpoint import checkpointed_backward
+from warpcloth.solver.checkpoint import checkpointed_backward
 
 TAPE_MAX = 200
 """Longest horizon recorded on a single tape; longer ones are checkpointed."""

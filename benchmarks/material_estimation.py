@@ -21,7 +21,7 @@ import numpy as np
 
 import common
 from common import wc
-from warpcloth import estimation as E
+from warpcloth.tasks import estimation as E
 
 KEYS = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", "stretch_nonlinear_err_pct",
         "bending_err_pct", "sim_err_pct")

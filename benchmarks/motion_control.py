@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import common
-from warpcloth import control as C
+from warpcloth.tasks import throw as C
 
 
 def _rss_mb() -> float:

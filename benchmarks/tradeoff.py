@@ -25,7 +25,7 @@ frictionless sheet slides off the sphere's top in a direction that tiny differen
     grad_wall_s   wall time of the taped forward + backward per simulated second
     cg_fails      steps whose forward or adjoint solve missed its tolerance (each warns)
 
-A setting the simulator cannot run raises; the row shows the error. The presets (warpcloth.presets) are measured
+A setting the simulator cannot run raises; the row shows the error. The presets (warpcloth.solver.presets) are measured
 the same way. Output: a table per scene, JSON, and a Pareto plot of error against wall time (PNG).
 
 Usage: python benchmarks/tradeoff.py [--json PATH] [--plot PNG] [--quick 1] [--scenes hanging,sphere]
@@ -94,7 +94,7 @@ def run(scene: str, *, res: int = 16, dt: float | None = None, dtype=wp.float32,
     out = {"scene": scene, "res": res, "dt": dt, "steps": steps, "dtype": "float64" if dtype == wp.float64
            else "float32", "thickness": thickness if scene == "sphere" else None,
            "cg_tol": options.cg_tol, "adjoint_cg_tol": options.adjoint_cg_tol or options.cg_tol,
-           "cg_max_iters": options.cg_max_iters, "collision_rounds": options.collision_rounds if scene == "sphere"
+           "cg_max_iters": options.cg_max_iters, "collision_rounds": options.collision.rounds if scene == "sphere"
            else None}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
@@ -192,7 +192,7 @@ def sweeps(scene: str, quick: bool) -> list[tuple[str, str, dict]]:
             rows.append(("thickness", f"thickness {thickness:g}", {"thickness": thickness}))
         for rounds in ([1, 2, 5, 10, 20] if not quick else [2, 20]):
             rows.append(("collision_rounds", f"{rounds} rounds",
-                         {"options": wc.SolverOptions(collision_rounds=rounds)}))
+                         {"options": wc.SolverOptions(collision=wc.CollisionOptions(rounds=rounds))}))
     for name in wc.PRESET_SOLVER_NAMES:
         preset = wc.solver_preset(name)
         rows.append(("preset", f"preset {name}", {"options": preset.options, "dt": preset.dt(base_dt)}))
@@ -207,7 +207,7 @@ SOLVER_FAMILIES = ("cg_tol", "adjoint_cg_tol", "cg_max_iters", "dtype", "collisi
 
 def reference(scene: str, res: int, thickness: float = 5.0e-4, dt: float | None = None) -> dict:
     _, _, _, fine_dt, _ = SCENES[scene]
-    opts = wc.SolverOptions(cg_tol=REF_TOL, cg_max_iters=10_000, collision_rounds=100)
+    opts = wc.SolverOptions(cg_tol=REF_TOL, cg_max_iters=10_000, collision=wc.CollisionOptions(rounds=100))
     return run(scene, res=res, dt=dt or fine_dt, dtype=wp.float64, thickness=thickness, options=opts)
 
 

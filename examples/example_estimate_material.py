@@ -9,7 +9,7 @@ starting from the mean of 8 fabrics, L-BFGS on Warp's tape fits density, stretch
 import argparse
 
 import warpcloth as wc
-from warpcloth import estimation
+from warpcloth.tasks import estimation
 
 
 def main(material: str = "tango-red-jet-set", iters: int = 60, steps: int = estimation.STEPS, device=None):

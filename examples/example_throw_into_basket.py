@@ -10,7 +10,7 @@ reads the cloth's state once per second is trained through the simulator instead
 import argparse
 
 import warpcloth as wc
-from warpcloth import control
+from warpcloth.tasks import throw as control
 
 
 def main(iters: int = 30, steps: int = control.STEPS, mlp: bool = False, usd: str | None = None, device=None):

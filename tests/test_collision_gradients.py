@@ -43,7 +43,7 @@ def layers_scene():
 
 def loss_fn(model, steps, dt, adjoint="qr"):
     """Build a simulator and a function (x0, v0, transforms) -> (loss, contact counts) with a random linear loss."""
-    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000, collision_adjoint=adjoint)
+    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000, collision=wc.CollisionOptions(adjoint=adjoint))
     sim = wc.Simulator(model, dt, options=options)
     rng = np.random.default_rng(3)
     cx = rng.standard_normal((model.particle_count, 3))
@@ -55,8 +55,6 @@ def loss_fn(model, steps, dt, adjoint="qr"):
         control = model.control(requires_grad=True)
         if transforms is not None:
             control.obstacle_transform = wp.array(transforms, dtype=model.types.transform, requires_grad=True)
-        sim._previous_dv = None  # identical warm starts for every evaluation
-        sim._adjoint_solution.zero_()
         keys = []
         traj = [state]
         for _ in range(steps):

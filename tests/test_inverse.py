@@ -7,9 +7,9 @@ import pytest
 import warp as wp
 
 import warpcloth as wc
-from warpcloth import control as C
-from warpcloth import estimation as E
-from warpcloth.checkpoint import checkpointed_backward
+from warpcloth.tasks import throw as C
+from warpcloth.tasks import estimation as E
+from warpcloth.solver.checkpoint import checkpointed_backward
 
 EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
 

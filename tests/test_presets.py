@@ -56,7 +56,7 @@ def test_scene_preset_sets_options_and_keys_override_it():
     scene = _scene('[solver]\npreset = "balanced"\ncg_max_iters = 77\n', dt=0.01)
     expected = wc.solver_preset("balanced").options
     assert scene.solver_options.cg_tol == expected.cg_tol
-    assert scene.solver_options.collision_rounds == expected.collision_rounds
+    assert scene.solver_options.collision.rounds == expected.collision.rounds
     assert scene.solver_options.cg_max_iters == 77
 
 

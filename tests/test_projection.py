@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from warpcloth.projection import ProjectionError, _ZoneSolver, backward, project
+from warpcloth.collision.projection import ProjectionError, _ZoneSolver, backward, project
 
 DELTA = 5.0e-4
 

@@ -21,10 +21,11 @@ def hanging_sim(dtype=wp.float64, **options):
 
 
 def assembled(sim):
-    """A state a few steps in (bent, moving) and the buffers of its system."""
+    """A state a few steps in (bent, moving), its dense system, its blocks and a solution buffer."""
     traj = wc.rollout(sim, sim.model.state(), steps=3)
     A, b = sim.dense_system(traj[-1])
-    values, rhs, dv, _ = sim._buffers()
+    values, rhs = sim.assemble(traj[-1])
+    dv = wp.zeros_like(rhs)
     return traj[-1], A, b, values, rhs, dv
 
 
@@ -35,7 +36,7 @@ def assembled(sim):
 def test_cg_matches_dense_solve(backend, preconditioner):
     sim = hanging_sim(cg_tol=1e-12, cg_atol=1e-30, cg_backend=backend, preconditioner=preconditioner)
     _, A, b, values, rhs, dv = assembled(sim)
-    iters, residual, converged = sim._cg(values, rhs, dv)
+    iters, residual, converged = sim.linear_solver.solve(values, rhs, dv)
     assert converged and 0 < iters < sim.options.cg_max_iters and residual <= 1e-12
     expected = np.linalg.solve(A, b)
     np.testing.assert_allclose(dv.numpy().reshape(-1), expected, rtol=1e-9, atol=1e-10 * np.abs(expected).max())
@@ -45,17 +46,13 @@ def test_cg_matches_dense_solve(backend, preconditioner):
                                                     ("warp", "block_jacobi")])
 def test_solve_adjoint_matches_dense(backend, preconditioner):
     sim = hanging_sim(cg_tol=1e-12, cg_backend=backend, preconditioner=preconditioner)
-    state = assembled(sim)[0]
+    _, A, b, values, rhs, _ = assembled(sim)
     model = sim.model
-    values = wp.zeros(model.bsr_nnz, dtype=model.types.mat33, requires_grad=True)
-    rhs = wp.zeros(model.particle_count, dtype=model.types.vec3, requires_grad=True)
+    values, rhs = wp.clone(values, requires_grad=True), wp.clone(rhs, requires_grad=True)
     dv = wp.zeros(model.particle_count, dtype=model.types.vec3, requires_grad=True)
-    pin_dv = wp.zeros_like(dv)
-    sim._assemble(state, model.control(requires_grad=False), state.time + sim.dt, values, rhs, pin_dv)
-    A, b = sim.dense_system(state)
     tape = wp.Tape()
     with tape:
-        sim._solve_recorded(values, rhs, dv)
+        sim.linear_solver.solve_recorded(values, rhs, dv)
     g = np.random.default_rng(0).standard_normal((model.particle_count, 3))
     tape.backward(grads={dv: wp.array(g, dtype=model.types.vec3)})
 
@@ -130,7 +127,7 @@ def test_ssor_warm_start_from_the_solution_takes_no_iterations():
     sim = hanging_sim(cg_tol=1e-10, preconditioner="block_ssor")
     _, A, b, values, rhs, dv = assembled(sim)
     x = wp.array(np.linalg.solve(A, b).reshape(-1, 3), dtype=sim.model.types.vec3)
-    iters, residual, converged = sim._cg(values, rhs, x, warm_start=True)
+    iters, residual, converged = sim.linear_solver.solve(values, rhs, x, guess=x)
     assert converged and iters == 0 and residual <= 1e-10
     cold = wp.zeros_like(x)
-    assert sim._cg(values, rhs, cold)[0] > 5
+    assert sim.linear_solver.solve(values, rhs, cold).iterations > 5

@@ -19,7 +19,7 @@ import warp as wp
 from conftest import VERTICAL, hanging_builder, top_corners
 
 import warpcloth as wc
-from warpcloth.checkpoint import checkpointed_backward
+from warpcloth.solver.checkpoint import checkpointed_backward
 from warpcloth.errors import CollisionError
 from warpcloth.mesh_io import grid_mesh
 from warpcloth.obstacles import sphere_mesh
@@ -366,7 +366,7 @@ def test_impact_at_20_m_per_s_onto_a_sphere():
 def test_impact_at_20_m_per_s_onto_a_sphere_at_10_ms_raises_and_names_dt():
     # At 10 ms the 20 m/s cloth moves 1.6 elements per step: the projection lands neighbours on different sides of
     # the sphere's curvature and, unguarded, grew the stretching energy from 66 J to 2600 J in 12 steps with no
-    # error. The projection-strain guard (SolverOptions.max_projection_strain) stops it and says to lower dt.
+    # error. The projection-strain guard (CollisionOptions.max_projection_strain) stops it and says to lower dt.
     with pytest.raises(CollisionError, match=r"step 3: the collision response stretched the edge .*lower dt"):
         Run(sphere_impact(0.01), 0.01, 5)
 

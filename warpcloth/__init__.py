@@ -15,15 +15,28 @@ from warpcloth.obstacles import (
     plane_mesh,
     sphere_mesh,
 )
-from warpcloth.presets import PRESET_SOLVER_NAMES, SolverPreset, solver_preset
-from warpcloth.rollout import rollout
+from warpcloth.errors import CollisionError, SimulationError
 from warpcloth.scene import SCENE_NAMES, Scene, load_scene
-from warpcloth.simulator import SimulationError, Simulator, SolverOptions
+from warpcloth.solver import (
+    PRESET_SOLVER_NAMES,
+    CollisionOptions,
+    LinearSolver,
+    Simulator,
+    SolveInfo,
+    SolverOptions,
+    SolverPreset,
+    checkpointed_backward,
+    rollout,
+    solver_preset,
+)
 from warpcloth.usd import read_usd_points, write_usd
 
 __all__ = [
+    "CollisionError",
+    "CollisionOptions",
     "CollisionSettings",
     "Control",
+    "LinearSolver",
     "Material",
     "Model",
     "ModelBuilder",
@@ -34,12 +47,14 @@ __all__ = [
     "SCENE_NAMES",
     "Scene",
     "SimulationError",
+    "SolveInfo",
     "Simulator",
     "SolverOptions",
     "SolverPreset",
     "State",
     "TriangleMesh",
     "box_mesh",
+    "checkpointed_backward",
     "funnel_mesh",
     "grid_mesh",
     "load_material_json",

@@ -39,7 +39,7 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("scenes", help="list the embedded scenes")
 
-    from warpcloth.estimation import OPTIMIZERS
+    from warpcloth.tasks.estimation import OPTIMIZERS
     from warpcloth.materials import PRESET_NAMES
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from a hanging cloth's motion in the wind")
@@ -89,9 +89,9 @@ def _cmd_scenes() -> int:
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.rollout import rollout
+    from warpcloth.solver.rollout import rollout
     from warpcloth.scene import load_scene
-    from warpcloth.simulator import SimulationError
+    from warpcloth.errors import SimulationError
     from warpcloth.usd import write_usd
 
     if args.steps is not None and args.steps < 1:
@@ -185,9 +185,9 @@ def _write_json(path: str, record: dict) -> None:
 def _cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from warpcloth import estimation as E
+    from warpcloth.tasks import estimation as E
     from warpcloth.materials import preset
-    from warpcloth.simulator import SimulationError
+    from warpcloth.errors import SimulationError
     from warpcloth.usd import write_usd
 
     try:
@@ -249,9 +249,9 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def _cmd_control(args: argparse.Namespace) -> int:
-    from warpcloth import control as C
+    from warpcloth.tasks import throw as C
     from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.simulator import SimulationError
+    from warpcloth.errors import SimulationError
     from warpcloth.usd import write_usd
 
     iters = args.iters or (50 if args.controller == "open-loop" else 100)

@@ -16,19 +16,50 @@ if TYPE_CHECKING:  # pragma: no cover
 
 
 class State:
-    """Particle state at one instant; the simulator writes a new one every step (never in place on a tape)."""
+    """Everything a step reads from the past: the particle state at one instant and what the step that produced it
+    hands on (the solve's first guess, the positions of the lagged wind normals, the step number).
 
-    def __init__(self, particle_x: wp.array, particle_v: wp.array, time: float = 0.0):
+    The simulator writes a new State every step (never in place on a tape). A State built from positions and
+    velocities alone starts a trajectory: step 0, a cold first solve, no lag.
+    """
+
+    def __init__(self, particle_x: wp.array, particle_v: wp.array, time: float = 0.0, *, step: int = 0,
+                 particle_dv: wp.array | None = None, particle_x_previous: wp.array | None = None):
         self.particle_x = particle_x
         """Particle positions [m], shape (particle_count,), vec3."""
         self.particle_v = particle_v
         """Particle velocities [m/s], shape (particle_count,), vec3."""
         self.time = time
         """Simulated time [s] (host value)."""
+        self.step = step
+        """Steps taken since the start of the trajectory (host int): error messages name step ``step + 1``."""
+        self.particle_dv = particle_dv
+        """Velocity change [m/s] the step that produced this state solved for, shape (particle_count,), vec3:
+        the first guess of the next step's solve (``SolverOptions.warm_start``); None: start from zero."""
+        self.particle_x_previous = particle_x_previous
+        """Positions [m] at the start of the step that produced this state, shape (particle_count,), vec3: the
+        face normals of ARCSim's lagged wind (``ModelBuilder.set_wind(lagged_normals=True)``); None at the start of
+        a trajectory (the current positions are used)."""
+        self.solve_adjoint = None
+        """Adjoint of the linear solve of the step that read this state [m/s per unit loss], shape
+        (particle_count,), vec3, written during a backward pass: the first guess of the adjoint solve of the step
+        that produced this state. Allocated by a recorded step; None otherwise."""
 
     def numpy(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities as NumPy arrays (particle_count, 3)."""
         return self.particle_x.numpy(), self.particle_v.numpy()
+
+    def clone(self, *, requires_grad: bool | None = None) -> State:
+        """A deep copy (positions, velocities and what the next step reads from this one); ``requires_grad``
+        defaults to that of ``particle_x``. Stepping a clone repeats the original's next step bitwise."""
+        rg = self.particle_x.requires_grad if requires_grad is None else requires_grad
+
+        def copy(a):
+            return None if a is None else wp.clone(a, requires_grad=rg)
+
+        return State(copy(self.particle_x), copy(self.particle_v), self.time, step=self.step,
+                     particle_dv=None if self.particle_dv is None else wp.clone(self.particle_dv, requires_grad=False),
+                     particle_x_previous=copy(self.particle_x_previous))
 
 
 class Control:

@@ -10,10 +10,11 @@ Schema (every key is checked: an unknown key or a wrong type is a ``ValueError``
     dt = 0.02                          # time step [s], > 0
     steps = 50                         # number of steps, >= 1
 
-    [solver]                           # optional: fields of warpcloth.simulator.SolverOptions
-    preset = "balanced"                # optional: start from a preset (warpcloth.presets; its max_dt must not
+    [solver]                           # optional: fields of warpcloth.solver.SolverOptions
+    preset = "balanced"                # optional: start from a preset (warpcloth.solver.presets; its max_dt must not
                                        #   be below sim.dt); the other keys override single fields
     cg_tol = 1e-5
+    collision = { rounds = 50 }        # optional: fields of warpcloth.solver.CollisionOptions
 
     [cloth]                            # required; exactly one of grid / mesh
     grid = { res = [16, 16], size = [1.0, 1.0] }    # cells, metres; corner at the origin, in the local XY plane
@@ -140,7 +141,7 @@ class Scene:
         Returns:
             ``(model, sim)``: the ``Model`` and a ``Simulator`` with this scene's ``dt`` and solver options.
         """
-        from warpcloth.simulator import Simulator
+        from warpcloth.solver.simulator import Simulator
 
         model = self.model_builder.finalize(device=device, requires_grad=requires_grad)
         sim = Simulator(model, dt=self.dt, options=self.solver_options)
@@ -373,14 +374,14 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
 
 
 def _parse_solver(value: Any, dt: float):
-    """SolverOptions from the [solver] table: an optional ``preset`` (warpcloth.presets), then single fields, each
+    """SolverOptions from the [solver] table: an optional ``preset`` (warpcloth.solver.presets), then single fields, each
     checked against SolverOptions' fields and their defaults' types."""
-    from warpcloth.presets import PRESET_SOLVER_NAMES, solver_preset
-    from warpcloth.simulator import SolverOptions
+    from warpcloth.solver.presets import PRESET_SOLVER_NAMES, solver_preset
+    from warpcloth.solver.options import CollisionOptions, SolverOptions
 
     table = dict(_table(value, "solver"))
-    defaults = {f.name: f.default for f in dataclasses.fields(SolverOptions)}
-    _check_keys(table, "solver", ("preset",) + tuple(defaults))
+    defaults = {f.name: f.default for f in dataclasses.fields(SolverOptions) if f.name != "collision"}
+    _check_keys(table, "solver", ("preset", "collision") + tuple(defaults))
     base = SolverOptions()
     if "preset" in table:
         name = _str(table.pop("preset"), "solver.preset")
@@ -391,9 +392,25 @@ def _parse_solver(value: Any, dt: float):
             raise _err("solver.preset", f"the {name!r} preset steps at most {preset.max_dt:g} s but sim.dt is "
                                         f"{dt:g} s; lower sim.dt (and raise sim.steps) or choose another preset")
         base = preset.options
+    kwargs = _option_fields(table, "solver", defaults)
+    with _Context("solver.collision"):
+        if "collision" in table:
+            collision = _table(table["collision"], "solver.collision")
+            fields = {f.name: f.default for f in dataclasses.fields(CollisionOptions)}
+            _check_keys(collision, "solver.collision", tuple(fields))
+            kwargs["collision"] = dataclasses.replace(base.collision, **_option_fields(collision, "solver.collision",
+                                                                                       fields))
+    with _Context("solver"):
+        return dataclasses.replace(base, **kwargs)
+
+
+def _option_fields(table: dict, prefix: str, defaults: dict) -> dict:
+    """The entries of an options table, each checked against the type of its field's default."""
     kwargs = {}
     for key, v in table.items():
-        path = f"solver.{key}"
+        if key not in defaults:
+            continue
+        path = f"{prefix}.{key}"
         default = defaults[key]
         if isinstance(default, bool):
             if not isinstance(v, bool):
@@ -405,8 +422,7 @@ def _parse_solver(value: Any, dt: float):
         elif isinstance(default, str):
             v = _str(v, path)
         kwargs[key] = v
-    with _Context("solver"):
-        return dataclasses.replace(base, **kwargs)
+    return kwargs
 
 
 def _parse_cloth(builder, cloth: dict, base_dir: Path) -> tuple[int, tuple[int, int] | None, int]:

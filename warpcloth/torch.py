@@ -23,7 +23,7 @@ except ImportError as exc:  # pragma: no cover - exercised in a subprocess by th
 import warp as wp
 
 from warpcloth.model import Control, Model, State
-from warpcloth.simulator import Simulator
+from warpcloth.solver.simulator import Simulator
 
 __all__ = ["simulate"]
 
@@ -244,9 +244,6 @@ class _Rollout(torch.autograd.Function):
                 rec.grads["x"].copy_(grad_x)
             if grad_v is not None:
                 rec.grads["v"].copy_(grad_v)
-            # The adjoint CG warm-starts from the last adjoint solved, which may belong to another rollout: start
-            # it from zero so this backward depends only on this graph (reruns are bitwise equal, as torch checks).
-            ctx.cfg.sim._adjoint_solution.zero_()
             rec.tape.backward()
             needs = ctx.needs_input_grad
             result = [None]  # cfg

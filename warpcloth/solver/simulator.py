@@ -4,14 +4,12 @@ Per step (SPEC.md §2): assemble the 3x3 block-sparse system A dv = b from per-e
 preconditioned conjugate gradients, then x <- x + dt (v + dv). The CG iterations are not taped: the solve records a
 custom adjoint (one adjoint CG solve with the same matrix, SPEC §4.1), and Warp's autodiff of the assembly kernels
 carries the gradient on to positions, velocities, materials, gravity, wind, forces and handle targets.
-Scenes with obstacles or self-collision then run the collision stage (warpcloth/collision.py, SPEC §3).
+Scenes with obstacles or self-collision then run the collision stage (warpcloth/collision, SPEC §3).
 """
 
 from __future__ import annotations
 
 import math
-import warnings
-from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -21,85 +19,14 @@ from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Control, Model, State
+from warpcloth.solver.linear import LinearSolver, SolveInfo
+from warpcloth.solver.options import SolverOptions
 from warpcloth.tape import active_tape, record_adjoint
 
 
 ELONGATED_ASPECT_RATIO = 100.0
 """Rest aspect ratio (longest edge^2 / (2 area)) from which a failed solve or a divergence names the most elongated
 triangle: its stiffness relative to its mass, and with it the condition of the system, grows with the ratio."""
-
-
-@dataclass(frozen=True)
-class SolverOptions:
-    """Options of the linear solve and of the divergence guard."""
-
-    cg_tol: float = 1.0e-5
-    """Relative residual tolerance |b - A dv| <= cg_tol |b| of the forward CG solve (and of the adjoint one, unless
-    ``adjoint_cg_tol`` is given)."""
-    adjoint_cg_tol: float | None = None
-    """Relative residual tolerance of the adjoint CG solve of the backward pass; None: the same as ``cg_tol``.
-    The gradient's error follows it as the trajectory's follows cg_tol (benchmarks/tradeoff.py)."""
-    cg_atol: float = 1.0e-12
-    """Absolute residual floor (in the units of b, N*s)."""
-    cg_max_iters: int = 1000
-    """Iteration cap of each CG solve."""
-    preconditioner: str = "auto"
-    """``"block_jacobi"`` (inverse 3x3 diagonal blocks), ``"jacobi"`` (inverse scalar diagonal), ``"block_ssor"``
-    (symmetric block Gauss-Seidel sweeps; sequential backend only: ~3x fewer iterations than block Jacobi at 64x64,
-    benchmarks/cg_solvers.py) or ``"auto"`` (block_ssor with the sequential backend, block_jacobi with warp's)."""
-    ssor_omega: float = 1.5
-    """Relaxation factor of the block SSOR preconditioner, in (0, 2)."""
-    cg_backend: str = "auto"
-    """``"sequential"`` (whole CG in one launch: fastest on the CPU), ``"warp"`` (``warp.optim.linear.cg``:
-    for CUDA), or ``"auto"`` (sequential on the CPU, warp on CUDA). See benchmarks/cg_solvers.py."""
-    on_cg_failure: str = "warn"
-    """What a solve that misses its tolerance does: ``"warn"`` (with the residual) or ``"raise"``."""
-    warm_start: bool = True
-    """Start each CG solve from the previous solution (forward: the previous step's velocity change; adjoint: the
-    later step's adjoint): fewer iterations, and results that differ only within the tolerance."""
-    max_speed: float = 1.0e3
-    """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
-    collision_rounds: int = 20
-    """Most detect -> project rounds per step; a step still finding new contacts after them raises CollisionError."""
-    contact_capacity: int = 0
-    """Contacts one detection may find (0: 16 per cloth particle and obstacle vertex); more raises CollisionError
-    with the capacity needed."""
-    collision_adjoint: str = "qr"
-    """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
-    dense KKT system of the whole zone: the seed's baseline, for comparison)."""
-    max_projection_strain: float = 0.5
-    """Most an edge may lengthen in the collision projection of one step, in rest lengths; more raises
-    CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
-    (warpcloth/collision.py, _check_projection_strain)."""
-    qp_tol: float = 1.0e-10
-    """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
-
-    def __post_init__(self):
-        self.validate()
-
-    def validate(self) -> None:
-        """Raise ValueError naming the first option out of range."""
-        for name in ("cg_tol", "cg_atol", "max_speed", "qp_tol", "adjoint_cg_tol", "max_projection_strain"):
-            val = getattr(self, name)
-            if name == "adjoint_cg_tol" and val is None:
-                continue
-            if not math.isfinite(val) or val <= 0.0:
-                raise ValueError(f"SolverOptions.{name} must be finite and > 0, got {val}")
-        if not 0.0 < self.ssor_omega < 2.0:
-            raise ValueError(f"SolverOptions.ssor_omega must be in (0, 2), got {self.ssor_omega}")
-        for name, low in (("cg_max_iters", 1), ("collision_rounds", 1), ("contact_capacity", 0)):
-            val = getattr(self, name)
-            if isinstance(val, bool) or int(val) != val or val < low:
-                raise ValueError(f"SolverOptions.{name} must be an integer >= {low}, got {val!r}")
-        choices = {
-            "preconditioner": ("auto", "block_jacobi", "jacobi", "block_ssor"),
-            "cg_backend": ("auto", "sequential", "warp"),
-            "on_cg_failure": ("warn", "raise"),
-            "collision_adjoint": ("qr", "kkt"),
-        }
-        for name, allowed in choices.items():
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"SolverOptions.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
 
 class Simulator:
@@ -116,46 +43,25 @@ class Simulator:
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
         self.model = model
         self.dt = float(dt)
-        self.options = options or SolverOptions()
-        self.options.validate()
+        self._options = options or SolverOptions()
+        self._options.validate()
         self.device = model.device
         self.kernels = implicit_kernels(model.scalar)
-        self.linear = linear_kernels(model.scalar)
-        backend = self.options.cg_backend
-        if backend == "auto":
-            backend = "sequential" if self.device.is_cpu else "warp"
-        self.cg_backend = backend
-        preconditioner = self.options.preconditioner
-        if preconditioner == "auto":
-            preconditioner = "block_ssor" if backend == "sequential" else "block_jacobi"
-        if preconditioner == "block_ssor" and backend != "sequential":
-            raise ValueError("SolverOptions.preconditioner 'block_ssor' needs cg_backend 'sequential' (its sweeps are "
-                             "sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
-        self.preconditioner = preconditioner
+        self._check_state = linear_kernels(model.scalar).check_state
+        self.linear_solver = LinearSolver(model, self.options, hint=self._mesh_hint)
+        """The CG solver of the implicit system (and of its adjoint)."""
         self.element_adjoint = "contracted"
         """How the stretching/bending assembly is differentiated: "contracted" (the rank-one potential, fast) or
         "autodiff" (Warp's adjoint of the assembly kernels: the reference the contracted one is tested against)."""
-        self.step_count = 0
-        """Steps taken by this simulator (names the step in error messages)."""
-        self.last_cg_iterations = 0
-        self.last_cg_residual = 0.0
+        self.last_solve = SolveInfo(0, 0.0, True)
+        """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
-        n = model.particle_count
-        vec3, mat33 = model.types.vec3, model.types.mat33
-        # scratch that no gradient reads: reused every step
-        self._cg_scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
-        self._precond = wp.empty(n, dtype=mat33, device=self.device)
-        self._cg_info = wp.zeros(3, dtype=wp.float64, device=self.device)
+        """Counters over this simulator's life (diagnostics only: no step reads them)."""
+        vec3 = model.types.vec3
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
-        # host views of the two arrays read every step (on the CPU they share memory: no copy, no launch per read)
-        self._cg_info_host = self._cg_info.numpy() if self.device.is_cpu else None
+        # host view of the divergence flag read every step (on the CPU it shares memory: no copy, no launch)
         self._status_host = self._status.numpy() if self.device.is_cpu else None
-        self._adjoint_solution = wp.zeros(n, dtype=vec3, device=self.device)
         self._step_buffers = None
-        self._previous_dv = None
-        self._previous_in: State | None = None  # state_in and state_out of the last step (ARCSim's lagged normals)
-        self._previous_out: State | None = None
-        self._warp_matrix = None
         self._elongated: tuple[int, float, int] | None = None  # (triangle, aspect ratio, count): _mesh_hint
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
@@ -165,19 +71,41 @@ class Simulator:
         }
 
     # -- public ------------------------------------------------------------------------------------------------------
+    @property
+    def options(self) -> SolverOptions:
+        """The SolverOptions in force; assigning new ones applies them from the next solve on (the backend and the
+        preconditioner are chosen once, at construction)."""
+        return self._options
+
+    @options.setter
+    def options(self, options: SolverOptions) -> None:
+        options.validate()
+        self._options = options
+        self.linear_solver.options = options
+        if self.collision is not None:
+            self.collision.options = options
+
     def step(self, state_in: State, state_out: State, control: Control | None = None) -> None:
-        """Advance ``state_in`` by one time step into ``state_out`` (records on the active tape, if any)."""
+        """Advance ``state_in`` by one time step into ``state_out`` (records on the active tape, if any).
+
+        The result depends only on the arguments and the model: ``state_in`` carries what the previous step hands
+        on (the solve's first guess, the lagged wind normals' positions, the step number), and ``state_out``
+        receives the same for the next step. Stepping the same ``state_in`` twice gives bitwise the same result.
+        """
         if state_out is state_in:
             raise ValueError("step() needs distinct state_in and state_out (a tape cannot record in-place updates)")
         model = self.model
         control = control if control is not None else self._default_control()
         dt = model.scalar(self.dt)
-        values, rhs, dv, pin_dv = self._buffers()
+        recording = active_tape() is not None and model.requires_grad
+        values, rhs, pin_dv = self._buffers(recording)
+        dv = self._output_dv(state_out, recording)
         t_next = state_in.time + self.dt
+        step = state_in.step + 1  # the step being taken, counted from the start of the trajectory
         k = self.kernels
 
         self._assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
-        self._solve_recorded(values, rhs, dv)
+        self._solve(values, rhs, dv, state_in, state_out, step)
 
         max_speed = model.scalar(self.options.max_speed)
         if self._status_host is not None:
@@ -195,16 +123,16 @@ class Simulator:
                       inputs=[state_in.particle_x, state_in.particle_v, dv, dt, max_speed],
                       outputs=[x_hat, v_hat, self._status])
             # no NaN or runaway particle reaches the collision stage
-            self._raise_if_diverged(candidate, t_next, self.step_count + 1)
-            self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, self.step_count + 1)
-            wp.launch(self.linear.check_state, model.particle_count, device=self.device,
+            self._raise_if_diverged(candidate, t_next, step)
+            self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, step)
+            wp.launch(self._check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
                       record_tape=False)  # the projection's velocity change too
         state_out.time = t_next
-        self._previous_in, self._previous_out = state_in, state_out
-        self.step_count += 1
+        state_out.step = step
+        state_out.particle_x_previous = state_in.particle_x if model.wind_lagged_normals else None
         self.stats["steps"] += 1
-        self._raise_if_diverged(state_out, t_next, self.step_count)
+        self._raise_if_diverged(state_out, t_next, step)
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
         """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
@@ -238,12 +166,19 @@ class Simulator:
         e["total"] = sum(e.values())
         return e
 
-    def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The step's system A (3n x 3n) and b (3n) as dense NumPy arrays, for inspection and tests (small n)."""
+    def assemble(self, state: State, control: Control | None = None) -> tuple[wp.array, wp.array]:
+        """The system ``A dv = b`` of the step from ``state``: A's blocks on the model's block pattern
+        (``bsr_offsets``/``bsr_columns``, mat33) and b (vec3), in new arrays (not taped). Solve it with
+        ``linear_solver``."""
         control = control if control is not None else self._default_control()
-        values, rhs, _, pin_dv = self._buffers()
+        values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
         with wp.ScopedDevice(self.device):
             self._assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
+        return values, rhs
+
+    def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The step's system A (3n x 3n) and b (3n) as dense NumPy arrays, for inspection and tests (small n)."""
+        values, rhs = self.assemble(state, control)
         n = self.model.particle_count
         offsets, columns = self.model.bsr_offsets.numpy(), self.model.bsr_columns.numpy()
         blocks = values.numpy()
@@ -293,8 +228,8 @@ class Simulator:
             self._record_element_adjoint(state_in, pin_dv, rhs, dv)
         if model.wind_velocity is not None:
             x_normal = state_in.particle_x
-            if model.wind_lagged_normals and state_in is self._previous_out:
-                x_normal = self._previous_in.particle_x  # continuing a trajectory: the previous step's start
+            if model.wind_lagged_normals and state_in.particle_x_previous is not None:
+                x_normal = state_in.particle_x_previous  # continuing a trajectory: the previous step's start
             wp.launch(k.wind, model.tri_count, device=self.device,
                       inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.wind_velocity,
                               model.wind_density, model.wind_drag, x_normal, state_in.particle_v, dt],
@@ -353,11 +288,11 @@ class Simulator:
             self._control_default = self.model.control(requires_grad=False)
         return self._control_default
 
-    def _buffers(self):
-        """System buffers of one step. While a tape records, each step gets its own (the backward pass reads them)."""
+    def _buffers(self, recording: bool):
+        """System buffers of one step (A's blocks, b, the pins' velocity change). While a tape records, each step
+        gets its own (the backward pass reads them); otherwise they are scratch reused by every step."""
         model = self.model
         vec3, mat33 = model.types.vec3, model.types.mat33
-        recording = active_tape() is not None and model.requires_grad
         if not recording and self._step_buffers is not None:
             return self._step_buffers
         n = model.particle_count
@@ -365,11 +300,22 @@ class Simulator:
             wp.empty(model.bsr_nnz, dtype=mat33, device=self.device, requires_grad=recording),
             wp.empty(n, dtype=vec3, device=self.device, requires_grad=recording),
             wp.zeros(n, dtype=vec3, device=self.device, requires_grad=recording),
-            wp.zeros(n, dtype=vec3, device=self.device, requires_grad=recording),
         )
         if not recording:
             self._step_buffers = bufs
         return bufs
+
+    def _output_dv(self, state_out: State, recording: bool) -> wp.array:
+        """The array the solve writes: ``state_out.particle_dv`` (allocated here when the State has none, or a
+        fresh one with a gradient when a tape records), so the next step finds its first guess in its input."""
+        dv = state_out.particle_dv
+        fits = (dv is not None and dv.shape[0] == self.model.particle_count and dv.dtype == self.model.types.vec3
+                and dv.device == self.device)
+        if not fits or (recording and not dv.requires_grad):
+            dv = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.device,
+                          requires_grad=recording)
+            state_out.particle_dv = dv
+        return dv
 
     def _offsets(self, kind: str, t: float) -> wp.array:
         """Scripted target offsets of the handles or pins at time ``t`` (a shared zero array when none move)."""
@@ -379,108 +325,32 @@ class Simulator:
         values = np.array([np.zeros(3) if m is None else m.at(t) for m in motions])
         return wp.array(values, dtype=self.model.types.vec3, device=self.device)
 
-    def _solve_recorded(self, values: wp.array, rhs: wp.array, dv: wp.array) -> None:
-        """Solve A dv = b; on a tape, record the implicit adjoint instead of the CG iterations."""
-        warm = self.options.warm_start and self._previous_dv is not None
-        if warm and self._previous_dv is not dv:
-            wp.launch(self.linear.copy_guess, self.model.particle_count, device=self.device,
-                      inputs=[self._previous_dv], outputs=[dv], record_tape=False)
-        iters, residual, converged = self._cg(values, rhs, dv, warm_start=warm)
-        self._previous_dv = dv
-        self.last_cg_iterations, self.last_cg_residual = iters, residual
-        self.stats["cg_iterations"] += iters
-        step = self.step_count + 1  # the step being taken, as the divergence guard counts it
-        self._check_solve("forward", step, iters, residual, converged)
-        if active_tape() is None or not values.requires_grad:
-            return
+    def _solve(self, values: wp.array, rhs: wp.array, dv: wp.array, state_in: State, state_out: State,
+               step: int) -> None:
+        """Solve A dv = b from ``state_in.particle_dv``; on a tape, the implicit adjoint is recorded. Adjoint solves
+        run from the last step to the first, each handing its solution to the one before through the State between
+        them (``State.solve_adjoint``)."""
+        guess = state_in.particle_dv
+        warm = self.options.warm_start and guess is not None and guess.shape == dv.shape and guess.dtype == dv.dtype
+        recording = active_tape() is not None and values.requires_grad
+        if recording:
+            state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
 
-        def adjoint():
-            # A is symmetric: solve A lam = dL/d(dv) with the same solver; dL/db = lam, dL/dA_ij = -lam_i dv_j^T.
-            # The backward pass runs steps in reverse; the later step's lam (still in the buffer) is the warm start.
-            lam = self._adjoint_solution
-            if not self.options.warm_start:
-                lam.zero_()
-            it, res, ok = self._cg(values, dv.grad, lam, warm_start=self.options.warm_start, adjoint=True)
-            self.stats["adjoint_cg_iterations"] += it
-            self._check_solve("adjoint", step, it, res, ok)
-            wp.launch(self.linear.solve_adjoint_scatter, self.model.particle_count, device=self.device,
-                      inputs=[self.model.bsr_offsets, self.model.bsr_columns, lam, dv],
-                      outputs=[values.grad, rhs.grad], record_tape=False)
+        def count_adjoint(info: SolveInfo) -> None:
+            self.stats["adjoint_cg_iterations"] += info.iterations
 
-        record_adjoint(adjoint, arrays=[values, rhs, dv])
-
-    def _cg(self, values: wp.array, b: wp.array, x: wp.array, *, warm_start: bool = False, adjoint: bool = False
-            ) -> tuple[int, float, bool]:
-        """Solve A x = b; with ``warm_start`` x holds the initial guess on entry.
-
-        Returns the iterations, the relative residual |b - A x| / |b| and whether the tolerance was met.
-        """
-        opt = self.options
-        tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
-        model = self.model
-        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
-        if self.cg_backend == "sequential":
-            r, z, p, q = self._cg_scratch
-            wp.launch(self.linear.cg_sequential, 1, device=self.device,
-                      inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
-                              float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
-                              model.scalar(opt.ssor_omega), int(warm_start),
-                              r, z, p, q, self._precond],
-                      outputs=[x, self._cg_info], record_tape=False)
-            info = self._cg_info_host if self._cg_info_host is not None else self._cg_info.numpy()
-            return int(info[0]), float(info[1]), bool(info[2])
-        return self._cg_warp(values, b, x, tol, warm_start=warm_start)
-
-    def _cg_warp(self, values, b, x, tol: float, *, warm_start: bool = False) -> tuple[int, float, bool]:
-        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path)."""
-        import warp.optim.linear as wl
-        import warp.sparse as ws
-
-        model = self.model
-        if self._warp_matrix is None:
-            A = ws.bsr_zeros(model.particle_count, model.particle_count, model.types.mat33, device=self.device)
-            rows = np.repeat(np.arange(model.particle_count, dtype=np.int32), np.diff(model.bsr_offsets.numpy()))
-            ws.bsr_set_from_triplets(
-                A, wp.array(rows, dtype=wp.int32, device=self.device), model.bsr_columns,
-                wp.zeros(model.bsr_nnz, dtype=model.types.mat33, device=self.device), prune_numerical_zeros=False)
-            if not np.array_equal(A.columns.numpy()[: model.bsr_nnz], model.bsr_columns.numpy()):
-                raise RuntimeError("warp.sparse reordered the block structure; the slot map would be wrong")
-            self._warp_matrix = A
-        A = self._warp_matrix
-        A.values = values
-        if not warm_start:
-            x.zero_()
-        M = wl.preconditioner(A, "block_jacobi_direct" if self.preconditioner == "block_jacobi" else "diag")
-        opt = self.options
-        # warp's cg tests |r| <= max(tol |b|, atol); check_every=1 reports the exact iteration count
-        iters, residual, threshold = wl.cg(A, b, x, tol=tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters,
-                                           M=M, check_every=1, use_cuda_graph=False)
-        bnorm = float(np.linalg.norm(b.numpy()))
-        return int(iters), float(residual) / max(bnorm, 1e-300), bool(residual <= threshold)
-
-    def _check_solve(self, which: str, step: int, iters: int, residual: float, converged: bool) -> None:
-        opt = self.options
-        if not converged:
-            name, tol = "cg_tol", opt.cg_tol
-            if which == "adjoint" and opt.adjoint_cg_tol is not None:
-                name, tol = "adjoint_cg_tol", opt.adjoint_cg_tol
-            msg = (f"{which} CG solve of step {step} did not converge: relative residual {residual:.3e} "
-                   f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
-                   "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
-                   + self._mesh_hint())
-            if not math.isfinite(residual) or opt.on_cg_failure == "raise":
-                raise SimulationError(msg)
-            warnings.warn(msg, RuntimeWarning, stacklevel=3)
-        elif not math.isfinite(residual):
-            raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual; "
-                                  "the system is not positive definite or the state is already invalid")
+        info = self.linear_solver.solve_recorded(
+            values, rhs, dv, step=step, guess=guess if warm else None,
+            adjoint_guess=state_out.solve_adjoint if recording else None,
+            adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint)
+        self.last_solve = info
+        self.stats["cg_iterations"] += info.iterations
 
     def _raise_if_diverged(self, state: State, t: float, step: int) -> None:
         """Raise SimulationError if the divergence guard (``self._status``) flagged a particle of ``state``, the
         result of step number ``step`` at time ``t``."""
         bad = int((self._status_host if self._status_host is not None else self._status.numpy())[0])
         if bad:
-            self._previous_dv = None  # a diverged step's solution must not warm-start the next solve
             p = bad - 1
             x = state.particle_x.numpy()[p]
             v = state.particle_v.numpy()[p]

@@ -22,7 +22,7 @@ import time
 import numpy as np
 import warp as wp
 
-from warpcloth import projection
+from warpcloth.collision import projection
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.collision import collision_kernels
 from warpcloth.kernels.contact import contact_kernels
@@ -62,7 +62,7 @@ class CollisionStage:
         self.node_count = n + V
         self.mass = model.particle_mass()
         self.fixed = model.particle_pin.numpy() >= 0
-        capacity = options.contact_capacity or 16 * (n + V)
+        capacity = options.collision.contact_capacity or 16 * (n + V)
         self.capacity = int(capacity)
 
         dev = self.device
@@ -156,7 +156,7 @@ class CollisionStage:
         if count > self.capacity:
             raise CollisionError(
                 f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
-                f"raise SolverOptions.contact_capacity to at least {count}")
+                f"raise CollisionOptions.contact_capacity to at least {count}")
         return {"nodes": self._nodes.numpy()[:count].copy(), "mode": self._mode.numpy()[:count].copy(),
                 "t": self._t.numpy()[:count].copy(), "sign": self._sign.numpy()[:count].copy()}
 
@@ -193,7 +193,7 @@ class CollisionStage:
         stats = {"rounds": 0, "contacts": 0, "zones": []}
         self.last_projections = []
         opt = self.options
-        for round_index in range(opt.collision_rounds + 1):
+        for round_index in range(opt.collision.rounds + 1):
             end = gather(z, obstacle_end)
             found = self.detect(start, end)
             # A pair found again is violated again (the projection leaves resolved pairs exactly at the thickness,
@@ -202,11 +202,11 @@ class CollisionStage:
             keys.update(row.tobytes() for row in found["nodes"])
             if not fresh:
                 break
-            if round_index == opt.collision_rounds:
+            if round_index == opt.collision.rounds:
                 raise CollisionError(
-                    f"step {step}: the collision response did not converge in {opt.collision_rounds} rounds: "
+                    f"step {step}: the collision response did not converge in {opt.collision.rounds} rounds: "
                     f"{len(fresh)} new contacts (of {len(keys)}) still found, e.g. nodes "
-                    f"{found['nodes'][fresh[0]].tolist()}; raise SolverOptions.collision_rounds, lower dt, or check "
+                    f"{found['nodes'][fresh[0]].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
                     "for cloth trapped between obstacles")
             new = {name: arr[fresh] for name, arr in found.items()}
             geometry.append(self._geometry(start, end, new, recording, step))
@@ -223,7 +223,7 @@ class CollisionStage:
 
     def _check_projection_strain(self, x_hat: wp.array, z: wp.array, step: int) -> None:
         """Raise CollisionError if the projection alone lengthened an edge by more than
-        ``SolverOptions.max_projection_strain`` of its rest length.
+        ``CollisionOptions.max_projection_strain`` of its rest length.
 
         The projection moves particles onto the contacts' linearised constraints; when a step carries the cloth
         further than an element past an obstacle's curvature (a coarse cloth wrapping a small sphere at speed),
@@ -237,11 +237,11 @@ class CollisionStage:
         # lengthening only: stopping a falling strip's lowest vertices shortens edges, which buckling absorbs
         strain = (np.linalg.norm(zn[a] - zn[b], axis=1) - np.linalg.norm(xn[a] - xn[b], axis=1)) / self._edge_rest
         j = int(np.argmax(strain))
-        limit = self.options.max_projection_strain
+        limit = self.options.collision.max_projection_strain
         if strain[j] > limit:
             raise CollisionError(
                 f"step {step}: the collision response stretched the edge between particles {int(a[j])} and "
-                f"{int(b[j])} by {strain[j]:.3g} of its rest length in one step (SolverOptions.max_projection_strain "
+                f"{int(b[j])} by {strain[j]:.3g} of its rest length in one step (CollisionOptions.max_projection_strain "
                 f"{limit:g}): the cloth moves too far per step for the contacts' linearisation, which then pumps "
                 "energy into it step after step; lower dt")
 
@@ -278,7 +278,7 @@ class CollisionStage:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), self.mass, self.fixed,
                 obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts["nodes"].astype(np.int64),
-                weights, normals, self.thickness, tol=self.options.qp_tol,
+                weights, normals, self.thickness, tol=self.options.collision.qp_tol,
                 lam_init=np.concatenate([lam, np.zeros(len(normals) - len(lam))]))
         except projection.ProjectionError as err:
             raise CollisionError(f"step {step}: {err}") from err
@@ -286,7 +286,7 @@ class CollisionStage:
         z = wp.array(result.z, dtype=model.types.vec3, device=self.device, requires_grad=recording)
         self.last_projections.append((result, z))
         if recording:
-            mode = self.options.collision_adjoint
+            mode = self.options.collision.adjoint
             sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
 
             def adjoint():

@@ -7,7 +7,7 @@ acceleration four such pushes would give the whole cloth: ``p = (0, 0, 9.8)`` on
 fixed linear rescaling of the seed's control (corner acceleration = ``M p / (4 m_corner)``, about 95 p here) that
 puts the parameters on the scale of gravity. The loss is ``1/2 |com_T - (0, 0, -0.7)|^2`` on the centre of mass (vertex mean) after 700 steps
 of 0.01 s, with the cloth colliding with the basket and the wall. Gradients come from a checkpointed rollout
-(warpcloth.checkpoint), so the 700 steps back-propagate with O(sqrt(T)) stored states.
+(warpcloth.solver.checkpoint), so the 700 steps back-propagate with O(sqrt(T)) stored states.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import numpy as np
 import warp as wp
 
 from warpcloth.builder import ModelBuilder
-from warpcloth.checkpoint import checkpointed_backward
+from warpcloth.solver.checkpoint import checkpointed_backward
 from warpcloth.errors import CollisionError
 from warpcloth.materials import preset
 from warpcloth.model import Control, Model, State
-from warpcloth.simulator import Simulator, SolverOptions
+from warpcloth.solver import CollisionOptions, Simulator, SolverOptions
 
 DT = 0.01
 STEPS = 700
@@ -107,7 +107,7 @@ class ThrowTask:
         self.steps = steps
         self.segment_steps = segment_steps
         # hard throws pile the cloth into the basket's corners: allow more projection rounds than the default
-        self.sim = Simulator(self.model, DT, options=options or SolverOptions(cg_tol=1e-6, collision_rounds=50))
+        self.sim = Simulator(self.model, DT, options=options or SolverOptions(cg_tol=1e-6, collision=CollisionOptions(rounds=50)))
         device = self.model.device
         self.corners = wp.array(CORNERS, dtype=wp.int32, device=device)
         self.quarter_mass = float(self.model.particle_mass().sum()) / len(CORNERS)

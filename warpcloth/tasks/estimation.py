@@ -31,10 +31,10 @@ from warpcloth.materials import (
 )
 from warpcloth.mesh_io import load_obj
 from warpcloth.model import Model
-from warpcloth.optim import adam, lbfgs
-from warpcloth.rollout import rollout
+from warpcloth.tasks.optim import adam, lbfgs
+from warpcloth.solver.rollout import rollout
 from warpcloth.errors import SimulationError
-from warpcloth.simulator import Simulator, SolverOptions
+from warpcloth.solver import Simulator, SolverOptions
 
 # -- the scene (SPEC §5(b)) ------------------------------------------------------------------------------------------
 WIND = (5.0, 0.0, 0.0)

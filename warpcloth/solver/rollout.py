@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from warpcloth.model import Control, State
-from warpcloth.simulator import Simulator
+from warpcloth.solver.simulator import Simulator
 
 
 ControlSchedule = Control | Sequence[Control] | Callable[[int], Control] | None

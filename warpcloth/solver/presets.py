@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from warpcloth.simulator import SolverOptions
+from warpcloth.solver.options import CollisionOptions, SolverOptions
 
 
 @dataclass(frozen=True)
@@ -39,13 +39,13 @@ class SolverPreset:
 PRESETS = {
     "fast": SolverPreset(
         "fast", "previews, and the first iterations of an optimisation", max_dt=1.0 / 50,
-        options=SolverOptions(cg_tol=1.0e-3, collision_rounds=50)),
+        options=SolverOptions(cg_tol=1.0e-3, collision=CollisionOptions(rounds=50))),
     "balanced": SolverPreset(
         "balanced", "about half the fast preset's error for twice its time", max_dt=1.0 / 100,
-        options=SolverOptions(cg_tol=1.0e-4, collision_rounds=50)),
+        options=SolverOptions(cg_tol=1.0e-4, collision=CollisionOptions(rounds=50))),
     "accurate": SolverPreset(
         "accurate", "near-converged trajectories and gradients (references, gradient checks)", max_dt=1.0 / 400,
-        options=SolverOptions(cg_tol=1.0e-6, cg_max_iters=5000, collision_rounds=100)),
+        options=SolverOptions(cg_tol=1.0e-6, cg_max_iters=5000, collision=CollisionOptions(rounds=100))),
 }
 PRESET_SOLVER_NAMES = tuple(PRESETS)
 

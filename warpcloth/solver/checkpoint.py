@@ -3,9 +3,10 @@
 A full ``wp.Tape`` over T steps keeps every step's intermediate arrays alive (assembled matrices, CG buffers,
 contacts): memory grows linearly with T. Here the forward pass runs untaped and keeps only the states at segment
 boundaries; the backward pass re-simulates one segment at a time on its own tape, seeded with the adjoint of the
-segment's end state, and hands the adjoint of its start state to the segment before it. Gradients equal the full
-tape's: the re-simulation repeats the forward pass exactly when the simulator does not warm-start its CG solves
-(``SolverOptions(warm_start=False)``), and within the CG tolerance otherwise.
+segment's end state, and hands the adjoint of its start state to the segment before it. A State carries everything
+its next step reads (the solve's first guess, the lagged wind normals' positions), so the re-simulation repeats the
+forward pass bitwise and the gradients equal the full tape's up to the adjoint solves' tolerance (their warm starts
+restart at segment boundaries).
 """
 
 from __future__ import annotations
@@ -16,16 +17,11 @@ from collections.abc import Callable
 import warp as wp
 
 from warpcloth.model import State
-from warpcloth.rollout import ControlSchedule, check_schedule, control_at
-from warpcloth.simulator import Simulator
+from warpcloth.solver.rollout import ControlSchedule, check_schedule, control_at
+from warpcloth.solver.simulator import Simulator
 
 StepLoss = Callable[[int, State, wp.array], None]
 """``loss(i, state_i, out)``: launch kernels that add step i's loss term (i = 1..steps) to ``out[0]``."""
-
-
-def _clone(state: State, *, requires_grad: bool) -> State:
-    return State(wp.clone(state.particle_x, requires_grad=requires_grad),
-                 wp.clone(state.particle_v, requires_grad=requires_grad), state.time)
 
 
 def checkpointed_backward(
@@ -63,9 +59,6 @@ def checkpointed_backward(
     if int(seg) != seg or seg < 1:
         raise ValueError(f"segment_steps must be a positive integer, got {segment_steps!r}")
     check_schedule(control, steps)
-    if sim.model.wind_lagged_normals:
-        # the first step of a re-simulated segment would not see the step before it (ARCSim's lagged normals)
-        raise ValueError("checkpointed_backward does not support wind_lagged_normals; record a full wp.Tape instead")
     model = sim.model
     starts = list(range(0, steps, int(seg)))
     out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
@@ -89,7 +82,7 @@ def checkpointed_backward(
     checkpoints = []
     current = state
     for k, first in enumerate(starts):
-        checkpoints.append(_clone(current, requires_grad=False))
+        checkpoints.append(current.clone(requires_grad=False))
         current = advance(current, first, min(first + seg, steps), requires_grad=False)
         if bar is not None:
             bar.update()
@@ -97,24 +90,31 @@ def checkpointed_backward(
     value = float(out.numpy()[0])
 
     # backward: re-simulate each segment on its own tape, last first, chaining the state adjoints
+    # (with lagged wind normals a segment's first step also reads the positions one step before the segment: their
+    # adjoint goes to the previous segment's end.particle_x_previous)
     adj_x = wp.zeros_like(final.particle_x)
     adj_v = wp.zeros_like(final.particle_v)
+    adj_x_previous = None
     for k in reversed(range(len(starts))):
         first = starts[k]
-        start = _clone(checkpoints.pop(), requires_grad=True)
+        start = checkpoints.pop().clone(requires_grad=True)
         out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
         tape = wp.Tape()
         with tape:
             end = advance(start, first, min(first + seg, steps), requires_grad=True)
-        tape.backward(grads={out: wp.ones_like(out), end.particle_x: adj_x, end.particle_v: adj_v})
+        seeds = {out: wp.ones_like(out), end.particle_x: adj_x, end.particle_v: adj_v}
+        if adj_x_previous is not None:
+            seeds[end.particle_x_previous] = adj_x_previous  # the last step's start positions: never another seed
+        tape.backward(grads=seeds)
         adj_x, adj_v = start.particle_x.grad, start.particle_v.grad
+        adj_x_previous = None if start.particle_x_previous is None else start.particle_x_previous.grad
         del tape
         if bar is not None:
             bar.update()
     if bar is not None:
         bar.close()
-    for arr, adj in ((state.particle_x, adj_x), (state.particle_v, adj_v)):
-        if arr.requires_grad:  # one host round trip per rollout
+    for arr, adj in ((state.particle_x, adj_x), (state.particle_v, adj_v), (state.particle_x_previous, adj_x_previous)):
+        if arr is not None and adj is not None and arr.requires_grad:  # one host round trip per rollout
             arr.grad.assign(arr.grad.numpy() + adj.numpy())
     return value, final
 

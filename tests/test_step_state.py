@@ -1,0 +1,135 @@
+"""A step depends only on its inputs: what carries from step to step (the solve's first guess, the lagged wind
+normals' positions, the step number) travels in the State, so rollouts repeat bitwise and checkpointing works with
+every option."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+
+ROT_XZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def windy_model(*, lagged=True, requires_grad=False, dtype=wp.float32, res=5):
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((res, res), (0.5, 0.5), material=wc.preset("gray-interlock", thicken=2), rot=ROT_XZ)
+    b.add_handle(res * (res + 1))
+    b.add_handle((res + 1) ** 2 - 1)
+    b.set_wind((0.5, 3.0, 0.0), density=1.0, drag=0.1, lagged_normals=lagged)
+    return b.finalize("cpu", requires_grad=requires_grad, dtype=dtype)
+
+
+def test_repeating_a_rollout_after_another_is_bitwise_equal():
+    model = windy_model()
+    sim = wc.Simulator(model, 0.01)
+    first = wc.rollout(sim, model.state(), steps=12)[-1].particle_x.numpy()
+    other = model.state()
+    other.particle_v.fill_(wp.vec3(0.3, -0.2, 0.5))
+    wc.rollout(sim, other, steps=7)  # a different trajectory in between
+    again = wc.rollout(sim, model.state(), steps=12)[-1].particle_x.numpy()
+    np.testing.assert_array_equal(first, again)
+
+
+def test_the_same_step_twice_is_bitwise_equal():
+    model = windy_model()
+    sim = wc.Simulator(model, 0.01)
+    traj = wc.rollout(sim, model.state(), steps=5)
+    a, b = model.empty_state(), model.empty_state()
+    sim.step(traj[3], a)
+    sim.step(traj[3], b)
+    np.testing.assert_array_equal(a.particle_x.numpy(), b.particle_x.numpy())
+    np.testing.assert_array_equal(a.particle_x.numpy(), traj[4].particle_x.numpy())
+    assert a.step == traj[3].step + 1 == 4
+
+
+def test_a_clone_continues_the_trajectory_bitwise():
+    # the clone carries the first guess and the lagged positions: its next steps are those of the original
+    model = windy_model()
+    sim = wc.Simulator(model, 0.01)
+    traj = wc.rollout(sim, model.state(), steps=8)
+    resumed = wc.rollout(sim, traj[4].clone(), steps=4)
+    np.testing.assert_array_equal(resumed[-1].particle_x.numpy(), traj[-1].particle_x.numpy())
+    assert resumed[-1].step == 8 and resumed[-1].time == pytest.approx(traj[-1].time)
+    # without what the state carries, the lagged normals and the warm start differ: the test can fail
+    bare = wc.State(wp.clone(traj[4].particle_x), wp.clone(traj[4].particle_v), traj[4].time)
+    assert not np.array_equal(wc.rollout(sim, bare, steps=4)[-1].particle_x.numpy(), traj[-1].particle_x.numpy())
+
+
+def test_ping_pong_states_match_a_rollout():
+    # two State objects reused in turn (the examples' pattern) give the rollout's trajectory
+    model = windy_model()
+    sim = wc.Simulator(model, 0.01)
+    expected = wc.rollout(sim, model.state(), steps=6)[-1].particle_x.numpy()
+    a, b = model.state(), model.empty_state()
+    for _ in range(6):
+        sim.step(a, b)
+        a, b = b, a
+    np.testing.assert_array_equal(a.particle_x.numpy(), expected)
+
+
+@wp.kernel
+def _x_dot_w(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
+
+
+@pytest.mark.parametrize("segment_steps", [1, 3])
+def test_checkpointed_backward_with_lagged_normals_equals_the_full_tape(segment_steps):
+    model = windy_model(requires_grad=True, dtype=wp.float64)
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30))
+    w = wp.array(np.random.default_rng(2).standard_normal((model.particle_count, 3)), dtype=wp.vec3d)
+    steps = 7
+
+    def loss(i, state, out):
+        wp.launch(_x_dot_w, model.particle_count, inputs=[state.particle_x, w], outputs=[out])
+
+    state = model.state()
+    out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        traj = wc.rollout(sim, state, steps=steps)
+        for i in range(1, steps + 1):
+            loss(i, traj[i], out)
+    tape.backward(out)
+    full = [state.particle_x.grad.numpy().copy(), state.particle_v.grad.numpy().copy(),
+            model.material_stretching.grad.numpy().copy(), model.wind_velocity.grad.numpy().copy()]
+    tape.zero()
+    for a in (model.material_stretching, model.wind_velocity):
+        a.grad.zero_()
+
+    state = model.state()
+    value, final = wc.checkpointed_backward(sim, state, None, steps=steps, loss=loss, segment_steps=segment_steps)
+    assert value == pytest.approx(float(out.numpy()[0]), rel=1e-14)
+    np.testing.assert_array_equal(final.particle_x.numpy(), traj[-1].particle_x.numpy())
+    got = [state.particle_x.grad.numpy(), state.particle_v.grad.numpy(), model.material_stretching.grad.numpy(),
+           model.wind_velocity.grad.numpy()]
+    for g, f in zip(got, full):
+        assert np.abs(f).max() > 0.0
+        np.testing.assert_allclose(g, f, rtol=1e-8, atol=1e-9 * np.abs(f).max())
+
+
+def test_a_second_backward_pass_repeats_the_first_bitwise():
+    # the adjoint solves' warm starts are handed from step to step within one backward pass only
+    model = windy_model(requires_grad=True, dtype=wp.float64)
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-6))
+    state = model.state()
+    tape = wp.Tape()
+    with tape:
+        final = wc.rollout(sim, state, steps=5)[-1]
+    seed = wp.array(np.ones((model.particle_count, 3)), dtype=wp.vec3d)
+    tape.backward(grads={final.particle_x: seed})
+    first = state.particle_x.grad.numpy().copy()
+    tape.zero()
+    tape.backward(grads={final.particle_x: seed})
+    np.testing.assert_array_equal(state.particle_x.grad.numpy(), first)
+
+
+def test_errors_number_steps_from_the_start_of_the_rollout():
+    model = windy_model()
+    sim = wc.Simulator(model, 0.01)
+    wc.rollout(sim, model.state(), steps=5)  # steps of an earlier trajectory do not count
+    state = model.state()
+    state.particle_v.fill_(wp.vec3(0.0, 0.0, 1.0e4))  # beyond max_speed from the start
+    with pytest.raises(wc.SimulationError, match=r"diverged at step 1 "):
+        wc.rollout(sim, state, steps=2)

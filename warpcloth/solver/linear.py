@@ -1,0 +1,178 @@
+"""The linear solve of the implicit step: preconditioned CG on the model's fixed 3x3 block pattern, and its
+implicit adjoint (one adjoint solve with the same matrix, SPEC.md §4.1) recorded on the tape instead of the CG
+iterations."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+import warp as wp
+
+from warpcloth.errors import SimulationError
+from warpcloth.kernels.linear import linear_kernels
+from warpcloth.model import Model
+from warpcloth.solver.options import SolverOptions
+from warpcloth.tape import record_adjoint
+
+
+class SolveInfo(NamedTuple):
+    """What one CG solve did."""
+
+    iterations: int
+    residual: float
+    """Relative residual |b - A x| / |b| (the recursive one of the sequential backend)."""
+    converged: bool
+    """Whether the residual met the tolerance."""
+
+
+class LinearSolver:
+    """CG for ``A x = b`` where A is given by its blocks on ``model``'s block pattern (``bsr_offsets``,
+    ``bsr_columns``). Owns its scratch; one solve at a time.
+
+    Args:
+        model: the Model whose block pattern the systems use.
+        options: SolverOptions (tolerances, preconditioner, backend, what a failed solve does).
+        hint: returns text appended to a failed solve's message (e.g. the most elongated triangle).
+    """
+
+    def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None):
+        self.model = model
+        self.options = options
+        self.device = model.device
+        self.hint = hint or (lambda: "")
+        self.kernels = linear_kernels(model.scalar)
+        backend = options.cg_backend
+        if backend == "auto":
+            backend = "sequential" if self.device.is_cpu else "warp"
+        self.backend = backend
+        """``"sequential"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
+        preconditioner = options.preconditioner
+        if preconditioner == "auto":
+            preconditioner = "block_ssor" if backend == "sequential" else "block_jacobi"
+        if preconditioner == "block_ssor" and backend != "sequential":
+            raise ValueError("SolverOptions.preconditioner 'block_ssor' needs cg_backend 'sequential' (its sweeps are "
+                             "sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
+        self.preconditioner = preconditioner
+        """The preconditioner ``preconditioner`` resolved to."""
+        n = model.particle_count
+        vec3, mat33 = model.types.vec3, model.types.mat33
+        self._scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
+        self._precond = wp.empty(n, dtype=mat33, device=self.device)
+        self._info = wp.zeros(3, dtype=wp.float64, device=self.device)
+        # on the CPU the host view shares memory: reading it costs no copy and no launch
+        self._info_host = self._info.numpy() if self.device.is_cpu else None
+        self._adjoint = wp.zeros(n, dtype=vec3, device=self.device)
+        self._warp_matrix = None
+
+    def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
+              adjoint: bool = False) -> SolveInfo:
+        """Solve A x = b from the first guess ``guess`` (which may be ``x`` itself), or from zero. Not taped.
+
+        ``adjoint`` selects the adjoint tolerance (``SolverOptions.adjoint_cg_tol``).
+        """
+        opt = self.options
+        tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
+        model = self.model
+        if self.backend == "warp":
+            return self._solve_warp(values, b, x, tol, guess)
+        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
+        r, z, p, q = self._scratch
+        wp.launch(self.kernels.cg_sequential, 1, device=self.device,
+                  inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
+                          float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
+                          model.scalar(opt.ssor_omega), int(guess is not None), x if guess is None else guess,
+                          r, z, p, q, self._precond],
+                  outputs=[x, self._info], record_tape=False)
+        info = self._info_host if self._info_host is not None else self._info.numpy()
+        return SolveInfo(int(info[0]), float(info[1]), bool(info[2]))
+
+    def solve_recorded(self, values: wp.array, rhs: wp.array, x: wp.array, *, step: int = 0,
+                       guess: wp.array | None = None, adjoint_guess: wp.array | None = None,
+                       adjoint_result: wp.array | None = None,
+                       on_adjoint: Callable[[SolveInfo], None] | None = None) -> SolveInfo:
+        """Solve A x = b (as :meth:`solve`), check it, and on the active tape record the implicit adjoint:
+        A lam = dL/dx, dL/db += lam, dL/dA_ij -= lam_i x_j^T on the stored blocks.
+
+        Args:
+            step: the step number that a failed solve's message names.
+            guess: first guess of the forward solve.
+            adjoint_guess: first guess of the adjoint solve (read once, then zeroed, so a second backward pass
+                over the same tape repeats the first bitwise).
+            adjoint_result: receives lam after the adjoint solve (the next adjoint solve's first guess).
+            on_adjoint: called with the adjoint solve's SolveInfo (statistics).
+        """
+        info = self.solve(values, rhs, x, guess=guess)
+        self.check(info, "forward", step)
+        if not (values.requires_grad and rhs.requires_grad and x.requires_grad):
+            return info
+
+        def adjoint():
+            lam = self._adjoint
+            first = adjoint_guess if self.options.warm_start else None
+            result = self.solve(values, x.grad, lam, guess=first, adjoint=True)
+            if first is not None:
+                first.zero_()
+            if on_adjoint is not None:
+                on_adjoint(result)
+            self.check(result, "adjoint", step)
+            wp.launch(self.kernels.solve_adjoint_scatter, self.model.particle_count, device=self.device,
+                      inputs=[self.model.bsr_offsets, self.model.bsr_columns, lam, x],
+                      outputs=[values.grad, rhs.grad], record_tape=False)
+            if adjoint_result is not None:
+                wp.copy(adjoint_result, lam)
+
+        record_adjoint(adjoint, arrays=[values, rhs, x])
+        return info
+
+    def check(self, info: SolveInfo, which: str, step: int) -> None:
+        """Warn or raise (``SolverOptions.on_cg_failure``) when a solve missed its tolerance; always raise on a
+        non-finite residual."""
+        iters, residual, converged = info
+        opt = self.options
+        if not converged:
+            name, tol = "cg_tol", opt.cg_tol
+            if which == "adjoint" and opt.adjoint_cg_tol is not None:
+                name, tol = "adjoint_cg_tol", opt.adjoint_cg_tol
+            msg = (f"{which} CG solve of step {step} did not converge: relative residual {residual:.3e} "
+                   f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
+                   "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
+                   + self.hint())
+            if not math.isfinite(residual) or opt.on_cg_failure == "raise":
+                raise SimulationError(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=4)
+        elif not math.isfinite(residual):
+            raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual; "
+                                  "the system is not positive definite or the state is already invalid")
+
+    def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None) -> SolveInfo:
+        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path)."""
+        import warp.optim.linear as wl
+        import warp.sparse as ws
+
+        model = self.model
+        if self._warp_matrix is None:
+            A = ws.bsr_zeros(model.particle_count, model.particle_count, model.types.mat33, device=self.device)
+            rows = np.repeat(np.arange(model.particle_count, dtype=np.int32), np.diff(model.bsr_offsets.numpy()))
+            ws.bsr_set_from_triplets(
+                A, wp.array(rows, dtype=wp.int32, device=self.device), model.bsr_columns,
+                wp.zeros(model.bsr_nnz, dtype=model.types.mat33, device=self.device), prune_numerical_zeros=False)
+            if not np.array_equal(A.columns.numpy()[: model.bsr_nnz], model.bsr_columns.numpy()):
+                raise RuntimeError("warp.sparse reordered the block structure; the slot map would be wrong")
+            self._warp_matrix = A
+        A = self._warp_matrix
+        A.values = values
+        if guess is None:
+            x.zero_()
+        elif guess is not x:
+            wp.copy(x, guess)
+        M = wl.preconditioner(A, "block_jacobi_direct" if self.preconditioner == "block_jacobi" else "diag")
+        opt = self.options
+        # warp's cg tests |r| <= max(tol |b|, atol); check_every=1 reports the exact iteration count
+        iters, residual, threshold = wl.cg(A, b, x, tol=tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters,
+                                           M=M, check_every=1, use_cuda_graph=False)
+        bnorm = float(np.linalg.norm(b.numpy()))
+        return SolveInfo(int(iters), float(residual) / max(bnorm, 1e-300), bool(residual <= threshold))

@@ -1,0 +1,111 @@
+"""Options of the step: the linear solve and divergence guard (SolverOptions), the collision stage
+(CollisionOptions, one field of SolverOptions)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+def _check_positive(owner: str, obj, names) -> None:
+    for name in names:
+        val = getattr(obj, name)
+        if val is None:
+            continue
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val <= 0.0:
+            raise ValueError(f"{owner}.{name} must be finite and > 0, got {val!r}")
+
+
+def _check_int(owner: str, obj, lows: dict[str, int]) -> None:
+    for name, low in lows.items():
+        val = getattr(obj, name)
+        if isinstance(val, bool) or not isinstance(val, int) or val < low:
+            raise ValueError(f"{owner}.{name} must be an integer >= {low}, got {val!r}")
+
+
+def _check_choice(owner: str, obj, choices: dict[str, tuple]) -> None:
+    for name, allowed in choices.items():
+        if getattr(obj, name) not in allowed:
+            raise ValueError(f"{owner}.{name} must be one of {allowed}, got {getattr(obj, name)!r}")
+
+
+@dataclass(frozen=True)
+class CollisionOptions:
+    """Options of the collision stage (detect -> project rounds, warpcloth/collision)."""
+
+    rounds: int = 20
+    """Most detect -> project rounds per step; a step still finding new contacts after them raises CollisionError."""
+    contact_capacity: int = 0
+    """Contacts one detection may find (0: 16 per cloth particle and obstacle vertex); more raises CollisionError
+    with the capacity needed."""
+    adjoint: str = "qr"
+    """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
+    dense KKT system of the whole zone: the seed's baseline, for comparison)."""
+    max_projection_strain: float = 0.5
+    """Most an edge may lengthen in the collision projection of one step, in rest lengths; more raises
+    CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
+    (warpcloth/collision/stage.py, check_projection_strain)."""
+    qp_tol: float = 1.0e-10
+    """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first option out of range."""
+        _check_positive("CollisionOptions", self, ("max_projection_strain", "qp_tol"))
+        _check_int("CollisionOptions", self, {"rounds": 1, "contact_capacity": 0})
+        _check_choice("CollisionOptions", self, {"adjoint": ("qr", "kkt")})
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Options of the linear solve, the divergence guard and (``collision``) the collision stage."""
+
+    cg_tol: float = 1.0e-5
+    """Relative residual tolerance |b - A dv| <= cg_tol |b| of the forward CG solve (and of the adjoint one, unless
+    ``adjoint_cg_tol`` is given)."""
+    adjoint_cg_tol: float | None = None
+    """Relative residual tolerance of the adjoint CG solve of the backward pass; None: the same as ``cg_tol``.
+    The gradient's error follows it as the trajectory's follows cg_tol (benchmarks/tradeoff.py)."""
+    cg_atol: float = 1.0e-12
+    """Absolute residual floor (in the units of b, N*s)."""
+    cg_max_iters: int = 1000
+    """Iteration cap of each CG solve."""
+    preconditioner: str = "auto"
+    """``"block_jacobi"`` (inverse 3x3 diagonal blocks), ``"jacobi"`` (inverse scalar diagonal), ``"block_ssor"``
+    (symmetric block Gauss-Seidel sweeps; sequential backend only: ~3x fewer iterations than block Jacobi at 64x64,
+    benchmarks/cg_solvers.py) or ``"auto"`` (block_ssor with the sequential backend, block_jacobi with warp's)."""
+    ssor_omega: float = 1.5
+    """Relaxation factor of the block SSOR preconditioner, in (0, 2)."""
+    cg_backend: str = "auto"
+    """``"sequential"`` (whole CG in one launch: fastest on the CPU), ``"warp"`` (``warp.optim.linear.cg``:
+    for CUDA), or ``"auto"`` (sequential on the CPU, warp on CUDA). See benchmarks/cg_solvers.py."""
+    on_cg_failure: str = "warn"
+    """What a solve that misses its tolerance does: ``"warn"`` (with the residual) or ``"raise"``."""
+    warm_start: bool = True
+    """Start each CG solve from the previous solution (forward: the velocity change the input State carries;
+    adjoint: the later step's adjoint): fewer iterations, and results that differ only within the tolerance."""
+    max_speed: float = 1.0e3
+    """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
+    collision: CollisionOptions = field(default_factory=CollisionOptions)
+    """Options of the collision stage (used only by scenes with collisions)."""
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first option out of range."""
+        _check_positive("SolverOptions", self, ("cg_tol", "adjoint_cg_tol", "cg_atol", "max_speed"))
+        if not 0.0 < self.ssor_omega < 2.0:
+            raise ValueError(f"SolverOptions.ssor_omega must be in (0, 2), got {self.ssor_omega}")
+        _check_int("SolverOptions", self, {"cg_max_iters": 1})
+        if not isinstance(self.warm_start, bool):
+            raise ValueError(f"SolverOptions.warm_start must be True or False, got {self.warm_start!r}")
+        _check_choice("SolverOptions", self, {
+            "preconditioner": ("auto", "block_jacobi", "jacobi", "block_ssor"),
+            "cg_backend": ("auto", "sequential", "warp"),
+            "on_cg_failure": ("warn", "raise"),
+        })
+        if not isinstance(self.collision, CollisionOptions):
+            raise ValueError(f"SolverOptions.collision must be a CollisionOptions, got {self.collision!r}")
