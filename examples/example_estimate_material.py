@@ -9,12 +9,12 @@ starting from the mean of 8 fabrics, L-BFGS on Warp's tape fits density, stretch
 import argparse
 
 import warpcloth as wc
-from warpcloth.tasks import estimation
+from warpcloth.tasks import estimation, scenes
 
 
 def main(material: str = "tango-red-jet-set", iters: int = 60, steps: int = estimation.STEPS, device=None):
     truth = wc.preset(material, thicken=estimation.THICKEN)
-    model = estimation.hanging_cloth(truth, device=device)  # the material here only sets the initial arrays
+    model = scenes.hanging_cloth(truth, device=device)  # the material here only sets the initial arrays
     targets = estimation.TrajectoryFit.simulate_targets(model, truth, steps=steps)
     fit = estimation.TrajectoryFit(model, targets, steps=steps)
     result = estimation.estimate_material(fit, optimizer="lbfgs", iters=iters, progress=True)

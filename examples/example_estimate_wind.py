@@ -14,16 +14,8 @@ import numpy as np
 import warp as wp
 
 import warpcloth as wc
-
-GRID_TO_YZ = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-
-@wp.kernel
-def squared_distance(x: wp.array(dtype=wp.vec3), target: wp.array(dtype=wp.vec3), scale: float,
-                     loss: wp.array(dtype=float)):
-    i = wp.tid()
-    d = x[i] - target[i]
-    wp.atomic_add(loss, 0, scale * wp.dot(d, d))
+from warpcloth.kernels.losses import loss_kernels
+from warpcloth.tasks.scenes import GRID_TO_YZ
 
 
 class Example:
@@ -37,6 +29,7 @@ class Example:
         self.model = builder.finalize(device, requires_grad=True)
         self.sim = wc.Simulator(self.model, 0.02)
         self.steps = steps
+        self.squared_distance = loss_kernels(self.model.scalar).squared_distance  # loss += scale |x - target|^2
         self.targets = [s.particle_x for s in wc.rollout(self.sim, self.model.state(), steps=steps)]
         self.model.wind_velocity.assign([(guess, 0.0, 0.0)])
         # Adam on the wind speed along x (the component normal to the cloth): the loss's scale is unknown upfront
@@ -51,7 +44,7 @@ class Example:
             trajectory = wc.rollout(self.sim, self.model.state(), steps=self.steps)
             scale = 1.0 / (self.steps * self.model.particle_count)
             for state, target in zip(trajectory[1:], self.targets[1:]):
-                wp.launch(squared_distance, self.model.particle_count,
+                wp.launch(self.squared_distance, self.model.particle_count,
                           inputs=[state.particle_x, target, scale], outputs=[loss])
         tape.backward(loss)
         return float(loss.numpy()[0])

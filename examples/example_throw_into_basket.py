@@ -10,11 +10,12 @@ reads the cloth's state once per second is trained through the simulator instead
 import argparse
 
 import warpcloth as wc
+from warpcloth.tasks import scenes
 from warpcloth.tasks import throw as control
 
 
 def main(iters: int = 30, steps: int = control.STEPS, mlp: bool = False, usd: str | None = None, device=None):
-    task = control.ThrowTask(control.basket_scene(device), steps=steps)
+    task = control.ThrowTask(scenes.basket_scene(device), steps=steps)
     if mlp:
         result = control.train_mlp(task, iters=iters, progress=True)
     else:

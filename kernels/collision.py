@@ -13,15 +13,16 @@ A contact is (nodes[4], mode, t, sign):
 - mode EE_PLANE: edge nodes[0:2] against edge nodes[2:4] at a crossing; n = sign * unit cross product of the edges.
 - mode EE_DIRECTION: closest points of the two segments at t, n = unit vector between them (no sign needed);
   covers vertex-edge and vertex-vertex proximity as well (clamped segment parameters).
-The constraint is sum_k w_k n . x_k >= thickness at the end positions (kernels/contact.py, warpcloth/projection.py).
+The constraint is sum_k w_k n . x_k >= thickness at the end positions (kernels/contact.py,
+warpcloth/collision/projection.py).
 """
 
-import functools
 from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.types import types
+from warpcloth.kernels.geometry import segment_parameters, span_coordinates
+from warpcloth.kernels.types import per_precision, types
 
 wp.set_module_options({"enable_backward": False})
 
@@ -35,6 +36,10 @@ BARY_EPS = wp.constant(wp.float64(1.0e-6))
 MIN_EDGE_SINE = wp.constant(wp.float64(1.0e-2))
 """Crossing edges closer to parallel than this sine (0.57 degrees) are left to the vertex-face tests of their ends:
 the plane they span, and so the constraint's normal, is ill-defined."""
+
+PARALLEL_SINE2 = wp.constant(wp.float64(1.0e-20))
+"""Lines or segments whose squared sine is at most this count as parallel (no crossing point; closest points from
+the segment ends). Only guards the division: detection needs the values, not their derivatives."""
 
 PROXIMITY_MARGIN = wp.constant(wp.float64(1.0 - 1.0e-2))
 """Proximity contacts need a distance below thickness * margin: pairs the projection just left at the thickness
@@ -103,76 +108,20 @@ def cubic_brackets(c0: wp.float64, c1: wp.float64, c2: wp.float64, c3: wp.float6
 @wp.func
 def face_barycentric(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
     """Barycentric coordinates (of a, b, c) of p's projection on the plane of the triangle; (-1,-1,-1) if degenerate."""
-    e1 = b - a
-    e2 = c - a
-    ep = p - a
-    d11 = wp.dot(e1, e1)
-    d12 = wp.dot(e1, e2)
-    d22 = wp.dot(e2, e2)
-    d1p = wp.dot(e1, ep)
-    d2p = wp.dot(e2, ep)
-    det = d11 * d22 - d12 * d12
-    if det <= wp.float64(1.0e-24) * d11 * d22 or det <= wp.float64(0.0):
+    u, v, det, scale = span_coordinates(b - a, c - a, p - a)
+    if det <= wp.float64(1.0e-24) * scale or det <= wp.float64(0.0):
         return wp.vec3d(wp.float64(-1.0), wp.float64(-1.0), wp.float64(-1.0))
-    u = (d22 * d1p - d12 * d2p) / det
-    v = (d11 * d2p - d12 * d1p) / det
     return wp.vec3d(wp.float64(1.0) - u - v, u, v)
 
 
 @wp.func
 def line_parameters(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d):
-    """Parameters (s, u) of the closest points of the infinite lines p0+s(p1-p0), q0+u(q1-q0); valid=False if parallel."""
-    d1 = p1 - p0
-    d2 = q1 - q0
-    r = p0 - q0
-    a = wp.dot(d1, d1)
-    e = wp.dot(d2, d2)
-    b = wp.dot(d1, d2)
-    c = wp.dot(d1, r)
-    f = wp.dot(d2, r)
-    den = a * e - b * b
-    if den <= wp.float64(1.0e-20) * a * e or den <= wp.float64(0.0):
+    """Parameters (s, u) of the closest points of the infinite lines p0+s(p1-p0), q0+u(q1-q0); valid=False if
+    parallel."""
+    s, u, den, scale = span_coordinates(p1 - p0, q0 - q1, q0 - p0)
+    if den <= PARALLEL_SINE2 * scale or den <= wp.float64(0.0):
         return wp.float64(0.0), wp.float64(0.0), False
-    s = (b * f - c * e) / den
-    u = (a * f - b * c) / den
     return s, u, True
-
-
-@wp.func
-def segment_parameters(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d):
-    """Parameters (s, u) in [0, 1] of the closest points of two segments (Ericson, Real-Time Collision Detection 5.1.9)."""
-    d1 = p1 - p0
-    d2 = q1 - q0
-    r = p0 - q0
-    a = wp.dot(d1, d1)
-    e = wp.dot(d2, d2)
-    f = wp.dot(d2, r)
-    zero = wp.float64(0.0)
-    one = wp.float64(1.0)
-    s = zero
-    u = zero
-    tiny = wp.float64(1.0e-30)
-    if a <= tiny and e <= tiny:
-        return zero, zero
-    if a <= tiny:
-        u = wp.clamp(f / e, zero, one)
-        return zero, u
-    c = wp.dot(d1, r)
-    if e <= tiny:
-        s = wp.clamp(-c / a, zero, one)
-        return s, zero
-    b = wp.dot(d1, d2)
-    den = a * e - b * b
-    if den > wp.float64(1.0e-20) * a * e:
-        s = wp.clamp((b * f - c * e) / den, zero, one)
-    u = (b * s + f) / e
-    if u < zero:
-        u = zero
-        s = wp.clamp(-c / a, zero, one)
-    elif u > one:
-        u = one
-        s = wp.clamp((b - c) / a, zero, one)
-    return s, u
 
 
 @wp.func
@@ -181,10 +130,14 @@ def lerp3(x0: wp.vec3d, x1: wp.vec3d, t: wp.float64):
 
 
 @wp.func
-def coplanarity_roots(A0: wp.vec3d, B0: wp.vec3d, C0: wp.vec3d, dA: wp.vec3d, dB: wp.vec3d, dC: wp.vec3d):
-    """Times t in [0, 1] (ascending, up to 3, padded with 2) at which (A0 + t dA) x (B0 + t dB) . (C0 + t dC) = 0:
-    the moments four linearly moving points are coplanar (Provot 1997; ARCSim's CCD)."""
+def coplanarity_roots(A0: wp.vec3d, B0: wp.vec3d, C0: wp.vec3d, A1: wp.vec3d, B1: wp.vec3d, C1: wp.vec3d):
+    """Times t in [0, 1] (ascending, up to 3, padded with 2) at which A(t) x B(t) . C(t) = 0, each vector moving
+    linearly from its start (A0) to its end (A1) value: the moments four linearly moving points are coplanar
+    (Provot 1997; ARCSim's CCD)."""
     zero = wp.float64(0.0)
+    dA = A1 - A0
+    dB = B1 - B0
+    dC = C1 - C0
     k0 = wp.dot(wp.cross(A0, B0), C0)
     k1 = wp.dot(wp.cross(dA, B0), C0) + wp.dot(wp.cross(A0, dB), C0) + wp.dot(wp.cross(A0, B0), dC)
     k2 = wp.dot(wp.cross(dA, dB), C0) + wp.dot(wp.cross(dA, B0), dC) + wp.dot(wp.cross(A0, dB), dC)
@@ -210,38 +163,64 @@ def coplanarity_roots(A0: wp.vec3d, B0: wp.vec3d, C0: wp.vec3d, dA: wp.vec3d, dB
 
 
 @wp.func
+def side_sign(n: wp.vec3d, gap: wp.vec3d):
+    """+1 if ``gap`` points to the side of the plane that ``n`` points to (or lies in the plane), -1 otherwise."""
+    if wp.dot(n, gap) < wp.float64(0.0):
+        return wp.float64(-1.0)
+    return wp.float64(1.0)
+
+
+@wp.func
+def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int,
+                      x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: wp.vec3d,
+                      x1: wp.vec3d, y1: wp.vec3d, z1: wp.vec3d, w1: wp.vec3d):
+    """(crossed, t, sign): the earliest of the coplanarity times ``roots[:count]`` at which the primitives touch (CCD).
+
+    ``vertex_face``: vertex x against triangle (y, z, w), touching when the vertex is inside the face; otherwise edge
+    (x, y) against edge (z, w), touching when the segments cross and are not closer to parallel than MIN_EDGE_SINE.
+    Positions x0.. are at the start of the step, x1.. at its end. ``sign`` makes the normal at t (the face's, or the
+    cross product of the edges) point to the side the primitives started on, where ARCSim uses the net relative
+    motion: a double crossing that ends back on that side then asks for nothing new, and the net motion would give
+    no clear side.
+    """
+    one = wp.float64(1.0)
+    for r in range(count):
+        t = roots[r]
+        x = lerp3(x0, x1, t)
+        y = lerp3(y0, y1, t)
+        z = lerp3(z0, z1, t)
+        w = lerp3(w0, w1, t)
+        if vertex_face:
+            b = face_barycentric(x, y, z, w)
+            if b[0] >= -BARY_EPS and b[1] >= -BARY_EPS and b[2] >= -BARY_EPS:
+                gap0 = x0 - (b[0] * y0 + b[1] * z0 + b[2] * w0)
+                return True, t, side_sign(wp.cross(z - y, w - y), gap0)
+        else:
+            s, u, ok = line_parameters(x, y, z, w)
+            sine = wp.length(wp.cross(y - x, w - z)) / (wp.length(y - x) * wp.length(w - z))
+            inside = s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS
+            if ok and sine > MIN_EDGE_SINE and inside:
+                gap0 = ((one - s) * x0 + s * y0) - ((one - u) * z0 + u * w0)
+                return True, t, side_sign(wp.cross(y - x, w - z), gap0)
+    return False, one, one
+
+
+@wp.func
 def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
                      p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d, thickness: wp.float64):
     """(hit, mode, t, sign, rank) of a vertex against a triangle moving linearly over the step.
 
-    First the earliest coplanarity time t in [0, 1] at which the vertex is inside the face (CCD; the normal is signed
-    towards the side the vertex started on, where ARCSim uses the net relative motion); otherwise proximity at the
-    end positions:
+    First the earliest coplanarity time t in [0, 1] at which the vertex is inside the face (CCD, signed towards the
+    side the vertex started on); otherwise proximity at the end positions:
     vertex over the face's interior and closer than the thickness (signed towards the side it started on).
     rank orders hits by urgency: t - 1 (in [-1, 0]) for a crossing, distance / thickness (in [0, 1)) otherwise.
     """
+    roots, count = coplanarity_roots(b0 - a0, c0 - a0, p0 - a0, b1 - a1, c1 - a1, p1 - a1)
+    crossed, t, sign = earliest_crossing(True, roots, count, p0, a0, b0, c0, p1, a1, b1, c1)
+    if crossed:
+        return True, VF_PLANE, t, sign, t - wp.float64(1.0)
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
-    A0 = b0 - a0
-    B0 = c0 - a0
-    C0 = p0 - a0
-    roots, count = coplanarity_roots(A0, B0, C0, (b1 - a1) - A0, (c1 - a1) - B0, (p1 - a1) - C0)
-    for r in range(count):
-        t = roots[r]
-        p = lerp3(p0, p1, t)
-        a = lerp3(a0, a1, t)
-        b = lerp3(b0, b1, t)
-        c = lerp3(c0, c1, t)
-        w = face_barycentric(p, a, b, c)
-        if w[0] >= -BARY_EPS and w[1] >= -BARY_EPS and w[2] >= -BARY_EPS:
-            n = wp.cross(b - a, c - a)
-            # the normal points to the side the vertex started on (a double crossing that ends back on
-            # that side then asks for nothing new; the net relative motion would give no clear side)
-            gap0 = p0 - (w[0] * a0 + w[1] * b0 + w[2] * c0)
-            sign = one
-            if wp.dot(n, gap0) < zero:
-                sign = -one
-            return True, VF_PLANE, t, sign, t - one
     n1 = wp.cross(b1 - a1, c1 - a1)
     nl = wp.length(n1)
     if nl <= zero:
@@ -270,29 +249,13 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
     otherwise proximity of the two segments at the end positions (EE_DIRECTION, or EE_PLANE signed by the
     start side when the segments touch so closely that their connecting direction is undefined).
     """
+    roots, count = coplanarity_roots(p1 - p0, q1 - q0, q0 - p0, P1 - P0, Q1 - Q0, Q0 - P0)
+    crossed, t, sign = earliest_crossing(False, roots, count, p0, p1, q0, q1, P0, P1, Q0, Q1)
+    if crossed:
+        return True, EE_PLANE, t, sign, t - wp.float64(1.0)
+    s, u = segment_parameters(P0, P1, Q0, Q1, PARALLEL_SINE2)
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
-    A0 = p1 - p0
-    B0 = q1 - q0
-    C0 = q0 - p0
-    roots, count = coplanarity_roots(A0, B0, C0, (P1 - P0) - A0, (Q1 - Q0) - B0, (Q0 - P0) - C0)
-    for r in range(count):
-        t = roots[r]
-        a = lerp3(p0, P0, t)
-        b = lerp3(p1, P1, t)
-        c = lerp3(q0, Q0, t)
-        d = lerp3(q1, Q1, t)
-        s, u, ok = line_parameters(a, b, c, d)
-        sine = wp.length(wp.cross(b - a, d - c)) / (wp.length(b - a) * wp.length(d - c))
-        inside = s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS
-        if ok and sine > MIN_EDGE_SINE and inside:
-            n = wp.cross(b - a, d - c)
-            gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)  # start side, as for vertices
-            sign = one
-            if wp.dot(n, gap0) < zero:
-                sign = -one
-            return True, EE_PLANE, t, sign, t - one
-    s, u = segment_parameters(P0, P1, Q0, Q1)
     gap = ((one - s) * P0 + s * P1) - ((one - u) * Q0 + u * Q1)
     dist = wp.length(gap)
     if dist >= thickness * PROXIMITY_MARGIN:
@@ -307,14 +270,47 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
         return True, EE_DIRECTION, one, one, dist / thickness
     n = wp.cross(P1 - P0, Q1 - Q0)
     if wp.length(n) <= MIN_EDGE_SINE * wp.length(P1 - P0) * wp.length(Q1 - Q0):
-        return False, EE_DIRECTION, one, one, wp.float64(2.0)  # touching and parallel: the vertex-face tests of the ends cover it
-    sign = one
-    if wp.dot(wp.cross(p1 - p0, q1 - q0), gap0) < zero:
-        sign = -one
-    return True, EE_PLANE, one, sign, dist / thickness
+        # touching and parallel: the vertex-face tests of the ends cover it
+        return False, EE_DIRECTION, one, one, wp.float64(2.0)
+    return True, EE_PLANE, one, side_sign(wp.cross(p1 - p0, q1 - q0), gap0), dist / thickness
 
 
-@functools.cache
+@wp.func
+def keep_most_urgent(hit: bool, rank: wp.float64, sign: wp.float64, t: wp.float64, mode: int, target: int,
+                     best: wp.vec2d, best_target: wp.vec2i, best_t: wp.vec2d, best_mode: wp.vec2i):
+    """The lowest-rank hit so far on each side of a query primitive (+ side first), with one more test result.
+
+    A query keeps one contact per side (ARCSim keeps the closest primitive per side); others that matter are found in
+    the next round, after these are resolved. Returns the updated (best, best_target, best_t, best_mode).
+    """
+    side = 0 if sign > wp.float64(0.0) else 1
+    if hit and rank < best[side]:
+        best[side] = rank
+        best_target[side] = target
+        best_t[side] = t
+        best_mode[side] = mode
+    return best, best_target, best_t, best_mode
+
+
+@wp.func
+def emit(side: int, n0: int, n1: int, n2: int, n3: int, mode: int, t: wp.float64, capacity: int,
+         count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
+         contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
+         contact_sign: wp.array(dtype=wp.float64)):
+    """Append a contact on side 0 (sign +1) or 1 (sign -1); beyond ``capacity`` it is only counted."""
+    sign = wp.float64(1.0) if side == 0 else wp.float64(-1.0)
+    slot = wp.atomic_add(count, 0, 1)
+    if slot < capacity:
+        contact_nodes[slot, 0] = n0
+        contact_nodes[slot, 1] = n1
+        contact_nodes[slot, 2] = n2
+        contact_nodes[slot, 3] = n3
+        contact_mode[slot] = mode
+        contact_t[slot] = t
+        contact_sign[slot] = sign
+
+
+@per_precision
 def collision_kernels(scalar):
     """Detection kernels for node positions of one precision (``wp.float32`` or ``wp.float64``)."""
     vec3 = types(scalar).vec3
@@ -339,99 +335,65 @@ def collision_kernels(scalar):
         lowers[i] = lo - wp.vec3(g, g, g)
         uppers[i] = hi + wp.vec3(g, g, g)
 
-    @wp.func
-    def emit(slot: int, capacity: int, n0: int, n1: int, n2: int, n3: int, mode: int, t: wp.float64,
-             sign: wp.float64, contact_nodes: wp.array2d(dtype=wp.int32), contact_mode: wp.array(dtype=wp.int32),
-             contact_t: wp.array(dtype=wp.float64), contact_sign: wp.array(dtype=wp.float64)):
-        if slot < capacity:
-            contact_nodes[slot, 0] = n0
-            contact_nodes[slot, 1] = n1
-            contact_nodes[slot, 2] = n2
-            contact_nodes[slot, 3] = n3
-            contact_mode[slot] = mode
-            contact_t[slot] = t
-            contact_sign[slot] = sign
+    def contact_query(vertex_face: bool):
+        """The vertex-face (``vertex_face``) or edge-edge query kernel; the two differ only where marked static."""
+        # query primitives: vertices (one node id each) or edges (a row of two)
+        query_array = wp.array(dtype=wp.int32) if vertex_face else wp.array2d(dtype=wp.int32)
 
-    @wp.kernel
-    def vertex_face(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
-                    vertices: wp.array(dtype=wp.int32), faces: wp.array2d(dtype=wp.int32),
-                    query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
-                    skip_incident: int, thickness: wp.float64, capacity: int,
-                    # out:
-                    count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
-                    contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
-                    contact_sign: wp.array(dtype=wp.float64)):
-        i = wp.tid()
-        p = vertices[i]
-        query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i])
-        f = int(0)
-        # keep the most urgent contact on each side of the vertex (ARCSim keeps the closest primitive per side);
-        # others that matter are found in the next round, after this one is resolved
-        best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
-        best_face = wp.vec2i(-1, -1)
-        best_t = wp.vec2d()
-        while wp.bvh_query_next(query, f):
-            a = faces[f, 0]
-            b = faces[f, 1]
-            c = faces[f, 2]
-            if skip_incident != 0 and (p == a or p == b or p == c):
-                continue
-            hit, mode, t, sign, rank = vertex_face_test(
-                wp.vec3d(x0[p]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
-                wp.vec3d(x1[p]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]), thickness)
-            side = 0 if sign > wp.float64(0.0) else 1
-            if hit and rank < best[side]:
-                best[side] = rank
-                best_face[side] = f
-                best_t[side] = t
-        for side in range(2):
-            if best_face[side] >= 0:
-                sign = wp.float64(1.0) if side == 0 else wp.float64(-1.0)
-                slot = wp.atomic_add(count, 0, 1)
-                fb = best_face[side]
-                emit(slot, capacity, p, faces[fb, 0], faces[fb, 1], faces[fb, 2], VF_PLANE, best_t[side], sign,
-                     contact_nodes, contact_mode, contact_t, contact_sign)
+        @wp.kernel
+        def query_contacts(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
+                           queries: query_array, targets: wp.array2d(dtype=wp.int32),
+                           query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
+                           same_cloth: int, thickness: wp.float64, capacity: int,
+                           # out:
+                           count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
+                           contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
+                           contact_sign: wp.array(dtype=wp.float64)):
+            # query primitive i against the targets (faces or edges) whose boxes overlap its box; same_cloth != 0:
+            # queries and targets are the same cloth's, so incident primitives are skipped (each edge pair once)
+            i = wp.tid()
+            if wp.static(vertex_face):
+                q0 = queries[i]
+                q1 = q0
+            else:
+                q0 = queries[i, 0]
+                q1 = queries[i, 1]
+            query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i])
+            j = int(0)
+            # the most urgent contact on each side of the query primitive (EE_DIRECTION counts as the + side)
+            best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
+            best_target = wp.vec2i(-1, -1)
+            best_t = wp.vec2d()
+            best_mode = wp.vec2i()
+            while wp.bvh_query_next(query, j):
+                a = targets[j, 0]
+                b = targets[j, 1]
+                if wp.static(vertex_face):
+                    c = targets[j, 2]
+                    if same_cloth != 0 and (q0 == a or q0 == b or q0 == c):
+                        continue
+                    hit, mode, t, sign, rank = vertex_face_test(
+                        wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
+                        wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]), thickness)
+                else:
+                    if same_cloth != 0 and (j <= i or q0 == a or q0 == b or q1 == a or q1 == b):
+                        continue  # each pair once; edges sharing a vertex do not collide
+                    hit, mode, t, sign, rank = edge_edge_test(
+                        wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
+                        wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), thickness)
+                best, best_target, best_t, best_mode = keep_most_urgent(hit, rank, sign, t, mode, j, best,
+                                                                        best_target, best_t, best_mode)
+            for side in range(2):
+                jb = best_target[side]
+                if jb >= 0:
+                    if wp.static(vertex_face):
+                        emit(side, q0, targets[jb, 0], targets[jb, 1], targets[jb, 2], best_mode[side], best_t[side],
+                             capacity, count, contact_nodes, contact_mode, contact_t, contact_sign)
+                    else:
+                        emit(side, q0, q1, targets[jb, 0], targets[jb, 1], best_mode[side], best_t[side], capacity,
+                             count, contact_nodes, contact_mode, contact_t, contact_sign)
 
-    @wp.kernel
-    def edge_edge(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
-                  edges: wp.array2d(dtype=wp.int32), targets: wp.array2d(dtype=wp.int32),
-                  query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
-                  same_set: int, thickness: wp.float64, capacity: int,
-                  # out:
-                  count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
-                  contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
-                  contact_sign: wp.array(dtype=wp.float64)):
-        i = wp.tid()
-        e0 = edges[i, 0]
-        e1 = edges[i, 1]
-        query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i])
-        j = int(0)
-        # the most urgent contact per side (EE_DIRECTION counts as the + side), as in vertex_face
-        best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
-        best_edge = wp.vec2i(-1, -1)
-        best_t = wp.vec2d()
-        best_mode = wp.vec2i()
-        while wp.bvh_query_next(query, j):
-            f0 = targets[j, 0]
-            f1 = targets[j, 1]
-            if same_set != 0 and (j <= i or e0 == f0 or e0 == f1 or e1 == f0 or e1 == f1):
-                continue  # each pair once; edges sharing a vertex do not collide
-            hit, mode, t, sign, rank = edge_edge_test(
-                wp.vec3d(x0[e0]), wp.vec3d(x0[e1]), wp.vec3d(x0[f0]), wp.vec3d(x0[f1]),
-                wp.vec3d(x1[e0]), wp.vec3d(x1[e1]), wp.vec3d(x1[f0]), wp.vec3d(x1[f1]), thickness)
-            side = 0 if sign > wp.float64(0.0) else 1
-            if hit and rank < best[side]:
-                best[side] = rank
-                best_edge[side] = j
-                best_t[side] = t
-                best_mode[side] = mode
-        for side in range(2):
-            if best_edge[side] >= 0:
-                sign = wp.float64(1.0) if side == 0 else wp.float64(-1.0)
-                slot = wp.atomic_add(count, 0, 1)
-                jb = best_edge[side]
-                emit(slot, capacity, e0, e1, targets[jb, 0], targets[jb, 1], best_mode[side], best_t[side], sign,
-                     contact_nodes, contact_mode, contact_t, contact_sign)
+        return query_contacts
 
     @wp.kernel
     def inside_mesh(mesh: wp.uint64, x: wp.array(dtype=vec3), max_dist: float,
@@ -443,10 +405,6 @@ def collision_kernels(scalar):
         if q.result and q.sign < 0.0:
             inside[i] = 1
 
-    return SimpleNamespace(primitive_bounds=primitive_bounds, vertex_face=vertex_face, edge_edge=edge_edge,
-                           inside_mesh=inside_mesh)
+    return SimpleNamespace(primitive_bounds=primitive_bounds, vertex_face=contact_query(True),
+                           edge_edge=contact_query(False), inside_mesh=inside_mesh)
 
-
-# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
-for _scalar in (wp.float32, wp.float64):
-    collision_kernels(_scalar)

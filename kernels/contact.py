@@ -6,48 +6,27 @@ dL/dn and dL/dw (from the projection's adjoint) back to the start and end positi
 The frozen t and sign get no gradient (a change of the active set or of the time of impact is not differentiable).
 """
 
-import functools
 from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.types import types
+from warpcloth.kernels.geometry import segment_parameters, span_coordinates
+from warpcloth.kernels.types import per_precision, types
 
 VF_PLANE = 0
 EE_PLANE = 1
 EE_DIRECTION = 2  # the modes of kernels/collision.py
 
 
-@functools.cache
+@per_precision
 def contact_kernels(scalar):
     t = types(scalar)
     vec3, vec4 = t.vec3, t.vec4
-    zero = scalar(0.0)
     one = scalar(1.0)
 
-    @wp.func
-    def segment_parameters(p0: vec3, p1: vec3, q0: vec3, q1: vec3):
-        # closest points of two segments, clamped (Ericson, Real-Time Collision Detection 5.1.9)
-        d1 = p1 - p0
-        d2 = q1 - q0
-        r = p0 - q0
-        a = wp.dot(d1, d1)
-        e = wp.dot(d2, d2)
-        f = wp.dot(d2, r)
-        c = wp.dot(d1, r)
-        b = wp.dot(d1, d2)
-        s = zero
-        den = a * e - b * b
-        if den > scalar(1.0e-12) * a * e:
-            s = wp.clamp((b * f - c * e) / den, zero, one)
-        u = (b * s + f) / e
-        if u < zero:
-            u = zero
-            s = wp.clamp(-c / a, zero, one)
-        elif u > one:
-            u = one
-            s = wp.clamp((b - c) / a, zero, one)
-        return s, u
+    # Nearly parallel segments: this s is differentiated and ds/dx grows like 1/den, so the geometry treats
+    # segments as parallel from a larger squared sine than detection (kernels/collision.py's PARALLEL_SINE2).
+    parallel_sine2 = scalar(1.0e-12)
 
     @wp.kernel
     def gather_nodes(cloth_x: wp.array(dtype=vec3), obstacle_x: wp.array(dtype=vec3), cloth_count: int,
@@ -74,38 +53,23 @@ def contact_kernels(scalar):
         d = x0[contact_nodes[j, 3]] + tj * (x1[contact_nodes[j, 3]] - x0[contact_nodes[j, 3]])
         mode = contact_mode[j]
         if mode == VF_PLANE:
-            # vertex a over face (b, c, d): barycentric coordinates of a's projection on the face plane
+            # vertex a over face (b, c, d): barycentric coordinates (1 - u - v, u, v) of a's projection on the face
             e1 = c - b
             e2 = d - b
-            ep = a - b
-            d11 = wp.dot(e1, e1)
-            d12 = wp.dot(e1, e2)
-            d22 = wp.dot(e2, e2)
-            d1p = wp.dot(e1, ep)
-            d2p = wp.dot(e2, ep)
-            det = d11 * d22 - d12 * d12
-            u = (d22 * d1p - d12 * d2p) / det
-            v = (d11 * d2p - d12 * d1p) / det
+            u, v, _det, _scale = span_coordinates(e1, e2, a - b)
             normal[j] = contact_sign[j] * wp.normalize(wp.cross(e1, e2))
             weight[j] = vec4(one, -(one - u - v), -u, -v)
         elif mode == EE_PLANE:
-            # crossing edges (a, b) and (c, d): the normal of the plane they span, lines' closest points
+            # crossing edges (a, b) and (c, d): the normal of the plane they span, the lines' closest points
+            # a + s d1 and c + u d2
             d1 = b - a
             d2 = d - c
-            r = a - c
-            aa = wp.dot(d1, d1)
-            ee = wp.dot(d2, d2)
-            bb = wp.dot(d1, d2)
-            cc = wp.dot(d1, r)
-            ff = wp.dot(d2, r)
-            den = aa * ee - bb * bb
-            s = (bb * ff - cc * ee) / den
-            u = (aa * ff - bb * cc) / den
+            s, u, _det, _scale = span_coordinates(d1, c - d, c - a)
             normal[j] = contact_sign[j] * wp.normalize(wp.cross(d1, d2))
             weight[j] = vec4(one - s, s, -(one - u), -u)
         else:
             # closest points of the two segments; the normal points from the second to the first
-            s, u = segment_parameters(a, b, c, d)
+            s, u = segment_parameters(a, b, c, d, parallel_sine2)
             gap = (a + s * (b - a)) - (c + u * (d - c))
             normal[j] = wp.normalize(gap)
             weight[j] = vec4(one - s, s, -(one - u), -u)
@@ -122,7 +86,3 @@ def contact_kernels(scalar):
 
     return SimpleNamespace(gather_nodes=gather_nodes, geometry=geometry, apply_projection=apply_projection)
 
-
-# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
-for _scalar in (wp.float32, wp.float64):
-    contact_kernels(_scalar)

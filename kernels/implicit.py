@@ -8,17 +8,16 @@ Hard pins prescribe dv on their rows; their columns move to the right-hand side 
 Kernels add 3x3 blocks into precomputed BSR slots (the sparsity is fixed for a mesh).
 """
 
-import functools
 from types import SimpleNamespace
 
 import warp as wp
 
 from warpcloth.kernels.bending import bending_funcs
 from warpcloth.kernels.stretching import stretching_funcs
-from warpcloth.kernels.types import types
+from warpcloth.kernels.types import per_precision, types
 
 
-@functools.cache
+@per_precision
 def implicit_kernels(scalar):
     t = types(scalar)
     vec2, vec3, mat22, mat33 = t.vec2, t.vec3, t.mat22, t.mat33
@@ -44,54 +43,83 @@ def implicit_kernels(scalar):
             else:
                 wp.atomic_add(values, slot, block)
 
+    @wp.struct
+    class FaceData:
+        # What the face kernels read from the Model (warpcloth/model.py documents each array). A struct, so the
+        # kernels that assemble, differentiate and measure the faces share one argument list; gradients reach the
+        # differentiable members (materials, gravity) through the tape's adjoint struct.
+        indices: wp.array2d(dtype=wp.int32)
+        material: wp.array(dtype=wp.int32)
+        inv_dm: wp.array(dtype=mat22)
+        area: wp.array(dtype=scalar)
+        block_slot: wp.array2d(dtype=wp.int32)
+        particle_pin: wp.array(dtype=wp.int32)
+        density: wp.array(dtype=scalar)
+        stretching: wp.array3d(dtype=scalar)
+        thicken: wp.array(dtype=scalar)
+        lut_weight: wp.array(dtype=vec3)
+        lut_row: wp.array(dtype=wp.int32)
+        gravity: wp.array(dtype=vec3)
+
+    @wp.struct
+    class HingeData:
+        # What the hinge kernels read from the Model.
+        indices: wp.array2d(dtype=wp.int32)
+        material: wp.array(dtype=wp.int32)
+        rest_angle: wp.array(dtype=scalar)
+        rest_length: wp.array(dtype=scalar)
+        rest_area: wp.array(dtype=scalar)
+        direction: wp.array(dtype=vec2)
+        block_slot: wp.array2d(dtype=wp.int32)
+        particle_pin: wp.array(dtype=wp.int32)
+        bending: wp.array3d(dtype=scalar)
+        thicken: wp.array(dtype=scalar)
+
+    @wp.struct
+    class ElementState:
+        # The per-step inputs of the element kernels: the state, the pins' prescribed velocity change, and (for
+        # the adjoint potential only, held constant) lam = dL/db and the solve's solution dv.
+        x: wp.array(dtype=vec3)
+        v: wp.array(dtype=vec3)
+        pin_dv: wp.array(dtype=vec3)
+        lam: wp.array(dtype=vec3)
+        dv: wp.array(dtype=vec3)
+        dt: scalar
+        damping_mass: scalar
+        damping_stiffness: scalar
+
     @wp.func
-    def face_element(
-        f: int,
-        tri_indices: wp.array2d(dtype=wp.int32),
-        tri_material: wp.array(dtype=wp.int32),
-        tri_inv_dm: wp.array(dtype=mat22),
-        tri_area: wp.array(dtype=scalar),
-        material_density: wp.array(dtype=scalar),
-        material_stretching: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        lut_weight: wp.array(dtype=vec3),
-        lut_row: wp.array(dtype=wp.int32),
-        x: wp.array(dtype=vec3),
-    ):
+    def face_element(f: int, face: FaceData, x: wp.array(dtype=vec3)):
         """Everything a face kernel needs: nodes, shape gradients, F's columns, Green strain, stiffness [N/m],
         rest area and each node's lumped mass (a third of the face's, ARCSim compute_masses)."""
-        idx = wp.vec3i(tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2])
-        mat = tri_material[f]
-        area = tri_area[f]
-        thicken = material_thicken[mat]
-        inv_dm = tri_inv_dm[f]
+        idx = wp.vec3i(face.indices[f, 0], face.indices[f, 1], face.indices[f, 2])
+        mat = face.material[f]
+        area = face.area[f]
+        thicken = face.thicken[mat]
+        inv_dm = face.inv_dm[f]
         du, dv = st.shape_gradients(inv_dm)
         xu, xv, G00, G11, G01 = st.deformation(x[idx[0]], x[idx[1]], x[idx[2]], inv_dm)
-        k = thicken * st.stiffness(material_stretching, lut_weight, lut_row, mat, G00, G11, G01)
-        node_mass = area * material_density[mat] * thicken / scalar(3.0)
+        k = thicken * st.stiffness(face.stretching, face.lut_weight, face.lut_row, mat, G00, G11, G01)
+        node_mass = area * face.density[mat] * thicken / scalar(3.0)
         return idx, du, dv, xu, xv, G00, G11, G01, k, area, node_mass
 
     @wp.func
-    def hinge_element(
-        e: int,
-        hinge_indices: wp.array2d(dtype=wp.int32),
-        hinge_material: wp.array(dtype=wp.int32),
-        hinge_rest_length: wp.array(dtype=scalar),
-        hinge_rest_area: wp.array(dtype=scalar),
-        hinge_direction: wp.array(dtype=vec2),
-        material_bending: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        x: wp.array(dtype=vec3),
-    ):
+    def hinge_element(e: int, hinge: HingeData, x: wp.array(dtype=vec3)):
         """Nodes, dihedral angle [rad] and kappa = -ke l^2 / (4 (A0 + A1)) of a hinge (Bridson et al. 2003 as in
         ARCSim): the bending energy is -kappa/2 (theta - rest)^2."""
-        idx = wp.vec4i(hinge_indices[e, 0], hinge_indices[e, 1], hinge_indices[e, 2], hinge_indices[e, 3])
-        mat = hinge_material[e]
-        length = hinge_rest_length[e]
-        area = hinge_rest_area[e]
+        idx = wp.vec4i(hinge.indices[e, 0], hinge.indices[e, 1], hinge.indices[e, 2], hinge.indices[e, 3])
+        mat = hinge.material[e]
+        length = hinge.rest_length[e]
+        area = hinge.rest_area[e]
         theta = bd.dihedral_angle(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
-        ke = material_thicken[mat] * bd.stiffness(material_bending, mat, hinge_direction[e], theta, length / area)
+        ke = hinge.thicken[mat] * bd.stiffness(hinge.bending, mat, hinge.direction[e], theta, length / area)
         return idx, theta, -ke * length * length / (scalar(4.0) * area)
+
+    @wp.func
+    def flag_divergence(i: int, x: vec3, v: vec3, max_speed: scalar, status: wp.array(dtype=wp.int32)):
+        # status = first bad particle + 1: NaN/inf, or faster than max_speed
+        if not (wp.isfinite(x) and wp.isfinite(v)) or wp.length(v) > max_speed:
+            wp.atomic_max(status, 0, i + 1)
 
     @wp.kernel
     def pin_rows(
@@ -118,204 +146,144 @@ def implicit_kernels(scalar):
         wp.atomic_add(values, particle_diag_slot[p], wp.identity(n=3, dtype=scalar))
         wp.atomic_add(rhs, p, dv)
 
-    @wp.kernel
-    def faces(
-        # Model:
-        tri_indices: wp.array2d(dtype=wp.int32),
-        tri_material: wp.array(dtype=wp.int32),
-        tri_inv_dm: wp.array(dtype=mat22),
-        tri_area: wp.array(dtype=scalar),
-        tri_block_slot: wp.array2d(dtype=wp.int32),
-        particle_pin: wp.array(dtype=wp.int32),
-        material_density: wp.array(dtype=scalar),
-        material_stretching: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        lut_weight: wp.array(dtype=vec3),
-        lut_row: wp.array(dtype=wp.int32),
-        gravity: wp.array(dtype=vec3),
-        # State in:
-        x: wp.array(dtype=vec3),
-        v: wp.array(dtype=vec3),
-        pin_dv: wp.array(dtype=vec3),
-        dt: scalar,
-        damping_mass: scalar,
-        damping_stiffness: scalar,
-        # out:
-        values: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
-    ):
-        f = wp.tid()
-        idx, du, dv, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
-            f, tri_indices, tri_material, tri_inv_dm, tri_area, material_density, material_stretching,
-            material_thicken, lut_weight, lut_row, x)
-        g = gravity[0]
-        c = dt * (dt + damping_stiffness)
-        eye = wp.identity(n=3, dtype=scalar)
-        for a in range(3):
-            pa = particle_pin[idx[a]] >= 0
-            hv = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            for b in range(3):
-                h_ab = st.hessian_block(a, b, du, dv, xu, xv, k, G00, G11, area)
-                hv += h_ab * v[idx[b]]
-                add_block(values, rhs, pin_dv, tri_block_slot[f, 3 * a + b], idx[a], idx[b], pa,
-                          particle_pin[idx[b]] >= 0, c * h_ab)
-            if not pa:
-                fa = st.node_force(a, du, dv, xu, xv, k, G00, G11, G01, area)
-                b_a = dt * (fa + node_mass * g - damping_mass * node_mass * v[idx[a]]) - c * hv
-                wp.atomic_add(rhs, idx[a], b_a)
-                wp.atomic_add(values, tri_block_slot[f, 4 * a], ((scalar(1.0) + dt * damping_mass) * node_mass) * eye)
+    def element_kernel_pair(mode: str):
+        """The face and hinge kernels of one use (``mode``), with one argument list for all uses:
 
-    @wp.kernel
-    def hinges(
-        # Model:
-        hinge_indices: wp.array2d(dtype=wp.int32),
-        hinge_material: wp.array(dtype=wp.int32),
-        hinge_rest_angle: wp.array(dtype=scalar),
-        hinge_rest_length: wp.array(dtype=scalar),
-        hinge_rest_area: wp.array(dtype=scalar),
-        hinge_direction: wp.array(dtype=vec2),
-        hinge_block_slot: wp.array2d(dtype=wp.int32),
-        particle_pin: wp.array(dtype=wp.int32),
-        material_bending: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        # State in:
-        x: wp.array(dtype=vec3),
-        v: wp.array(dtype=vec3),
-        pin_dv: wp.array(dtype=vec3),
-        dt: scalar,
-        damping_stiffness: scalar,
-        # out:
-        values: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
-    ):
-        e = wp.tid()
-        idx, theta, kappa = hinge_element(e, hinge_indices, hinge_material, hinge_rest_length, hinge_rest_area,
-                                          hinge_direction, material_bending, material_thicken, x)
-        # f = kappa (theta - rest) dtheta; H = -kappa dtheta dtheta^T (Gauss-Newton)
-        g0, g1, g2, g3 = bd.angle_gradient(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
-        grads = wp.matrix_from_rows(g0, g1, g2, g3)
-        gv = wp.dot(g0, v[idx[0]]) + wp.dot(g1, v[idx[1]]) + wp.dot(g2, v[idx[2]]) + wp.dot(g3, v[idx[3]])
-        c = dt * (dt + damping_stiffness)
-        for a in range(4):
-            ga = grads[a]
-            pa = particle_pin[idx[a]] >= 0
-            if not pa:
-                b_a = dt * kappa * (theta - hinge_rest_angle[e]) * ga + (c * kappa * gv) * ga
-                wp.atomic_add(rhs, idx[a], b_a)
-            for b in range(4):
-                blk = (-c * kappa) * wp.outer(ga, grads[b])
-                add_block(values, rhs, pin_dv, hinge_block_slot[e, 4 * a + b], idx[a], idx[b], pa,
-                          particle_pin[idx[b]] >= 0, blk)
+        - ``"assemble"``: add the elements' blocks to A (``values``) and their share of b (``rhs``);
+        - ``"potential"``: add phi = sum_a lam_a . b_a - sum_ab lam_a^T A_ab w_b to ``scalars[0]``, whose gradient
+          (lam and w = v + dv held constant) is the elements' share of the solve's adjoint: the backward pass
+          differentiates this instead of the assembly (~10x cheaper; SPEC §4.1);
+        - ``"energy"``: add kinetic, stretching and gravitational energy (faces) and bending energy (hinges) to
+          ``scalars`` [J].
+        Arrays a mode does not use may be passed as None.
+        """
 
-    @wp.kernel
-    def faces_potential(
-        # Model:
-        tri_indices: wp.array2d(dtype=wp.int32),
-        tri_material: wp.array(dtype=wp.int32),
-        tri_inv_dm: wp.array(dtype=mat22),
-        tri_area: wp.array(dtype=scalar),
-        particle_pin: wp.array(dtype=wp.int32),
-        material_density: wp.array(dtype=scalar),
-        material_stretching: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        lut_weight: wp.array(dtype=vec3),
-        lut_row: wp.array(dtype=wp.int32),
-        gravity: wp.array(dtype=vec3),
-        # State in:
-        x: wp.array(dtype=vec3),
-        v: wp.array(dtype=vec3),
-        pin_dv: wp.array(dtype=vec3),
-        # Adjoint of the solve (held constant): lam = dL/db, dv = the solution (dL/dA_ab = -lam_a dv_b^T)
-        lam: wp.array(dtype=vec3),
-        dv: wp.array(dtype=vec3),
-        dt: scalar,
-        damping_mass: scalar,
-        damping_stiffness: scalar,
-        # out:
-        phi: wp.array(dtype=scalar),
-    ):
-        # phi = sum_a lam_a . b_a + sum_ab <dL/dA_ab, A_ab> for this face's contributions, so grad(phi) is the
-        # face's share of dL/d(x, v, materials, gravity, pin_dv). The 3x3 blocks never form: with
-        # Lu = sum_a du_a lam_a (etc.), sum_ab lam_a^T H_ab w_b contracts to a few dot products (SPEC §1.2 H).
-        idx, du, dv_w, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
-            wp.tid(), tri_indices, tri_material, tri_inv_dm, tri_area, material_density, material_stretching,
-            material_thicken, lut_weight, lut_row, x)
-        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        Lu = zero3
-        Lv = zero3
-        Wu = zero3
-        Wv = zero3
-        inertia = scalar(0.0)
-        for a in range(3):
-            p = idx[a]
-            la = zero3
-            if particle_pin[p] < 0:
-                la = lam[p]
-            w = v[p] + wp.where(particle_pin[p] < 0, dv[p], pin_dv[p])
-            Lu += du[a] * la
-            Lv += dv_w[a] * la
-            Wu += du[a] * w
-            Wv += dv_w[a] * w
-            inertia += wp.dot(la, dt * gravity[0] - dt * damping_mass * v[p]
-                              - (scalar(1.0) + dt * damping_mass) * dv[p])
-        Lxu = wp.dot(Lu, xu)
-        Lxv = wp.dot(Lv, xv)
-        Wxu = wp.dot(Wu, xu)
-        Wxv = wp.dot(Wv, xv)
-        g00 = wp.max(G00, scalar(0.0))
-        g11 = wp.max(G11, scalar(0.0))
-        # sum_a lam_a . f_a (stretching force, SPEC §1.2)
-        force = -area * (k[0] * G00 * Lxu + k[2] * G11 * Lxv + k[1] * (G00 * Lxv + G11 * Lxu)
-                         + k[3] * G01 * (wp.dot(Lu, xv) + wp.dot(Lv, xu)))
-        # sum_ab lam_a^T H_ab w_b
-        hess = area * (
-            k[0] * (Lxu * Wxu + g00 * wp.dot(Lu, Wu))
-            + k[2] * (Lxv * Wxv + g11 * wp.dot(Lv, Wv))
-            + k[1] * (Lxu * Wxv + Lxv * Wxu + g00 * wp.dot(Lv, Wv) + g11 * wp.dot(Lu, Wu))
-            + scalar(0.5) * k[3] * (wp.dot(Lu, xv) + wp.dot(Lv, xu)) * (wp.dot(Wu, xv) + wp.dot(Wv, xu))
-        )
-        c = dt * (dt + damping_stiffness)
-        wp.atomic_add(phi, 0, dt * force + node_mass * inertia - c * hess)
+        @wp.kernel
+        def faces(
+            face: FaceData,
+            s: ElementState,
+            # out:
+            values: wp.array(dtype=mat33),
+            rhs: wp.array(dtype=vec3),
+            scalars: wp.array(dtype=scalar),
+        ):
+            f = wp.tid()
+            x, v, pin_dv, lam, dv, dt = s.x, s.v, s.pin_dv, s.lam, s.dv, s.dt
+            damping_mass = s.damping_mass
+            particle_pin, gravity = face.particle_pin, face.gravity
+            idx, du, dw, xu, xv, G00, G11, G01, k, area, node_mass = face_element(f, face, x)
+            c = dt * (dt + s.damping_stiffness)
+            if wp.static(mode == "assemble"):
+                g = gravity[0]
+                eye = wp.identity(n=3, dtype=scalar)
+                for a in range(3):
+                    pa = particle_pin[idx[a]] >= 0
+                    hv = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+                    for b in range(3):
+                        h_ab = st.hessian_block(a, b, du, dw, xu, xv, k, G00, G11, area)
+                        hv += h_ab * v[idx[b]]
+                        add_block(values, rhs, pin_dv, face.block_slot[f, 3 * a + b], idx[a], idx[b], pa,
+                                  particle_pin[idx[b]] >= 0, c * h_ab)
+                    if not pa:
+                        fa = st.node_force(a, du, dw, xu, xv, k, G00, G11, G01, area)
+                        b_a = dt * (fa + node_mass * g - damping_mass * node_mass * v[idx[a]]) - c * hv
+                        wp.atomic_add(rhs, idx[a], b_a)
+                        wp.atomic_add(values, face.block_slot[f, 4 * a],
+                                      ((scalar(1.0) + dt * damping_mass) * node_mass) * eye)
+            if wp.static(mode == "potential"):
+                # The 3x3 blocks never form: with Lu = sum_a du_a lam_a (etc.), sum_ab lam_a^T H_ab w_b contracts to
+                # a few dot products (SPEC §1.2 H).
+                zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+                Lu = zero3
+                Lv = zero3
+                Wu = zero3
+                Wv = zero3
+                inertia = scalar(0.0)
+                for a in range(3):
+                    p = idx[a]
+                    la = zero3
+                    if particle_pin[p] < 0:
+                        la = lam[p]
+                    w = v[p] + wp.where(particle_pin[p] < 0, dv[p], pin_dv[p])
+                    Lu += du[a] * la
+                    Lv += dw[a] * la
+                    Wu += du[a] * w
+                    Wv += dw[a] * w
+                    inertia += wp.dot(la, dt * gravity[0] - dt * damping_mass * v[p]
+                                      - (scalar(1.0) + dt * damping_mass) * dv[p])
+                Lxu = wp.dot(Lu, xu)
+                Lxv = wp.dot(Lv, xv)
+                Wxu = wp.dot(Wu, xu)
+                Wxv = wp.dot(Wv, xv)
+                g00 = wp.max(G00, scalar(0.0))
+                g11 = wp.max(G11, scalar(0.0))
+                # sum_a lam_a . f_a (stretching force, SPEC §1.2)
+                force = -area * (k[0] * G00 * Lxu + k[2] * G11 * Lxv + k[1] * (G00 * Lxv + G11 * Lxu)
+                                 + k[3] * G01 * (wp.dot(Lu, xv) + wp.dot(Lv, xu)))
+                # sum_ab lam_a^T H_ab w_b
+                hess = area * (
+                    k[0] * (Lxu * Wxu + g00 * wp.dot(Lu, Wu))
+                    + k[2] * (Lxv * Wxv + g11 * wp.dot(Lv, Wv))
+                    + k[1] * (Lxu * Wxv + Lxv * Wxu + g00 * wp.dot(Lv, Wv) + g11 * wp.dot(Lu, Wu))
+                    + scalar(0.5) * k[3] * (wp.dot(Lu, xv) + wp.dot(Lv, xu)) * (wp.dot(Wu, xv) + wp.dot(Wv, xu))
+                )
+                wp.atomic_add(scalars, 0, dt * force + node_mass * inertia - c * hess)
+            if wp.static(mode == "energy"):
+                v0 = v[idx[0]]
+                v1 = v[idx[1]]
+                v2 = v[idx[2]]
+                wp.atomic_add(scalars, 0, scalar(0.5) * node_mass * (wp.dot(v0, v0) + wp.dot(v1, v1) + wp.dot(v2, v2)))
+                wp.atomic_add(scalars, 1, area * st.energy_density(k, G00, G11, G01))
+                wp.atomic_add(scalars, 2, -node_mass * wp.dot(gravity[0], x[idx[0]] + x[idx[1]] + x[idx[2]]))
 
-    @wp.kernel
-    def hinges_potential(
-        # Model:
-        hinge_indices: wp.array2d(dtype=wp.int32),
-        hinge_material: wp.array(dtype=wp.int32),
-        hinge_rest_angle: wp.array(dtype=scalar),
-        hinge_rest_length: wp.array(dtype=scalar),
-        hinge_rest_area: wp.array(dtype=scalar),
-        hinge_direction: wp.array(dtype=vec2),
-        particle_pin: wp.array(dtype=wp.int32),
-        material_bending: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        # State in:
-        x: wp.array(dtype=vec3),
-        v: wp.array(dtype=vec3),
-        pin_dv: wp.array(dtype=vec3),
-        # Adjoint of the solve (held constant):
-        lam: wp.array(dtype=vec3),
-        dv: wp.array(dtype=vec3),
-        dt: scalar,
-        damping_stiffness: scalar,
-        # out:
-        phi: wp.array(dtype=scalar),
-    ):
-        # the hinge's share of phi (see faces_potential); with H_ab = -kappa g_a g_b^T everything is rank one
-        e = wp.tid()
-        idx, theta, kappa = hinge_element(e, hinge_indices, hinge_material, hinge_rest_length, hinge_rest_area,
-                                          hinge_direction, material_bending, material_thicken, x)
-        g0, g1, g2, g3 = bd.angle_gradient(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
-        grads = wp.matrix_from_rows(g0, g1, g2, g3)
-        lam_g = scalar(0.0)
-        w_g = scalar(0.0)
-        for a in range(4):
-            p = idx[a]
-            if particle_pin[p] < 0:
-                lam_g += wp.dot(lam[p], grads[a])
-            w_g += wp.dot(grads[a], v[p] + wp.where(particle_pin[p] < 0, dv[p], pin_dv[p]))
-        c = dt * (dt + damping_stiffness)
-        wp.atomic_add(phi, 0, kappa * lam_g * (dt * (theta - hinge_rest_angle[e]) + c * w_g))
+        @wp.kernel
+        def hinges(
+            hinge: HingeData,
+            s: ElementState,
+            # out:
+            values: wp.array(dtype=mat33),
+            rhs: wp.array(dtype=vec3),
+            scalars: wp.array(dtype=scalar),
+        ):
+            e = wp.tid()
+            x, v, pin_dv, lam, dv, dt = s.x, s.v, s.pin_dv, s.lam, s.dv, s.dt
+            particle_pin = hinge.particle_pin
+            idx, theta, kappa = hinge_element(e, hinge, x)
+            d = theta - hinge.rest_angle[e]
+            c = dt * (dt + s.damping_stiffness)
+            if wp.static(mode == "energy"):
+                # E = ke l^2 / (8 (A0 + A1)) (theta - rest)^2 = -kappa/2 (theta - rest)^2
+                wp.atomic_add(scalars, 0, scalar(-0.5) * kappa * d * d)
+            if wp.static(mode != "energy"):
+                # f = kappa (theta - rest) dtheta; H = -kappa dtheta dtheta^T (Gauss-Newton): everything is rank one
+                g0, g1, g2, g3 = bd.angle_gradient(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
+                grads = wp.matrix_from_rows(g0, g1, g2, g3)
+                if wp.static(mode == "assemble"):
+                    gv = wp.dot(g0, v[idx[0]]) + wp.dot(g1, v[idx[1]]) + wp.dot(g2, v[idx[2]]) + wp.dot(g3, v[idx[3]])
+                    for a in range(4):
+                        ga = grads[a]
+                        pa = particle_pin[idx[a]] >= 0
+                        if not pa:
+                            wp.atomic_add(rhs, idx[a], dt * kappa * d * ga + (c * kappa * gv) * ga)
+                        for b in range(4):
+                            blk = (-c * kappa) * wp.outer(ga, grads[b])
+                            add_block(values, rhs, pin_dv, hinge.block_slot[e, 4 * a + b], idx[a], idx[b], pa,
+                                      particle_pin[idx[b]] >= 0, blk)
+                if wp.static(mode == "potential"):
+                    lam_g = scalar(0.0)
+                    w_g = scalar(0.0)
+                    for a in range(4):
+                        p = idx[a]
+                        if particle_pin[p] < 0:
+                            lam_g += wp.dot(lam[p], grads[a])
+                        w_g += wp.dot(grads[a], v[p] + wp.where(particle_pin[p] < 0, dv[p], pin_dv[p]))
+                    wp.atomic_add(scalars, 0, kappa * lam_g * (dt * d + c * w_g))
+
+        return faces, hinges
+
+    faces, hinges = element_kernel_pair("assemble")
+    faces_potential, hinges_potential = element_kernel_pair("potential")
+    face_energy, hinge_energy = element_kernel_pair("energy")
 
     @wp.kernel
     def wind(
@@ -407,74 +375,25 @@ def implicit_kernels(scalar):
         x_new = x[i] + dt * v_new
         v_out[i] = v_new
         x_out[i] = x_new
-        # the divergence guard, here rather than in a launch of its own (a launch is ~5 % of a 16x16 step):
-        # status = first bad particle + 1 (NaN/inf, or faster than max_speed)
-        if not (wp.isfinite(x_new) and wp.isfinite(v_new)) or wp.length(v_new) > max_speed:
-            wp.atomic_max(status, 0, i + 1)
+        # the divergence guard, here rather than in a launch of its own (a launch is ~5 % of a 16x16 step)
+        flag_divergence(i, x_new, v_new, max_speed, status)
 
     @wp.kernel
-    def face_energy(
-        tri_indices: wp.array2d(dtype=wp.int32),
-        tri_material: wp.array(dtype=wp.int32),
-        tri_inv_dm: wp.array(dtype=mat22),
-        tri_area: wp.array(dtype=scalar),
-        material_density: wp.array(dtype=scalar),
-        material_stretching: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        lut_weight: wp.array(dtype=vec3),
-        lut_row: wp.array(dtype=wp.int32),
-        gravity: wp.array(dtype=vec3),
+    def check_state(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
-        # out: [kinetic, stretching, gravity potential]
-        energy: wp.array(dtype=scalar),
+        max_speed: scalar,
+        # out: [first bad particle + 1 (0 if none)]
+        status: wp.array(dtype=wp.int32),
     ):
-        idx, du, dv, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
-            wp.tid(), tri_indices, tri_material, tri_inv_dm, tri_area, material_density, material_stretching,
-            material_thicken, lut_weight, lut_row, x)
-        v0 = v[idx[0]]
-        v1 = v[idx[1]]
-        v2 = v[idx[2]]
-        wp.atomic_add(energy, 0, scalar(0.5) * node_mass * (wp.dot(v0, v0) + wp.dot(v1, v1) + wp.dot(v2, v2)))
-        wp.atomic_add(energy, 1, area * st.energy_density(k, G00, G11, G01))
-        wp.atomic_add(energy, 2, -node_mass * wp.dot(gravity[0], x[idx[0]] + x[idx[1]] + x[idx[2]]))
-
-    @wp.kernel
-    def hinge_energy(
-        hinge_indices: wp.array2d(dtype=wp.int32),
-        hinge_material: wp.array(dtype=wp.int32),
-        hinge_rest_angle: wp.array(dtype=scalar),
-        hinge_rest_length: wp.array(dtype=scalar),
-        hinge_rest_area: wp.array(dtype=scalar),
-        hinge_direction: wp.array(dtype=vec2),
-        material_bending: wp.array3d(dtype=scalar),
-        material_thicken: wp.array(dtype=scalar),
-        x: wp.array(dtype=vec3),
-        # out: [bending]
-        energy: wp.array(dtype=scalar),
-    ):
-        e = wp.tid()
-        idx, theta, kappa = hinge_element(e, hinge_indices, hinge_material, hinge_rest_length, hinge_rest_area,
-                                          hinge_direction, material_bending, material_thicken, x)
-        d = theta - hinge_rest_angle[e]
-        # E = ke l^2 / (8 (A0 + A1)) (theta - rest)^2 = -kappa/2 (theta - rest)^2
-        wp.atomic_add(energy, 0, scalar(-0.5) * kappa * d * d)
+        # the divergence guard alone (after the collision response has changed the state)
+        i = wp.tid()
+        flag_divergence(i, x[i], v[i], max_speed, status)
 
     return SimpleNamespace(
-        pin_rows=pin_rows,
-        faces=faces,
-        hinges=hinges,
-        faces_potential=faces_potential,
-        hinges_potential=hinges_potential,
-        wind=wind,
-        handles=handles,
-        external_forces=external_forces,
-        integrate=integrate,
-        face_energy=face_energy,
-        hinge_energy=hinge_energy,
+        FaceData=FaceData, HingeData=HingeData, ElementState=ElementState,
+        pin_rows=pin_rows, handles=handles, external_forces=external_forces, wind=wind,
+        faces=faces, hinges=hinges, faces_potential=faces_potential, hinges_potential=hinges_potential,
+        face_energy=face_energy, hinge_energy=hinge_energy, integrate=integrate, check_state=check_state,
     )
 
-
-# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
-for _scalar in (wp.float32, wp.float64):
-    implicit_kernels(_scalar)

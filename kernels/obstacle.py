@@ -10,15 +10,14 @@ Warp's autodiff carries gradients from ``x`` to ``base_b`` (position and all fou
 quaternion taken as given, not renormalised) and to ``u``.
 """
 
-import functools
 from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.types import types
+from warpcloth.kernels.types import per_precision, types
 
 
-@functools.cache
+@per_precision
 def obstacle_kernels(scalar):
     t = types(scalar)
     vec3, transform = t.vec3, t.transform
@@ -41,7 +40,3 @@ def obstacle_kernels(scalar):
 
     return SimpleNamespace(world_points=world_points)
 
-
-# Instantiate both precisions at import so the module's hash (and its kernel cache entry) never changes.
-for _scalar in (wp.float32, wp.float64):
-    obstacle_kernels(_scalar)

@@ -20,7 +20,7 @@ LUT_SIZE = 30
 @functools.cache
 def stretching_funcs(scalar):
     t = types(scalar)
-    vec3, vec4, mat22, mat33 = t.vec3, t.vec4, t.mat22, t.mat33
+    vec3, vec4, mat22 = t.vec3, t.vec4, t.mat22
     N = LUT_SIZE
     cells = float(LUT_SIZE)  # float closures: scalar(int) does not cast in float64 code
     last = float(LUT_SIZE - 1)
@@ -35,16 +35,9 @@ def stretching_funcs(scalar):
         )
 
     @wp.func
-    def cell_stiffness(
-        stretching: wp.array3d(dtype=scalar),
-        lut_weight: wp.array(dtype=vec3),
-        lut_row: wp.array(dtype=wp.int32),
-        material: int,
-        cell: int,
-    ):
-        # One lookup cell: bilinear sample of the (strain level x angle) table, then relu(2 * value) (SPEC §1.2).
-        w = lut_weight[cell]
-        r = lut_row[cell]
+    def cell_stiffness(stretching: wp.array3d(dtype=scalar), material: int, w: vec3, r: int):
+        # One lookup cell (row weights w of table rows 0, r+1, r+2): bilinear sample of the (strain level x angle)
+        # table, then relu(2 * value) (SPEC §1.2).
         value = (
             w[0] * table_row(stretching, material, 0)
             + w[1] * table_row(stretching, material, r + 1)
@@ -83,7 +76,7 @@ def stretching_funcs(scalar):
                 for dk in range(2):
                     wk = wp.where(dk == 0, one - fk, fk)
                     cell = ((i + di) * N + (j + dj)) * N + (k + dk)
-                    out = out + (wi * wj * wk) * cell_stiffness(stretching, lut_weight, lut_row, material, cell)
+                    out = out + (wi * wj * wk) * cell_stiffness(stretching, material, lut_weight[cell], lut_row[cell])
         return out
 
     @wp.func
@@ -100,7 +93,9 @@ def stretching_funcs(scalar):
         xu = du[0] * x0 + du[1] * x1 + du[2] * x2
         xv = dv[0] * x0 + dv[1] * x1 + dv[2] * x2
         half = scalar(0.5)
-        return xu, xv, half * (wp.dot(xu, xu) - scalar(1.0)), half * (wp.dot(xv, xv) - scalar(1.0)), half * wp.dot(xu, xv)
+        G00 = half * (wp.dot(xu, xu) - scalar(1.0))
+        G11 = half * (wp.dot(xv, xv) - scalar(1.0))
+        return xu, xv, G00, G11, half * wp.dot(xu, xv)
 
     @wp.func
     def energy_density(k: vec4, G00: scalar, G11: scalar, G01: scalar):

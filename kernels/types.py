@@ -19,3 +19,12 @@ def types(scalar):
         quat=wp.quatd if scalar == wp.float64 else wp.quatf,
         transform=wp.transformd if scalar == wp.float64 else wp.transformf,
     )
+
+
+def per_precision(factory):
+    """Decorate a kernel factory ``factory(scalar)``: cached, and built for both precisions when its module is
+    imported, so the module's hash (and with it its kernel cache entry) never changes with what ran first."""
+    cached = functools.cache(factory)
+    for scalar in (wp.float32, wp.float64):
+        cached(scalar)
+    return cached

@@ -14,11 +14,12 @@ MATERIAL = wc.Material.isotropic(density=0.2, stretch_stiffness=200.0, shear_sti
 TILT = np.array([np.sin(0.001), 0.0, 0.0, np.cos(0.001)])  # 0.002 rad about x
 
 
-def stretched_grid(b, res, size, *, pos, rot=np.eye(3), vel=(0.0, 0.0, 0.0), stretch=1.03):
+def stretched_grid(b, res, size, *, pos, rot=None, vel=(0.0, 0.0, 0.0), stretch=1.03):
     """A flat grid stretched 3 % in its plane: away from the rest state, where the stretching model's compression
     branch makes the forces non-differentiable (finite differences would see the kink)."""
     mesh = wc.grid_mesh(res, res, size, size)
-    mesh.positions = (mesh.positions * [stretch, stretch, 1.0]) @ np.asarray(rot).T + np.asarray(pos)
+    rot = np.eye(3) if rot is None else np.asarray(rot)
+    mesh.positions = (mesh.positions * [stretch, stretch, 1.0]) @ rot.T + np.asarray(pos)
     b.add_cloth_mesh(mesh, material=MATERIAL, vel=vel)
 
 
@@ -90,7 +91,7 @@ def fd_check(run, base, grads, name, eps, rng, directions=2):
         arg = {"x0": x0, "v0": v0, "transform": tf}[name]
         d = rng.standard_normal(arg.shape)
 
-        def at(sign):
+        def at(sign, arg=arg, d=d):
             args = dict(x0=x0, v0=v0, transform=tf)
             args[name] = arg + sign * eps * d
             return run(args["x0"], args["v0"], args["transform"])

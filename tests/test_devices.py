@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import warp as wp
+from conftest import DEVICES, hanging_builder
 
 import warpcloth as wc
-from conftest import DEVICES, hanging_builder
 
 
 @wp.kernel

@@ -36,7 +36,7 @@ def with_entry(table, index, value):
     return table
 
 
-# -- meshes ---------------------------------------------------------------------------------------------------------
+# -- meshes ------------------------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("tri_uv", [False, True], ids=["initial-shape", "material-coords"])
@@ -71,7 +71,7 @@ def test_index_out_of_range_names_it():
         b.add_pin(-1)
 
 
-# -- non-finite and out-of-range values ----------------------------------------------------------------------------------
+# -- non-finite and out-of-range values --------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("bad", [NAN, INF, -INF])
@@ -139,7 +139,7 @@ def test_unknown_preset_lists_names():
         wc.preset("grey-interlock")
 
 
-# -- simulator settings ----------------------------------------------------------------------------------------------
+# -- simulator settings ------------------------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +164,7 @@ def test_bad_solver_options_name_the_field(small_model, field, value):
         wc.Simulator(small_model, 0.01, options=wc.SolverOptions(**{field: value}))
 
 
-# -- scenes -------------------------------------------------------------------------------------------------------------
+# -- scenes ------------------------------------------------------------------------------------------------------------
 
 
 def test_unknown_scene_name_and_key():
@@ -177,7 +177,7 @@ def test_unknown_scene_name_and_key():
         scene.scene_from_toml(text, source="t.toml")
 
 
-# -- runtime failures ---------------------------------------------------------------------------------------------------
+# -- runtime failures --------------------------------------------------------------------------------------------------
 
 
 def free_fall_model(dtype=wp.float64):

@@ -1,11 +1,11 @@
 """Rollout gradients (wp.Tape through the implicit steps and the CG adjoint) against central finite differences.
 
 Scene (conftest.hanging_builder): a 4x4 gray-interlock cloth (bending table x30, so bending matters: the loss
-differs by ~14% from the x1 table's and a 1% change of the table moves it by ~1e-3 relative) hanging in the XZ plane from two soft handles (or a
-moving hard pin and a handle), wind across the plane so it billows and bends, a little gravity; 10 steps of
-dt = 0.02 s, CG tolerance 1e-12. The initial state is jittered off the flat rest state: at exactly zero shear
-(|G01| in the stretching lookup) and zero dihedral angle (the curvature clamp) the model has kinks where a
-one-sided autodiff derivative and a central difference legitimately disagree.
+differs by ~14% from the x1 table's and a 1% change of the table moves it by ~1e-3 relative) hanging in the XZ
+plane from two soft handles (or a moving hard pin and a handle), wind across the plane so it billows and bends, a
+little gravity; 10 steps of dt = 0.02 s, CG tolerance 1e-12. The initial state is jittered off the flat rest
+state: at exactly zero shear (|G01| in the stretching lookup) and zero dihedral angle (the curvature clamp) the
+model has kinks where a one-sided autodiff derivative and a central difference legitimately disagree.
 
 Loss: a random linear functional of the final positions and velocities plus the squared distance of the final
 positions to a random target. Each test compares grad . d from the tape with (L(p + eps d) - L(p - eps d)) / 2 eps
@@ -31,7 +31,8 @@ class Problem:
     """A hanging-cloth rollout with a scalar loss, its tape gradient and its finite differences."""
 
     def __init__(self, dtype=wp.float64, *, moving_pin=False, cg_tol=1.0e-12, seed=0):
-        material = wc.preset("gray-interlock", thicken=2).scaled(bending=30.0)  # stiffer bending: see the module docstring
+        # stiffer bending: see the module docstring
+        material = wc.preset("gray-interlock", thicken=2).scaled(bending=30.0)
         builder = hanging_builder(material=material, moving_pin=moving_pin)
         self.model = m = builder.finalize("cpu", requires_grad=True, dtype=dtype)
         self.sim = wc.Simulator(m, DT, options=wc.SolverOptions(cg_tol=cg_tol, cg_max_iters=2000))

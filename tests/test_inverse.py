@@ -7,9 +7,10 @@ import pytest
 import warp as wp
 
 import warpcloth as wc
-from warpcloth.tasks import throw as C
-from warpcloth.tasks import estimation as E
 from warpcloth.solver.checkpoint import checkpointed_backward
+from warpcloth.tasks import estimation as E
+from warpcloth.tasks import scenes
+from warpcloth.tasks import throw as C
 
 EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
 
@@ -228,6 +229,26 @@ def test_mlp_controller_trains():
     result = C.train_mlp(task, iters=3)
     assert len(result.errors_pct) == 3
     assert result.errors_pct[-1] < result.errors_pct[0]
+
+
+def test_mlp_controller_takes_the_models_dtype_and_device(monkeypatch):
+    torch = pytest.importorskip("torch", reason="train_mlp needs PyTorch (the torch extra)")
+    import warpcloth.torch as wct
+
+    seen = []
+
+    def simulate(sim, x0, v0, **kwargs):  # every tensor handed to the simulator: the state, the policy's pushes
+        force = kwargs.get("particle_force")
+        seen.extend((t.dtype, t.device) for t in (x0, v0, force) if t is not None)
+        return wct_simulate(sim, x0, v0, **kwargs)
+
+    wct_simulate = wct.simulate
+    monkeypatch.setattr(wct, "simulate", simulate)
+    task = C.ThrowTask(scenes.basket_scene("cpu", dtype=wp.float64), steps=300)
+    result = C.train_mlp(task, iters=1)
+    assert len(seen) == 3 * C.SECONDS_CONTROLLED
+    assert set(seen) == {(torch.float64, wct.torch_device(task.model))}
+    assert np.isfinite(result.losses[0]) and result.params.shape == (C.SECONDS_CONTROLLED, len(C.CORNERS), 3)
 
 
 # -- command line ----------------------------------------------------------------------------------------------------

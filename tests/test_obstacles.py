@@ -8,9 +8,10 @@ import warp as wp
 import warp.autograd
 
 import warpcloth as wc
+from warpcloth.geometry.primitives import unique_edges
+from warpcloth.geometry.transforms import quat_from_matrix, quat_to_matrix
 from warpcloth.kernels.obstacle import obstacle_kernels
 from warpcloth.mesh_io import load_obj
-from warpcloth.obstacles import quat_from_matrix, quat_to_matrix, unique_edges
 from warpcloth.scene import load_scene, scene_from_toml
 from warpcloth.usd import write_usd
 

@@ -1,5 +1,5 @@
-"""The collision QP over impact zones (warpcloth/projection.py): KKT conditions, an independent oracle, the QR and
-dense KKT adjoints against each other and against central finite differences, and the errors."""
+"""The collision QP over impact zones (warpcloth/collision/projection.py): KKT conditions, an independent oracle,
+the QR and dense KKT adjoints against each other and against central finite differences, and the errors."""
 
 import itertools
 
@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from warpcloth.collision.projection import ProjectionError, _ZoneSolver, backward, project
+from warpcloth.collision.dual import ZoneSolver
+from warpcloth.collision.projection import ProjectionError, backward, project
 
 DELTA = 5.0e-4
 
@@ -440,13 +441,13 @@ def test_dual_solvers_random_dense():
         H = A.T @ A
         b = A.T @ rng.normal(size=nv) * 1e-3 - rng.uniform(0, 1e-3, k) * (rng.uniform(size=k) < 0.5)
         sols = []
-        s = _ZoneSolver(H, b, 1e-10, 1000)
+        s = ZoneSolver(H, b, 1e-10, 1000)
         lam, best = s.pdas(np.zeros(k), 20)
         if lam is None:
             fallbacks += 1
             lam = s.lawson_hanson(best)
         sols.append(lam)
-        sols.append(_ZoneSolver(H, b, 1e-10, 1000).lawson_hanson(np.zeros(k)))
+        sols.append(ZoneSolver(H, b, 1e-10, 1000).lawson_hanson(np.zeros(k)))
         for lam in sols:
             c = b - H @ lam
             assert np.all(lam >= 0) and np.max(c) <= 1e-10 and np.max(np.abs(c[lam > 0]), initial=0) <= 1e-10

@@ -5,8 +5,8 @@ import pytest
 
 from warpcloth.cli import main
 from warpcloth.mesh_io import grid_mesh
-from warpcloth.solver.rollout import rollout
 from warpcloth.scene import DEFAULT_SCENE, SCENE_NAMES, load_scene, scene_from_toml
+from warpcloth.solver.rollout import rollout
 from warpcloth.usd import read_usd_points
 
 MINIMAL = """\

@@ -96,7 +96,7 @@ def rollout_gradients(element_adjoint):
     b.set_damping(mass=0.3, stiffness=0.002)
     model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
     sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30))
-    sim.element_adjoint = element_adjoint
+    sim.assembler.element_adjoint = element_adjoint
     state = model.state()
     control = model.control(particle_force=True)
     rng = np.random.default_rng(3)

@@ -19,10 +19,10 @@ import warp as wp
 from conftest import VERTICAL, hanging_builder, top_corners
 
 import warpcloth as wc
-from warpcloth.solver.checkpoint import checkpointed_backward
 from warpcloth.errors import CollisionError
+from warpcloth.geometry.primitives import sphere_mesh
 from warpcloth.mesh_io import grid_mesh
-from warpcloth.obstacles import sphere_mesh
+from warpcloth.solver.checkpoint import checkpointed_backward
 
 G = 9.8
 FABRIC = wc.preset("gray-interlock", thicken=2)  # a measured fabric, 0.374 kg/m^2

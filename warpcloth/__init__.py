@@ -1,21 +1,18 @@
 """warpcloth: differentiable implicit cloth simulation in NVIDIA Warp (Liang, Lin and Koltun, NeurIPS 2019)."""
 
 from warpcloth.builder import ModelBuilder
+from warpcloth.errors import CollisionError, SimulationError
+from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh
 from warpcloth.materials import PRESET_NAMES, Material, load_material_json, mean_material, preset
 from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_usd_mesh
 from warpcloth.model import CollisionSettings, Control, Model, State
 from warpcloth.obstacles import (
     Obstacle,
     RigidMotion,
-    box_mesh,
-    funnel_mesh,
     obstacle_meshes_numpy,
     obstacle_points,
     obstacle_points_numpy,
-    plane_mesh,
-    sphere_mesh,
 )
-from warpcloth.errors import CollisionError, SimulationError
 from warpcloth.scene import SCENE_NAMES, Scene, load_scene
 from warpcloth.solver import (
     PRESET_SOLVER_NAMES,

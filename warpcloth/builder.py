@@ -8,20 +8,13 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
+from warpcloth import mesh_io
+from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh, unique_edges
+from warpcloth.geometry.transforms import placement
 from warpcloth.lookup import fold_direction, stretching_lut
 from warpcloth.materials import Material
 from warpcloth.model import CollisionSettings, Model, Motion
-from warpcloth import mesh_io
-from warpcloth.obstacles import (
-    Obstacle,
-    RigidMotion,
-    _placement,
-    box_mesh,
-    funnel_mesh,
-    plane_mesh,
-    sphere_mesh,
-    unique_edges,
-)
+from warpcloth.obstacles import Obstacle, RigidMotion
 
 DEFAULT_HANDLE_STIFFNESS = 1.0e3
 """ARCSim's ``magic.handle_stiffness`` [N/m]."""
@@ -299,7 +292,7 @@ class ModelBuilder:
         elif name in taken:
             raise ValueError(f"obstacle name {name!r} is used twice; obstacle names must be unique")
         what = f"obstacle {name!r}"
-        transform = _placement(what, pos, rot)
+        transform = placement(what, pos, rot)
         if motion is not None and not isinstance(motion, RigidMotion):
             try:
                 motion = RigidMotion.from_keyframes(motion)
@@ -337,25 +330,27 @@ class ModelBuilder:
     def add_obstacle_plane(self, size: Sequence[float] = (1.0, 1.0), res: Sequence[int] = (1, 1), *,
                            name: str | None = None, pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None,
                            motion=None) -> int:
-        """Add a rectangle (``warpcloth.obstacles.plane_mesh``: centred, body XY plane, facing +z)."""
+        """Add a rectangle (``warpcloth.geometry.primitives.plane_mesh``: centred, body XY plane, facing +z)."""
         vertices, triangles = plane_mesh(size, res)
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
     def add_obstacle_box(self, half_extents: Sequence[float], *, name: str | None = None,
                          pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
-        """Add a box of half sizes ``half_extents`` [m] centred on its body origin (``obstacles.box_mesh``)."""
+        """Add a box of half sizes ``half_extents`` [m] centred on its body origin (``geometry.primitives.box_mesh``).
+        """
         vertices, triangles = box_mesh(half_extents)
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
     def add_obstacle_sphere(self, radius: float, subdivisions: int = 3, *, name: str | None = None,
                             pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
-        """Add an icosphere of ``radius`` [m] centred on its body origin (``obstacles.sphere_mesh``)."""
+        """Add an icosphere of ``radius`` [m] centred on its body origin (``geometry.primitives.sphere_mesh``)."""
         vertices, triangles = sphere_mesh(radius, subdivisions)
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
     def add_obstacle_funnel(self, *, name: str | None = None, pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None,
                             motion=None) -> int:
-        """Add the seed's funnel (``obstacles.funnel_mesh``; the seed's demo uses ``pos=(-0.5, -1, -0.55)``)."""
+        """Add the seed's funnel (``geometry.primitives.funnel_mesh``; the seed's demo uses
+        ``pos=(-0.5, -1, -0.55)``)."""
         vertices, triangles = funnel_mesh()
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 

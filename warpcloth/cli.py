@@ -39,8 +39,8 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("scenes", help="list the embedded scenes")
 
-    from warpcloth.tasks.estimation import OPTIMIZERS
     from warpcloth.materials import PRESET_NAMES
+    from warpcloth.tasks.estimation import OPTIMIZERS
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from a hanging cloth's motion in the wind")
     what = est.add_mutually_exclusive_group()
@@ -88,10 +88,10 @@ def _cmd_scenes() -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.solver.rollout import rollout
-    from warpcloth.scene import load_scene
     from warpcloth.errors import SimulationError
+    from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.scene import load_scene
+    from warpcloth.solver.rollout import rollout
     from warpcloth.usd import write_usd
 
     if args.steps is not None and args.steps < 1:
@@ -185,9 +185,10 @@ def _write_json(path: str, record: dict) -> None:
 def _cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from warpcloth.tasks import estimation as E
-    from warpcloth.materials import preset
     from warpcloth.errors import SimulationError
+    from warpcloth.materials import preset
+    from warpcloth.tasks import estimation as E
+    from warpcloth.tasks.scenes import hanging_cloth
     from warpcloth.usd import write_usd
 
     try:
@@ -196,11 +197,11 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             files = E.target_files(args.target)
             frames = E.load_target_sequence(files)
             handles = [int(h) for h in args.handles.split(",")]
-            model = E.hanging_cloth(initial, mesh_path=files[0], handles=handles, device=args.device)
+            model = hanging_cloth(initial, mesh_path=files[0], handles=handles, device=args.device)
             truth = None
         else:
             truth = preset(args.material or "gray-interlock", thicken=E.THICKEN)
-            model = E.hanging_cloth(truth, device=args.device)
+            model = hanging_cloth(truth, device=args.device)
             frames = E.TrajectoryFit.simulate_targets(model, truth, steps=args.steps)
         fit = E.TrajectoryFit(model, frames, steps=args.steps)
     except (ValueError, OSError, RuntimeError) as exc:
@@ -244,19 +245,21 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         tris = model.tri_indices.numpy()
         write_usd(args.usd, triangles=tris, frames=sim_frames, fps=1.0 / (E.DT * fit.frame_stride),
                   obstacles=[("Target", target, tris)])
-        print(f"wrote {os.path.abspath(args.usd)} (the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
+        print(f"wrote {os.path.abspath(args.usd)} "
+              "(the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
     return 0
 
 
 def _cmd_control(args: argparse.Namespace) -> int:
-    from warpcloth.tasks import throw as C
-    from warpcloth.obstacles import obstacle_meshes_numpy
     from warpcloth.errors import SimulationError
+    from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.tasks import throw as C
+    from warpcloth.tasks.scenes import basket_scene
     from warpcloth.usd import write_usd
 
     iters = args.iters or (50 if args.controller == "open-loop" else 100)
     try:
-        task = C.ThrowTask(C.basket_scene(args.device))
+        task = C.ThrowTask(basket_scene(args.device))
     except (ValueError, RuntimeError) as exc:
         return _error(str(exc), _USAGE_ERROR)
     print(f"throwing a cloth into a basket: {task.steps} steps of {C.DT} s, controller {args.controller}, "

@@ -30,9 +30,10 @@ class State:
         self.particle_v = particle_v
         """Particle velocities [m/s], shape (particle_count,), vec3."""
         self.time = time
-        """Simulated time [s] (host value)."""
+        """Simulated time [s], scalar (host)."""
         self.step = step
-        """Steps taken since the start of the trajectory (host int): error messages name step ``step + 1``."""
+        """Steps taken since the start of the trajectory [-], scalar (host int): error messages name the step being
+        taken as ``step + 1``."""
         self.particle_dv = particle_dv
         """Velocity change [m/s] the step that produced this state solved for, shape (particle_count,), vec3:
         the first guess of the next step's solve (``SolverOptions.warm_start``); None: start from zero."""
@@ -119,37 +120,43 @@ class Model:
     """Everything about a scene that does not change while it is simulated. Built by ``ModelBuilder.finalize``."""
 
     device: wp.context.Device
+    """Warp device every array lives on [-], scalar (host)."""
     scalar: type
-    """Scalar type of every float array (wp.float32 or wp.float64)."""
+    """Scalar type of every float array (wp.float32 or wp.float64) [-], scalar (host)."""
     requires_grad: bool
+    """Whether the differentiable arrays carry gradients [-], scalar (host)."""
 
     particle_count: int
+    """Number of cloth particles [-], scalar (host)."""
     particle_x0: wp.array
     """Initial particle positions [m], (particle_count,) vec3."""
     particle_v0: wp.array
     """Initial particle velocities [m/s], (particle_count,) vec3."""
     particle_pin: wp.array
-    """Index of the hard pin holding each particle, or -1, (particle_count,) int32."""
+    """Index of the hard pin holding each particle, or -1 [-], (particle_count,) int32."""
     particle_diag_slot: wp.array
-    """BSR block slot of each particle's diagonal block, (particle_count,) int32."""
+    """BSR block slot of each particle's diagonal block [-], (particle_count,) int32."""
 
     tri_count: int
+    """Number of cloth triangles [-], scalar (host)."""
     tri_indices: wp.array
-    """Triangle vertex indices, (tri_count, 3) int32."""
+    """Triangle vertex indices [-], (tri_count, 3) int32."""
     tri_material: wp.array
-    """Material index of each triangle, (tri_count,) int32."""
+    """Material index of each triangle [-], (tri_count,) int32."""
     tri_inv_dm: wp.array
     """Inverse material-space edge matrix Dm^-1 [1/m], (tri_count,) mat22."""
     tri_area: wp.array
     """Material-space (rest) area [m^2], (tri_count,)."""
     tri_block_slot: wp.array
-    """BSR slots of the 9 vertex-pair blocks of each triangle (row-major a*3+b), (tri_count, 9) int32."""
+    """BSR slots of the 9 vertex-pair blocks of each triangle (row-major a*3+b) [-], (tri_count, 9) int32."""
 
     hinge_count: int
+    """Number of interior edges (bending hinges) [-], scalar (host)."""
     hinge_indices: wp.array
-    """Interior edges as (x0, x1, x2, x3): edge x0-x1, x2 opposite in face 0, x3 in face 1; (hinge_count, 4) int32."""
+    """Interior edges as (x0, x1, x2, x3): edge x0-x1, x2 opposite in face 0, x3 in face 1 [-],
+    (hinge_count, 4) int32."""
     hinge_material: wp.array
-    """Material of each hinge (that of face 0), (hinge_count,) int32."""
+    """Material of each hinge (that of face 0) [-], (hinge_count,) int32."""
     hinge_rest_angle: wp.array
     """Rest dihedral angle [rad], (hinge_count,)."""
     hinge_rest_length: wp.array
@@ -159,10 +166,12 @@ class Model:
     hinge_direction: wp.array
     """Bending-table direction index of the edge in each face's material frame, in [0, 2], (hinge_count,) vec2."""
     hinge_block_slot: wp.array
-    """BSR slots of the 16 vertex-pair blocks of each hinge, (hinge_count, 16) int32."""
+    """BSR slots of the 16 vertex-pair blocks of each hinge [-], (hinge_count, 16) int32."""
 
     material_count: int
+    """Number of materials [-], scalar (host)."""
     material_names: list[str]
+    """Name of each material [-], (material_count,) (host)."""
     material_density: wp.array
     """Area density [kg/m^2] before thicken, (material_count,)."""
     material_stretching: wp.array
@@ -170,11 +179,11 @@ class Model:
     material_bending: wp.array
     """Bending table [N*m] before thicken, (material_count, 3, 5)."""
     material_thicken: wp.array
-    """ARCSim thicken factor on density, stretching and bending, (material_count,)."""
+    """ARCSim thicken factor on density, stretching and bending [-], (material_count,)."""
     lut_weight: wp.array
-    """Stretching lookup: weights of table rows (0, r+1, r+2) per cell, (27000,) vec3."""
+    """Stretching lookup: weights of table rows (0, r+1, r+2) per cell [-], (27000,) vec3."""
     lut_row: wp.array
-    """Stretching lookup: angle row r per cell, (27000,) int32."""
+    """Stretching lookup: angle row r per cell [-], (27000,) int32."""
 
     gravity: wp.array
     """Gravitational acceleration [m/s^2], (1,) vec3."""
@@ -185,69 +194,80 @@ class Model:
     wind_drag: wp.array | None
     """Tangential drag coefficient [kg/(m^2 s)], (1,)."""
     wind_lagged_normals: bool
-    """Wind uses face normals of the previous step's start positions (ARCSim's lag), else the current ones."""
+    """Wind uses face normals of the previous step's start positions (ARCSim's lag), else the current ones [-],
+    scalar (host)."""
     damping_mass: float
-    """Rayleigh mass-proportional damping alpha [1/s]."""
+    """Rayleigh mass-proportional damping alpha [1/s], scalar (host)."""
     damping_stiffness: float
-    """Rayleigh stiffness-proportional damping beta [s] (ARCSim's material ``damping``)."""
+    """Rayleigh stiffness-proportional damping beta [s] (ARCSim's material ``damping``), scalar (host)."""
 
     handle_count: int
+    """Number of soft handles [-], scalar (host)."""
     handle_particle: wp.array | None
-    """Particle held by each soft handle, (handle_count,) int32."""
+    """Particle held by each soft handle [-], (handle_count,) int32."""
     handle_stiffness: wp.array | None
     """Soft handle stiffness [N/m], (handle_count,)."""
     handle_rest_target: np.ndarray
     """Default handle targets (the particles' initial positions) [m], (handle_count, 3)."""
     handle_motion: list[Motion | None]
+    """Scripted motion of each handle target (offsets [m] over time [s]) or None, (handle_count,) (host)."""
     pin_count: int
+    """Number of hard pins [-], scalar (host)."""
     pin_particle: wp.array | None
-    """Particle held by each hard pin, (pin_count,) int32."""
+    """Particle held by each hard pin [-], (pin_count,) int32."""
     pin_rest_target: np.ndarray
     """Default pin targets [m], (pin_count, 3)."""
     pin_motion: list[Motion | None]
+    """Scripted motion of each pin target (offsets [m] over time [s]) or None, (pin_count,) (host)."""
 
     bsr_offsets: wp.array
-    """Row offsets of the fixed block-sparse structure, (particle_count + 1,) int32."""
+    """Row offsets of the fixed block-sparse structure [-], (particle_count + 1,) int32."""
     bsr_columns: wp.array
-    """Block column of each stored block, (nnz,) int32."""
+    """Block column of each stored block [-], (nnz,) int32."""
     triangles_np: np.ndarray = field(repr=False, default=None)
-    """Host copy of tri_indices, for I/O."""
+    """Host copy of tri_indices, for I/O [-], (tri_count, 3) int32."""
 
     edge_count: int = 0
+    """Number of unique cloth edges [-], scalar (host)."""
     edge_indices: wp.array | None = None
-    """Unique undirected cloth edges (lo, hi) with lo < hi, rows sorted, each edge once; (edge_count, 2) int32."""
+    """Unique undirected cloth edges (lo, hi) with lo < hi, rows sorted, each edge once [-], (edge_count, 2) int32."""
 
     collision: CollisionSettings | None = None
-    """Collision settings; None when the model has neither obstacles nor self-collision."""
+    """Collision settings (thickness [m], which collisions) [-], scalar (host); None when the model has neither
+    obstacles nor self-collision."""
 
     # Obstacles. All obstacles' meshes are concatenated; with no obstacle every array below is None.
     obstacle_count: int = 0
+    """Number of rigid obstacles [-], scalar (host)."""
     obstacle_names: list[str] = field(default_factory=list)
-    """Name of each obstacle (a valid USD identifier), (obstacle_count,)."""
+    """Name of each obstacle (a valid USD identifier) [-], (obstacle_count,)."""
     obstacle_vertex_count: int = 0
+    """Number of obstacle vertices, all obstacles together [-], scalar (host)."""
     obstacle_vertex_local: wp.array | None = None
     """Obstacle vertices in their obstacle's body frame [m], (obstacle_vertex_count,) vec3; has a gradient when the
     model requires one."""
     obstacle_vertex_body: wp.array | None = None
-    """Obstacle index of each obstacle vertex, (obstacle_vertex_count,) int32."""
+    """Obstacle index of each obstacle vertex [-], (obstacle_vertex_count,) int32."""
     obstacle_vertex_start: np.ndarray | None = field(repr=False, default=None)
-    """First vertex of each obstacle in the concatenated list, and the total, (obstacle_count + 1,) int64 (host)."""
+    """First vertex of each obstacle in the concatenated list, and the total [-], (obstacle_count + 1,) int64 (host)."""
     obstacle_tri_count: int = 0
+    """Number of obstacle triangles, all obstacles together [-], scalar (host)."""
     obstacle_tri_indices: wp.array | None = None
-    """Obstacle triangles, indices into the concatenated vertex list, (obstacle_tri_count, 3) int32."""
+    """Obstacle triangles, indices into the concatenated vertex list [-], (obstacle_tri_count, 3) int32."""
     obstacle_tri_start: np.ndarray | None = field(repr=False, default=None)
-    """First triangle of each obstacle, and the total, (obstacle_count + 1,) int64 (host)."""
+    """First triangle of each obstacle, and the total [-], (obstacle_count + 1,) int64 (host)."""
     obstacle_edge_count: int = 0
+    """Number of unique obstacle edges, all obstacles together [-], scalar (host)."""
     obstacle_edge_indices: wp.array | None = None
     """Unique undirected obstacle edges (lo, hi), lo < hi, into the concatenated vertex list (an edge never joins
-    two obstacles), (obstacle_edge_count, 2) int32."""
+    two obstacles) [-], (obstacle_edge_count, 2) int32."""
     obstacle_rest_transform: np.ndarray | None = None
     """Base placement of each obstacle (px, py, pz [m], qx, qy, qz, qw), (obstacle_count, 7) float64 (host);
     ``control()`` copies it into ``Control.obstacle_transform``."""
     obstacle_motion: list[RigidMotion | None] = field(default_factory=list)
-    """Scripted motion of each obstacle, or None for a static one, (obstacle_count,)."""
+    """Scripted motion of each obstacle, or None for a static one [-], (obstacle_count,)."""
     obstacle_triangles_np: np.ndarray | None = field(repr=False, default=None)
-    """Host copy of obstacle_tri_indices, for I/O."""
+    """Host copy of obstacle_tri_indices, for I/O [-], (obstacle_tri_count, 3) int32."""
 
     @property
     def types(self):

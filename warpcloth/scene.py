@@ -90,7 +90,8 @@ import numpy as np
 
 from warpcloth import materials as _materials
 from warpcloth import mesh_io
-from warpcloth.obstacles import QUAT_UNIT_TOL
+from warpcloth.builder import DEFAULT_HANDLE_STIFFNESS
+from warpcloth.geometry.transforms import QUAT_UNIT_TOL
 
 __all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "Scene", "load_scene", "scene_from_toml"]
 
@@ -103,7 +104,6 @@ SCENE_NAMES: tuple[str, ...] = tuple(
 """Names of the embedded scenes."""
 
 _DEFAULT_GRAVITY = (0.0, 0.0, -9.8)
-_DEFAULT_HANDLE_STIFFNESS = 1.0e3  # ARCSim's magic.handle_stiffness [N/m]
 
 
 @dataclass
@@ -374,10 +374,11 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
 
 
 def _parse_solver(value: Any, dt: float):
-    """SolverOptions from the [solver] table: an optional ``preset`` (warpcloth.solver.presets), then single fields, each
-    checked against SolverOptions' fields and their defaults' types."""
-    from warpcloth.solver.presets import PRESET_SOLVER_NAMES, solver_preset
+    """SolverOptions from the [solver] table: an optional ``preset`` (warpcloth.solver.presets), then single fields,
+    each checked against SolverOptions' fields and their defaults' types (and a ``collision`` table of
+    CollisionOptions fields)."""
     from warpcloth.solver.options import CollisionOptions, SolverOptions
+    from warpcloth.solver.presets import PRESET_SOLVER_NAMES, solver_preset
 
     table = dict(_table(value, "solver"))
     defaults = {f.name: f.default for f in dataclasses.fields(SolverOptions) if f.name != "collision"}
@@ -593,7 +594,7 @@ def _parse_attachment(
         motion = _parse_motion(entry["motion"], f"{path}.motion")
     stiffness = None
     if kind == "handles":
-        stiffness = _float(entry.get("stiffness", _DEFAULT_HANDLE_STIFFNESS), f"{path}.stiffness", min_value=0.0)
+        stiffness = _float(entry.get("stiffness", DEFAULT_HANDLE_STIFFNESS), f"{path}.stiffness", min_value=0.0)
     with _Context(path):
         for p in particles:
             if kind == "handles":
@@ -602,19 +603,25 @@ def _parse_attachment(
                 builder.add_pin(first + p, motion=motion)
 
 
-def _parse_motion(value: Any, path: str) -> list[tuple[float, tuple[float, float, float]]]:
+def _keyframes(value: Any, path: str, form: str, arity: int):
+    """Yield (key path, time, key) for a non-empty array of keyframes ``[time, ...]`` (as ``form`` writes them),
+    each a list of ``arity`` entries, with increasing times."""
     if not isinstance(value, list) or not value:
-        raise _err(path, "expected a non-empty array of [time, [dx, dy, dz]] keyframes")
-    keys = []
+        raise _err(path, f"expected a non-empty array of {form} keyframes")
+    last = None
     for k, key in enumerate(value):
         kp = f"{path}[{k}]"
-        if not isinstance(key, list) or len(key) != 2:
-            raise _err(kp, "expected [time, [dx, dy, dz]]")
+        if not isinstance(key, list) or len(key) != arity:
+            raise _err(kp, f"expected {form}")
         t = _float(key[0], f"{kp}[0]")
-        if keys and t <= keys[-1][0]:
-            raise _err(f"{kp}[0]", f"key times must increase, got {t} after {keys[-1][0]}")
-        keys.append((t, _vector(key[1], f"{kp}[1]")))
-    return keys
+        if last is not None and t <= last:
+            raise _err(f"{kp}[0]", f"key times must increase, got {t} after {last}")
+        last = t
+        yield kp, t, key
+
+
+def _parse_motion(value: Any, path: str) -> list[tuple[float, tuple[float, float, float]]]:
+    return [(t, _vector(key[1], f"{kp}[1]")) for kp, t, key in _keyframes(value, path, "[time, [dx, dy, dz]]", 2)]
 
 
 _OBSTACLE_SHAPES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
@@ -707,16 +714,8 @@ def _parse_obstacle(builder, path: str, entry: dict, base_dir: Path) -> None:
 
 
 def _parse_rigid_motion(value: Any, path: str) -> list:
-    if not isinstance(value, list) or not value:
-        raise _err(path, "expected a non-empty array of [time, [tx, ty, tz], [qx, qy, qz, qw]] keyframes")
     keys = []
-    for k, key in enumerate(value):
-        kp = f"{path}[{k}]"
-        if not isinstance(key, list) or len(key) != 3:
-            raise _err(kp, "expected [time, [tx, ty, tz], [qx, qy, qz, qw]]")
-        t = _float(key[0], f"{kp}[0]")
-        if keys and t <= keys[-1][0]:
-            raise _err(f"{kp}[0]", f"key times must increase, got {t} after {keys[-1][0]}")
+    for kp, t, key in _keyframes(value, path, "[time, [tx, ty, tz], [qx, qy, qz, qw]]", 3):
         q = _vector(key[2], f"{kp}[2]", 4)
         norm = math.sqrt(sum(c * c for c in q))
         if abs(norm - 1.0) > QUAT_UNIT_TOL:

@@ -217,7 +217,7 @@ class _Rollout(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x, grad_v):
         try:
-            ctx.saved_tensors  # raises if a backward without retain_graph already ran
+            _ = ctx.saved_tensors  # raises if a backward without retain_graph already ran
         except RuntimeError as exc:
             raise RuntimeError(
                 "warpcloth.torch.simulate: backward ran a second time through the same rollout, whose Warp tape "

@@ -1,12 +1,13 @@
 """The collision stage of a step: detect, project onto the non-penetrating set, repeat (SPEC.md §3).
 
 After the implicit step has moved the cloth from x0 to x̂, each round
-1. detects contacts between the start positions x0 and the current end positions (BVH broad phase over swept boxes;
-   vertex-face and edge-edge CCD and proximity within the thickness δ: kernels/collision.py, not differentiated);
+1. detects contacts between the start positions x0 and the current end positions (warpcloth/collision/detection.py:
+   BVH broad phase over swept boxes; vertex-face and edge-edge CCD and proximity within the thickness δ:
+   kernels/collision.py, not differentiated);
 2. evaluates the new contacts at their frozen time of impact, from the positions they were found at: unit normal n
    and weights w (kernels/contact.py, differentiated by Warp); they stay frozen in later rounds;
-3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over impact zones (warpcloth/projection.py, NumPy),
-   recording the QR (or dense KKT) adjoint on the tape.
+3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over impact zones (warpcloth/collision/projection.py,
+   NumPy), recording the QR (or dense KKT) adjoint on the tape.
 Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
 
 Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
@@ -23,27 +24,15 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision import projection
+from warpcloth.collision.detection import ContactDetector, Contacts
 from warpcloth.errors import CollisionError
-from warpcloth.kernels.collision import collision_kernels
 from warpcloth.kernels.contact import contact_kernels
 from warpcloth.model import Control, Model, State
 from warpcloth.tape import active_tape, record_adjoint
 
 
-class _Primitives:
-    """Vertices, edges or triangles (node indices, one row each) with their swept bounding boxes."""
-
-    def __init__(self, indices: np.ndarray, device):
-        self.count = len(indices)
-        self.corners = indices.shape[1]
-        self.indices = wp.array(indices.astype(np.int32), dtype=wp.int32, device=device)
-        self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
-        self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
-        self.bvh: wp.Bvh | None = None
-
-
 class CollisionStage:
-    """Detection buffers, BVHs and the round loop of one Simulator (built only for scenes with collisions)."""
+    """The contact detector and the round loop of one Simulator (built only for scenes with collisions)."""
 
     def __init__(self, model: Model, dt: float, options):
         settings = model.collision
@@ -52,7 +41,6 @@ class CollisionStage:
         self.options = options
         self.device = model.device
         self.thickness = float(settings.thickness)
-        self.detect_kernels = collision_kernels(model.scalar)
         self.kernels = contact_kernels(model.scalar)
         n = model.particle_count
         obstacles = settings.obstacles and model.obstacle_count > 0
@@ -63,31 +51,10 @@ class CollisionStage:
         self.mass = model.particle_mass()
         self.fixed = model.particle_pin.numpy() >= 0
         capacity = options.collision.contact_capacity or 16 * (n + V)
-        self.capacity = int(capacity)
-
-        dev = self.device
-        cloth_tris = _Primitives(model.triangles_np, dev)
-        cloth_vertices = _Primitives(np.arange(n)[:, None], dev)
-        cloth_edges = _Primitives(model.edge_indices.numpy(), dev)
-        self._sets = [cloth_tris, cloth_vertices, cloth_edges]
-        # (query set, target set, kind, skip-incident/same-set flag)
-        self._queries: list[tuple[_Primitives, _Primitives, str, int]] = []
+        self.detector = ContactDetector(model, thickness=self.thickness, capacity=capacity, obstacles=obstacles,
+                                        self_collision=settings.self_collision)
         if obstacles:
-            obst_tris = _Primitives(model.obstacle_tri_indices.numpy() + n, dev)
-            obst_vertices = _Primitives(np.arange(n, n + V)[:, None], dev)
-            obst_edges = _Primitives(model.obstacle_edge_indices.numpy() + n, dev)
-            self._sets += [obst_tris, obst_vertices, obst_edges]
-            self._queries += [(cloth_vertices, obst_tris, "vf", 0), (obst_vertices, cloth_tris, "vf", 0),
-                              (cloth_edges, obst_edges, "ee", 0)]
-        if settings.self_collision:
-            self._queries += [(cloth_vertices, cloth_tris, "vf", 1), (cloth_edges, cloth_edges, "ee", 1)]
-        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
-        self._mode = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
-        self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
-        self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
-        if obstacles:
-            self._check_start_outside(model)
+            self.detector.check_start_outside(model)
         # every triangle's three edges and their rest lengths (material space): the projection-strain guard
         tris = model.triangles_np
         dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: rest edges x1 - x0, x2 - x0
@@ -100,65 +67,6 @@ class CollisionStage:
         """(result, z) of each round of the last step (z.grad holds dL/dz after a backward pass): for benchmarks."""
         self.backward_seconds = 0.0
         """Wall time spent in the projection's adjoint (accumulates over backward passes)."""
-
-    def _check_start_outside(self, model: Model) -> None:
-        """Raise ValueError if a cloth particle starts inside a closed obstacle (the response cannot fix that)."""
-        from warpcloth.obstacles import obstacle_points_numpy
-
-        points = obstacle_points_numpy(model, 0.0)
-        x0 = model.particle_x0
-        ts = model.obstacle_tri_start
-        for b in range(model.obstacle_count):
-            local = model.obstacle_triangles_np[ts[b]: ts[b + 1]]
-            edges = np.sort(np.concatenate([local[:, [0, 1]], local[:, [1, 2]], local[:, [2, 0]]]), axis=1)
-            _, uses = np.unique(edges, axis=0, return_counts=True)
-            if len(local) == 0 or np.any(uses != 2):
-                continue  # open surface (plane, funnel): no inside
-            mesh = wp.Mesh(points=wp.array(points, dtype=wp.vec3, device=self.device),
-                           indices=wp.array(local.reshape(-1), dtype=wp.int32, device=self.device))
-            inside = wp.zeros(model.particle_count, dtype=wp.int32, device=self.device)
-            wp.launch(self.detect_kernels.inside_mesh, model.particle_count, device=self.device,
-                      inputs=[mesh.id, x0, 1.0e6], outputs=[inside], record_tape=False)
-            bad = np.flatnonzero(inside.numpy())
-            if bad.size:
-                p = int(bad[0])
-                raise ValueError(
-                    f"cloth particle {p} at {x0.numpy()[p].tolist()} starts inside obstacle "
-                    f"{model.obstacle_names[b]!r} ({bad.size} particles inside); move the cloth or the obstacle")
-
-    # -- detection -----------------------------------------------------------------------------------------------
-    def detect(self, x0: wp.array, x1: wp.array) -> dict[str, np.ndarray]:
-        """Contacts between node positions ``x0`` (start) and ``x1`` (end), as host arrays."""
-        k = self.detect_kernels
-        half = 0.5 * self.thickness
-        for prims in self._sets:
-            if prims.count:
-                wp.launch(k.primitive_bounds, prims.count, device=self.device,
-                          inputs=[x0, x1, prims.indices, prims.corners, half],
-                          outputs=[prims.lowers, prims.uppers], record_tape=False)
-        self._count.zero_()
-        refitted = set()
-        for query, target, kind, flag in self._queries:
-            if query.count == 0 or target.count == 0:
-                continue
-            if target.bvh is None:
-                target.bvh = wp.Bvh(target.lowers, target.uppers)
-            elif id(target) not in refitted:
-                target.bvh.refit()
-            refitted.add(id(target))
-            kernel = k.vertex_face if kind == "vf" else k.edge_edge
-            query_index = query.indices if kind == "ee" else query.indices.flatten()
-            wp.launch(kernel, query.count, device=self.device,
-                      inputs=[target.bvh.id, x0, x1, query_index, target.indices, query.lowers, query.uppers, flag,
-                              wp.float64(self.thickness), self.capacity],
-                      outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
-        count = int(self._count.numpy()[0])
-        if count > self.capacity:
-            raise CollisionError(
-                f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
-                f"raise CollisionOptions.contact_capacity to at least {count}")
-        return {"nodes": self._nodes.numpy()[:count].copy(), "mode": self._mode.numpy()[:count].copy(),
-                "t": self._t.numpy()[:count].copy(), "sign": self._sign.numpy()[:count].copy()}
 
     # -- response ------------------------------------------------------------------------------------------------
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, control: Control, t_start: float,
@@ -186,7 +94,7 @@ class CollisionStage:
 
         start = gather(state_in.particle_x, obstacle_start)
         z = x_hat
-        contacts = None
+        contacts = Contacts.empty()
         lam = np.zeros(0)  # the last round's multipliers: the next round starts from them
         geometry = []  # (normal, weight) arrays of each round's new contacts, evaluated where they were found
         keys: set[bytes] = set()
@@ -195,28 +103,26 @@ class CollisionStage:
         opt = self.options
         for round_index in range(opt.collision.rounds + 1):
             end = gather(z, obstacle_end)
-            found = self.detect(start, end)
-            # A pair found again is violated again (the projection leaves resolved pairs exactly at the thickness,
-            # which proximity detection does not count): its new linearisation joins the old one.
-            fresh = list(range(len(found["mode"])))
-            keys.update(row.tobytes() for row in found["nodes"])
-            if not fresh:
+            found = self.detector.detect(start, end)
+            # Every contact found is new: a pair found again is violated again (the projection leaves resolved
+            # pairs exactly at the thickness, which proximity detection does not count), and its new
+            # linearisation joins the old one.
+            keys.update(row.tobytes() for row in found.nodes)
+            if len(found) == 0:
                 break
             if round_index == opt.collision.rounds:
                 raise CollisionError(
                     f"step {step}: the collision response did not converge in {opt.collision.rounds} rounds: "
-                    f"{len(fresh)} new contacts (of {len(keys)}) still found, e.g. nodes "
-                    f"{found['nodes'][fresh[0]].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
+                    f"{len(found)} new contacts (of {len(keys)}) still found, e.g. nodes "
+                    f"{found.nodes[0].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
                     "for cloth trapped between obstacles")
-            new = {name: arr[fresh] for name, arr in found.items()}
-            geometry.append(self._geometry(start, end, new, recording, step))
-            contacts = new if contacts is None else {name: np.concatenate([contacts[name], new[name]])
-                                                     for name in new}
+            geometry.append(self._geometry(start, end, found, recording, step))
+            contacts = Contacts.concatenate([contacts, found])
             z, lam = self._project(x_hat, obstacle_end, contacts, geometry, lam, recording, stats, step)
             stats["rounds"] = round_index + 1
-        stats["contacts"] = 0 if contacts is None else len(contacts["mode"])
+        stats["contacts"] = len(contacts)
         self.last = stats
-        if contacts is not None:
+        if len(contacts):
             self._check_projection_strain(x_hat, z, step)
         wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
                   outputs=[state_out.particle_x, state_out.particle_v])
@@ -241,33 +147,34 @@ class CollisionStage:
         if strain[j] > limit:
             raise CollisionError(
                 f"step {step}: the collision response stretched the edge between particles {int(a[j])} and "
-                f"{int(b[j])} by {strain[j]:.3g} of its rest length in one step (CollisionOptions.max_projection_strain "
+                f"{int(b[j])} by {strain[j]:.3g} of its rest length in one step "
+                f"(CollisionOptions.max_projection_strain "
                 f"{limit:g}): the cloth moves too far per step for the contacts' linearisation, which then pumps "
                 "energy into it step after step; lower dt")
 
-    def _geometry(self, start, end, contacts, recording, step) -> tuple[wp.array, wp.array]:
+    def _geometry(self, start, end, contacts: Contacts, recording, step) -> tuple[wp.array, wp.array]:
         """Normals and weights of new contacts at their frozen time of impact, from the positions they were found
         at (they stay frozen in later rounds, as in ARCSim's impact zones)."""
         model = self.model
         scalar, vec3, vec4 = model.scalar, model.types.vec3, model.types.vec4
         dev = self.device
-        m = len(contacts["mode"])
+        m = len(contacts)
         normal = wp.empty(m, dtype=vec3, device=dev, requires_grad=recording)
         weight = wp.empty(m, dtype=vec4, device=dev, requires_grad=recording)
         wp.launch(self.kernels.geometry, m, device=dev,
-                  inputs=[start, end, wp.array(contacts["nodes"], dtype=wp.int32, device=dev),
-                          wp.array(contacts["mode"], dtype=wp.int32, device=dev),
-                          wp.array(contacts["t"], dtype=scalar, device=dev),
-                          wp.array(contacts["sign"], dtype=scalar, device=dev)],
+                  inputs=[start, end, wp.array(contacts.nodes, dtype=wp.int32, device=dev),
+                          wp.array(contacts.mode, dtype=wp.int32, device=dev),
+                          wp.array(contacts.t, dtype=scalar, device=dev),
+                          wp.array(contacts.sign, dtype=scalar, device=dev)],
                   outputs=[normal, weight])
         ok = np.all(np.isfinite(normal.numpy()), axis=1) & np.all(np.isfinite(weight.numpy()), axis=1)
         if not ok.all():
             j = int(np.flatnonzero(~ok)[0])
-            raise CollisionError(f"step {step}: a contact between nodes {contacts['nodes'][j].tolist()} has a "
+            raise CollisionError(f"step {step}: a contact between nodes {contacts.nodes[j].tolist()} has a "
                                  "degenerate normal; a triangle or edge of the cloth or of an obstacle collapsed")
         return normal, weight
 
-    def _project(self, x_hat, obstacle_end, contacts, geometry, lam, recording, stats, step):
+    def _project(self, x_hat, obstacle_end, contacts: Contacts, geometry, lam, recording, stats, step):
         """Project x̂ onto all contacts found so far; on a tape, record the projection's adjoint.
 
         ``lam`` are the previous round's multipliers (its contacts come first). Returns z and the multipliers."""
@@ -277,7 +184,7 @@ class CollisionStage:
         try:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), self.mass, self.fixed,
-                obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts["nodes"].astype(np.int64),
+                obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts.nodes.astype(np.int64),
                 weights, normals, self.thickness, tol=self.options.collision.qp_tol,
                 lam_init=np.concatenate([lam, np.zeros(len(normals) - len(lam))]))
         except projection.ProjectionError as err:

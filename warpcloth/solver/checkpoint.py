@@ -81,7 +81,7 @@ def checkpointed_backward(
     # forward: untaped, keep the state at the start of every segment
     checkpoints = []
     current = state
-    for k, first in enumerate(starts):
+    for first in starts:
         checkpoints.append(current.clone(requires_grad=False))
         current = advance(current, first, min(first + seg, steps), requires_grad=False)
         if bar is not None:

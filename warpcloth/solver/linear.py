@@ -67,6 +67,9 @@ class LinearSolver:
         self._info_host = self._info.numpy() if self.device.is_cpu else None
         self._adjoint = wp.zeros(n, dtype=vec3, device=self.device)
         self._warp_matrix = None
+        self._matrix = self.kernels.BlockMatrix()
+        self._matrix.offsets, self._matrix.columns = model.bsr_offsets, model.bsr_columns
+        self._matrix.diag_slot = model.particle_diag_slot
 
     def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
               adjoint: bool = False) -> SolveInfo:
@@ -82,7 +85,7 @@ class LinearSolver:
         kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
         r, z, p, q = self._scratch
         wp.launch(self.kernels.cg_sequential, 1, device=self.device,
-                  inputs=[model.bsr_offsets, model.bsr_columns, values, model.particle_diag_slot, b,
+                  inputs=[self.block_matrix(values), b,
                           float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
                           model.scalar(opt.ssor_omega), int(guess is not None), x if guess is None else guess,
                           r, z, p, q, self._precond],
@@ -120,13 +123,18 @@ class LinearSolver:
                 on_adjoint(result)
             self.check(result, "adjoint", step)
             wp.launch(self.kernels.solve_adjoint_scatter, self.model.particle_count, device=self.device,
-                      inputs=[self.model.bsr_offsets, self.model.bsr_columns, lam, x],
+                      inputs=[self.block_matrix(values), lam, x],
                       outputs=[values.grad, rhs.grad], record_tape=False)
             if adjoint_result is not None:
                 wp.copy(adjoint_result, lam)
 
         record_adjoint(adjoint, arrays=[values, rhs, x])
         return info
+
+    def block_matrix(self, values: wp.array):
+        """The matrix with blocks ``values`` on the model's pattern, as the CG kernels read it."""
+        self._matrix.values = values
+        return self._matrix
 
     def check(self, info: SolveInfo, which: str, step: int) -> None:
         """Warn or raise (``SolverOptions.on_cg_failure``) when a solve missed its tolerance; always raise on a

@@ -7,7 +7,6 @@ from collections.abc import Callable, Sequence
 from warpcloth.model import Control, State
 from warpcloth.solver.simulator import Simulator
 
-
 ControlSchedule = Control | Sequence[Control] | Callable[[int], Control] | None
 """One Control for every step, a sequence with one per step, or a function of the step index."""
 

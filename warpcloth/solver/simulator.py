@@ -17,12 +17,11 @@ import warp as wp
 from warpcloth.collision import CollisionStage
 from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
-from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Control, Model, State
+from warpcloth.solver.assembly import SystemAssembler
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import SolverOptions
-from warpcloth.tape import active_tape, record_adjoint
-
+from warpcloth.tape import active_tape
 
 ELONGATED_ASPECT_RATIO = 100.0
 """Rest aspect ratio (longest edge^2 / (2 area)) from which a failed solve or a divergence names the most elongated
@@ -47,17 +46,14 @@ class Simulator:
         self._options.validate()
         self.device = model.device
         self.kernels = implicit_kernels(model.scalar)
-        self._check_state = linear_kernels(model.scalar).check_state
+        self.assembler = SystemAssembler(model, self.dt)
+        """Launches the step's force and Hessian kernels into the system."""
         self.linear_solver = LinearSolver(model, self.options, hint=self._mesh_hint)
         """The CG solver of the implicit system (and of its adjoint)."""
-        self.element_adjoint = "contracted"
-        """How the stretching/bending assembly is differentiated: "contracted" (the rank-one potential, fast) or
-        "autodiff" (Warp's adjoint of the assembly kernels: the reference the contracted one is tested against)."""
         self.last_solve = SolveInfo(0, 0.0, True)
         """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
-        vec3 = model.types.vec3
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
         # host view of the divergence flag read every step (on the CPU it shares memory: no copy, no launch)
         self._status_host = self._status.numpy() if self.device.is_cpu else None
@@ -65,10 +61,6 @@ class Simulator:
         self._elongated: tuple[int, float, int] | None = None  # (triangle, aspect ratio, count): _mesh_hint
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
-        self._zero_offsets = {
-            "handle": wp.zeros(model.handle_count, dtype=vec3, device=self.device),
-            "pin": wp.zeros(model.pin_count, dtype=vec3, device=self.device),
-        }
 
     # -- public ------------------------------------------------------------------------------------------------------
     @property
@@ -104,7 +96,7 @@ class Simulator:
         step = state_in.step + 1  # the step being taken, counted from the start of the trajectory
         k = self.kernels
 
-        self._assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
+        self.assembler.assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
         self._solve(values, rhs, dv, state_in, state_out, step)
 
         max_speed = model.scalar(self.options.max_speed)
@@ -125,7 +117,7 @@ class Simulator:
             # no NaN or runaway particle reaches the collision stage
             self._raise_if_diverged(candidate, t_next, step)
             self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, step)
-            wp.launch(self._check_state, model.particle_count, device=self.device,
+            wp.launch(self.kernels.check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
                       record_tape=False)  # the projection's velocity change too
         state_out.time = t_next
@@ -141,28 +133,14 @@ class Simulator:
         when the material's tables are constant (e.g. ``Material.isotropic``).
         """
         model = self.model
-        out = wp.zeros(3, dtype=model.scalar, device=self.device)
-        wp.launch(self.kernels.face_energy, model.tri_count, device=self.device,
-                  inputs=[model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area,
-                          model.material_density, model.material_stretching, model.material_thicken,
-                          model.lut_weight, model.lut_row, model.gravity, state.particle_x, state.particle_v],
-                  outputs=[out], record_tape=False)
-        bend = wp.zeros(1, dtype=model.scalar, device=self.device)
-        if model.hinge_count:
-            wp.launch(self.kernels.hinge_energy, model.hinge_count, device=self.device,
-                      inputs=[model.hinge_indices, model.hinge_material, model.hinge_rest_angle,
-                              model.hinge_rest_length, model.hinge_rest_area, model.hinge_direction,
-                              model.material_bending, model.material_thicken, state.particle_x],
-                      outputs=[bend], record_tape=False)
-        kinetic, stretching, gravity = (float(e) for e in out.numpy())
+        e = self.assembler.element_energy(state)
         handle = 0.0
         if model.handle_count:
             control = control if control is not None else self._default_control()
             x = state.particle_x.numpy()[model.handle_particle.numpy()]
-            target = control.handle_target.numpy() + self._offsets("handle", state.time).numpy()
+            target = control.handle_target.numpy() + self.assembler.offsets("handle", state.time).numpy()
             handle = float(0.5 * np.sum(model.handle_stiffness.numpy() * np.sum((x - target) ** 2, axis=1)))
-        e = {"kinetic": kinetic, "stretching": stretching, "bending": float(bend.numpy()[0]),
-             "gravity": gravity, "handles": handle}
+        e["handles"] = handle
         e["total"] = sum(e.values())
         return e
 
@@ -173,7 +151,7 @@ class Simulator:
         control = control if control is not None else self._default_control()
         values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
         with wp.ScopedDevice(self.device):
-            self._assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
+            self.assembler.assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
         return values, rhs
 
     def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -189,99 +167,6 @@ class Simulator:
         return A.reshape(3 * n, 3 * n), rhs.numpy().reshape(-1).astype(np.float64)
 
     # -- internals -----------------------------------------------------------------------------------------------
-
-    def _assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv, dv=None) -> None:
-        """Fill ``values`` (BSR blocks of A) and ``rhs`` (b) of the implicit system for one step.
-
-        ``dv`` is the buffer the solve will write; given while recording, the element kernels' adjoint uses it.
-        """
-        model = self.model
-        dt = model.scalar(self.dt)
-        k = self.kernels
-        rhs.zero_()
-        values.zero_()
-        if model.pin_count:
-            pin_dv.zero_()
-            wp.launch(k.pin_rows, model.pin_count, device=self.device,
-                      inputs=[model.pin_particle, model.particle_diag_slot, state_in.particle_x, state_in.particle_v,
-                              control.pin_target, self._offsets("pin", t_next), dt],
-                      outputs=[pin_dv, values, rhs])
-        face_inputs = [model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area,
-                       model.tri_block_slot, model.particle_pin, model.material_density, model.material_stretching,
-                       model.material_thicken, model.lut_weight, model.lut_row, model.gravity,
-                       state_in.particle_x, state_in.particle_v, pin_dv, dt,
-                       model.scalar(model.damping_mass), model.scalar(model.damping_stiffness)]
-        hinge_inputs = [model.hinge_indices, model.hinge_material, model.hinge_rest_angle, model.hinge_rest_length,
-                        model.hinge_rest_area, model.hinge_direction, model.hinge_block_slot, model.particle_pin,
-                        model.material_bending, model.material_thicken, state_in.particle_x, state_in.particle_v,
-                        pin_dv, dt, model.scalar(model.damping_stiffness)]
-        # Warp's autodiff of these two kernels costs ~10x their forward; when recording, their adjoint is the
-        # contracted potential of _record_element_adjoint instead (tested against Warp's in tests/test_solve.py).
-        custom = (dv is not None and values.requires_grad and self.element_adjoint == "contracted"
-                  and active_tape() is not None)
-        wp.launch(k.faces, model.tri_count, device=self.device, inputs=face_inputs, outputs=[values, rhs],
-                  record_tape=not custom)
-        if model.hinge_count:
-            wp.launch(k.hinges, model.hinge_count, device=self.device, inputs=hinge_inputs, outputs=[values, rhs],
-                      record_tape=not custom)
-        if custom:
-            self._record_element_adjoint(state_in, pin_dv, rhs, dv)
-        if model.wind_velocity is not None:
-            x_normal = state_in.particle_x
-            if model.wind_lagged_normals and state_in.particle_x_previous is not None:
-                x_normal = state_in.particle_x_previous  # continuing a trajectory: the previous step's start
-            wp.launch(k.wind, model.tri_count, device=self.device,
-                      inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.wind_velocity,
-                              model.wind_density, model.wind_drag, x_normal, state_in.particle_v, dt],
-                      outputs=[rhs])
-        if model.handle_count:
-            wp.launch(k.handles, model.handle_count, device=self.device,
-                      inputs=[model.handle_particle, model.handle_stiffness, model.particle_diag_slot,
-                              state_in.particle_x, state_in.particle_v, control.handle_target,
-                              self._offsets("handle", t_next), dt],
-                      outputs=[values, rhs])
-        if control.particle_force is not None:
-            wp.launch(k.external_forces, model.particle_count, device=self.device,
-                      inputs=[model.particle_pin, control.particle_force, dt], outputs=[rhs])
-
-    def _record_element_adjoint(self, state_in: State, pin_dv, rhs, dv) -> None:
-        """Record the adjoint of the stretching and bending assembly for one step.
-
-        The only consumer of A and b is the solve, whose adjoint gives dL/db = lam and dL/dA_ab = -lam_a dv_b^T.
-        So the elements' share of dL/d(inputs) is the gradient of the scalar
-        phi = sum_a lam_a . b_a - sum_ab lam_a^T A_ab dv_b with lam and dv held fixed, which contracts to a few dot
-        products per element (kernels/implicit.py faces_potential, hinges_potential). Warp differentiates phi.
-        """
-        model = self.model
-        k = self.kernels
-        dt = model.scalar(self.dt)
-
-        def grad(a):
-            return a.grad if isinstance(a, wp.array) and a.requires_grad else None
-
-        def adjoint():
-            lam = rhs.grad
-            phi = wp.zeros(1, dtype=model.scalar, device=self.device)
-            seed = wp.ones(1, dtype=model.scalar, device=self.device)
-            x, v = state_in.particle_x, state_in.particle_v
-            launches = [(k.faces_potential, model.tri_count,
-                         [model.tri_indices, model.tri_material, model.tri_inv_dm, model.tri_area, model.particle_pin,
-                          model.material_density, model.material_stretching, model.material_thicken,
-                          model.lut_weight, model.lut_row, model.gravity, x, v, pin_dv, lam, dv, dt,
-                          model.scalar(model.damping_mass), model.scalar(model.damping_stiffness)])]
-            if model.hinge_count:
-                launches.append((k.hinges_potential, model.hinge_count,
-                                 [model.hinge_indices, model.hinge_material, model.hinge_rest_angle,
-                                  model.hinge_rest_length, model.hinge_rest_area, model.hinge_direction,
-                                  model.particle_pin, model.material_bending, model.material_thicken, x, v, pin_dv,
-                                  lam, dv, dt, model.scalar(model.damping_stiffness)]))
-            for kernel, dim, inputs in launches:
-                # lam and dv are constants of phi: no adjoint arrays for them
-                adj_inputs = [None if (a is lam or a is dv) else grad(a) for a in inputs]
-                wp.launch(kernel, dim, device=self.device, inputs=inputs, outputs=[phi], adj_inputs=adj_inputs,
-                          adj_outputs=[seed], adjoint=True, record_tape=False)
-
-        record_adjoint(adjoint, arrays=[rhs, dv, pin_dv])
 
     def _default_control(self) -> Control:
         if not hasattr(self, "_control_default"):
@@ -316,14 +201,6 @@ class Simulator:
                           requires_grad=recording)
             state_out.particle_dv = dv
         return dv
-
-    def _offsets(self, kind: str, t: float) -> wp.array:
-        """Scripted target offsets of the handles or pins at time ``t`` (a shared zero array when none move)."""
-        motions = self.model.handle_motion if kind == "handle" else self.model.pin_motion
-        if not any(m is not None for m in motions):
-            return self._zero_offsets[kind]
-        values = np.array([np.zeros(3) if m is None else m.at(t) for m in motions])
-        return wp.array(values, dtype=self.model.types.vec3, device=self.device)
 
     def _solve(self, values: wp.array, rhs: wp.array, dv: wp.array, state_in: State, state_out: State,
                step: int) -> None:

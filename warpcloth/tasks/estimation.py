@@ -1,10 +1,11 @@
 """Material estimation: recover a fabric's density, stretching and bending tables from how it moves (SPEC §5(b)).
 
-The scene is the seed's hanging cloth in the wind; the unknowns are the 40 numbers of a Material (1 density, 6x4
-stretching, 3x5 bending). The optimiser works on an unconstrained vector ``theta`` (MaterialParameterization):
-density, warp/weft stretch and bending in log space (so they stay positive whatever the step), coupling and shear
-linearly (the model applies relu to the interpolated stiffness, so any value gives a valid, PSD-projected
-stretching force), every entry scaled to order one. Gradients come from Warp's tape through the whole rollout.
+The scene is the seed's hanging cloth in the wind (``warpcloth.tasks.scenes.hanging_cloth``, also importable from
+here); the unknowns are the 40 numbers of a Material (1 density, 6x4 stretching, 3x5 bending). The optimiser works
+on an unconstrained vector ``theta`` (MaterialParameterization): density, warp/weft stretch and bending in log space
+(so they stay positive whatever the step), coupling and shear linearly (the model applies relu to the interpolated
+stiffness, so any value gives a valid, PSD-projected stretching force), every entry scaled to order one. Gradients
+come from Warp's tape through the whole rollout.
 """
 
 from __future__ import annotations
@@ -12,78 +13,37 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import warp as wp
 
-from warpcloth.builder import ModelBuilder
+import warpcloth as wc
+from warpcloth.kernels.losses import loss_kernels
 from warpcloth.materials import (
     BENDING_SHAPE,
+    DIFFCLOTH_BENDING_SCALE,
+    DIFFCLOTH_STRETCHING_SCALE,
     SEED_INITIAL_GUESS_NAMES,
     STRETCHING_SHAPE,
-    Material,
-    mean_material,
-    preset,
 )
-from warpcloth.mesh_io import load_obj
-from warpcloth.model import Model
 from warpcloth.tasks.optim import adam, lbfgs
-from warpcloth.solver.rollout import rollout
-from warpcloth.errors import SimulationError
-from warpcloth.solver import Simulator, SolverOptions
+from warpcloth.tasks.scenes import GRID_RES, GRID_TO_YZ, SEED_HANDLES, THICKEN, WIND, hanging_cloth  # noqa: F401
 
-# -- the scene (SPEC §5(b)) ------------------------------------------------------------------------------------------
-WIND = (5.0, 0.0, 0.0)
-"""Wind velocity [m/s] of the seed's material-estimation scene."""
+# -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
 DT = 0.02
 """Time step [s]."""
 STEPS = 50
 """Steps of the seed's longest horizon (1 s)."""
 FRAME_STRIDE = 2
 """Steps per compared frame: the seed's targets are saved every 0.04 s."""
-THICKEN = 2.0
-"""ARCSim thicken of every seed demo."""
-HANDLE_STIFFNESS = 1.0e3
-SEED_HANDLES = (2, 3)
-"""The handled vertices (top corners) of the seed's demo_wind.obj."""
-GRID_RES = 16
-GRID_TO_YZ = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
-def hanging_cloth(material: Material, *, mesh_path: str | Path | None = None, handles: Sequence[int] | None = None,
-                  device=None, dtype=wp.float32, requires_grad: bool = True) -> Model:
-    """The seed's material-estimation scene: a 1 m cloth held at its two top corners by soft handles (1e3 N/m),
-    gravity, 5 m/s wind along +x, starting at rest.
-
-    Without ``mesh_path`` the cloth is a flat 16x16-cell square made in code, hanging in the x = 0 plane (the seed's
-    demo_wind.obj is the same grid already draped, top corners 0.8 m apart). With ``mesh_path`` (an OBJ with ``vt``
-    material coordinates, such as demo_wind.obj or frame 0 of a target sequence) the cloth starts in that shape and
-    ``handles`` (default: the seed's vertices 2 and 3) are held.
-
-    Self-collision is off: a cloth hanging in a steady wind does not touch itself (the seed's targets were made with
-    it on; their cross-simulator fit shows what that costs).
-    """
-    b = ModelBuilder(gravity=(0.0, 0.0, -9.8))
-    if mesh_path is None:
-        b.add_cloth_grid((GRID_RES, GRID_RES), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
-        top = GRID_RES * (GRID_RES + 1)
-        handles = (top, top + GRID_RES) if handles is None else handles
-    else:
-        b.add_cloth_obj(mesh_path, material=material, vel=(0.0, 0.0, 0.0))
-        handles = SEED_HANDLES if handles is None else handles
-    for p in handles:
-        b.add_handle(int(p), stiffness=HANDLE_STIFFNESS)
-    b.set_wind(WIND, density=1.0, drag=0.0)
-    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
-
-
-def initial_guess() -> Material:
+def initial_guess() -> wc.Material:
     """The seed's start point: the element-wise mean of 8 of the 10 measured fabrics (SPEC §1.5)."""
-    return mean_material(SEED_INITIAL_GUESS_NAMES, thicken=THICKEN)
+    return wc.mean_material(SEED_INITIAL_GUESS_NAMES, thicken=THICKEN)
 
 
 def target_files(directory: str | Path) -> list[Path]:
@@ -98,7 +58,7 @@ def target_files(directory: str | Path) -> list[Path]:
 
 def load_target_sequence(files: Sequence[Path]) -> list[np.ndarray]:
     """Vertex positions (n, 3) [m] of each frame file."""
-    frames = [load_obj(f, validate=False).positions for f in files]
+    frames = [wc.load_obj(f, validate=False).positions for f in files]
     for f, x in zip(files, frames):
         if x.shape != frames[0].shape:
             raise ValueError(f"target frame {f.name} has {len(x)} vertices, frame 0 has {len(frames[0])}")
@@ -115,25 +75,26 @@ class MaterialParameterization:
 
     theta = [log(density/ref), stretching entries (log(k/ref) for warp/weft, (k - ref)/scale for coupling and
     shear, scale = the rms of the reference row), log(bending/ref)]; theta = 0 is the reference material.
+    ``log_mask`` (6, 4) marks the stretching entries estimated in log space (the warp and weft columns).
     """
 
-    def __init__(self, reference: Material):
+    def __init__(self, reference: wc.Material):
         self.reference = reference
         s = reference.stretching
-        self._log_mask = np.zeros(STRETCHING_SHAPE, dtype=bool)
-        self._log_mask[:, _POSITIVE_COLUMNS] = True
-        if np.any(s[self._log_mask] <= 0.0) or np.any(reference.bending <= 0.0):
+        self.log_mask = np.zeros(STRETCHING_SHAPE, dtype=bool)
+        self.log_mask[:, _POSITIVE_COLUMNS] = True
+        if np.any(s[self.log_mask] <= 0.0) or np.any(reference.bending <= 0.0):
             raise ValueError(f"reference material {reference.name!r}: warp/weft stretch and bending must be > 0 "
                              "(they are estimated in log space)")
         self._row_scale = np.broadcast_to(np.sqrt(np.mean(s**2, axis=1, keepdims=True)), STRETCHING_SHAPE)
 
-    def encode(self, m: Material) -> np.ndarray:
+    def encode(self, m: wc.Material) -> np.ndarray:
         ref = self.reference
         lin = (m.stretching - ref.stretching) / self._row_scale
         with np.errstate(divide="raise"):
-            logs = np.log(np.where(self._log_mask, m.stretching, 1.0) / np.where(self._log_mask, ref.stretching, 1.0))
+            logs = np.log(np.where(self.log_mask, m.stretching, 1.0) / np.where(self.log_mask, ref.stretching, 1.0))
             return np.concatenate([[math.log(m.density / ref.density)],
-                                   np.where(self._log_mask, logs, lin).ravel(),
+                                   np.where(self.log_mask, logs, lin).ravel(),
                                    np.log(m.bending / ref.bending).ravel()])
 
     def split(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -145,18 +106,18 @@ class MaterialParameterization:
         ns = STRETCHING_SHAPE[0] * STRETCHING_SHAPE[1]
         return theta[0], theta[1:1 + ns].reshape(STRETCHING_SHAPE), theta[1 + ns:].reshape(BENDING_SHAPE)
 
-    def decode(self, theta: np.ndarray, name: str = "estimate") -> Material:
+    def decode(self, theta: np.ndarray, name: str = "estimate") -> wc.Material:
         ref = self.reference
         td, ts, tb = self.split(theta)
-        stretching = np.where(self._log_mask, ref.stretching * np.exp(np.where(self._log_mask, ts, 0.0)),
+        stretching = np.where(self.log_mask, ref.stretching * np.exp(np.where(self.log_mask, ts, 0.0)),
                               ref.stretching + ts * self._row_scale)
-        return Material(density=ref.density * math.exp(td), stretching=stretching,
+        return wc.Material(density=ref.density * math.exp(td), stretching=stretching,
                         bending=ref.bending * np.exp(tb), thicken=ref.thicken, name=name)
 
     def chain(self, theta: np.ndarray, g_density: float, g_stretching: np.ndarray, g_bending: np.ndarray) -> np.ndarray:
         """d loss / d theta from the gradients with respect to the material's raw density and tables."""
         m = self.decode(theta)
-        gs = np.where(self._log_mask, g_stretching * m.stretching, g_stretching * self._row_scale)
+        gs = np.where(self.log_mask, g_stretching * m.stretching, g_stretching * self._row_scale)
         return np.concatenate([[g_density * m.density], gs.ravel(), (g_bending * m.bending).ravel()])
 
 
@@ -171,7 +132,7 @@ ERROR_LABELS = {"density_err_pct": "density error [%]", "stretch_linear_err_pct"
 
 
 # -- errors (SPEC.md, published numbers) -------------------------------------------------------------------------------
-def parameter_errors(estimate: Material, truth: Material) -> dict[str, float]:
+def parameter_errors(estimate: wc.Material, truth: wc.Material) -> dict[str, float]:
     """Relative Frobenius errors [%]: density, stretching row 0 ("linear"), rows 1-5 ("non-linear"), bending."""
 
     def rel(a, b):
@@ -186,13 +147,6 @@ def parameter_errors(estimate: Material, truth: Material) -> dict[str, float]:
 
 
 # -- the fit ---------------------------------------------------------------------------------------------------------
-@wp.kernel
-def _squared_distance(x: wp.array(dtype=Any), target: wp.array(dtype=Any), scale: Any, loss: wp.array(dtype=Any)):
-    i = wp.tid()
-    d = x[i] - target[i]
-    wp.atomic_add(loss, 0, scale * wp.dot(d, d))
-
-
 class TrajectoryFit:
     """Loss and gradient of a material against an observed trajectory.
 
@@ -200,8 +154,8 @@ class TrajectoryFit:
     are every ``frame_stride`` steps up to ``steps``.
     """
 
-    def __init__(self, model: Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
-                 frame_stride: int = FRAME_STRIDE, dt: float = DT, options: SolverOptions | None = None):
+    def __init__(self, model: wc.Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
+                 frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None):
         if model.material_count != 1:
             raise ValueError(f"TrajectoryFit estimates one material; the model has {model.material_count}")
         if steps % frame_stride:
@@ -215,22 +169,23 @@ class TrajectoryFit:
                 raise ValueError(f"target frame {k} has shape {np.shape(x)}, the cloth has {model.particle_count} "
                                  "particles")
         self.model, self.steps, self.frame_stride = model, steps, frame_stride
-        self.sim = Simulator(model, dt, options=options or SolverOptions(cg_tol=1e-6))
+        self._kernels = loss_kernels(model.scalar)
+        self.sim = wc.Simulator(model, dt, options=options or wc.SolverOptions(cg_tol=1e-6))
         self.targets = [wp.array(np.asarray(x, dtype=np.float64), dtype=model.types.vec3, device=model.device)
                         for x in targets[: frames + 1]]
         self.evaluations = 0
         self.seconds = 0.0
 
     @staticmethod
-    def simulate_targets(model: Model, truth: Material, *, steps: int = STEPS, frame_stride: int = FRAME_STRIDE,
+    def simulate_targets(model: wc.Model, truth: wc.Material, *, steps: int = STEPS, frame_stride: int = FRAME_STRIDE,
                          dt: float = DT) -> list[np.ndarray]:
         """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout."""
         dummy = [np.zeros((model.particle_count, 3))] * (steps // frame_stride + 1)
         fit = TrajectoryFit(model, dummy, steps=steps, frame_stride=frame_stride, dt=dt,
-                            options=SolverOptions(cg_tol=1e-8))
+                            options=wc.SolverOptions(cg_tol=1e-8))
         return fit.trajectory(truth)[::frame_stride]
 
-    def set_material(self, m: Material) -> None:
+    def set_material(self, m: wc.Material) -> None:
         model = self.model
         model.material_density.assign(np.array([m.density]))
         model.material_stretching.assign(m.stretching[None])
@@ -240,19 +195,19 @@ class TrajectoryFit:
         model = self.model
         frames = steps // self.frame_stride
         loss = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
-        trajectory = rollout(self.sim, model.state(), steps=steps)
+        trajectory = wc.rollout(self.sim, model.state(), steps=steps)
         scale = model.scalar(1.0 / (frames * model.particle_count))
         for k in range(1, frames + 1):
-            wp.launch(_squared_distance, model.particle_count,
+            wp.launch(self._kernels.squared_distance, model.particle_count,
                       inputs=[trajectory[k * self.frame_stride].particle_x, self.targets[k], scale], outputs=[loss])
         return loss, trajectory
 
-    def loss(self, m: Material, steps: int | None = None) -> float:
+    def loss(self, m: wc.Material, steps: int | None = None) -> float:
         self.set_material(m)
         loss, _ = self._rollout_loss(steps or self.steps)
         return float(loss.numpy()[0])
 
-    def loss_and_grad(self, m: Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
+    def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
         """(loss, d/d density, d/d stretching (6, 4), d/d bending (3, 5)) in raw units."""
         model = self.model
         self.set_material(m)
@@ -270,13 +225,13 @@ class TrajectoryFit:
         self.evaluations += 1
         return (float(loss.numpy()[0]), *grads)
 
-    def simulation_error(self, m: Material) -> float:
+    def simulation_error(self, m: wc.Material) -> float:
         """RMS vertex distance to the target over the compared frames, per metre of cloth side, in %."""
         return 100.0 * math.sqrt(self.loss(m))
 
-    def trajectory(self, m: Material, steps: int | None = None) -> list[np.ndarray]:
+    def trajectory(self, m: wc.Material, steps: int | None = None) -> list[np.ndarray]:
         self.set_material(m)
-        return [s.particle_x.numpy() for s in rollout(self.sim, self.model.state(), steps=steps or self.steps)]
+        return [s.particle_x.numpy() for s in wc.rollout(self.sim, self.model.state(), steps=steps or self.steps)]
 
 
 # -- one estimation --------------------------------------------------------------------------------------------------
@@ -285,8 +240,8 @@ OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
 
 @dataclass
 class EstimationResult:
-    material: Material
-    initial: Material
+    material: wc.Material
+    initial: wc.Material
     losses: list[float] = field(default_factory=list)
     """Loss [m^2] of every forward + backward evaluation, in order."""
     horizons: list[int] = field(default_factory=list)
@@ -303,7 +258,7 @@ class EstimationResult:
         return self.seconds / max(sum(self.horizons), 1)
 
 
-def estimate_material(fit: TrajectoryFit, *, initial: Material | None = None, optimizer: str = "lbfgs",
+def estimate_material(fit: TrajectoryFit, *, initial: wc.Material | None = None, optimizer: str = "lbfgs",
                       iters: int = 60, progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
@@ -336,7 +291,7 @@ def estimate_material(fit: TrajectoryFit, *, initial: Material | None = None, op
         steps = steps or fit.steps
         try:
             loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta), steps)
-        except SimulationError as exc:  # a trial material that diverges: an infinite loss, so the step is rejected
+        except wc.SimulationError as exc:  # a trial material that diverges: an infinite loss, so the step is rejected
             if not result.losses:
                 raise
             result.diverged.append(str(exc))
@@ -364,8 +319,6 @@ def estimate_material(fit: TrajectoryFit, *, initial: Material | None = None, op
 
 def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:
     # The seed optimises density, stretching/1e3 and bending*1e4 directly (its "scaled units", SPEC §1.5).
-    from warpcloth.materials import DIFFCLOTH_BENDING_SCALE, DIFFCLOTH_STRETCHING_SCALE
-
     ref = param.reference
     scaled = np.concatenate([[ref.density], (ref.stretching / DIFFCLOTH_STRETCHING_SCALE).ravel(),
                              (ref.bending / DIFFCLOTH_BENDING_SCALE).ravel()])
@@ -378,13 +331,13 @@ def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, it
         raw = scaled * unit
         # plain SGD can step a positive quantity below zero (the seed's code would then simulate a negative
         # stiffness); this keeps the material valid and says so
-        floor = np.concatenate([[1e-6], np.where(param._log_mask, 1e-6, -np.inf).ravel(), np.full(15, 1e-12)])
+        floor = np.concatenate([[1e-6], np.where(param.log_mask, 1e-6, -np.inf).ravel(), np.full(15, 1e-12)])
         if np.any(raw < floor):
             bad = np.flatnonzero(raw < floor)
             warnings.warn(f"seed-sgd stepped parameters {bad.tolist()} (0 = density, 1-24 stretching, 25-39 bending) "
                           "below zero; they were raised to a tiny positive value", stacklevel=3)
             raw = np.maximum(raw, floor)
-        m = Material(density=raw[0], stretching=raw[1:25].reshape(6, 4), bending=raw[25:].reshape(3, 5),
+        m = wc.Material(density=raw[0], stretching=raw[1:25].reshape(6, 4), bending=raw[25:].reshape(3, 5),
                      thicken=ref.thicken)
         theta = param.encode(m)
         loss, g_theta = objective(theta, steps)

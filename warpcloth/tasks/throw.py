@@ -5,9 +5,10 @@ a force on the 4 corner particles. The seed adds a velocity increment to each co
 acceleration); here the push is a force ``F = (M / 4) p``, with M the cloth's mass, so ``p`` [m/s^2] is the
 acceleration four such pushes would give the whole cloth: ``p = (0, 0, 9.8)`` on every corner holds it up. This is a
 fixed linear rescaling of the seed's control (corner acceleration = ``M p / (4 m_corner)``, about 95 p here) that
-puts the parameters on the scale of gravity. The loss is ``1/2 |com_T - (0, 0, -0.7)|^2`` on the centre of mass (vertex mean) after 700 steps
-of 0.01 s, with the cloth colliding with the basket and the wall. Gradients come from a checkpointed rollout
-(warpcloth.solver.checkpoint), so the 700 steps back-propagate with O(sqrt(T)) stored states.
+puts the parameters on the scale of gravity. The loss is ``1/2 |com_T - (0, 0, -0.7)|^2`` on the centre of mass
+(vertex mean) after 700 steps of 0.01 s, with the cloth colliding with the basket and the wall (the scene:
+``warpcloth.tasks.scenes.basket_scene``, also importable from here). Gradients come from a checkpointed rollout
+(``wc.checkpointed_backward``), so the 700 steps back-propagate with O(sqrt(T)) stored states.
 """
 
 from __future__ import annotations
@@ -15,17 +16,18 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import warp as wp
 
-from warpcloth.builder import ModelBuilder
-from warpcloth.solver.checkpoint import checkpointed_backward
-from warpcloth.errors import CollisionError
-from warpcloth.materials import preset
-from warpcloth.model import Control, Model, State
-from warpcloth.solver import CollisionOptions, Simulator, SolverOptions
+import warpcloth as wc
+from warpcloth.kernels.losses import loss_kernels
+
+# the scene (warpcloth.tasks.scenes), importable from here too
+from warpcloth.tasks.scenes import THROW_CELLS as CELLS  # noqa: F401
+from warpcloth.tasks.scenes import THROW_CORNERS as CORNERS
+from warpcloth.tasks.scenes import THROW_SIZE as SIZE  # noqa: F401
+from warpcloth.tasks.scenes import basket_scene, basket_vertices_triangles, wall_vertices_triangles  # noqa: F401
 
 DT = 0.01
 STEPS = 700
@@ -33,39 +35,7 @@ SECONDS_CONTROLLED = 3
 STEPS_PER_SECOND = 100
 TARGET = (0.0, 0.0, -0.7)
 """Bottom centre of the basket [m]."""
-CELLS = 8
-SIZE = 0.7
-CORNERS = (0, CELLS, CELLS * (CELLS + 1), CELLS * (CELLS + 1) + CELLS)
-"""Corner particles of the 8x8 grid (row-major, x fastest)."""
 N_PARAMS = SECONDS_CONTROLLED * len(CORNERS) * 3
-
-
-def basket_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
-    """The seed's bucket.obj: an open-top box 0.98 x 0.98 m centred at the origin, z in [-0.7, 0.7]."""
-    h, lo, hi = 0.49, -0.7, 0.7
-    v = np.array([[x, y, z] for z in (lo, hi) for y in (-h, h) for x in (-h, h)])  # index = 4*z + 2*y + x
-    quads = [(0, 2, 3, 1), (0, 1, 5, 4), (1, 3, 7, 5), (3, 2, 6, 7), (2, 0, 4, 6)]  # bottom, 4 walls (inward)
-    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
-    return v, np.array(tris, dtype=np.int32)
-
-
-def wall_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
-    """The seed's bucketobs.obj: a vertical plate at x = -0.562, y in [-0.615, 0.615], z in [0.598, 1.828]."""
-    x = -0.562206
-    v = np.array([[x, -0.615245, 0.597941], [x, 0.615245, 0.597941], [x, 0.615245, 1.828432],
-                  [x, -0.615245, 1.828432]])
-    return v, np.array([(0, 1, 2), (0, 2, 3)], dtype=np.int32)
-
-
-def basket_scene(device=None, *, dtype=wp.float32, requires_grad: bool = True) -> Model:
-    """The seed's throw scene: a 0.7 m gray-interlock cloth (8x8 cells, thicken 2) flat at z = 2 over
-    x in [-3.7, -3], y in [0, 0.7]; the basket and the wall; gravity; no wind, no handles."""
-    b = ModelBuilder(gravity=(0.0, 0.0, -9.8))
-    b.add_cloth_grid((CELLS, CELLS), (SIZE, SIZE), material=preset("gray-interlock", thicken=2.0),
-                     pos=(-3.0 - SIZE, 0.0, 2.0))
-    b.add_obstacle_mesh(*basket_vertices_triangles(), name="basket")
-    b.add_obstacle_mesh(*wall_vertices_triangles(), name="wall")
-    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
 
 
 def error_pct(com_final: np.ndarray, com_initial: np.ndarray) -> float:
@@ -74,40 +44,18 @@ def error_pct(com_final: np.ndarray, com_initial: np.ndarray) -> float:
     return 100.0 * float(np.linalg.norm(com_final - target) / np.linalg.norm(com_initial - target))
 
 
-@wp.kernel
-def _corner_forces(push: wp.array(dtype=Any), second: int, corners: wp.array(dtype=wp.int32), quarter_mass: Any,
-                   force: wp.array(dtype=Any)):
-    j = wp.tid()
-    force[corners[j]] = quarter_mass * push[second * corners.shape[0] + j]
-
-
-@wp.kernel
-def _centre_of_mass(x: wp.array(dtype=Any), inv_n: Any, com: wp.array(dtype=Any)):
-    # the loss squares the mean, so the mean is accumulated first and squared by _half_squared_distance
-    wp.atomic_add(com, 0, inv_n * x[wp.tid()])
-
-
-@wp.kernel
-def _component(com: wp.array(dtype=Any), k: int, loss: wp.array(dtype=Any)):
-    loss[0] = loss[0] + com[0][k]
-
-
-@wp.kernel
-def _half_squared_distance(com: wp.array(dtype=Any), target: Any, half: Any, loss: wp.array(dtype=Any)):
-    d = com[0] - target
-    loss[0] = loss[0] + half * wp.dot(d, d)
-
-
 class ThrowTask:
-    """The throw: loss, gradient and trajectory as functions of the 36 corner accelerations ``a[second, corner, xyz]``."""
+    """The throw: loss, gradient and trajectory as functions of the 36 corner pushes ``a[second, corner, xyz]``."""
 
-    def __init__(self, model: Model | None = None, *, steps: int = STEPS, options: SolverOptions | None = None,
+    def __init__(self, model: wc.Model | None = None, *, steps: int = STEPS, options: wc.SolverOptions | None = None,
                  segment_steps: int | None = None):
         self.model = model or basket_scene()
         self.steps = steps
         self.segment_steps = segment_steps
         # hard throws pile the cloth into the basket's corners: allow more projection rounds than the default
-        self.sim = Simulator(self.model, DT, options=options or SolverOptions(cg_tol=1e-6, collision=CollisionOptions(rounds=50)))
+        self.sim = wc.Simulator(self.model, DT, options=options or wc.SolverOptions(
+            cg_tol=1e-6, collision=wc.CollisionOptions(rounds=50)))
+        self._kernels = loss_kernels(self.model.scalar)
         device = self.model.device
         self.corners = wp.array(CORNERS, dtype=wp.int32, device=device)
         self.quarter_mass = float(self.model.particle_mass().sum()) / len(CORNERS)
@@ -121,7 +69,7 @@ class ThrowTask:
         for s in range(SECONDS_CONTROLLED):
             f = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
                          requires_grad=True)
-            wp.launch(_corner_forces, len(CORNERS),
+            wp.launch(self._kernels.corner_forces, len(CORNERS),
                       inputs=[accel, s, self.corners, self.model.scalar(self.quarter_mass)], outputs=[f],
                       device=self.model.device)
             forces.append(f)
@@ -129,10 +77,10 @@ class ThrowTask:
 
     def _control_fn(self, forces: list[wp.array]):
         base = self.model.control(requires_grad=False)
-        controls = [Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
+        controls = [wc.Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
                     for f in forces]
 
-        def control(i: int) -> Control:
+        def control(i: int) -> wc.Control:
             s = i // STEPS_PER_SECOND
             return controls[s] if s < SECONDS_CONTROLLED else base
 
@@ -149,15 +97,16 @@ class ThrowTask:
         model = self.model
         com = wp.zeros(1, dtype=model.types.vec3, device=model.device, requires_grad=True)
 
-        def loss(i: int, state: State, out: wp.array) -> None:
-            if i == self.steps:
+        def loss(i: int, state: wc.State, out: wp.array) -> None:
+            if i == self.steps:  # the loss squares the mean: accumulate the mean first, then square it
                 com.zero_()
-                wp.launch(_centre_of_mass, model.particle_count,
+                wp.launch(self._kernels.centre_of_mass, model.particle_count,
                           inputs=[state.particle_x, model.scalar(1.0 / model.particle_count)], outputs=[com])
                 if component is None:
-                    wp.launch(_half_squared_distance, 1, inputs=[com, self.target, model.scalar(0.5)], outputs=[out])
+                    wp.launch(self._kernels.point_squared_distance, 1, inputs=[com, self.target, model.scalar(0.5)],
+                              outputs=[out])
                 else:
-                    wp.launch(_component, 1, inputs=[com, component], outputs=[out])
+                    wp.launch(self._kernels.add_component, 1, inputs=[com, component], outputs=[out])
 
         return loss, com
 
@@ -171,8 +120,8 @@ class ThrowTask:
         with tape:
             forces = self._forces(accel)
         loss_fn, com = self._loss_fn(component)
-        value, _ = checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
-                                         steps=self.steps, loss=loss_fn, segment_steps=self.segment_steps)
+        value, _ = wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
+                                            steps=self.steps, loss=loss_fn, segment_steps=self.segment_steps)
         tape.backward(grads={f: f.grad for f in forces})
         self.simulations += 1
         self.seconds += time.perf_counter() - t0
@@ -257,7 +206,7 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
                 return math.inf, None, None
             try:
                 _, jac[k], com_k = task.loss_and_grad(params, component=k)
-            except CollisionError as exc:
+            except wc.CollisionError as exc:
                 result.failed_trials.append(str(exc))
                 result.losses.append(math.inf)
                 result.errors_pct.append(math.inf)
@@ -315,23 +264,43 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
     """Train a PyTorch MLP controller through the simulator (warpcloth.torch): every second of the first three, the
     MLP maps the cloth's state (positions relative to the target and velocities of all particles) to the 4 corner
     pushes, applied for that second (the seed's "Ours + FC": Linear -> ReLU -> Linear). Adam on the weights; each
-    iteration is one forward + backward simulation of the whole throw."""
+    iteration is one forward + backward simulation of the whole throw.
+
+    The network and every tensor take the model's torch device and dtype (``warpcloth.torch.torch_device`` and
+    ``torch_dtype``); the initial weights are drawn on the CPU in float32 whatever they are, so a seed gives the same
+    start on every device and precision.
+
+    Args:
+        task: The throw (its model, simulator and horizon).
+        iters: Training iterations (one forward + backward simulation each).
+        lr: Adam's learning rate.
+        hidden: Width of the hidden layer.
+        seed: Seed of torch's generator for the initial weights.
+        progress: Show a progress bar (tqdm).
+
+    Returns:
+        The pushes of the best iteration (replayed open-loop by ``ControlResult.trajectory``) and the history.
+
+    Raises:
+        ImportError: When PyTorch is not installed.
+    """
     import torch
 
-    from warpcloth.torch import simulate
+    from warpcloth.torch import simulate, torch_device, torch_dtype
 
     torch.manual_seed(seed)
     model = task.model
+    device, dtype = torch_device(model), torch_dtype(model)
     n = model.particle_count
     net = torch.nn.Sequential(torch.nn.Linear(6 * n, hidden), torch.nn.ReLU(), torch.nn.Linear(hidden, 12))
     with torch.no_grad():  # start from "no push", as the open-loop optimisation does
         net[2].weight.zero_()
         net[2].bias.zero_()
-    net = net.to(torch.float32)
+    net = net.to(device=device, dtype=dtype)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
-    x0 = torch.tensor(model.particle_x0.numpy(), dtype=torch.float32)
-    v0 = torch.tensor(model.particle_v0.numpy(), dtype=torch.float32)
-    target = torch.tensor(TARGET, dtype=torch.float32)
+    x0 = torch.tensor(model.particle_x0.numpy(), dtype=dtype, device=device)
+    v0 = torch.tensor(model.particle_v0.numpy(), dtype=dtype, device=device)
+    target = torch.tensor(TARGET, dtype=dtype, device=device)
     push_scale = 10.0  # network outputs of order one -> pushes of order gravity [m/s^2]
 
     def policy(x, v):
@@ -365,12 +334,12 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
         loss.backward()
         opt.step()
         task.simulations += 1
-        err = error_pct(com.detach().numpy().astype(np.float64), task.com_initial)
+        err = error_pct(com.detach().cpu().numpy().astype(np.float64), task.com_initial)
         result.losses.append(float(loss.detach()))
         result.errors_pct.append(err)
         if err < best:
             best = err
-            result.params = torch.stack(pushes).detach().numpy().astype(np.float64)
+            result.params = torch.stack(pushes).detach().cpu().numpy().astype(np.float64)
             result.simulations, result.error_pct = k, err
         if bar is not None:
             bar.update()

@@ -1,0 +1,69 @@
+"""Closest-point routines shared by detection (kernels/collision.py, float64) and the differentiable contact geometry
+(kernels/contact.py, the model's precision): generic ``@wp.func`` over the vector type of their arguments."""
+
+from typing import Any
+
+import warp as wp
+
+
+@wp.func
+def span_coordinates(e1: Any, e2: Any, r: Any):
+    """(u, v, det, scale): u e1 + v e2 is the point of the plane spanned by e1 and e2 closest to r.
+
+    Solves the 2x2 Gram system [[e1.e1, e1.e2], [e1.e2, e2.e2]] (u, v) = (e1.r, e2.r) by Cramer's rule; det is its
+    determinant and scale = (e1.e1)(e2.e2), so det / scale is the squared sine of the angle between e1 and e2.
+    The caller decides what counts as degenerate (u and v are inf or nan where det is 0).
+    Barycentric coordinates of p over triangle (a, b, c): (1 - u - v, u, v) of (b - a, c - a, p - a).
+    Closest points a + s (b - a), c + u (d - c) of two lines: (s, u) of (b - a, c - d, c - a).
+    """
+    d11 = wp.dot(e1, e1)
+    d12 = wp.dot(e1, e2)
+    d22 = wp.dot(e2, e2)
+    d1r = wp.dot(e1, r)
+    d2r = wp.dot(e2, r)
+    det = d11 * d22 - d12 * d12
+    u = (d22 * d1r - d12 * d2r) / det
+    v = (d11 * d2r - d12 * d1r) / det
+    return u, v, det, d11 * d22
+
+
+@wp.func
+def segment_parameters(p0: Any, p1: Any, q0: Any, q1: Any, parallel: Any):
+    """Parameters (s, u) in [0, 1] of the closest points p0 + s (p1 - p0), q0 + u (q1 - q0) of two segments
+    (Ericson, Real-Time Collision Detection 5.1.9).
+
+    Segments whose squared sine is at most ``parallel`` count as parallel: s starts at 0 and only the clamping
+    moves it. A segment shorter than 1e-15 counts as a point.
+    """
+    d1 = p1 - p0
+    d2 = q1 - q0
+    r = p0 - q0
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    zero = type(a)(0.0)
+    one = type(a)(1.0)
+    s = zero
+    u = zero
+    tiny = type(a)(1.0e-30)
+    if a <= tiny and e <= tiny:
+        return zero, zero
+    if a <= tiny:
+        u = wp.clamp(f / e, zero, one)
+        return zero, u
+    c = wp.dot(d1, r)
+    if e <= tiny:
+        s = wp.clamp(-c / a, zero, one)
+        return s, zero
+    b = wp.dot(d1, d2)
+    den = a * e - b * b
+    if den > parallel * a * e:
+        s = wp.clamp((b * f - c * e) / den, zero, one)
+    u = (b * s + f) / e
+    if u < zero:
+        u = zero
+        s = wp.clamp(-c / a, zero, one)
+    elif u > one:
+        u = one
+        s = wp.clamp((b - c) / a, zero, one)
+    return s, u

@@ -1,0 +1,266 @@
+"""Adjoint of the projection (SPEC.md §4.2; the paper's §3): :func:`backward` by the QR formula or the dense KKT
+system, and the per-zone QR factorisation it uses (:func:`factorise`).
+
+On the active set A = {j : |c_j(z*)| ≤ active_tol} ∪ {j : λ_j > 0} the KKT conditions W(z − x̂) + G_Aᵀλ = 0,
+G_A z + h_A = 0 define z*(x̂, G, h). With ḡ = ∂L/∂z, solve K [d_z; d_λ] = [ḡ; 0], K = [[W, G_Aᵀ], [G_A, 0]]; then,
+as dL = ḡᵀdz = d_zᵀ(W dx̂ − dG_Aᵀλ) + d_λᵀ(−dG_A z − dh_A)::
+
+    ∂L/∂x̂ = W d_z,   ∂L/∂G_A = −λ d_zᵀ − d_λ zᵀ,   ∂L/∂h_A = −d_λ,
+
+which on the contacts reads, with p and d the position and d_z of each node (d = 0 for a constant node):
+∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a), and for a constant node
+∂L/∂x_a += d_λj w_ja n_j (obstacle vertices and pinned particles get this gradient here, unlike the seed).
+
+* ``mode="qr"`` (the paper's method): Ã = W^{-1/2} G_Aᵀ (rows of particles touched by active contacts only;
+  block diagonal over groups of active contacts linked by shared particles, each group factorised on its own),
+  Householder QR Ã = QR; columns with |R_kk| < 1e-10·max|R_kk| are dependent on earlier ones and are dropped, the
+  kept ones refactored, and the dropped multipliers folded into the kept ones (λ_keep += Cλ_drop with
+  Ã_drop = Ã_keep C) so that G_Aᵀλ is unchanged. Then q = Qᵀ W^{-1/2} ḡ, d_λ = R⁻¹q (blocked triangular solve),
+  d_z = W^{-1/2}(W^{-1/2}ḡ − Qq). By default the QR is computed lazily by the first :func:`backward` and its time
+  is included in that call's ``backward_s`` (an honest comparison with the KKT mode); ``precompute_qr=True``
+  computes it in :func:`~warpcloth.collision.qp.project` instead, as the seed does (its time is then ``qr_s`` of
+  the forward stats). Single-contact zones use the closed form of the same formulas (R = ‖Ã‖) in both modes.
+* ``mode="kkt"`` (the seed's baseline and the oracle of the QR mode): the dense symmetric system of size
+  nvar + ncon over all zone contacts, K = [[W, GᵀS], [SG, I − S]] with S the active indicator, by
+  ``np.linalg.solve`` (``np.linalg.lstsq`` when the active rows are dependent or the solve fails).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from warpcloth.collision.checks import float_array
+from warpcloth.collision.linalg import householder, tri_solve
+from warpcloth.collision.zones import Zone, components
+
+if TYPE_CHECKING:
+    from warpcloth.collision.qp import ProjectionResult
+
+
+@dataclass
+class QRBlock:
+    """QR factorisation of one connected group of active constraints (see the module docstring)."""
+
+    rows: np.ndarray
+    """Local particle indices whose coordinates are the rows of Ã (the particles these constraints touch)."""
+    cols: np.ndarray
+    """Local contact indices of these active constraints (the columns of Ã, sorted)."""
+    keep: np.ndarray
+    """Positions in ``cols`` of the independent columns kept in the factorisation, in factorisation order."""
+    drop: np.ndarray
+    """Positions in ``cols`` of the dependent columns dropped."""
+    Q: np.ndarray
+    R: np.ndarray
+    lam: np.ndarray
+    """Multipliers of the kept columns with the dropped ones folded in."""
+
+
+@dataclass
+class ZoneQR:
+    """The adjoint's factorisation of a zone: Ã is block diagonal over groups of active constraints that share no
+    particle, so each group is factorised on its own (same Q and R up to a permutation, far less work)."""
+
+    blocks: list[QRBlock]
+    seconds: float
+
+    @property
+    def independent(self) -> int:
+        """Number of independent active constraints (columns kept)."""
+        return sum(int(b.keep.size) for b in self.blocks)
+
+    @property
+    def dependent(self) -> int:
+        """Number of dependent active constraints (columns dropped)."""
+        return sum(int(b.drop.size) for b in self.blocks)
+
+
+def _atilde(zone: Zone, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ã = W^{-1/2} G_Aᵀ restricted to the columns ``cols`` (local contacts) and to the particles they touch."""
+    sel = np.isin(zone.slot_con, cols)
+    rows = np.unique(zone.slot_node[sel])
+    rpos = np.searchsorted(rows, zone.slot_node[sel])
+    cpos = np.searchsorted(cols, zone.slot_con[sel])  # cols is sorted
+    A = np.zeros((3 * rows.size, cols.size))
+    vals = -zone.slot_dir[sel] / np.sqrt(zone.mass[zone.slot_node[sel]])[:, None]
+    for d in range(3):
+        A[3 * rpos + d, cpos] = vals[:, d]
+    return A, rows
+
+
+def factorise(zone: Zone) -> ZoneQR:
+    """Householder QR of Ã on the active set, per group of active constraints linked by shared particles, with the
+    dependent columns dropped and their multipliers folded into the kept ones.
+
+    Stores it as ``zone.qr`` and records ``independent``, ``qr_size`` and ``qr_s`` in ``zone.stats``.
+    """
+    t0 = time.perf_counter()
+    act = zone.active
+    blocks = []
+    if act.size:
+        sel = np.isin(zone.slot_con, act)
+        sc, snode = zone.slot_con[sel], zone.slot_node[sel]
+        first = np.full(zone.lam.size, -1, dtype=np.int64)
+        first[sc[::-1]] = snode[::-1]  # one particle of each active contact
+        label = components(zone.mass.size, first[sc], snode)
+        group = label[first[act]]
+        for g in np.unique(group):
+            cols = act[group == g]
+            A, rows = _atilde(zone, cols)
+            keep, drop, Q, R = householder(A)
+            lam = zone.lam[cols]
+            lam_keep = lam[keep].copy()
+            if drop.size and keep.size:
+                C = tri_solve(R, Q.T @ A[:, drop], lower=False)  # Ã_drop = Ã_keep C
+                lam_keep += C @ lam[drop]
+            blocks.append(QRBlock(rows=rows, cols=cols, keep=keep, drop=drop, Q=Q, R=R, lam=lam_keep))
+    zone.qr = ZoneQR(blocks=blocks, seconds=time.perf_counter() - t0)
+    zone.stats["independent"] = zone.qr.independent
+    zone.stats["qr_size"] = zone.qr.independent
+    zone.stats["qr_s"] = zone.qr.seconds
+    return zone.qr
+
+
+def _zone_adjoint_qr(zone: Zone, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d_z (nz, 3), d_λ (k,), λ used with ∂L/∂G (k,)) of one zone by the QR formula."""
+    qr = zone.qr if zone.qr is not None else factorise(zone)
+    sq = np.sqrt(zone.mass)
+    gp = g / sq[:, None]  # W^{-1/2} ḡ
+    u = gp.copy()
+    k = zone.lam.size
+    d_lam = np.zeros(k)
+    lam = np.zeros(k)
+    for blk in qr.blocks:
+        if blk.keep.size == 0:
+            continue
+        grow = gp[blk.rows].ravel()
+        q = blk.Q.T @ grow
+        u[blk.rows] = (grow - blk.Q @ q).reshape(-1, 3)
+        d_lam[blk.cols[blk.keep]] = tri_solve(blk.R, q, lower=False)
+        lam[blk.cols[blk.keep]] = blk.lam
+    return u / sq[:, None], d_lam, lam
+
+
+def _zone_adjoint_kkt(zone: Zone, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Same as _zone_adjoint_qr by the dense (nvar + ncon) KKT system over all zone contacts."""
+    nz, k = zone.mass.size, zone.lam.size
+    nvar = 3 * nz
+    G = np.zeros((k, nvar))
+    for d in range(3):
+        G[zone.slot_con, 3 * zone.slot_node + d] = -zone.slot_dir[:, d]
+    s = np.zeros(k)
+    s[zone.active] = 1.0
+    K = np.zeros((nvar + k, nvar + k))
+    K[np.arange(nvar), np.arange(nvar)] = np.repeat(zone.mass, 3)
+    K[:nvar, nvar:] = G.T * s[None, :]
+    K[nvar:, :nvar] = G * s[:, None]
+    K[np.arange(nvar, nvar + k), np.arange(nvar, nvar + k)] = 1.0 - s
+    rhs = np.concatenate([g.ravel(), np.zeros(k)])
+    qr = zone.qr if zone.qr is not None else factorise(zone)  # its rank test picks solve or lstsq
+    dependent = qr.dependent > 0
+    sol = None
+    if not dependent:
+        try:
+            sol = np.linalg.solve(K, rhs)
+            if not np.all(np.isfinite(sol)):
+                sol = None
+        except np.linalg.LinAlgError:
+            sol = None
+    if sol is None:
+        sol = np.linalg.lstsq(K, rhs, rcond=None)[0]
+    return sol[:nvar].reshape(nz, 3), sol[nvar:] * s, zone.lam.copy()
+
+
+def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
+    """Gradients of a loss L(z*) given ∂L/∂z (n, 3); see the module docstring (SPEC §4.2).
+
+    Args:
+        result: what :func:`~warpcloth.collision.qp.project` returned.
+        grad_z: ∂L/∂z, shape (n, 3).
+        mode: ``"qr"`` (the paper's formula) or ``"kkt"`` (the dense KKT system).
+
+    Returns:
+        (∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3)). ∂L/∂x̂ passes ∂L/∂z
+        through for particles in no zone, and for pinned particles adds their contributions as constant nodes.
+        ``result.backward_stats`` gets one record per zone: ``mode``, ``backward_s`` (the zone's solve, the QR when
+        it was not precomputed (``qr_in_backward``), and its share of pushing the result onto the contacts),
+        ``kkt_size``, ``qr_size``. Single-contact zones use the closed form (1×1 R) in both modes, all at once;
+        each gets an equal share of that time.
+
+    Raises:
+        ValueError: an unknown ``mode`` or a malformed ``grad_z``.
+    """
+    if mode not in ("qr", "kkt"):
+        raise ValueError(f"mode must be 'qr' or 'kkt', got {mode!r}")
+    n = result.x_hat.shape[0]
+    grad_z = float_array("grad_z", grad_z, (n, 3))
+    V = result.obstacle_x.shape[0]
+    m = result.nodes.shape[0]
+    grad_x = grad_z.copy()
+    d_ext = np.zeros((n + V, 3))  # d_z of the free zone particles, 0 elsewhere
+    d_lam = np.zeros(m)
+    lam = np.zeros(m)  # the multipliers the adjoint uses (dependent ones folded into the kept ones in QR mode)
+    seconds = np.zeros(len(result.zones))
+    lazy = np.zeros(len(result.zones), dtype=bool)
+
+    t0 = time.perf_counter()
+    sg = result.singles
+    if sg and sg["contacts"].size:
+        pos, sn, sdir, mt = sg["pos"], sg["nodes"], sg["dir"], sg["mass"]
+        t = np.bincount(pos, weights=np.einsum("ij,ij->i", sdir, grad_z[sn]) / mt, minlength=sg["H"].size)
+        dl = np.where(sg["independent"], -t / np.where(sg["independent"], sg["H"], 1.0), 0.0)
+        gx = grad_z[sn] + dl[pos, None] * sdir  # W d_z = ḡ − G_Aᵀ d_λ
+        grad_x[sn] = gx
+        d_ext[sn] = gx / mt[:, None]
+        d_lam[sg["contacts"]] = dl
+        lam[sg["contacts"]] = np.where(sg["independent"], sg["lam"], 0.0)
+        seconds[sg["zones"]] = (time.perf_counter() - t0) / sg["contacts"].size
+    for zone in result.zones:
+        if zone.single:
+            continue
+        t0 = time.perf_counter()
+        lazy[zone.index] = zone.qr is None
+        g = grad_z[zone.nodes]
+        if mode == "qr":
+            d_z, dl, lz = _zone_adjoint_qr(zone, g)
+        else:
+            d_z, dl, lz = _zone_adjoint_kkt(zone, g)
+        grad_x[zone.nodes] = zone.mass[:, None] * d_z
+        d_ext[zone.nodes] = d_z
+        d_lam[zone.contacts] = dl
+        lam[zone.contacts] = lz
+        seconds[zone.index] = time.perf_counter() - t0
+
+    # Push onto the contacts: ∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a),
+    # and ∂L/∂x_a += d_λj w_ja n_j for the constant nodes (d_a = 0 there).
+    t0 = time.perf_counter()
+    cons = np.flatnonzero((d_lam != 0.0) | (lam != 0.0))
+    nd = result.nodes[cons]
+    w = result.weights[cons]
+    nrm = result.normals[cons]
+    free_ext = np.concatenate([~result.fixed, np.zeros(V, dtype=bool)])
+    fr = free_ext[nd]
+    positions = np.concatenate([result.z, result.obstacle_x])
+    v = d_lam[cons, None, None] * positions[nd] + lam[cons, None, None] * d_ext[nd]  # (k, 4, 3)
+    grad_w = np.zeros((m, 4))
+    grad_n = np.zeros((m, 3))
+    grad_w[cons] = np.einsum("kad,kd->ka", v, nrm)
+    grad_n[cons] = np.einsum("ka,kad->kd", w, v)
+    grad_ext = np.zeros((n + V, 3))
+    cj, ca = np.nonzero(~fr)
+    if cj.size:
+        contrib = (d_lam[cons[cj]] * w[cj, ca])[:, None] * nrm[cj]
+        for d in range(3):
+            grad_ext[:, d] += np.bincount(nd[cj, ca], weights=contrib[:, d], minlength=n + V)
+    push = time.perf_counter() - t0
+    ncon = np.array([zone.stats["ncon"] for zone in result.zones], dtype=float)
+    if ncon.size:
+        seconds += push * ncon / ncon.sum()
+    result.backward_stats = [
+        {"mode": mode, "backward_s": float(seconds[zone.index]), "qr_in_backward": bool(lazy[zone.index]),
+         "kkt_size": zone.stats["kkt_size"], "qr_size": zone.stats["qr_size"]} for zone in result.zones]
+    grad_x += grad_ext[:n]  # only pinned particles (constant cloth nodes) receive anything here
+    return grad_x, grad_w, grad_n, grad_ext[n:].copy()

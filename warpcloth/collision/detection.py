@@ -1,0 +1,160 @@
+"""Contact detection of the collision stage: the :class:`Contacts` it finds and the :class:`ContactDetector` that
+holds the primitive sets, their BVHs and the device buffers of one Simulator (kernels in kernels/collision.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warpcloth.errors import CollisionError
+from warpcloth.kernels.collision import collision_kernels
+from warpcloth.model import Model
+
+
+@dataclass
+class Contacts:
+    """Contacts on the host, one row each; kernels/collision.py describes what each mode constrains."""
+
+    nodes: np.ndarray
+    """Node ids, shape (m, 4), int32: cloth particles 0..n-1, then obstacle vertices n..n+V-1 (vertex and face
+    for VF_PLANE, two edges otherwise)."""
+    mode: np.ndarray
+    """Contact mode VF_PLANE, EE_PLANE or EE_DIRECTION (kernels/collision.py), shape (m,), int32."""
+    t: np.ndarray
+    """Time of impact in [0, 1] of the step (1 for a proximity contact), shape (m,), float64."""
+    sign: np.ndarray
+    """Side of the normal, +1 or −1 (unused by EE_DIRECTION), shape (m,), float64."""
+
+    def __len__(self) -> int:
+        return len(self.mode)
+
+    @classmethod
+    def empty(cls) -> Contacts:
+        """No contacts."""
+        return cls(nodes=np.zeros((0, 4), dtype=np.int32), mode=np.zeros(0, dtype=np.int32),
+                   t=np.zeros(0, dtype=np.float64), sign=np.zeros(0, dtype=np.float64))
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[Contacts]) -> Contacts:
+        """The rows of ``parts``, in order."""
+        return cls(nodes=np.concatenate([p.nodes for p in parts]), mode=np.concatenate([p.mode for p in parts]),
+                   t=np.concatenate([p.t for p in parts]), sign=np.concatenate([p.sign for p in parts]))
+
+
+class _Primitives:
+    """Vertices, edges or triangles (node indices, one row each) with their swept bounding boxes."""
+
+    def __init__(self, indices: np.ndarray, device):
+        self.count = len(indices)
+        self.corners = indices.shape[1]
+        self.indices = wp.array(indices.astype(np.int32), dtype=wp.int32, device=device)
+        self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
+        self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
+        self.bvh: wp.Bvh | None = None
+
+
+class ContactDetector:
+    """Vertex-face and edge-edge contacts (CCD and proximity) between node positions at the start and the end of a
+    step, by BVH queries over swept boxes. Nodes are the cloth particles, then the obstacle vertices.
+
+    Args:
+        model: the model (its cloth triangles and edges, and its obstacles' when ``obstacles``).
+        thickness: collision thickness δ [m].
+        capacity: most contacts one :meth:`detect` call may find.
+        obstacles: detect cloth–obstacle contacts.
+        self_collision: detect cloth–cloth contacts.
+    """
+
+    def __init__(self, model: Model, *, thickness: float, capacity: int, obstacles: bool, self_collision: bool):
+        self.device = dev = model.device
+        self.thickness = float(thickness)
+        self.capacity = int(capacity)
+        self.kernels = collision_kernels(model.scalar)
+        n = model.particle_count
+        cloth_tris = _Primitives(model.triangles_np, dev)
+        cloth_vertices = _Primitives(np.arange(n)[:, None], dev)
+        cloth_edges = _Primitives(model.edge_indices.numpy(), dev)
+        self._sets = [cloth_tris, cloth_vertices, cloth_edges]
+        # (query set, target set, kind, skip-incident/same-set flag)
+        self._queries: list[tuple[_Primitives, _Primitives, str, int]] = []
+        if obstacles:
+            V = model.obstacle_vertex_count
+            obst_tris = _Primitives(model.obstacle_tri_indices.numpy() + n, dev)
+            obst_vertices = _Primitives(np.arange(n, n + V)[:, None], dev)
+            obst_edges = _Primitives(model.obstacle_edge_indices.numpy() + n, dev)
+            self._sets += [obst_tris, obst_vertices, obst_edges]
+            self._queries += [(cloth_vertices, obst_tris, "vf", 0), (obst_vertices, cloth_tris, "vf", 0),
+                              (cloth_edges, obst_edges, "ee", 0)]
+        if self_collision:
+            self._queries += [(cloth_vertices, cloth_tris, "vf", 1), (cloth_edges, cloth_edges, "ee", 1)]
+        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
+        self._mode = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
+        self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
+
+    def detect(self, x0: wp.array, x1: wp.array) -> Contacts:
+        """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host.
+
+        Raises:
+            CollisionError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
+                and the count needed).
+        """
+        k = self.kernels
+        half = 0.5 * self.thickness
+        for prims in self._sets:
+            if prims.count:
+                wp.launch(k.primitive_bounds, prims.count, device=self.device,
+                          inputs=[x0, x1, prims.indices, prims.corners, half],
+                          outputs=[prims.lowers, prims.uppers], record_tape=False)
+        self._count.zero_()
+        refitted = set()
+        for query, target, kind, flag in self._queries:
+            if query.count == 0 or target.count == 0:
+                continue
+            if target.bvh is None:
+                target.bvh = wp.Bvh(target.lowers, target.uppers)
+            elif id(target) not in refitted:
+                target.bvh.refit()
+            refitted.add(id(target))
+            kernel = k.vertex_face if kind == "vf" else k.edge_edge
+            query_index = query.indices if kind == "ee" else query.indices.flatten()
+            wp.launch(kernel, query.count, device=self.device,
+                      inputs=[target.bvh.id, x0, x1, query_index, target.indices, query.lowers, query.uppers, flag,
+                              wp.float64(self.thickness), self.capacity],
+                      outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
+        count = int(self._count.numpy()[0])
+        if count > self.capacity:
+            raise CollisionError(
+                f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
+                f"raise CollisionOptions.contact_capacity to at least {count}")
+        return Contacts(nodes=self._nodes.numpy()[:count].copy(), mode=self._mode.numpy()[:count].copy(),
+                        t=self._t.numpy()[:count].copy(), sign=self._sign.numpy()[:count].copy())
+
+    def check_start_outside(self, model: Model) -> None:
+        """Raise ValueError if a cloth particle starts inside a closed obstacle (the response cannot fix that)."""
+        from warpcloth.obstacles import obstacle_points_numpy
+
+        points = obstacle_points_numpy(model, 0.0)
+        x0 = model.particle_x0
+        ts = model.obstacle_tri_start
+        for b in range(model.obstacle_count):
+            local = model.obstacle_triangles_np[ts[b]: ts[b + 1]]
+            edges = np.sort(np.concatenate([local[:, [0, 1]], local[:, [1, 2]], local[:, [2, 0]]]), axis=1)
+            _, uses = np.unique(edges, axis=0, return_counts=True)
+            if len(local) == 0 or np.any(uses != 2):
+                continue  # open surface (plane, funnel): no inside
+            mesh = wp.Mesh(points=wp.array(points, dtype=wp.vec3, device=self.device),
+                           indices=wp.array(local.reshape(-1), dtype=wp.int32, device=self.device))
+            inside = wp.zeros(model.particle_count, dtype=wp.int32, device=self.device)
+            wp.launch(self.kernels.inside_mesh, model.particle_count, device=self.device,
+                      inputs=[mesh.id, x0, 1.0e6], outputs=[inside], record_tape=False)
+            bad = np.flatnonzero(inside.numpy())
+            if bad.size:
+                p = int(bad[0])
+                raise ValueError(
+                    f"cloth particle {p} at {x0.numpy()[p].tolist()} starts inside obstacle "
+                    f"{model.obstacle_names[b]!r} ({bad.size} particles inside); move the cloth or the obstacle")

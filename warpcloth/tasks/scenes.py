@@ -1,0 +1,149 @@
+"""The seed's scenes (Liang, Lin and Koltun 2019), built once for the tasks, examples, benchmarks and command line.
+
+* ``hanging_cloth``: material estimation (SPEC §5(b)), a 1 m cloth held at its two top corners by soft handles in a
+  5 m/s wind, either a flat grid made in code or the seed's demo_wind.obj (or any OBJ with material coordinates).
+* ``basket_scene``: motion control (SPEC §5(c)), a 0.7 m cloth flat above the ground, the seed's basket and the wall
+  in front of it.
+
+Time steps and horizons belong to the tasks (``warpcloth.tasks.estimation``, ``warpcloth.tasks.throw``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import warpcloth as wc
+from warpcloth.builder import DEFAULT_HANDLE_STIFFNESS
+
+__all__ = [
+    "DEFAULT_HANDLE_STIFFNESS",
+    "GRAVITY",
+    "GRID_RES",
+    "GRID_TO_YZ",
+    "SEED_HANDLES",
+    "THICKEN",
+    "THROW_CELLS",
+    "THROW_CORNERS",
+    "THROW_SIZE",
+    "WIND",
+    "basket_scene",
+    "basket_vertices_triangles",
+    "hanging_cloth",
+    "wall_vertices_triangles",
+]
+
+GRAVITY = (0.0, 0.0, -9.8)
+"""Gravity [m/s^2] of every seed demo."""
+THICKEN = 2.0
+"""ARCSim thicken of every seed demo."""
+
+# -- the hanging cloth (material estimation) -------------------------------------------------------------------------
+WIND = (5.0, 0.0, 0.0)
+"""Wind velocity [m/s] of the seed's material-estimation scene (density 1, drag 0: ARCSim's defaults)."""
+GRID_RES = 16
+"""Cells per side of the hanging cloth made in code (the resolution of demo_wind.obj)."""
+GRID_TO_YZ = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+"""Grid x -> world y, grid y -> world z: a vertical sheet in the YZ plane whose normal is +x, the wind's direction."""
+SEED_HANDLES = (2, 3)
+"""The handled vertices (top corners) of the seed's demo_wind.obj."""
+
+
+def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str | Path | None = None,
+                  handles: Sequence[int] | None = None, lagged_normals: bool = False, device=None,
+                  dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
+    """The seed's material-estimation scene: a 1 m cloth held at its two top corners by soft handles
+    (``DEFAULT_HANDLE_STIFFNESS``, ARCSim's), gravity, a 5 m/s wind along +x, starting at rest.
+
+    Without ``mesh_path`` the cloth is a flat ``res`` x ``res``-cell square made in code, hanging in the x = 0 plane
+    (the seed's demo_wind.obj is the 16x16 grid already draped, top corners 0.8 m apart). With ``mesh_path`` (an OBJ
+    with ``vt`` material coordinates, such as demo_wind.obj or frame 0 of a target sequence) the cloth starts in that
+    shape, at rest: the seed's targets match a start from rest to 1e-6 m after one frame, not the ``nv`` velocities
+    stored in demo_wind.obj (0.1 mm off).
+
+    Self-collision is off: a cloth hanging in a steady wind does not touch itself (the seed's targets were made with
+    it on; their cross-simulator fit shows what that costs).
+
+    Args:
+        material: The cloth's material (the seed's fabrics: ``wc.preset(name, thicken=THICKEN)``).
+        res: Cells per side of the grid made in code; ignored with ``mesh_path``.
+        mesh_path: An OBJ to start from instead of the flat grid.
+        handles: The handled particles; default: the top corners of the grid, or ``SEED_HANDLES`` with
+            ``mesh_path``.
+        lagged_normals: Reproduce ARCSim's one-step lag of the wind's face normals.
+        device: Warp device (default: Warp's default device).
+        dtype: ``wp.float32`` or ``wp.float64``.
+        requires_grad: Build the model's arrays with gradients.
+
+    Returns:
+        The finalized model.
+    """
+    b = wc.ModelBuilder(gravity=GRAVITY)
+    if mesh_path is None:
+        b.add_cloth_grid((res, res), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
+        top = res * (res + 1)  # vertex (i, j) = j * (res + 1) + i; top row j = res
+        handles = (top, top + res) if handles is None else handles
+    else:
+        b.add_cloth_obj(mesh_path, material=material, vel=(0.0, 0.0, 0.0))
+        handles = SEED_HANDLES if handles is None else handles
+    for p in handles:
+        b.add_handle(int(p), stiffness=DEFAULT_HANDLE_STIFFNESS)
+    b.set_wind(WIND, density=1.0, drag=0.0, lagged_normals=lagged_normals)
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+
+
+# -- the throw into a basket (motion control) ------------------------------------------------------------------------
+THROW_CELLS = 8
+"""Cells per side of the thrown cloth."""
+THROW_SIZE = 0.7
+"""Side of the thrown cloth [m]."""
+THROW_CORNERS = (0, THROW_CELLS, THROW_CELLS * (THROW_CELLS + 1), THROW_CELLS * (THROW_CELLS + 1) + THROW_CELLS)
+"""Corner particles of the thrown cloth's grid (row-major, x fastest)."""
+
+
+def basket_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
+    """The seed's bucket.obj: an open-top box 0.98 x 0.98 m centred at the origin, z in [-0.7, 0.7].
+
+    Returns:
+        Vertices (8, 3) [m] and triangles (10, 3), facing inwards.
+    """
+    h, lo, hi = 0.49, -0.7, 0.7
+    v = np.array([[x, y, z] for z in (lo, hi) for y in (-h, h) for x in (-h, h)])  # index = 4*z + 2*y + x
+    quads = [(0, 2, 3, 1), (0, 1, 5, 4), (1, 3, 7, 5), (3, 2, 6, 7), (2, 0, 4, 6)]  # bottom, 4 walls (inward)
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    return v, np.array(tris, dtype=np.int32)
+
+
+def wall_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
+    """The seed's bucketobs.obj: a vertical plate at x = -0.562, y in [-0.615, 0.615], z in [0.598, 1.828].
+
+    Returns:
+        Vertices (4, 3) [m] and triangles (2, 3).
+    """
+    x = -0.562206
+    v = np.array([[x, -0.615245, 0.597941], [x, 0.615245, 0.597941], [x, 0.615245, 1.828432],
+                  [x, -0.615245, 1.828432]])
+    return v, np.array([(0, 1, 2), (0, 2, 3)], dtype=np.int32)
+
+
+def basket_scene(device=None, *, dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
+    """The seed's throw scene: a 0.7 m gray-interlock cloth (8x8 cells, thicken 2) flat at z = 2 over
+    x in [-3.7, -3], y in [0, 0.7]; the basket and the wall; gravity; no wind, no handles.
+
+    Args:
+        device: Warp device (default: Warp's default device).
+        dtype: ``wp.float32`` or ``wp.float64``.
+        requires_grad: Build the model's arrays with gradients.
+
+    Returns:
+        The finalized model (obstacles ``basket`` and ``wall``).
+    """
+    b = wc.ModelBuilder(gravity=GRAVITY)
+    b.add_cloth_grid((THROW_CELLS, THROW_CELLS), (THROW_SIZE, THROW_SIZE),
+                     material=wc.preset("gray-interlock", thicken=THICKEN), pos=(-3.0 - THROW_SIZE, 0.0, 2.0))
+    b.add_obstacle_mesh(*basket_vertices_triangles(), name="basket")
+    b.add_obstacle_mesh(*wall_vertices_triangles(), name="wall")
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
