@@ -67,3 +67,45 @@ def segment_parameters(p0: Any, p1: Any, q0: Any, q1: Any, parallel: Any):
         u = one
         s = wp.clamp((b - c) / a, zero, one)
     return s, u
+
+
+@wp.func
+def triangle_barycentric(p: Any, a: Any, b: Any, c: Any):
+    """Barycentric coordinates (u, v, w) of the point of triangle (a, b, c) closest to p: u a + v b + w c
+    (Ericson, Real-Time Collision Detection 5.1.5, by Voronoi regions). A degenerate triangle gives a vertex or
+    edge point."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    zero = type(d1)(0.0)
+    one = type(d1)(1.0)
+    if d1 <= zero and d2 <= zero:
+        return one, zero, zero
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= zero and d4 <= d3:
+        return zero, one, zero
+    vc = d1 * d4 - d3 * d2
+    if vc <= zero and d1 >= zero and d3 <= zero:
+        s = d1 / (d1 - d3)
+        return one - s, s, zero
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= zero and d5 <= d6:
+        return zero, zero, one
+    vb = d5 * d2 - d1 * d6
+    if vb <= zero and d2 >= zero and d6 <= zero:
+        s = d2 / (d2 - d6)
+        return one - s, zero, s
+    va = d3 * d6 - d5 * d4
+    if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
+        s = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return zero, one - s, s
+    denom = one / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return one - v - w, v, w

@@ -21,16 +21,43 @@ wp.set_module_options({"enable_backward": False})
 @per_precision
 def linear_kernels(scalar):
     t = types(scalar)
-    vec3, mat33 = t.vec3, t.mat33
+    vec3, vec4, mat33 = t.vec3, t.vec4, t.mat33
 
     @wp.struct
     class BlockMatrix:
-        # A symmetric 3x3-block matrix on the model's fixed pattern: row i's blocks are values[offsets[i]:
-        # offsets[i + 1]] in columns columns[...], its diagonal block at diag_slot[i].
+        # A symmetric 3x3-block matrix: blocks on the model's fixed pattern (row i's are values[offsets[i]:
+        # offsets[i + 1]] in columns columns[...], its diagonal block at diag_slot[i]) plus, matrix-free, the cross
+        # blocks w_a w_b K (a != b) of pair_count proximity pairs (their own blocks w_a^2 K are in the pattern's
+        # diagonal; warpcloth/collision/proximity.py).
         offsets: wp.array(dtype=wp.int32)
         columns: wp.array(dtype=wp.int32)
         diag_slot: wp.array(dtype=wp.int32)
         values: wp.array(dtype=mat33)
+        pair_count: int
+        pair_nodes: wp.array2d(dtype=wp.int32)
+        pair_w: wp.array(dtype=vec4)
+        pair_k: wp.array(dtype=mat33)
+
+    @wp.func
+    def add_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar):
+        """q += sign * (the pairs' cross blocks) p; returns p . (that product), in float64."""
+        pq = wp.float64(0.0)
+        for k in range(A.pair_count):
+            w = A.pair_w[k]
+            K = A.pair_k[k]
+            s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+            for a in range(4):
+                if w[a] != scalar(0.0):
+                    s += w[a] * p[A.pair_nodes[k, a]]
+            Ks = K * s
+            pq += wp.float64(wp.dot(s, Ks))
+            for a in range(4):
+                if w[a] != scalar(0.0):
+                    node = A.pair_nodes[k, a]
+                    own = K * (w[a] * p[node])
+                    q[node] = q[node] + sign * (w[a] * (Ks - own))
+                    pq -= wp.float64(w[a] * wp.dot(p[node], own))
+        return pq
 
     @wp.func
     def jacobi_inverse(block: mat33, use_block: int):
@@ -124,7 +151,10 @@ def linear_kernels(scalar):
                 x[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
             r[i] = ri
             bb += wp.float64(wp.dot(b[i], b[i]))
-            rr += wp.float64(wp.dot(ri, ri))
+        if warm_start != 0:
+            add_pair_products(A, x, r, scalar(-1.0))
+        for i in range(n):
+            rr += wp.float64(wp.dot(r[i], r[i]))
         if ssor:
             rz = ssor_apply(A, precond, omega, r, q, z)
         else:
@@ -152,6 +182,7 @@ def linear_kernels(scalar):
                     q[j] = q[j] + wp.transpose(a) * pi
                 q[i] = acc
                 pq += wp.float64(wp.dot(pi, acc))
+            pq += add_pair_products(A, p, q, scalar(1.0))
             alpha = scalar(rz / pq)
             rr = wp.float64(0.0)
             rz_new = wp.float64(0.0)

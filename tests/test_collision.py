@@ -86,10 +86,13 @@ def no_penetration(model, state, sim, tolerance=0.02):
         assert d >= DELTA * (1 - tolerance), f"step {state.step}: a vertex is {d:.3e} m from a cloth face"
 
 
-def flat_cloth(res=8, size=0.5, z=0.05, center=(0.0, 0.0), vel=None):
+def flat_cloth(res=8, size=0.5, z=0.05, center=(0.0, 0.0), vel=None, self_collision=False):
+    """These scenes test the impact-zone projection alone: no proximity repulsion or friction
+    (tests/test_contact.py tests those)."""
     b = wc.ModelBuilder()
     b.add_cloth_grid((res, res), (size, size), material=MATERIAL,
                      pos=(center[0] - size / 2, center[1] - size / 2, z), vel=vel)
+    b.set_collision(self_collision=self_collision, repulsion_stiffness=0.0)
     return b
 
 
@@ -125,7 +128,7 @@ def falling_strip():
     rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
     b.add_cloth_grid((3, 16), (0.1, 0.4), material=MATERIAL, rot=rot, pos=(0.0, 0.0, 0.002))
     b.add_obstacle_plane((2.0, 2.0))
-    b.set_collision(self_collision=True)
+    b.set_collision(self_collision=True, repulsion_stiffness=0.0)
     return b
 
 
@@ -156,7 +159,7 @@ def test_cloth_thrown_at_20_m_s_does_not_tunnel_through_a_thin_plate():
 def test_moving_obstacle_pushes_the_cloth():
     b = flat_cloth(res=6, size=0.3, z=0.01)
     b.add_obstacle_plane((1.0, 1.0), motion=[(0.0, (0, 0, 0), (0, 0, 0, 1)), (1.0, (0, 0, 1.0), (0, 0, 0, 1))])
-    b.set_collision()
+    b.set_collision(repulsion_stiffness=0.0)
     model, sim, state = run(b, 20, 0.01, check=no_penetration)
     assert state.particle_x.numpy()[:, 2].min() > 0.2 - 1e-3  # lifted with the plane (z = t)
 

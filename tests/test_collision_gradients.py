@@ -29,6 +29,7 @@ def plane_scene():
     # the plane's height under the cloth's centre (y = -0.4) is -0.4 sin(0.002)
     stretched_grid(b, 3, 0.1, pos=(0.3, -0.45, 0.0006 - 0.4 * np.sin(0.002)))
     b.add_obstacle_plane((2.0, 2.0), rot=TILT)
+    b.set_collision(repulsion_stiffness=0.0)  # the projection's gradients alone (tests/test_contact.py: repulsion)
     return b
 
 
@@ -38,7 +39,7 @@ def layers_scene():
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     stretched_grid(b, 1, 0.2, pos=(-0.1, -0.1, 0.0))
     stretched_grid(b, 1, 0.02, pos=(-0.01, -0.09, 0.0006), vel=(0.0, 0.0, -0.05))
-    b.set_collision(self_collision=True)
+    b.set_collision(self_collision=True, repulsion_stiffness=0.0)
     return b
 
 

@@ -21,6 +21,14 @@ DEFAULT_HANDLE_STIFFNESS = 1.0e3
 
 DEFAULT_COLLISION_THICKNESS = 5.0e-4
 """Collision thickness delta [m] of the seed's collision handling (SPEC: BVH thickness 5e-4)."""
+DEFAULT_REPULSION_THICKNESS = 5.0e-3
+"""ARCSim's repulsion thickness [m] (SPEC §1.4): proximity pairs within twice it repel."""
+DEFAULT_REPULSION_STIFFNESS = 1.0e6
+"""ARCSim's collision_stiffness [N/m^3]: a pair's penalty stiffness per m^2 of rest area (SPEC §1.4)."""
+DEFAULT_FRICTION = 0.6
+"""ARCSim's cloth-cloth friction coefficient mu (SPEC §1.4)."""
+DEFAULT_OBSTACLE_FRICTION = 0.3
+"""ARCSim's cloth-obstacle friction coefficient mu (SPEC §1.4)."""
 
 
 def _finite_vector(name: str, value, length: int = 3) -> np.ndarray:
@@ -93,6 +101,8 @@ class ModelBuilder:
         self._obstacles: list[Obstacle] = []
         self.self_collision = False
         self.collision_thickness = DEFAULT_COLLISION_THICKNESS
+        self.repulsion = (DEFAULT_REPULSION_THICKNESS, DEFAULT_REPULSION_STIFFNESS, DEFAULT_FRICTION,
+                          DEFAULT_OBSTACLE_FRICTION)
 
     @property
     def particle_count(self) -> int:
@@ -354,20 +364,38 @@ class ModelBuilder:
         vertices, triangles = funnel_mesh()
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
-    def set_collision(self, *, self_collision: bool = False, thickness: float = DEFAULT_COLLISION_THICKNESS) -> None:
-        """Collision settings: cloth-cloth ``self_collision`` and the collision ``thickness`` delta [m] (> 0).
+    def set_collision(self, *, self_collision: bool = False, thickness: float = DEFAULT_COLLISION_THICKNESS,
+                      repulsion_thickness: float = DEFAULT_REPULSION_THICKNESS,
+                      repulsion_stiffness: float = DEFAULT_REPULSION_STIFFNESS, friction: float = DEFAULT_FRICTION,
+                      obstacle_friction: float = DEFAULT_OBSTACLE_FRICTION) -> None:
+        """Collision settings (ARCSim's defaults, SPEC §1.4).
 
         Cloth-obstacle collisions are on whenever an obstacle is added; without obstacles and self-collision the
         model has no collisions (``model.collision is None``).
+
+        Args:
+            self_collision: cloth-cloth collisions.
+            thickness: the impact-zone projection's collision thickness delta [m], > 0.
+            repulsion_thickness: proximity repulsion thickness [m], > 0: pairs closer than twice it are found at
+                the start of a step; the penalty acts inside it.
+            repulsion_stiffness: penalty stiffness per m^2 of rest area [N/m^3], >= 0 (0: no repulsion).
+            friction: cloth-cloth Coulomb friction coefficient, >= 0 (0: none).
+            obstacle_friction: cloth-obstacle Coulomb friction coefficient, >= 0 (0: none).
         """
         if not isinstance(self_collision, (bool, np.bool_)):
             raise ValueError(f"self_collision must be a boolean, got {self_collision!r}")
-        if isinstance(thickness, bool) or not isinstance(thickness, (int, float, np.integer, np.floating)):
-            raise ValueError(f"collision thickness must be a number [m], got {thickness!r}")
-        if not math.isfinite(thickness) or thickness <= 0.0:
-            raise ValueError(f"collision thickness must be finite and > 0 [m], got {thickness}")
+        for name, value, positive in (("collision thickness", thickness, True),
+                                      ("repulsion_thickness", repulsion_thickness, True),
+                                      ("repulsion_stiffness", repulsion_stiffness, False),
+                                      ("friction", friction, False), ("obstacle_friction", obstacle_friction, False)):
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            if not math.isfinite(value) or value < 0.0 or (positive and value == 0.0):
+                raise ValueError(f"{name} must be finite and {'> 0' if positive else '>= 0'}, got {value}")
         self.self_collision = bool(self_collision)
         self.collision_thickness = float(thickness)
+        self.repulsion = (float(repulsion_thickness), float(repulsion_stiffness), float(friction),
+                          float(obstacle_friction))
 
     # -- scene forces --------------------------------------------------------------------------------------------
     def set_wind(self, velocity: Sequence[float], *, density: float = 1.0, drag: float = 0.0,
@@ -422,6 +450,9 @@ class ModelBuilder:
         det = np.linalg.det(dm)
         area = 0.5 * det
         inv_dm = np.linalg.inv(dm)
+        particle_area = np.zeros(n)
+        for c in range(3):
+            np.add.at(particle_area, triangles[:, c], area / 3.0)
 
         hinges, h_face0, h_uv0, h_uv1, h_area, h_mat = _hinges(triangles, tri_uv, area, tri_material)
         rest_length = np.linalg.norm(h_uv0[:, 1] - h_uv0[:, 0], axis=1) if len(hinges) else np.zeros(0)
@@ -458,7 +489,7 @@ class ModelBuilder:
         if self._obstacles or self.self_collision:
             collision = CollisionSettings(
                 obstacles=bool(self._obstacles), self_collision=self.self_collision,
-                thickness=self.collision_thickness,
+                thickness=self.collision_thickness, repulsion_thickness=self.repulsion[0],
             )
         model = Model(
             device=device,
@@ -513,6 +544,9 @@ class ModelBuilder:
             edge_count=len(edges),
             edge_indices=arr(edges, wp.int32),
             collision=collision,
+            contact_repulsion_stiffness=None if collision is None else arr(np.array([self.repulsion[1]]), scalar, True),
+            contact_friction=None if collision is None else arr(np.array(self.repulsion[2:]), scalar, True),
+            particle_area=arr(particle_area, scalar),
             **obstacle_fields,
         )
         return model

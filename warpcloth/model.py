@@ -96,10 +96,14 @@ class CollisionSettings:
     """Cloth-cloth collisions."""
     thickness: float
     """Collision thickness delta [m], > 0: the distance the response keeps between the cloth and what it touches."""
+    repulsion_thickness: float = 5.0e-3
+    """Proximity repulsion thickness [m], > 0: pairs within twice it are found, the penalty acts within it."""
 
     def __post_init__(self):
-        if not math.isfinite(self.thickness) or self.thickness <= 0.0:
-            raise ValueError(f"collision thickness must be finite and > 0 [m], got {self.thickness}")
+        for name in ("thickness", "repulsion_thickness"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value <= 0.0:
+                raise ValueError(f"collision {name} must be finite and > 0 [m], got {value}")
 
 
 @dataclass
@@ -232,9 +236,18 @@ class Model:
     edge_indices: wp.array | None = None
     """Unique undirected cloth edges (lo, hi) with lo < hi, rows sorted, each edge once [-], (edge_count, 2) int32."""
 
+    particle_area: wp.array | None = None
+    """Rest area of each particle (a third of its triangles') [m^2], (particle_count,)."""
+
     collision: CollisionSettings | None = None
     """Collision settings (thickness [m], which collisions) [-], scalar (host); None when the model has neither
     obstacles nor self-collision."""
+    contact_repulsion_stiffness: wp.array | None = None
+    """Proximity repulsion stiffness per m^2 of rest area [N/m^3], (1,); 0 turns repulsion off. Takes gradients.
+    None without collisions."""
+    contact_friction: wp.array | None = None
+    """Coulomb friction coefficients [-], (2,): cloth-cloth, cloth-obstacle; 0 turns friction off. Takes gradients.
+    None without collisions."""
 
     # Obstacles. All obstacles' meshes are concatenated; with no obstacle every array below is None.
     obstacle_count: int = 0

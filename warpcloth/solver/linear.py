@@ -67,25 +67,30 @@ class LinearSolver:
         self._info_host = self._info.numpy() if self.device.is_cpu else None
         self._adjoint = wp.zeros(n, dtype=vec3, device=self.device)
         self._warp_matrix = None
-        self._matrix = self.kernels.BlockMatrix()
-        self._matrix.offsets, self._matrix.columns = model.bsr_offsets, model.bsr_columns
-        self._matrix.diag_slot = model.particle_diag_slot
+        self._no_nodes = wp.zeros((0, 4), dtype=wp.int32, device=self.device)
+        self._no_w = wp.zeros(0, dtype=model.types.vec4, device=self.device)
+        self._no_k = wp.zeros(0, dtype=mat33, device=self.device)
 
     def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
-              adjoint: bool = False) -> SolveInfo:
+              adjoint: bool = False, pairs=None) -> SolveInfo:
         """Solve A x = b from the first guess ``guess`` (which may be ``x`` itself), or from zero. Not taped.
 
+        A is ``values`` on the model's block pattern plus the cross blocks of proximity ``pairs`` (if any);
         ``adjoint`` selects the adjoint tolerance (``SolverOptions.adjoint_cg_tol``).
         """
         opt = self.options
         tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
         model = self.model
         if self.backend == "warp":
+            if pairs is not None and pairs.count:
+                raise NotImplementedError(
+                    "proximity repulsion and friction need cg_backend='sequential' for now (the warp backend has no "
+                    "matrix-free pair term); set SolverOptions(cg_backend='sequential') or repulsion_stiffness=0")
             return self._solve_warp(values, b, x, tol, guess)
         kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
         r, z, p, q = self._scratch
         wp.launch(self.kernels.cg_sequential, 1, device=self.device,
-                  inputs=[self.block_matrix(values), b,
+                  inputs=[self.block_matrix(values, pairs), b,
                           float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
                           model.scalar(opt.ssor_omega), int(guess is not None), x if guess is None else guess,
                           r, z, p, q, self._precond],
@@ -96,7 +101,7 @@ class LinearSolver:
     def solve_recorded(self, values: wp.array, rhs: wp.array, x: wp.array, *, step: int = 0,
                        guess: wp.array | None = None, adjoint_guess: wp.array | None = None,
                        adjoint_result: wp.array | None = None,
-                       on_adjoint: Callable[[SolveInfo], None] | None = None) -> SolveInfo:
+                       on_adjoint: Callable[[SolveInfo], None] | None = None, pairs=None) -> SolveInfo:
         """Solve A x = b (as :meth:`solve`), check it, and on the active tape record the implicit adjoint:
         A lam = dL/dx, dL/db += lam, dL/dA_ij -= lam_i x_j^T on the stored blocks.
 
@@ -107,8 +112,9 @@ class LinearSolver:
                 over the same tape repeats the first bitwise).
             adjoint_result: receives lam after the adjoint solve (the next adjoint solve's first guess).
             on_adjoint: called with the adjoint solve's SolveInfo (statistics).
+            pairs: proximity pairs whose cross blocks A has (their adjoint is the pairs' own, proximity.py).
         """
-        info = self.solve(values, rhs, x, guess=guess)
+        info = self.solve(values, rhs, x, guess=guess, pairs=pairs)
         self.check(info, "forward", step)
         if not (values.requires_grad and rhs.requires_grad and x.requires_grad):
             return info
@@ -116,7 +122,7 @@ class LinearSolver:
         def adjoint():
             lam = self._adjoint
             first = adjoint_guess if self.options.warm_start else None
-            result = self.solve(values, x.grad, lam, guess=first, adjoint=True)
+            result = self.solve(values, x.grad, lam, guess=first, adjoint=True, pairs=pairs)
             if first is not None:
                 first.zero_()
             if on_adjoint is not None:
@@ -131,10 +137,17 @@ class LinearSolver:
         record_adjoint(adjoint, arrays=[values, rhs, x])
         return info
 
-    def block_matrix(self, values: wp.array):
-        """The matrix with blocks ``values`` on the model's pattern, as the CG kernels read it."""
-        self._matrix.values = values
-        return self._matrix
+    def block_matrix(self, values: wp.array, pairs=None):
+        """The matrix with blocks ``values`` on the model's pattern and the cross blocks of ``pairs`` (a
+        :class:`~warpcloth.collision.proximity.ProximityPairs`, or None), as the CG kernels read it."""
+        A = self.kernels.BlockMatrix()
+        A.offsets, A.columns, A.diag_slot, A.values = (self.model.bsr_offsets, self.model.bsr_columns,
+                                                       self.model.particle_diag_slot, values)
+        if pairs is None or pairs.count == 0:
+            A.pair_count, A.pair_nodes, A.pair_w, A.pair_k = 0, self._no_nodes, self._no_w, self._no_k
+        else:
+            A.pair_count, A.pair_nodes, A.pair_w, A.pair_k = pairs.count, pairs.nodes, pairs.weights, pairs.stiffness
+        return A
 
     def check(self, info: SolveInfo, which: str, step: int) -> None:
         """Warn or raise (``SolverOptions.on_cg_failure``) when a solve missed its tolerance; always raise on a

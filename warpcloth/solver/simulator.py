@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision import CollisionStage
+from warpcloth.collision.proximity import ProximityForces
 from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.model import Control, Model, State
@@ -61,6 +62,9 @@ class Simulator:
         self._elongated: tuple[int, float, int] | None = None  # (triangle, aspect ratio, count): _mesh_hint
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
+        self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity)
+                          if ProximityForces.needed(model) else None)
+        """Proximity repulsion and friction inside the implicit step, or None where the model has neither."""
 
     # -- public ------------------------------------------------------------------------------------------------------
     @property
@@ -97,7 +101,10 @@ class Simulator:
         k = self.kernels
 
         self.assembler.assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
-        self._solve(values, rhs, dv, state_in, state_out, step)
+        pairs = None
+        if self.proximity is not None:
+            pairs = self.proximity.assemble(state_in, control, pin_dv, dv, values, rhs, recording)
+        self._solve(values, rhs, dv, state_in, state_out, step, pairs)
 
         max_speed = model.scalar(self.options.max_speed)
         if self._status_host is not None:
@@ -156,7 +163,13 @@ class Simulator:
 
     def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The step's system A (3n x 3n) and b (3n) as dense NumPy arrays, for inspection and tests (small n)."""
-        values, rhs = self.assemble(state, control)
+        control = control if control is not None else self._default_control()
+        values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
+        pairs = None
+        with wp.ScopedDevice(self.device):
+            self.assembler.assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
+            if self.proximity is not None:
+                pairs = self.proximity.assemble(state, control, pin_dv, wp.zeros_like(rhs), values, rhs, False)
         n = self.model.particle_count
         offsets, columns = self.model.bsr_offsets.numpy(), self.model.bsr_columns.numpy()
         blocks = values.numpy()
@@ -164,6 +177,13 @@ class Simulator:
         for i in range(n):
             for s in range(offsets[i], offsets[i + 1]):
                 A[i, :, columns[s], :] = blocks[s]
+        if pairs is not None:  # the pairs' cross blocks, which the solver applies matrix-free
+            nodes, w, K = pairs.nodes.numpy(), pairs.weights.numpy(), pairs.stiffness.numpy()
+            for k in range(pairs.count):
+                for a in range(4):
+                    for b in range(4):
+                        if a != b and w[k, a] != 0.0 and w[k, b] != 0.0:
+                            A[nodes[k, a], :, nodes[k, b], :] += w[k, a] * w[k, b] * K[k]
         return A.reshape(3 * n, 3 * n), rhs.numpy().reshape(-1).astype(np.float64)
 
     # -- internals -----------------------------------------------------------------------------------------------
@@ -203,7 +223,7 @@ class Simulator:
         return dv
 
     def _solve(self, values: wp.array, rhs: wp.array, dv: wp.array, state_in: State, state_out: State,
-               step: int) -> None:
+               step: int, pairs=None) -> None:
         """Solve A dv = b from ``state_in.particle_dv``; on a tape, the implicit adjoint is recorded. Adjoint solves
         run from the last step to the first, each handing its solution to the one before through the State between
         them (``State.solve_adjoint``)."""
@@ -219,7 +239,7 @@ class Simulator:
         info = self.linear_solver.solve_recorded(
             values, rhs, dv, step=step, guess=guess if warm else None,
             adjoint_guess=state_out.solve_adjoint if recording else None,
-            adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint)
+            adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint, pairs=pairs)
         self.last_solve = info
         self.stats["cg_iterations"] += info.iterations
 

@@ -1,0 +1,329 @@
+"""Proximity repulsion and friction inside the implicit step (ARCSim's, SPEC.md §1.4), differentiated.
+
+Detection (not differentiated) finds, at the start of a step, vertex-face and edge-edge pairs closer than twice the
+repulsion thickness delta: for each vertex the closest triangle (ARCSim keeps the closest per primitive); for each
+edge every edge whose closest points lie inside both, the pair's stiffness fading to 0 near either end (so pairs
+appear and vanish with zero force, and ties between equally close edges of flat sheets cannot move the force).
+Each pair k has nodes (up to 4, in the
+combined node space: cloth particles, then obstacle vertices) and weights w with sum_i w_i x_i = the gap vector
+(VF: w = (1, -b0, -b1, -b2); EE: w = (1 - s, s, -(1 - u), -u)), unit normal n along it and distance
+d = n . sum_i w_i x_i.
+
+With c = d - delta, the pair's energy is E(c) = k max(-c, 0)^3 / (6 delta) (k = repulsion stiffness [N/m^3] times
+the smallest rest area of the pair's cloth nodes [m^2]): normal force f_n = k max(-c, 0)^2 / (2 delta) along
+w_i n, stiffness h = k max(-c, 0) / delta. Friction opposes the relative tangential velocity u_t = T sum_i w_i V_i
+(T = I - n n^T; V: the start velocity of free nodes, the known end velocity of pinned and obstacle nodes) with
+magnitude mu f_n min(|u_t| / eps, 1): Coulomb's law regularised below eps [m/s] (a stiff damper, so a cloth at
+rest on a slope creeps at most eps (slope force / (mu f_n)) instead of ARCSim's dt g sin(theta)).
+
+One linearised backward-Euler step (Baraff and Witkin) adds, for free nodes i, j of a pair,
+    A_ij += w_i w_j K,  b_i += w_i R,
+    K = dt^2 h n n^T + dt mu f_n J,   J = T / eps (|u_t| < eps) or (T - t t^T) / |u_t| (t = u_t / |u_t|),
+    R = dt (f_n - h dt (n . u)) n - dt mu f_n min(|u_t| / eps, 1) t,
+the exact Newton linearisation of both forces in the step's velocity change (the friction's direction turns,
+its magnitude does not lag). The solver keeps each free node's own block w_i^2 K on the block diagonal and applies
+the cross blocks matrix-free (they couple cloth nodes that may share no element).
+"""
+
+from types import SimpleNamespace
+
+import warp as wp
+
+from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
+from warpcloth.kernels.types import per_precision, types
+
+VERTEX_FACE = 0
+EDGE_EDGE = 1
+EDGE_FADE = 0.1
+"""Fraction of an edge at each end over which an edge-edge pair's stiffness fades to 0 (kernels edge_fade)."""
+
+
+@wp.func
+def in_row(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), row: int, col: int):
+    """Whether block (row, col) is in the block pattern: the two cloth nodes share an element."""
+    for k in range(offsets[row], offsets[row + 1]):
+        if columns[k] == col:
+            return True
+    return False
+
+
+@per_precision
+def proximity_kernels(scalar):
+    t = types(scalar)
+    vec3, vec4, mat33 = t.vec3, t.vec4, t.mat33
+
+    @wp.func
+    def neighbours(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), cloth_count: int,
+                   a: int, b: int):
+        # cloth nodes that share an element are the mesh's own neighbours, not a fold touching itself
+        return a < cloth_count and b < cloth_count and in_row(offsets, columns, a, b)
+
+    @wp.func
+    def edge_fade(s: scalar):
+        # An edge-edge pair's weight along each edge: 1 in the middle, falling linearly to 0 within EDGE_FADE of
+        # either end, where the vertex-face pairs of the end vertex take over: the pair appears and vanishes with
+        # zero force, so the forces stay continuous as closest points slide along the edges.
+        return wp.clamp(wp.min(s, scalar(1.0) - s) / scalar(EDGE_FADE), scalar(0.0), scalar(1.0))
+
+    @wp.kernel(enable_backward=False)
+    def primitive_boxes(x: wp.array(dtype=vec3), indices: wp.array2d(dtype=wp.int32), radius: float,
+                        # out:
+                        lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+        i = wp.tid()
+        lo = wp.vec3(x[indices[i, 0]])
+        hi = lo
+        for c in range(1, indices.shape[1]):
+            p = wp.vec3(x[indices[i, c]])
+            lo = wp.min(lo, p)
+            hi = wp.max(hi, p)
+        pad = wp.vec3(radius, radius, radius)
+        lowers[i] = lo - pad
+        uppers[i] = hi + pad
+
+    @wp.func
+    def emit(count: wp.array(dtype=wp.int32), pair_nodes: wp.array2d(dtype=wp.int32),
+             pair_kind: wp.array(dtype=wp.int32), nodes: wp.vec4i, kind: int):
+        k = wp.atomic_add(count, 0, 1)
+        if k < pair_kind.shape[0]:
+            for c in range(4):
+                pair_nodes[k, c] = nodes[c]
+            pair_kind[k] = kind
+
+    @wp.kernel(enable_backward=False)
+    def vertex_face_pairs(
+        bvh: wp.uint64,
+        x: wp.array(dtype=vec3),
+        queries: wp.array(dtype=wp.int32),
+        triangles: wp.array2d(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        cloth_count: int,
+        radius: scalar,
+        # out:
+        count: wp.array(dtype=wp.int32),
+        pair_nodes: wp.array2d(dtype=wp.int32),
+        pair_kind: wp.array(dtype=wp.int32),
+    ):
+        # the closest triangle within radius of each query vertex
+        i = wp.tid()
+        q = queries[i]
+        p = x[q]
+        r = float(radius)
+        query = wp.bvh_query_aabb(bvh, wp.vec3(p) - wp.vec3(r, r, r), wp.vec3(p) + wp.vec3(r, r, r))
+        j = int(0)
+        best = radius
+        best_j = int(-1)
+        while wp.bvh_query_next(query, j):
+            a = triangles[j, 0]
+            b = triangles[j, 1]
+            c = triangles[j, 2]
+            if q == a or q == b or q == c:
+                continue
+            if neighbours(offsets, columns, cloth_count, q, a) or neighbours(offsets, columns, cloth_count, q, b) \
+                    or neighbours(offsets, columns, cloth_count, q, c):
+                continue
+            u, v, w = triangle_barycentric(p, x[a], x[b], x[c])
+            d = wp.length(p - (u * x[a] + v * x[b] + w * x[c]))
+            if d < best:
+                best = d
+                best_j = j
+        if best_j >= 0:
+            emit(count, pair_nodes, pair_kind,
+                 wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE)
+
+    @wp.kernel(enable_backward=False)
+    def edge_edge_pairs(
+        bvh: wp.uint64,
+        x: wp.array(dtype=vec3),
+        edges: wp.array2d(dtype=wp.int32),
+        targets: wp.array2d(dtype=wp.int32),
+        same_set: int,
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        cloth_count: int,
+        radius: scalar,
+        # out:
+        count: wp.array(dtype=wp.int32),
+        pair_nodes: wp.array2d(dtype=wp.int32),
+        pair_kind: wp.array(dtype=wp.int32),
+    ):
+        # every target edge within radius whose closest points are inside both edges (within one set: each pair
+        # once). Not only the closest: flat sheets tie, and a tie broken either way would move the force.
+        i = wp.tid()
+        e0 = edges[i, 0]
+        e1 = edges[i, 1]
+        lo = wp.min(wp.vec3(x[e0]), wp.vec3(x[e1]))
+        hi = wp.max(wp.vec3(x[e0]), wp.vec3(x[e1]))
+        r = float(radius)
+        query = wp.bvh_query_aabb(bvh, lo - wp.vec3(r, r, r), hi + wp.vec3(r, r, r))
+        j = int(0)
+        while wp.bvh_query_next(query, j):
+            f0 = targets[j, 0]
+            f1 = targets[j, 1]
+            if same_set != 0 and j <= i:
+                continue
+            if e0 == f0 or e0 == f1 or e1 == f0 or e1 == f1:
+                continue
+            if neighbours(offsets, columns, cloth_count, e0, f0) or neighbours(offsets, columns, cloth_count, e0, f1) \
+                    or neighbours(offsets, columns, cloth_count, e1, f0) \
+                    or neighbours(offsets, columns, cloth_count, e1, f1):
+                continue
+            s, u = segment_parameters(x[e0], x[e1], x[f0], x[f1], scalar(1.0e-12))
+            d = wp.length((x[e0] + s * (x[e1] - x[e0])) - (x[f0] + u * (x[f1] - x[f0])))
+            if d < radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0):
+                emit(count, pair_nodes, pair_kind, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE)
+
+    @wp.struct
+    class PairInputs:
+        # What the pair terms read. Nodes: cloth particles, then obstacle vertices.
+        nodes: wp.array2d(dtype=wp.int32)
+        kind: wp.array(dtype=wp.int32)
+        x: wp.array(dtype=vec3)
+        velocity: wp.array(dtype=vec3)
+        free: wp.array(dtype=wp.int32)
+        area: wp.array(dtype=scalar)
+        stiffness: wp.array(dtype=scalar)
+        friction: wp.array(dtype=scalar)
+        cloth_count: int
+        thickness: scalar
+        eps: scalar
+        dt: scalar
+
+    @wp.func
+    def pair_weights(p: PairInputs, k: int):
+        """Node indices, weights (sum w_i x_i = the gap vector) and the gap vector of pair k."""
+        i0 = p.nodes[k, 0]
+        i1 = p.nodes[k, 1]
+        i2 = p.nodes[k, 2]
+        i3 = p.nodes[k, 3]
+        x0 = p.x[i0]
+        x1 = p.x[i1]
+        x2 = p.x[i2]
+        x3 = p.x[i3]
+        one = scalar(1.0)
+        w = vec4()
+        if p.kind[k] == VERTEX_FACE:
+            u, v, ww = triangle_barycentric(x0, x1, x2, x3)
+            w = vec4(one, -u, -v, -ww)
+        else:
+            s, u = segment_parameters(x0, x1, x2, x3, scalar(1.0e-12))
+            w = vec4(one - s, s, u - one, -u)
+        gap = w[0] * x0 + w[1] * x1 + w[2] * x2 + w[3] * x3
+        return wp.vec4i(i0, i1, i2, i3), w, gap
+
+    @wp.func
+    def pair_terms(p: PairInputs, k: int):
+        """(nodes, weights with 0 for nodes that are not free, K, R) of pair k (module docstring)."""
+        idx, w, gap = pair_weights(p, k)
+        zero = scalar(0.0)
+        d = wp.length(gap)
+        n = gap / d
+        c = d - p.thickness
+        area = scalar(1.0e30)
+        obstacle = False
+        u = vec3()
+        wf = vec4()
+        for a in range(4):
+            node = idx[a]
+            if node < p.cloth_count:
+                area = wp.min(area, p.area[node])
+            else:
+                obstacle = True
+            u += w[a] * p.velocity[node]
+            if p.free[node] != 0:
+                wf[a] = w[a]
+        k_rep = p.stiffness[0] * area
+        if p.kind[k] == EDGE_EDGE:
+            k_rep = k_rep * edge_fade(w[1]) * edge_fade(-w[3])
+        depth = wp.max(-c, zero)
+        f_n = k_rep * depth * depth / (scalar(2.0) * p.thickness)
+        h = k_rep * depth / p.thickness
+        mu = wp.where(obstacle, p.friction[1], p.friction[0])
+        eye = wp.identity(n=3, dtype=scalar)
+        T = eye - wp.outer(n, n)
+        ut = T * u
+        speed = wp.length(ut)
+        dt = p.dt
+        K = (dt * dt * h) * wp.outer(n, n)
+        R = (dt * (f_n - h * dt * wp.dot(n, u))) * n
+        if speed < p.eps:
+            K += (dt * mu * f_n / p.eps) * T
+            R -= (dt * mu * f_n / p.eps) * ut
+        else:
+            tangent = ut / speed
+            K += (dt * mu * f_n / speed) * (T - wp.outer(tangent, tangent))
+            R -= (dt * mu * f_n) * tangent
+        return idx, wf, K, R
+
+    @wp.kernel
+    def assemble_pairs(
+        p: PairInputs,
+        diag_slot: wp.array(dtype=wp.int32),
+        # out:
+        values: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+        pair_w: wp.array(dtype=vec4),
+        pair_k: wp.array(dtype=mat33),
+    ):
+        k = wp.tid()
+        idx, wf, K, R = pair_terms(p, k)
+        for a in range(4):
+            if wf[a] != scalar(0.0):
+                wp.atomic_add(values, diag_slot[idx[a]], (wf[a] * wf[a]) * K)
+                wp.atomic_add(rhs, idx[a], wf[a] * R)
+        pair_w[k] = wf
+        pair_k[k] = K
+
+    @wp.kernel
+    def pairs_potential(
+        p: PairInputs,
+        lam: wp.array(dtype=vec3),
+        dv: wp.array(dtype=vec3),
+        # out:
+        phi: wp.array(dtype=scalar),
+    ):
+        # the pairs' share of the solve's adjoint, sum_i lam_i . b_i - sum_ij lam_i^T A_ij dv_j, whose gradient (lam
+        # and dv held constant) Warp takes (as the element kernels' potential, kernels/implicit.py)
+        k = wp.tid()
+        idx, wf, K, R = pair_terms(p, k)
+        L = vec3()
+        D = vec3()
+        for a in range(4):
+            if wf[a] != scalar(0.0):
+                L += wf[a] * lam[idx[a]]
+                D += wf[a] * dv[idx[a]]
+        wp.atomic_add(phi, 0, wp.dot(L, R) - wp.dot(L, K * D))
+
+    @wp.kernel
+    def node_state(
+        cloth_x: wp.array(dtype=vec3),
+        cloth_v: wp.array(dtype=vec3),
+        pin_dv: wp.array(dtype=vec3),
+        particle_pin: wp.array(dtype=wp.int32),
+        obstacle_start: wp.array(dtype=vec3),
+        obstacle_end: wp.array(dtype=vec3),
+        inv_dt: scalar,
+        cloth_count: int,
+        # out:
+        x: wp.array(dtype=vec3),
+        velocity: wp.array(dtype=vec3),
+    ):
+        # positions at the step's start and the velocities the pairs see: free particles' start velocity, pinned
+        # particles' prescribed end velocity, obstacles' velocity over the step
+        i = wp.tid()
+        if i < cloth_count:
+            x[i] = cloth_x[i]
+            vi = cloth_v[i]
+            if particle_pin[i] >= 0:
+                vi = vi + pin_dv[i]
+            velocity[i] = vi
+        else:
+            o = i - cloth_count
+            x[i] = obstacle_start[o]
+            velocity[i] = (obstacle_end[o] - obstacle_start[o]) * inv_dt
+
+    return SimpleNamespace(
+        primitive_boxes=primitive_boxes, vertex_face_pairs=vertex_face_pairs, edge_edge_pairs=edge_edge_pairs,
+        PairInputs=PairInputs, assemble_pairs=assemble_pairs, pairs_potential=pairs_potential,
+        node_state=node_state,
+    )

@@ -1,0 +1,215 @@
+"""Proximity repulsion and friction inside the implicit step (warpcloth/collision/proximity.py): closed-form
+physics on small scenes, the linear system against a dense solve, and gradients against central differences."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+
+G = 9.8
+MATERIAL = wc.preset("gray-interlock")
+REST_GAP = 0.00486  # about where a gray-interlock patch rests in the 5 mm repulsion layer (1e6 N/m^3)
+
+
+def rotation_y(theta):
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def incline(theta_deg, mu, *, res=4, size=0.1, dtype=wp.float64, requires_grad=False, gap=REST_GAP, vel=None):
+    """A square patch lying on a plane tilted by theta about y (downhill: -x of the tilted frame), away from the
+    plane's diagonal edge (where edge-edge pairs would add to the vertex-face ones)."""
+    R = rotation_y(math.radians(theta_deg))
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+    b.add_obstacle_plane((4.0, 4.0), rot=R)
+    mesh = wc.grid_mesh(res, res, size, size)
+    mesh.positions = (mesh.positions + [0.5 - size / 2, 1.2 - size / 2, gap]) @ R.T
+    if vel is not None:
+        mesh.velocities = np.tile(np.asarray(vel, dtype=np.float64), (len(mesh.positions), 1))
+    b.add_cloth_mesh(mesh, material=MATERIAL)
+    b.set_collision(friction=mu, obstacle_friction=mu)
+    return b.finalize("cpu", dtype=dtype, requires_grad=requires_grad), R
+
+
+def downhill_travel(theta_deg, mu, steps=100, dt=0.01):
+    model, R = incline(theta_deg, mu)
+    sim = wc.Simulator(model, dt)
+    traj = wc.rollout(sim, model.state(), steps=steps)
+    com = np.array([s.particle_x.numpy().mean(axis=0) for s in traj])
+    return (com - com[0]) @ (R @ np.array([-1.0, 0.0, 0.0])), sim
+
+
+def test_patch_below_the_friction_angle_stays_put():
+    # atan(0.3) = 16.7 degrees: at 10 degrees static friction holds the patch
+    travel, sim = downhill_travel(10.0, 0.3)
+    assert sim.proximity.last_count > 0
+    assert abs(travel[-1]) < 1.0e-3, f"the patch moved {travel[-1] * 1e3:.3f} mm in 1 s"
+    # and without friction it slides: the test can fail
+    assert downhill_travel(10.0, 0.0)[0][-1] > 0.1
+
+
+@pytest.mark.parametrize("theta", [25.0, 40.0])
+def test_patch_above_the_friction_angle_slides_with_the_closed_form_acceleration(theta):
+    mu, dt = 0.3, 0.01
+    travel, _ = downhill_travel(theta, mu, steps=60, dt=dt)  # 0.6 s: it stays clear of the plane's diagonal
+    t = np.arange(len(travel)) * dt
+    a = 2.0 * np.polyfit(t[10:], travel[10:], 2)[0]  # after the first contact transient
+    expected = G * (math.sin(math.radians(theta)) - mu * math.cos(math.radians(theta)))
+    assert a == pytest.approx(expected, rel=0.05)
+
+
+def test_resting_contact_keeps_the_gap_without_jitter():
+    model, R = incline(0.0, 0.3, gap=0.02)  # dropped from 2 cm onto a level plane
+    sim = wc.Simulator(model, 0.01)
+    traj = wc.rollout(sim, model.state(), steps=150)
+    z = traj[-1].particle_x.numpy()[:, 2]
+    speeds = [np.abs(s.particle_v.numpy()).max() for s in traj[100:]]
+    assert max(speeds) < 1.0e-3, f"resting cloth still moves at {max(speeds) * 1e3:.3f} mm/s"
+    thickness = model.collision.repulsion_thickness
+    assert np.all(z > 0.8 * thickness) and np.all(z < thickness), z  # inside the repulsion layer, not on the plane
+
+
+def test_cloth_dropped_on_a_sphere_with_friction_stays_on_it():
+    def drop(mu):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+        b.add_cloth_grid((10, 10), (0.6, 0.6), material=wc.preset("gray-interlock", thicken=2),
+                         pos=(-0.22, -0.3, 0.32))  # off centre: it would slide off without friction
+        b.add_obstacle_sphere(0.3, subdivisions=3)
+        b.set_collision(obstacle_friction=mu)
+        model = b.finalize("cpu")
+        traj = wc.rollout(wc.Simulator(model, 0.01), model.state(), steps=150)
+        return traj[-1].particle_x.numpy()
+
+    x = drop(0.3)
+    assert x[:, 2].max() > 0.3 and np.linalg.norm(x.mean(axis=0)[:2]) < 0.15, "the cloth slid off the sphere"
+    radius = np.linalg.norm(x, axis=1)
+    assert radius.min() > 0.3 - 0.02  # nothing went through (the icosphere's facets lie within 1.5 cm)
+    y = drop(0.0)
+    assert np.linalg.norm(y.mean(axis=0)[:2]) > np.linalg.norm(x.mean(axis=0)[:2]) + 0.05  # frictionless slides
+
+
+def test_system_with_pairs_matches_a_dense_solve():
+    model, _ = incline(20.0, 0.3, res=3, vel=(0.05, 0.02, 0.0))
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30))
+    state = model.state()
+    A, b = sim.dense_system(state)
+    assert sim.proximity.last_count > 0
+    np.testing.assert_allclose(A, A.T, atol=1e-12 * np.abs(A).max())
+    assert np.linalg.eigvalsh(A).min() > 0.0
+    nxt = model.empty_state()
+    sim.step(state, nxt)
+    np.testing.assert_allclose(nxt.particle_dv.numpy().reshape(-1), np.linalg.solve(A, b), rtol=1e-9,
+                               atol=1e-12)
+
+
+def test_zero_stiffness_costs_nothing_and_overflow_names_the_capacity():
+    model, _ = incline(10.0, 0.3)
+    assert wc.Simulator(model, 0.01).proximity is not None
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((2, 2), (0.1, 0.1), material=MATERIAL, pos=(-0.05, -0.05, REST_GAP))
+    b.add_obstacle_plane((1.0, 1.0))
+    b.set_collision(repulsion_stiffness=0.0)
+    assert wc.Simulator(b.finalize("cpu"), 0.01).proximity is None
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(collision=wc.CollisionOptions(contact_capacity=3)))
+    with pytest.raises(wc.CollisionError, match="contact_capacity to at least"):
+        sim.step(model.state(), model.empty_state())
+
+
+@wp.kernel
+def _linear_loss(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), cx: wp.array(dtype=wp.vec3d),
+                 cv: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], cx[i]) + wp.dot(v[i], cv[i]))
+
+
+def gradient_check(model, steps, dt, perturbations, *, eps=(1e-6, 1e-7), rtol=1e-4):
+    """Tape gradient of a random linear loss of the final state against central differences, along each
+    perturbation ``(name, array getter, direction)``; the differences at both step sizes must agree."""
+    sim = wc.Simulator(model, dt, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30))
+    rng = np.random.default_rng(4)
+    n = model.particle_count
+    cx = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d)
+    cv = wp.array(1e-2 * rng.standard_normal((n, 3)), dtype=wp.vec3d)
+
+    def run(state=None, control=None, tape=None):
+        state = state or model.state()
+        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        with tape or _null():
+            final = wc.rollout(sim, state, control, steps=steps)[-1]
+            wp.launch(_linear_loss, n, inputs=[final.particle_x, final.particle_v, cx, cv], outputs=[out])
+        return out
+
+    state, control = model.state(), model.control()
+    tape = wp.Tape()
+    out = run(state, control, tape)
+    tape.backward(out)
+    arrays = {"x0": state.particle_x, "v0": state.particle_v, "stiffness": model.contact_repulsion_stiffness,
+              "friction": model.contact_friction, "transform": control.obstacle_transform}
+    grads = {name: a.grad.numpy().copy() for name, a in arrays.items() if a is not None}
+    tape.zero()
+    results = {}
+    for name, direction in perturbations:
+        analytic = float(np.sum(np.asarray(grads[name], dtype=np.float64) * direction))
+        fds = []
+        for h in eps:
+            values = []
+            for sign in (1.0, -1.0):
+                st, ctl = model.state(), model.control()
+                target = {"x0": st.particle_x, "v0": st.particle_v, "transform": ctl.obstacle_transform}.get(name)
+                if target is None:
+                    target = arrays[name]
+                base = target.numpy().copy()
+                target.assign(base + sign * h * direction.reshape(base.shape))
+                values.append(float(run(st, ctl).numpy()[0]))
+                target.assign(base)
+            fds.append((values[0] - values[1]) / (2.0 * h))
+        scale = max(abs(fds[0]), 1e-12)
+        assert abs(fds[0] - fds[1]) <= rtol * scale, f"{name}: central differences do not converge {fds}"
+        assert abs(analytic - fds[1]) <= rtol * scale, f"{name}: tape {analytic:.9e} vs differences {fds}"
+        results[name] = (analytic, fds)
+    return results, sim
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def directions(model, rng):
+    n = model.particle_count
+    return [("x0", 1e-3 * rng.standard_normal((n, 3))), ("v0", rng.standard_normal((n, 3))),
+            ("stiffness", np.array([1e6])), ("friction", np.array([0.0, 1.0])),
+            ("transform", np.array([[1e-3, -2e-3, 1e-3, 0.0, 0.0, 0.0, 0.0]]))]
+
+
+@pytest.mark.parametrize("theta, regime", [(10.0, "resting"), (30.0, "sliding")])
+def test_cloth_obstacle_gradients_match_central_differences(theta, regime):
+    model, _ = incline(theta, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0))
+    results, sim = gradient_check(model, 6, 0.01, directions(model, np.random.default_rng(1)))
+    assert sim.proximity.last_count > 0
+    assert all(abs(r[0]) > 0 for r in results.values())
+
+
+@pytest.mark.parametrize("regime, mu, vel", [("sliding, frictionless", 0.0, (0.03, 0.01, 0.0)),
+                                              ("resting, friction", 0.6, (0.0, 0.0, 0.0))])
+def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel):
+    # a small free sheet on a larger pinned one, under gravity: cloth-cloth vertex-face and edge-edge pairs
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+    b.add_cloth_grid((2, 2), (0.2, 0.2), material=MATERIAL, pos=(-0.1, -0.1, 0.0))
+    b.add_cloth_grid((1, 1), (0.04, 0.04), material=MATERIAL, pos=(-0.03, -0.02, REST_GAP), vel=vel)
+    for p in range(9):
+        b.add_pin(p)
+    b.set_collision(self_collision=True, friction=mu)
+    model = b.finalize("cpu", dtype=wp.float64, requires_grad=True)
+    rng = np.random.default_rng(2)
+    n = model.particle_count
+    results, sim = gradient_check(model, 5, 0.01, [("x0", 1e-3 * rng.standard_normal((n, 3))),
+                                                   ("v0", rng.standard_normal((n, 3))),
+                                                   ("stiffness", np.array([1e6]))])
+    assert sim.proximity.last_count > 0

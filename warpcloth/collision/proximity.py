@@ -1,0 +1,215 @@
+"""Proximity repulsion and friction as forces of the implicit step (kernels/proximity.py has the model).
+
+At the start of a step :class:`ProximityForces` finds the vertex-face and edge-edge pairs closer than twice the
+repulsion thickness (cloth-obstacle always, cloth-cloth with self-collision) into a fixed-capacity device buffer,
+adds each pair's penalty and friction terms to the system, and hands the solver the pairs' cross-node blocks, which
+it applies matrix-free. On a tape the terms' adjoint is the gradient of the pairs' share of the solve's adjoint
+potential (as for the elements, warpcloth/solver/assembly.py), so gradients reach positions, velocities, pin
+targets, obstacle placements, the repulsion stiffness and the friction coefficients. The pair set is held fixed
+(detection is not differentiated).
+
+Why matrix-free for the cross blocks: two cloth nodes of a cloth-cloth pair usually share no element, so their
+block is not in the model's fixed block pattern. Rebuilding a pattern each step (warp.sparse's BsrTripletMap) costs
+a sort of all blocks per step; the matrix-free product costs one pass over the pairs per CG iteration, which is
+small next to the block product (pairs are a fraction of the particles).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warpcloth.errors import CollisionError
+from warpcloth.kernels.contact import contact_kernels
+from warpcloth.kernels.proximity import proximity_kernels
+from warpcloth.model import Control, Model, State
+from warpcloth.tape import record_adjoint
+
+FRICTION_REGULARISATION = 1.0e-4
+"""Relative tangential speed [m/s] below which friction is a linear damper reaching the Coulomb bound at it: a
+cloth held by static friction creeps at most about this fast (kernels/proximity.py)."""
+
+
+@dataclass
+class ProximityPairs:
+    """The pairs of one step, as the linear solver applies them: A_ij += weight_i weight_j stiffness."""
+
+    count: int
+    """Number of pairs [-], scalar (host)."""
+    nodes: wp.array
+    """Node ids of each pair [-], (>= count, 4) int32 (cloth particles, then obstacle vertices)."""
+    weights: wp.array
+    """Weight of each node, 0 where it is not a free cloth particle [-], (>= count,) vec4."""
+    stiffness: wp.array
+    """The pair's 3x3 block K (dt^2 h n n^T + dt mu f_n J) [kg], (>= count,) mat33."""
+
+
+class _Primitives:
+    """Node-index rows (vertices, edges or triangles) with their bounding boxes and BVH."""
+
+    def __init__(self, indices: np.ndarray, device):
+        self.count = len(indices)
+        self.indices = wp.array(indices.astype(np.int32).reshape(len(indices), -1), dtype=wp.int32, device=device)
+        self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
+        self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
+        self.bvh: wp.Bvh | None = None
+
+
+class ProximityForces:
+    """Finds proximity pairs and adds their repulsion and friction to a step's system.
+
+    Args:
+        model: a model with collisions (``model.collision``).
+        dt: time step [s].
+        capacity: most pairs one step may have (0: 4 per cloth particle and obstacle vertex).
+    """
+
+    def __init__(self, model: Model, dt: float, *, capacity: int = 0):
+        settings = model.collision
+        self.model = model
+        self.dt = float(dt)
+        self.device = dev = model.device
+        self.kernels = proximity_kernels(model.scalar)
+        self.gather = contact_kernels(model.scalar).gather_nodes
+        self.thickness = float(settings.repulsion_thickness)
+        n = model.particle_count
+        obstacles = settings.obstacles and model.obstacle_count > 0
+        V = model.obstacle_vertex_count if obstacles else 0
+        self.cloth_count, self.node_count = n, n + V
+        self.capacity = int(capacity or 4 * (n + V))
+        cloth_tris = _Primitives(model.triangles_np, dev)
+        cloth_edges = _Primitives(model.edge_indices.numpy(), dev)
+        cloth_vertices = np.arange(n)
+        # (query rows, target set, kind, same set): query rows are node ids (VF) or edges (EE)
+        self._queries = []
+        self._targets = []
+        if obstacles:
+            obstacle_tris = _Primitives(model.obstacle_tri_indices.numpy() + n, dev)
+            obstacle_edges = _Primitives(model.obstacle_edge_indices.numpy() + n, dev)
+            self._targets += [obstacle_tris, obstacle_edges]
+            self._queries += [
+                (wp.array(cloth_vertices.astype(np.int32), dtype=wp.int32, device=dev), obstacle_tris, "vf", 0),
+                (wp.array(np.arange(n, n + V, dtype=np.int32), dtype=wp.int32, device=dev), cloth_tris, "vf", 0),
+                (cloth_edges.indices, obstacle_edges, "ee", 0),
+            ]
+            if cloth_tris not in self._targets:
+                self._targets.append(cloth_tris)
+        if settings.self_collision:
+            self._targets += [t for t in (cloth_tris, cloth_edges) if t not in self._targets]
+            self._queries += [
+                (wp.array(cloth_vertices.astype(np.int32), dtype=wp.int32, device=dev), cloth_tris, "vf", 0),
+                (cloth_edges.indices, cloth_edges, "ee", 1),
+            ]
+        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._count_host = self._count.numpy() if dev.is_cpu else None
+        self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
+        self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        free = np.zeros(n + V, dtype=np.int32)
+        free[:n] = model.particle_pin.numpy() < 0
+        self._free = wp.array(free, dtype=wp.int32, device=dev)
+        self._area = wp.array(np.concatenate([model.particle_area.numpy(), np.zeros(V)]), dtype=model.scalar,
+                              device=dev)
+        self.last_count = 0
+        """Pairs found in the last step (diagnostics only)."""
+
+    @staticmethod
+    def needed(model: Model) -> bool:
+        """Whether a model's repulsion or friction can act (an absent term costs nothing)."""
+        if model.collision is None:
+            return False
+        return bool(np.any(model.contact_repulsion_stiffness.numpy() > 0.0))
+
+    def detect(self, x: wp.array) -> int:
+        """Find the pairs among node positions ``x`` (cloth particles, then obstacle vertices); returns their
+        count."""
+        k = self.kernels
+        m = self.model
+        radius = 2.0 * self.thickness
+        for prims in self._targets:
+            if prims.count == 0:
+                continue
+            wp.launch(k.primitive_boxes, prims.count, device=self.device, inputs=[x, prims.indices, radius],
+                      outputs=[prims.lowers, prims.uppers], record_tape=False)
+            if prims.bvh is None:
+                prims.bvh = wp.Bvh(prims.lowers, prims.uppers)
+            else:
+                prims.bvh.refit()
+        self._count.zero_()
+        for rows, target, kind, same in self._queries:
+            if rows.shape[0] == 0 or target.count == 0:
+                continue
+            common = [m.bsr_offsets, m.bsr_columns, self.cloth_count, m.scalar(radius)]
+            if kind == "vf":
+                wp.launch(k.vertex_face_pairs, rows.shape[0], device=self.device,
+                          inputs=[target.bvh.id, x, rows, target.indices, *common],
+                          outputs=[self._count, self._nodes, self._kind], record_tape=False)
+            else:
+                wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
+                          inputs=[target.bvh.id, x, rows, target.indices, same, *common],
+                          outputs=[self._count, self._nodes, self._kind], record_tape=False)
+        count = int((self._count_host if self._count_host is not None else self._count.numpy())[0])
+        if count > self.capacity:
+            raise CollisionError(
+                f"proximity pair buffer overflow: {count} pairs found but the capacity is {self.capacity}; raise "
+                f"CollisionOptions.contact_capacity to at least {count}")
+        self.last_count = count
+        return count
+
+    def assemble(self, state_in: State, control: Control, pin_dv: wp.array, dv: wp.array, values: wp.array,
+                 rhs: wp.array, recording: bool) -> ProximityPairs:
+        """Find the step's pairs and add their terms to ``values`` (block diagonal) and ``rhs``; returns the pairs
+        for the solver's matrix-free cross blocks. On a tape, records the terms' adjoint."""
+        model = self.model
+        k = self.kernels
+        dev = self.device
+        n, N = self.cloth_count, self.node_count
+        vec3 = model.types.vec3
+        if N > n:
+            from warpcloth.obstacles import obstacle_points
+
+            obstacle_start = obstacle_points(model, control, state_in.time)
+            obstacle_end = obstacle_points(model, control, state_in.time + self.dt)
+        else:
+            obstacle_start = obstacle_end = wp.zeros(0, dtype=vec3, device=dev)
+        x = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
+        velocity = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
+        wp.launch(k.node_state, N, device=dev,
+                  inputs=[state_in.particle_x, state_in.particle_v, pin_dv, model.particle_pin, obstacle_start,
+                          obstacle_end, model.scalar(1.0 / self.dt), n],
+                  outputs=[x, velocity])
+        count = self.detect(x)
+        nodes, kind = self._nodes, self._kind
+        if recording:  # the backward pass reads this step's pairs: copies that later steps do not overwrite
+            nodes, kind = wp.clone(nodes[:count]), wp.clone(kind[:count])
+        weights = wp.empty(max(count, 1), dtype=model.types.vec4, device=dev)
+        stiffness = wp.empty(max(count, 1), dtype=model.types.mat33, device=dev)
+        pairs = ProximityPairs(count, nodes, weights, stiffness)
+        if count == 0:
+            return pairs
+        inputs = self.pair_inputs(x, velocity, nodes, kind)
+        wp.launch(k.assemble_pairs, count, device=dev, inputs=[inputs, model.particle_diag_slot],
+                  outputs=[values, rhs, weights, stiffness], record_tape=False)
+        if recording:
+            def adjoint():
+                phi = wp.zeros(1, dtype=model.scalar, device=dev)
+                seed = wp.ones(1, dtype=model.scalar, device=dev)
+                wp.launch(k.pairs_potential, count, device=dev, inputs=[inputs, rhs.grad, dv], outputs=[phi],
+                          adj_inputs=[wp.Tape().get_adjoint(inputs), None, None], adj_outputs=[seed],
+                          adjoint=True, record_tape=False)
+
+            record_adjoint(adjoint, arrays=[rhs, dv])
+        return pairs
+
+    def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array):
+        """What the pair kernels read (kernels/proximity.py PairInputs)."""
+        model = self.model
+        p = self.kernels.PairInputs()
+        p.nodes, p.kind, p.x, p.velocity, p.free, p.area = nodes, kind, x, velocity, self._free, self._area
+        p.stiffness, p.friction = model.contact_repulsion_stiffness, model.contact_friction
+        p.cloth_count = self.cloth_count
+        p.thickness = model.scalar(self.thickness)
+        p.eps = model.scalar(FRICTION_REGULARISATION)
+        p.dt = model.scalar(self.dt)
+        return p
