@@ -222,7 +222,6 @@ def proximity_kernels(scalar):
         area = scalar(1.0e30)
         obstacle = False
         u = vec3()
-        wf = vec4()
         for a in range(4):
             node = idx[a]
             if node < p.cloth_count:
@@ -230,8 +229,10 @@ def proximity_kernels(scalar):
             else:
                 obstacle = True
             u += w[a] * p.velocity[node]
-            if p.free[node] != 0:
-                wf[a] = w[a]
+        # the weights of free nodes (built whole: Warp does not differentiate in-place component writes)
+        one = scalar(1.0)
+        wf = vec4(w[0] * wp.where(p.free[idx[0]] != 0, one, zero), w[1] * wp.where(p.free[idx[1]] != 0, one, zero),
+                  w[2] * wp.where(p.free[idx[2]] != 0, one, zero), w[3] * wp.where(p.free[idx[3]] != 0, one, zero))
         k_rep = p.stiffness[0] * area
         if p.kind[k] == EDGE_EDGE:
             k_rep = k_rep * edge_fade(w[1]) * edge_fade(-w[3])

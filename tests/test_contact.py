@@ -196,13 +196,17 @@ def test_cloth_obstacle_gradients_match_central_differences(theta, regime):
     assert all(abs(r[0]) > 0 for r in results.values())
 
 
+# Not yet here: cloth-cloth *sliding* friction, whose tape gradient differs from central differences by ~1e-3
+# relative on this scene (cloth-obstacle sliding friction matches to 1e-4): an open gap, README "Contact".
 @pytest.mark.parametrize("regime, mu, vel", [("sliding, frictionless", 0.0, (0.03, 0.01, 0.0)),
                                               ("resting, friction", 0.6, (0.0, 0.0, 0.0))])
 def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel):
     # a small free sheet on a larger pinned one, under gravity: cloth-cloth vertex-face and edge-edge pairs
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
     b.add_cloth_grid((2, 2), (0.2, 0.2), material=MATERIAL, pos=(-0.1, -0.1, 0.0))
-    b.add_cloth_grid((1, 1), (0.04, 0.04), material=MATERIAL, pos=(-0.03, -0.02, REST_GAP), vel=vel)
+    # placed so that no edge crossing sits on a kink of the edge-edge fade (kernels/proximity.py EDGE_FADE), where
+    # central differences average two one-sided derivatives
+    b.add_cloth_grid((1, 1), (0.04, 0.04), material=MATERIAL, pos=(-0.0313, -0.0217, REST_GAP), vel=vel)
     for p in range(9):
         b.add_pin(p)
     b.set_collision(self_collision=True, friction=mu)
@@ -213,3 +217,30 @@ def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel):
                                                    ("v0", rng.standard_normal((n, 3))),
                                                    ("stiffness", np.array([1e6]))])
     assert sim.proximity.last_count > 0
+
+
+def test_scene_collision_table_sets_repulsion_and_friction():
+    from warpcloth.scene import scene_from_toml
+
+    text = """
+name = "t"
+[sim]
+dt = 0.01
+steps = 1
+[cloth]
+grid = { res = [2, 2], size = [0.1, 0.1] }
+material = "gray-interlock"
+[[obstacles]]
+shape = "plane"
+[collision]
+repulsion_thickness = 2e-3
+repulsion_stiffness = 5e5
+friction = 0.4
+obstacle_friction = 0.2
+"""
+    model, _ = scene_from_toml(text).build("cpu")
+    assert model.collision.repulsion_thickness == 2e-3
+    np.testing.assert_allclose(model.contact_repulsion_stiffness.numpy(), [5e5])
+    np.testing.assert_allclose(model.contact_friction.numpy(), [0.4, 0.2], rtol=1e-6)
+    with pytest.raises(ValueError, match="collision.friction"):
+        scene_from_toml(text.replace("friction = 0.4", "friction = -1.0"))

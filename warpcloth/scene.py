@@ -68,7 +68,11 @@ Schema (every key is checked: an unknown key or a wrong type is a ``ValueError``
 
     [collision]                        # optional
     self_collision = false             # cloth-cloth collisions, default false
-    thickness = 5e-4                   # collision thickness [m], > 0, default 5e-4
+    thickness = 5e-4                   # impact-zone collision thickness [m], > 0, default 5e-4
+    repulsion_thickness = 5e-3         # proximity repulsion thickness [m], > 0, default 5e-3 (ARCSim)
+    repulsion_stiffness = 1e6          # repulsion stiffness per m^2 of rest area [N/m^3], >= 0 (0: off)
+    friction = 0.6                     # cloth-cloth Coulomb friction, >= 0
+    obstacle_friction = 0.3            # cloth-obstacle Coulomb friction, >= 0
 
 A ``grid_row``/``grid_column`` selector adds one handle (or pin) per vertex of that row/column, all with the same
 stiffness and motion. Particle indices are those of the cloth (the scene's only one). Embedded scenes live in
@@ -351,13 +355,16 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
 
     if "collision" in data:
         collision = _table(data["collision"], "collision")
-        _check_keys(collision, "collision", ("self_collision", "thickness"))
+        positive = ("thickness", "repulsion_thickness")
+        non_negative = ("repulsion_stiffness", "friction", "obstacle_friction")
+        _check_keys(collision, "collision", ("self_collision",) + positive + non_negative)
         self_collision = collision.get("self_collision", False)
         if not isinstance(self_collision, bool):
             raise _err("collision.self_collision", f"expected a boolean, got {_type_name(self_collision)}")
         kwargs = {"self_collision": self_collision}
-        if "thickness" in collision:
-            kwargs["thickness"] = _float(collision["thickness"], "collision.thickness", min_value=0.0, strict=True)
+        for key in positive + non_negative:
+            if key in collision:
+                kwargs[key] = _float(collision[key], f"collision.{key}", min_value=0.0, strict=key in positive)
         with _Context("collision"):
             builder.set_collision(**kwargs)
 
