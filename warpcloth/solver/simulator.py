@@ -10,6 +10,7 @@ Scenes with obstacles or self-collision then run the collision stage (warpcloth/
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import warp as wp
@@ -55,6 +56,9 @@ class Simulator:
         """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
+        self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
+        """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
+        measures launch, not execution, unless the device synchronises)."""
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
         # host view of the divergence flag read every step (on the CPU it shares memory: no copy, no launch)
         self._status_host = self._status.numpy() if self.device.is_cpu else None
@@ -100,11 +104,15 @@ class Simulator:
         step = state_in.step + 1  # the step being taken, counted from the start of the trajectory
         k = self.kernels
 
+        clock = _PhaseClock(self.phase_seconds)
         self.assembler.assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
+        clock.lap("assembly")
         pairs = None
         if self.proximity is not None:
             pairs = self.proximity.assemble(state_in, control, pin_dv, dv, values, rhs, recording)
+            clock.lap("proximity")
         self._solve(values, rhs, dv, state_in, state_out, step, pairs)
+        clock.lap("solve")
 
         max_speed = model.scalar(self.options.max_speed)
         if self._status_host is not None:
@@ -123,6 +131,7 @@ class Simulator:
                       outputs=[x_hat, v_hat, self._status])
             # no NaN or runaway particle reaches the collision stage
             self._raise_if_diverged(candidate, t_next, step)
+            clock.lap("integrate")
             self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, step)
             wp.launch(self.kernels.check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
@@ -131,6 +140,7 @@ class Simulator:
         state_out.step = step
         state_out.particle_x_previous = state_in.particle_x if model.wind_lagged_normals else None
         self.stats["steps"] += 1
+        clock.lap("collision" if self.collision is not None else "integrate")
         self._raise_if_diverged(state_out, t_next, step)
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
@@ -297,3 +307,16 @@ class Simulator:
         return (f"; triangle {t} {model.triangles_np[t].tolist()} is elongated (rest aspect ratio {ratio:.3g}; "
                 f"{count} triangle(s) at or above {ELONGATED_ASPECT_RATIO:g}), which makes the system ill-conditioned: "
                 "remesh it, or use dtype=wp.float64")
+
+
+class _PhaseClock:
+    """Adds the wall time since the last lap to a phase's total."""
+
+    def __init__(self, totals: dict):
+        self.totals = totals
+        self.last = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        now = time.perf_counter()
+        self.totals[phase] += now - self.last
+        self.last = now
