@@ -1,30 +1,32 @@
-"""CG solvers on the implicit systems of the hanging-cloth scene (16^2 and 64^2 grids): time per solve and per iteration.
+"""CG solvers on the implicit systems of the hanging-cloth scene (16^2 and 64^2 grids): time per solve and per
+iteration.
 
-The system A dv = b is taken from a real step (step SPINUP+1 of benchmarks/step_time.py's scene, the Simulator's
-reused non-tape buffers). Compared, all to cg_tol 1e-6 (|b - A x| <= 1e-6 |b|) from x0 = 0:
-  (a) warp.optim.linear.cg with its "diag" preconditioner, as Simulator(cg_backend="warp") calls it (check_every=1,
-      preconditioner rebuilt per solve), and raw with warp's default check_every=10;
+The system A dv = b is taken from a real step (step SPINUP+1 of benchmarks/step_time.py's scene: ``Simulator.assemble``
+of the state after SPINUP steps) and solved with ``wc.LinearSolver``, the simulator's own solver, under different
+SolverOptions. Compared, all to cg_tol 1e-6 (|b - A x| <= 1e-6 |b|) from x0 = 0:
+  (a) warp.optim.linear.cg with its "diag" preconditioner as the library's warp backend calls it (check_every=1,
+      preconditioner rebuilt per solve; SolverOptions(cg_backend="warp", preconditioner="jacobi")), the same with
+      the backend's default preconditioner (block Jacobi), and raw with warp's default check_every=10;
   (b) the one-launch sequential CG (cg_backend="sequential") with jacobi, block_jacobi and block_ssor (omega 1.0,
       i.e. symmetric Gauss-Seidel, and the default 1.5), and block_ssor warm-started from the previous step's dv
-      (SolverOptions.warm_start);
+      (``State.particle_dv``, what SolverOptions.warm_start uses);
   (c) warp.sparse.bsr_mv alone, per call.
 "true res" is |b - A x| / |b| recomputed in float64 after the solve (the systems are float32: at 64^2 it floors near
 3e-5 from float32 rounding in the x updates); "err vs f64" is |x - x64| / |x64| against the same system solved in
 float64 to 1e-12, the accuracy that matters.
 
-Usage: python benchmarks/cg_solvers.py [--json PATH] [--sizes 16,64]
+Usage: python benchmarks/cg_solvers.py [--quick] [--out PATH] [--sizes 16,64]
 """
 
 from __future__ import annotations
 
 import warnings
 
+import common
 import numpy as np
 import warp as wp
 import warp.optim.linear as wl
 import warp.sparse as ws
-
-import common
 from common import wc
 
 SPINUP = 10
@@ -36,16 +38,30 @@ vec3, mat33 = wp.types.vector(3, wp.float32), wp.types.matrix((3, 3), wp.float32
 
 
 def capture_system(res):
-    """Model, sequential Simulator and (values, rhs, dv, dv of the previous step) of one real step."""
+    """Model, (values, rhs) of one real step and the dv of the step before it (its solve's warm start)."""
     m = common.hanging_cloth(res)
     sim = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="sequential"))
     s = common.advance(sim, m.state(), SPINUP)
-    if not (isinstance(sim._step_buffers, tuple) and len(sim._step_buffers) == 4):
-        raise SystemExit("Simulator._step_buffers is no longer (values, rhs, dv, pin_dv): update capture_system()")
-    dv_prev = wp.clone(sim._step_buffers[2])
-    common.advance(sim, s, 1)
-    values, rhs, dv, _ = (wp.clone(a) for a in sim._step_buffers)
-    return m, sim, values, rhs, dv, dv_prev
+    values, rhs = sim.assemble(s)
+    dv_prev = wp.clone(s.particle_dv)
+    nxt = m.empty_state()
+    sim.step(s, nxt)  # the step's own solution, for the bsr_mv timing
+    return m, values, rhs, wp.clone(nxt.particle_dv), dv_prev
+
+
+def solver(model, **options) -> wc.LinearSolver:
+    return wc.LinearSolver(model, wc.SolverOptions(**options))
+
+
+def warp_matrix(model, values):
+    """A warp.sparse BSR matrix on the model's block pattern whose values are ``values``."""
+    n = model.particle_count
+    rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(model.bsr_offsets.numpy()))
+    A = ws.bsr_from_triplets(n, n, wp.array(rows, dtype=wp.int32), model.bsr_columns, values,
+                             prune_numerical_zeros=False)
+    if not np.array_equal(A.columns.numpy()[: model.bsr_nnz], model.bsr_columns.numpy()):
+        raise RuntimeError("warp.sparse reordered the block structure")
+    return A
 
 
 def true_residual(model, values, rhs, x) -> float:
@@ -64,26 +80,25 @@ def reference_solution(res, values, rhs) -> np.ndarray:
     """The same (float32-rounded) system solved in float64 to 1e-12 with the library's float64 kernel."""
     m64 = common.hanging_cloth(res, dtype=wp.float64)
     t = m64.types
-    sim = wc.Simulator(m64, common.DT, options=wc.SolverOptions(cg_tol=1e-12, cg_max_iters=100000))
     x = wp.zeros(m64.particle_count, dtype=t.vec3)
-    sim._cg(wp.array(values.numpy().astype(np.float64), dtype=t.mat33),
-            wp.array(rhs.numpy().astype(np.float64), dtype=t.vec3), x)
+    solver(m64, cg_tol=1e-12, cg_max_iters=100000).solve(wp.array(values.numpy().astype(np.float64), dtype=t.mat33),
+                                                          wp.array(rhs.numpy().astype(np.float64), dtype=t.vec3), x)
     return x.numpy()
 
 
-def bench_size(res, reps):
-    m, sim0, values, rhs, dv_ref, dv_prev = capture_system(res)
+def bench_size(res, reps, quick=False):
+    m, values, rhs, dv_ref, dv_prev = capture_system(res)
     n = m.particle_count
     x_f64 = reference_solution(res, values, rhs)
     x = wp.zeros(n, dtype=vec3)
     records = []
 
     def record(name, solve, reps_, note=""):
-        iters = solve()  # warm-up (compiles) and iteration count
+        info = solve()  # warm-up (compiles) and iteration count
         t = common.median_time(solve, reps=reps_, warmup=0)
-        it = iters[0]
+        it = info[0]
         rec = {"n": n, "res": res, "solver": name, "iters": it, "ms_per_solve": t * 1e3,
-               "ms_per_iter": t * 1e3 / max(it, 1), "reported_res": iters[1],
+               "ms_per_iter": t * 1e3 / max(it, 1), "reported_res": info[1],
                "true_res": true_residual(m, values, rhs, x),
                "err_vs_f64": float(np.linalg.norm(x.numpy() - x_f64) / np.linalg.norm(x_f64)), "note": note}
         records.append(rec)
@@ -93,29 +108,25 @@ def bench_size(res, reps):
     # (b) library sequential CG, from x0 = 0 and warm-started from the previous step's dv (library option)
     for name, pre, omega in (("jacobi", "jacobi", 1.5), ("block_jacobi", "block_jacobi", 1.5),
                              ("block_ssor w=1.0", "block_ssor", 1.0), ("block_ssor w=1.5", "block_ssor", 1.5)):
-        s = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, preconditioner=pre, ssor_omega=omega,
-                                                                 cg_backend="sequential"))
-        record(f"sequential {name}", lambda s=s: s._cg(values, rhs, x), reps)
+        s = solver(m, cg_tol=TOL, preconditioner=pre, ssor_omega=omega, cg_backend="sequential")
+        record(f"sequential {name}", lambda s=s: s.solve(values, rhs, x), reps)
 
-    def warm_library():
-        wp.copy(x, dv_prev)
-        return s._cg(values, rhs, x, warm_start=True)
-
-    record("sequential block_ssor w=1.5 + warm start", warm_library, reps, "x0 = previous step's dv")
+    record("sequential block_ssor w=1.5 + warm start", lambda: s.solve(values, rhs, x, guess=dv_prev), reps,
+           "x0 = previous step's dv")
 
     # (a) warp.optim.linear.cg, as the library's warp backend calls it
-    sw = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="warp"))
+    sw = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="jacobi")
+    sb = solver(m, cg_tol=TOL, cg_backend="warp")  # the warp backend's default preconditioner
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        sw_short = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="warp",
-                                                                         cg_max_iters=3))
-        sw_short._cg(values, rhs, x)  # compiles warp.sparse / warp.optim kernels
-    warp_reps = 3 if res <= 16 else 1
-    record("warp cg diag (library call)", lambda: sw._cg(values, rhs, x), warp_reps,
+        for pre in ("jacobi", "block_jacobi"):  # compiles warp.sparse / warp.optim kernels
+            solver(m, cg_tol=TOL, cg_backend="warp", preconditioner=pre, cg_max_iters=3).solve(values, rhs, x)
+    warp_reps = 2 if quick else (3 if res <= 16 else 1)
+    record("warp cg diag (library call)", lambda: sw.solve(values, rhs, x), warp_reps,
            "check_every=1, preconditioner rebuilt and b copied to host per solve")
-    sw._cg(values, rhs, x)
-    A = sw._warp_matrix
-    A.values = values
+    record(f"warp cg {sb.preconditioner} (library default)", lambda: sb.solve(values, rhs, x), warp_reps,
+           "the warp backend's default preconditioner (CUDA)")
+    A = warp_matrix(m, values)
     M = wl.preconditioner(A, "diag")
 
     def warp_raw():
@@ -129,7 +140,7 @@ def bench_size(res, reps):
 
     # launches per warp cg iteration (one profiled solve)
     with common.launch_profile() as launches:
-        it = sw._cg(values, rhs, x)[0]
+        it = sw.solve(values, rhs, x).iterations
     top = sorted(launches.items(), key=lambda kv: -kv[1][1])
     n_launch = sum(c for c, _ in launches.values())
     t_launch = sum(s for _, s in launches.values())
@@ -150,12 +161,12 @@ def bench_size(res, reps):
 
 
 def main():
-    args = common.parse_args(__doc__.splitlines()[0], sizes="16,64")
+    args = common.parse_args(__doc__, sizes="16,64", quick={"sizes": "8"})
     info = common.machine_info()
     common.print_machine(info)
     all_recs, extras = [], []
-    for res in (int(s) for s in args.sizes.split(",")):
-        recs, extra = bench_size(res, reps=9 if res <= 16 else 5)
+    for res in (int(s) for s in args.sizes.split(",") if s):
+        recs, extra = bench_size(res, reps=2 if args.quick else (9 if res <= 16 else 5), quick=args.quick)
         all_recs += recs
         extras.append(extra)
 
@@ -197,7 +208,7 @@ def main():
               "call costs several whole sequential iterations.")
     else:
         print("=> warp's cg beat the sequential CG on this machine: revisit cg_backend='auto'.")
-    common.write_json(args.json, {"machine": info, "tol": TOL, "solves": all_recs, "sizes": extras})
+    common.write_result(args, {"tol": TOL, "solves": all_recs, "sizes": extras})
 
 
 if __name__ == "__main__":

@@ -4,30 +4,37 @@ Scene (SPEC.md §5(a)): the pre-crumpled cloths ``demo_collision{16x16,32x32,64x
 ``contain.obj`` translated by (-0.5, -1, -0.55), gray-interlock (thicken 2), gravity, dt 0.02, cloth-obstacle and
 self-collision on, float64 (as the seed), one step; loss = mean over vertices of |x_i|.
 
-For each mesh and repetition: the step is taped and timed (``forward_s``: implicit solve, detection and every
-projection round); ``tape.backward`` runs with the QR adjoint; then the recorded adjoint of every projection round of
-that step is timed again on the same dL/dz in both modes, each from scratch (the QR factorisation included, it is
-computed lazily): ``qr_backward_s`` and ``kkt_backward_s`` are those sums over the step's rounds and zones, i.e. the
-backward time of the collision response in one step (every round of it); the per-zone means (zones with more than
-one contact) compare with the seed's per-zone log line. Matrix sizes are per impact zone with more than one contact, over all rounds
-and repetitions: ``kkt_size`` = nvar + ncon (the dense KKT system), ``qr_size`` = independent active constraints
-(the columns of the QR). Seed numbers are the slides' (authors' machine).
+For each mesh, repetition and adjoint (``CollisionOptions(adjoint="qr")`` and ``"kkt"``, one Simulator each): the
+step is taped and timed (``forward_s``: implicit solve, detection and every projection round), then ``tape.backward``
+runs; ``qr_backward_s`` and ``kkt_backward_s`` are the time the collision response's adjoint took in it
+(``sim.collision.backward_seconds``: every projection round of the step, the QR factorisation included), and
+``*_tape_backward_s`` the whole backward pass. The per-zone means (zones with more than one contact) compare with the
+seed's per-zone log line. Matrix sizes are per impact zone with more than one contact, over all rounds and
+repetitions (``sim.collision.last_projections``): ``kkt_size`` = nvar + ncon (the dense KKT system), ``qr_size`` =
+independent active constraints (the columns of the QR). Seed numbers are the slides' (authors' machine).
 
-Usage: python benchmarks/collision_ablation.py [--meshes 16x16,32x32,64x64] [--reps 3] [--json PATH]
+Usage: python benchmarks/collision_ablation.py [--quick] [--out PATH] [--meshes 16x16,32x32] [--reps 3]
+       (64x64 is not in the default run: one repetition of its dense KKT baseline took over 8 minutes at
+       commit e13469f; at the time of the committed run its first step raised CollisionError, the active set of its
+       largest impact zone (1703 contacts) not converging in 500 iterations)
 """
 
 from __future__ import annotations
 
-import argparse
-import time
-from pathlib import Path
+import os
 
-import numpy as np
-import warp as wp
+# The projection's dense algebra (KKT solves, QR) runs in NumPy on the host. A multi-threaded BLAS on a shared
+# 2-core machine spin-waits against other jobs (a 6x slower, erratic KKT baseline), so the timings are taken with one
+# BLAS thread unless the environment says otherwise (set before NumPy loads; recorded in the JSON's meta.env).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import common
-from common import wc
-from warpcloth.collision import projection
+import time  # noqa: E402
+
+import common  # noqa: E402
+import numpy as np  # noqa: E402
+import warp as wp  # noqa: E402
+from common import wc  # noqa: E402
 
 SEED = {  # mesh: (baseline size, baseline s, ours size, ours s, speedup)
     "16x16": ("599 ± 76", 0.33, "66 ± 26", 0.013, 25),
@@ -37,65 +44,58 @@ SEED = {  # mesh: (baseline size, baseline s, ours size, ours s, speedup)
 TARGET_FORWARD_32_S = 1.0
 
 
-def build(mesh: str):
+def build(mesh: str, adjoint: str):
     meshes = common.seed_dir() / "meshes"
     b = wc.ModelBuilder()
     b.add_cloth_obj(meshes / f"demo_collision{mesh}.obj", material=wc.preset("gray-interlock", thicken=2))
     b.add_obstacle_obj(meshes / "contain.obj", pos=(-0.5, -1.0, -0.55))
     b.set_collision(self_collision=True)
     model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
-    return model, wc.Simulator(model, 0.02)
+    options = wc.SolverOptions(collision=wc.CollisionOptions(adjoint=adjoint))
+    return model, wc.Simulator(model, 0.02, options=options)
 
 
-def time_adjoints(stage, mode: str) -> tuple[float, list[float]]:
-    """Seconds to run every recorded projection adjoint of the last step in ``mode`` (factorisations included),
-    and the per-zone times of the zones with more than one contact."""
-    total, per_zone = 0.0, []
-    for result, z in stage.last_projections:
-        for zone in result.zones:
-            if zone is not None:
-                zone.qr = None  # the QR is computed lazily by the first backward: time it every time
-        grad = z.grad.numpy().astype(np.float64)
-        t0 = time.perf_counter()
-        projection.backward(result, grad, mode=mode)
-        total += time.perf_counter() - t0
-        per_zone += [rec["backward_s"] for rec in result.backward_stats if rec["kkt_size"] > 4]
-    return total, per_zone
+def one_step(model, sim) -> dict:
+    """Forward and backward of one taped step from the start; the collision stage's statistics."""
+    state = model.state()
+    out = model.empty_state()
+    tape = wp.Tape()
+    t0 = time.perf_counter()
+    with tape:
+        sim.step(state, out)
+    forward = time.perf_counter() - t0
+    x = out.particle_x.numpy()
+    grad = x / np.linalg.norm(x, axis=1, keepdims=True) / model.particle_count  # d mean|x_i| / dx
+    stage = sim.collision
+    before = stage.backward_seconds
+    t0 = time.perf_counter()
+    tape.backward(grads={out.particle_x: wp.array(grad, dtype=wp.vec3d)})
+    tape_backward = time.perf_counter() - t0
+    zones = [rec for result, _ in stage.last_projections for rec in result.zones_stats()]
+    tape.zero()
+    tape.reset()
+    return {"forward_s": forward, "backward_s": stage.backward_seconds - before, "tape_backward_s": tape_backward,
+            "zones": [z for z in zones if z["ncon"] > 1], "rounds": stage.last["rounds"],
+            "contacts": stage.last["contacts"]}
 
 
 def run_mesh(mesh: str, reps: int) -> dict:
-    model, sim = build(mesh)
-    forward, qr_s, kkt_s, kkt_sizes, qr_sizes, rounds, contacts = [], [], [], [], [], [], []
-    qr_zone, kkt_zone = [], []
-    for _ in range(reps):
-        sim._previous_dv = None
-        state = model.state()
-        out = model.empty_state()
-        tape = wp.Tape()
-        t0 = time.perf_counter()
-        with tape:
-            sim.step(state, out)
-        forward.append(time.perf_counter() - t0)
-        x = out.particle_x.numpy()
-        grad = x / np.linalg.norm(x, axis=1, keepdims=True) / model.particle_count  # d mean|x_i| / dx
-        tape.backward(grads={out.particle_x: wp.array(grad, dtype=wp.vec3d)})
-        stage = sim.collision
-        t, zones = time_adjoints(stage, "qr")
-        qr_s.append(t)
-        qr_zone += zones
-        t, zones = time_adjoints(stage, "kkt")
-        kkt_s.append(t)
-        kkt_zone += zones
-        for result, _ in stage.last_projections:
-            for rec in result.zones_stats():
-                if rec["ncon"] > 1:
-                    kkt_sizes.append(rec["kkt_size"])
-                    qr_sizes.append(rec["qr_size"])
-        rounds.append(stage.last["rounds"])
-        contacts.append(stage.last["contacts"])
-        tape.zero()
-    kkt = float(np.median(kkt_s))
-    qr = float(np.median(qr_s))
+    runs = {"qr": [], "kkt": []}
+    for mode in runs:
+        model, sim = build(mesh, mode)
+        for _ in range(reps):
+            runs[mode].append(one_step(model, sim))
+    qr, kkt = runs["qr"], runs["kkt"]
+    sizes = [z for r in qr for z in r["zones"]]  # the same zones in both modes (same forward)
+    kkt_sizes = [z["kkt_size"] for z in sizes]
+    qr_sizes = [z["qr_size"] for z in sizes]
+
+    def zone_times(rs):
+        return [z["backward_s"] for r in rs for z in r["zones"] if z["kkt_size"] > 4 and "backward_s" in z]
+
+    kkt_s = [r["backward_s"] for r in kkt]
+    qr_s = [r["backward_s"] for r in qr]
+    kkt_m, qr_m = float(np.median(kkt_s)), float(np.median(qr_s))
     return {
         "mesh": mesh,
         "particles": model.particle_count,
@@ -103,26 +103,27 @@ def run_mesh(mesh: str, reps: int) -> dict:
         "kkt_size_max": int(np.max(kkt_sizes)),
         "qr_size": float(np.mean(qr_sizes)), "qr_size_std": float(np.std(qr_sizes)),
         "qr_size_max": int(np.max(qr_sizes)),
-        "zones": len(kkt_sizes) // reps,
-        "kkt_backward_s": kkt, "kkt_backward_s_all": kkt_s,
-        "qr_backward_s": qr, "qr_backward_s_all": qr_s,
-        "speedup": kkt / qr,
-        "kkt_backward_zone_s": float(np.mean(kkt_zone)), "qr_backward_zone_s": float(np.mean(qr_zone)),
-        "kkt_backward_zone_s_std": float(np.std(kkt_zone)), "qr_backward_zone_s_std": float(np.std(qr_zone)),
-        "forward_s": float(np.median(forward)), "forward_s_all": forward,
-        "rounds": int(np.median(rounds)), "contacts": int(np.median(contacts)),
+        "zones": len(sizes) // reps,
+        "kkt_backward_s": kkt_m, "kkt_backward_s_all": kkt_s,
+        "qr_backward_s": qr_m, "qr_backward_s_all": qr_s,
+        "kkt_tape_backward_s": float(np.median([r["tape_backward_s"] for r in kkt])),
+        "qr_tape_backward_s": float(np.median([r["tape_backward_s"] for r in qr])),
+        "speedup": kkt_m / qr_m,
+        "kkt_backward_zone_s": float(np.mean(zone_times(kkt))), "qr_backward_zone_s": float(np.mean(zone_times(qr))),
+        "kkt_backward_zone_s_std": float(np.std(zone_times(kkt))),
+        "qr_backward_zone_s_std": float(np.std(zone_times(qr))),
+        "forward_s": float(np.median([r["forward_s"] for r in qr])),
+        "forward_s_all": [r["forward_s"] for r in qr],
+        "rounds": int(np.median([r["rounds"] for r in qr])), "contacts": int(np.median([r["contacts"] for r in qr])),
     }
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--meshes", default="16x16,32x32,64x64")
-    parser.add_argument("--reps", type=int, default=3)
-    parser.add_argument("--json", default=None, help="write the records here")
-    args = parser.parse_args()
-    wp.config.quiet = True
-    wp.init()
-    records = [run_mesh(m, args.reps) for m in args.meshes.split(",")]
+    args = common.parse_args(__doc__, meshes="16x16,32x32", reps=3, quick={"meshes": "16x16", "reps": 1})
+    common.seed_dir()
+    meshes = [m for m in args.meshes.split(",") if m]
+    one_step(*build(meshes[0], "qr"))  # loads every kernel and its adjoint (untimed)
+    records = [run_mesh(m, args.reps) for m in meshes]
 
     print(f"one step of the crumpled cloth in the funnel, float64, {args.reps} repetitions (medians); "
           "sizes: mean ± std (max) over impact zones with > 1 contact; seed: slides, authors' machine")
@@ -144,7 +145,10 @@ def main():
                      f"{r['forward_s']:.3f}", str(r["rounds"]), str(r["contacts"]), f"{seed[1]:g}", f"{seed[3]:g}",
                      f"{seed[4]:g}", "; ".join(targets)])
     common.print_table(header, rows)
-    common.write_json(args.json, records)
+    common.write_result(args, {"dt": 0.02, "dtype": "float64", "records": records,
+                               "seed": {mesh: {"kkt_size": v[0], "kkt_backward_s": v[1], "qr_size": v[2],
+                                               "qr_backward_s": v[3], "speedup": v[4]} for mesh, v in SEED.items()},
+                               "target_forward_32_s": TARGET_FORWARD_32_S})
 
 
 if __name__ == "__main__":

@@ -1,16 +1,24 @@
-"""Shared helpers of the benchmarks: scenes, timing, profiling, tables and JSON output.
+"""Shared helpers of the benchmarks: command line, scenes, timing, profiling, tables and JSON output.
 
-Every benchmark runs standalone (``python benchmarks/<name>.py [--json PATH]``); this module sits beside them and is
-imported as ``common`` (the script's folder is on ``sys.path``).
+Every benchmark runs standalone (``python benchmarks/<name>.py [--quick] [--out PATH]``); this module sits beside
+them and is imported as ``common`` (the script's folder is on ``sys.path``). Benchmarks use warpcloth's public API
+only (``import warpcloth as wc``).
+
+Results: a full run writes ``benchmarks/results/<name>.json`` (the figures the README quotes, checked against them by
+``tests/test_benchmarks.py``); ``--quick`` (a few seconds: tiny sizes, few steps) writes
+``benchmarks/results/quick/<name>.json`` (ignored by git), so a quick run never overwrites a committed result.
+Every file starts with ``meta``: date, command line, versions, device, CPUs and the load average at start and end.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import datetime
 import json
 import os
 import platform
+import shlex
 import statistics
 import sys
 import time
@@ -23,29 +31,76 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING  # no init banner / module-load lines (Warp 1.19)
 
 import warpcloth as wc  # noqa: E402
+from warpcloth.tasks import scenes  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SEED_DIR = REPO_ROOT.parent / "shared" / "reference" / "liang2019"
 """The seed's reference data (meshes, target trajectories), ``../shared/reference/liang2019`` from the repo root."""
 
 DT = 0.02
-GRAVITY = (0.0, 0.0, -9.8)
-WIND = (5.0, 0.0, 0.0)
-HANDLE_STIFFNESS = 1.0e3
-THICKEN = 2.0
+# the seed's hanging-cloth scene (warpcloth.tasks.scenes)
+GRAVITY = scenes.GRAVITY
+WIND = scenes.WIND
+HANDLE_STIFFNESS = scenes.DEFAULT_HANDLE_STIFFNESS
+THICKEN = scenes.THICKEN
 
 # Grid x -> world y, grid y -> world z: a vertical sheet in the YZ plane whose normal is +x, the wind's direction.
-VERTICAL_YZ = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+VERTICAL_YZ = scenes.GRID_TO_YZ
 
 
 # -- command line, machine -------------------------------------------------------------------------------------------
-def parse_args(description: str, **extra) -> argparse.Namespace:
-    """``--json PATH`` plus any extra ``--name default`` options given as keywords (type taken from the default)."""
-    p = argparse.ArgumentParser(description=description)
-    p.add_argument("--json", metavar="PATH", help="write the figures to this JSON file")
-    for name, default in extra.items():
-        p.add_argument(f"--{name.replace('_', '-')}", type=type(default), default=default)
-    return p.parse_args()
+RESULTS_DIR = REPO_ROOT / "benchmarks" / "results"
+"""Committed results of full runs, one ``<name>.json`` per benchmark (the README's figures)."""
+QUICK_DIR = RESULTS_DIR / "quick"
+"""Results of ``--quick`` runs (ignored by git)."""
+
+
+def parse_args(description: str | None = None, *, name: str | None = None, quick: dict | None = None,
+               configure=None, **extra) -> argparse.Namespace:
+    """A benchmark's command line: ``--quick``, ``--out PATH`` (alias ``--json``) and one ``--name default`` option
+    per keyword (type taken from the default). ``name`` defaults to the script's file name.
+
+    ``quick`` maps option names to the defaults ``--quick`` uses instead (an option given on the command line wins).
+    ``configure(parser)`` may add options of its own. The namespace also carries ``name``, the start time and load
+    average (for :func:`write_result`) and ``out``: the given path, else ``results/<name>.json``, or
+    ``results/quick/<name>.json`` with ``--quick``.
+    """
+    loadavg = _loadavg() if STARTED[1] is None else STARTED[1]
+    started = STARTED[0]
+    name = name or Path(sys.argv[0]).stem
+    p = argparse.ArgumentParser(description=(description or name).strip().splitlines()[0],
+                                epilog=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true",
+                   help="a few seconds: tiny sizes, few steps (writes results/quick/<name>.json unless --out)")
+    p.add_argument("--out", "--json", dest="out", metavar="PATH",
+                   help=f"write the figures to this JSON file (default benchmarks/results/{name}.json)")
+    for key, default in extra.items():
+        p.add_argument(f"--{key.replace('_', '-')}", type=type(default), default=None,
+                       help=f"default {default!r}" + (f"; --quick: {quick[key]!r}" if quick and key in quick else ""))
+    if configure is not None:
+        configure(p)
+    args = p.parse_args()
+    for key, default in extra.items():
+        if getattr(args, key) is None:
+            setattr(args, key, quick[key] if args.quick and quick and key in quick else default)
+    if not args.out:
+        args.out = str((QUICK_DIR if args.quick else RESULTS_DIR) / f"{name}.json")
+    args.name = name
+    args.started = started
+    args.loadavg_start = loadavg
+    args.argv = ["python", os.path.relpath(sys.argv[0], REPO_ROOT) if sys.argv[0] else name, *sys.argv[1:]]
+    return args
+
+
+def _loadavg() -> list[float] | None:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
+
+
+STARTED = (time.perf_counter(), _loadavg())
+"""When this module was imported (the start of a benchmark's run) and the load average then."""
 
 
 def cpu_model() -> str:
@@ -86,15 +141,10 @@ def print_machine(info: dict) -> None:
 # -- scenes ----------------------------------------------------------------------------------------------------------
 def hanging_cloth(res: int, *, requires_grad: bool = False, material: str = "gray-interlock", dtype=wp.float32,
                   device: str = "cpu") -> wc.Model:
-    """1 m square sheet, vertical (YZ plane, facing the +x wind), soft handles on the two top corners."""
-    b = wc.ModelBuilder(gravity=GRAVITY)
-    b.add_cloth_grid((res, res), (1.0, 1.0), material=wc.preset(material, thicken=THICKEN), rot=VERTICAL_YZ,
-                     pos=(0.0, -0.5, -0.5))
-    top = res * (res + 1)  # vertex (i, j) = j * (res + 1) + i; top row j = res
-    b.add_handle(top, stiffness=HANDLE_STIFFNESS)
-    b.add_handle(top + res, stiffness=HANDLE_STIFFNESS)
-    b.set_wind(WIND, density=1.0, drag=0.0)
-    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+    """1 m square sheet, vertical (YZ plane, facing the +x wind), soft handles on the two top corners: the seed's
+    scene (``scenes.hanging_cloth``) at ``res`` x ``res`` cells."""
+    return scenes.hanging_cloth(wc.preset(material, thicken=THICKEN), res=res, device=device, dtype=dtype,
+                                requires_grad=requires_grad)
 
 
 def seed_dir() -> Path:
@@ -111,15 +161,11 @@ def seed_wind_cloth(material: str, *, requires_grad: bool = False, dtype=wp.floa
 
     The cloth starts at rest: the seed's targets match a start from rest to 1e-6 m after one frame, not the
     ``nv`` velocities stored in demo_wind.obj (0.1 mm off). ``lagged_normals`` reproduces ARCSim's one-step lag of
-    the wind's face normals.
+    the wind's face normals. Built by ``scenes.hanging_cloth``.
     """
-    b = wc.ModelBuilder(gravity=GRAVITY)
-    b.add_cloth_obj(seed_dir() / "meshes" / "demo_wind.obj", material=wc.preset(material, thicken=THICKEN),
-                    vel=(0.0, 0.0, 0.0))
-    for p in (2, 3):
-        b.add_handle(p, stiffness=HANDLE_STIFFNESS)
-    b.set_wind(WIND, density=1.0, drag=0.0, lagged_normals=lagged_normals)
-    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+    mesh = seed_dir() / "meshes" / "demo_wind.obj"
+    return scenes.hanging_cloth(wc.preset(material, thicken=THICKEN), mesh_path=mesh, lagged_normals=lagged_normals,
+                                device=device, dtype=dtype, requires_grad=requires_grad)
 
 
 def advance(sim: wc.Simulator, state: wc.State, steps: int) -> wc.State:
@@ -129,11 +175,6 @@ def advance(sim: wc.Simulator, state: wc.State, steps: int) -> wc.State:
         sim.step(state, nxt)
         state = nxt
     return state
-
-
-def copy_state(model: wc.Model, state: wc.State, *, requires_grad: bool) -> wc.State:
-    return wc.State(wp.clone(state.particle_x, requires_grad=requires_grad),
-                    wp.clone(state.particle_v, requires_grad=requires_grad), state.time)
 
 
 # -- timing ----------------------------------------------------------------------------------------------------------
@@ -205,8 +246,13 @@ def launch_profile():
 
 @contextlib.contextmanager
 def alloc_profile():
-    """Count host allocations of Warp arrays on the CPU device: yields ``{"count": n, "bytes": b}``."""
-    from warp._src.context import CpuDefaultAllocator
+    """Count host allocations of Warp arrays on the CPU device: yields ``{"count": n, "bytes": b}`` (both None when
+    this Warp version has no such allocator to patch: the figures are left out, the benchmark still runs)."""
+    try:
+        from warp._src.context import CpuDefaultAllocator  # Warp's internals: the one private name used here
+    except ImportError:
+        yield {"count": None, "bytes": None}
+        return
 
     stats = {"count": 0, "bytes": 0}
     orig = CpuDefaultAllocator.allocate
@@ -221,30 +267,6 @@ def alloc_profile():
         yield stats
     finally:
         CpuDefaultAllocator.allocate = orig
-
-
-@contextlib.contextmanager
-def method_profile(obj, names):
-    """Time calls of the bound methods ``names`` of ``obj`` (instance attributes shadow the class's)."""
-    stats = defaultdict(lambda: [0, 0.0])
-    for name in names:
-        orig = getattr(obj, name)
-
-        def wrapper(*args, _orig=orig, _name=name, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return _orig(*args, **kwargs)
-            finally:
-                s = stats[_name]
-                s[0] += 1
-                s[1] += time.perf_counter() - t0
-
-        setattr(obj, name, wrapper)
-    try:
-        yield stats
-    finally:
-        for name in names:
-            delattr(obj, name)
 
 
 # -- output ----------------------------------------------------------------------------------------------------------
@@ -283,9 +305,51 @@ def _jsonable(obj):
     return obj
 
 
-def write_json(path: str | None, data) -> None:
-    if not path:
-        return
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(_jsonable(data), indent=2) + "\n")
-    print(f"\nwrote {path}")
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+"""Environment variables that set NumPy's BLAS threads (the host-side collision QP): recorded with every run."""
+
+
+def run_metadata(args: argparse.Namespace, device: str = "cpu") -> dict:
+    """What a result file says about its run: date, command, quick flag, versions, device, CPUs, load averages."""
+    info = machine_info(device)
+    return {
+        "benchmark": args.name,
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": shlex.join(args.argv),
+        "quick": bool(args.quick),
+        "options": {k: v for k, v in vars(args).items()
+                    if k not in ("name", "started", "loadavg_start", "argv", "out")},
+        "warp": info["warp"],
+        "warpcloth": getattr(wc, "__version__", None) or _package_version("warpcloth"),
+        "device": info["device"],
+        "cpu": info["cpu"],
+        "cpu_count": info["cpu_count"],
+        "cpu_usable": info["cpu_usable"],
+        "platform": info["platform"],
+        "python": info["python"],
+        "numpy": info["numpy"],
+        "env": {k: os.environ[k] for k in THREAD_VARS if k in os.environ},
+        "loadavg_start": args.loadavg_start,
+        "loadavg_end": _loadavg(),
+        "wall_s": round(time.perf_counter() - args.started, 2),
+    }
+
+
+def _package_version(name: str) -> str | None:
+    try:
+        from importlib.metadata import version
+
+        return version(name)
+    except Exception:  # noqa: BLE001 - metadata is optional
+        return None
+
+
+def write_result(args: argparse.Namespace, data: dict, *, device: str = "cpu") -> Path:
+    """Write ``{"meta": run_metadata(...), **data}`` to ``args.out`` and return the path."""
+    meta = run_metadata(args, device)
+    path = Path(args.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_jsonable({"meta": meta, **data}), indent=2) + "\n")
+    load = meta["loadavg_start"], meta["loadavg_end"]
+    print(f"\nwrote {path} ({meta['wall_s']:.1f} s; load average {load[0]} at start, {load[1]} at the end)")
+    return path

@@ -3,15 +3,16 @@
 Scene: ``common.hanging_cloth`` (1 m sheet, RESxRES cells, gray-interlock x2, two soft handles, 5 m/s wind, dt 0.02 s,
 default SolverOptions), in float32 and float64. Loss: the final mean height of the cloth. Gradients of the loss with
 respect to the initial velocities (2-norm over every particle's three components), the density, and the 6x4
-stretching table (2-norm). Horizons up to TAPE_MAX steps are recorded on one ``wp.Tape``; longer ones go through
-``warpcloth.solver.checkpointed_backward`` (O(sqrt T) stored states).
+stretching table (2-norm). Horizons up to --tape-max steps are recorded on one ``wp.Tape``; longer ones go through
+``wc.checkpointed_backward`` (O(sqrt T) stored states).
 
     |dL/dv0|, |dL/drho|, |dL/dS|   the norms at each horizon
     growth                         norm / norm at the previous horizon
     rate /s                        ln(growth) / (time between the horizons): the exponential growth rate
     f32 vs f64                     |g32 - g64| / |g64|: whether float32's gradient is still the same gradient
 
-Usage: python benchmarks/gradient_growth.py [--json PATH] [--res 16] [--horizons 50,200,700]
+Usage: python benchmarks/gradient_growth.py [--quick] [--out PATH] [--res 16] [--horizons 50,200,700]
+       [--tape-max 200]
 """
 
 from __future__ import annotations
@@ -19,15 +20,13 @@ from __future__ import annotations
 import math
 import time
 
+import common
 import numpy as np
 import warp as wp
-
-import common
 from common import wc
-from warpcloth.solver.checkpoint import checkpointed_backward
 
 TAPE_MAX = 200
-"""Longest horizon recorded on a single tape; longer ones are checkpointed."""
+"""Longest horizon recorded on a single tape (default of --tape-max); longer ones are checkpointed."""
 
 
 @wp.kernel
@@ -40,14 +39,14 @@ def mean_height_f64(x: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64
     wp.atomic_add(loss, 0, x[wp.tid()][2] / wp.float64(x.shape[0]))
 
 
-def gradients(res: int, dtype, steps: int) -> dict:
+def gradients(res: int, dtype, steps: int, tape_max: int = TAPE_MAX) -> dict:
     """Loss and gradients of one horizon, from a fresh model and simulator."""
     model = common.hanging_cloth(res, requires_grad=True, dtype=dtype)
     sim = wc.Simulator(model, common.DT)
     state = model.state()
     kernel = mean_height_f32 if dtype == wp.float32 else mean_height_f64
     t0 = time.perf_counter()
-    if steps <= TAPE_MAX:
+    if steps <= tape_max:
         tape = wp.Tape()
         with tape:
             final = wc.rollout(sim, state, steps=steps)[-1]
@@ -60,7 +59,7 @@ def gradients(res: int, dtype, steps: int) -> dict:
             if i == steps:
                 wp.launch(kernel, model.particle_count, inputs=[s.particle_x], outputs=[out])
 
-        loss, _ = checkpointed_backward(sim, state, None, steps=steps, loss=step_loss)
+        loss, _ = wc.checkpointed_backward(sim, state, None, steps=steps, loss=step_loss)
         method = "checkpointed"
     seconds = time.perf_counter() - t0
     g_v = state.particle_v.grad.numpy().astype(np.float64)
@@ -82,12 +81,13 @@ def gradients(res: int, dtype, steps: int) -> dict:
 
 
 def main():
-    args = common.parse_args(__doc__.splitlines()[0], res=16, horizons="50,200,700")
+    args = common.parse_args(__doc__, res=16, horizons="50,200,700", tape_max=TAPE_MAX,
+                             quick={"res": 4, "horizons": "4,16", "tape_max": 8})
     horizons = sorted(int(h) for h in args.horizons.split(",") if h)
     info = common.machine_info()
     common.print_machine(info)
     print(f"scene: hanging {args.res}x{args.res} sheet, wind {common.WIND}, gray-interlock x{common.THICKEN:g}, "
-          f"dt {common.DT}; loss = final mean height; horizons {horizons} (tape up to {TAPE_MAX} steps, "
+          f"dt {common.DT}; loss = final mean height; horizons {horizons} (tape up to {args.tape_max} steps, "
           "checkpointed beyond)")
 
     records = []
@@ -95,7 +95,7 @@ def main():
         gradients(args.res, dtype, 2)  # load the kernels and their adjoints (untimed)
         previous = None
         for steps in horizons:
-            rec = gradients(args.res, dtype, steps)
+            rec = gradients(args.res, dtype, steps, args.tape_max)
             for key in ("v0", "density", "stretching"):
                 norm = rec[f"grad_{key}_norm"]
                 growth = rate = None
@@ -134,9 +134,8 @@ def main():
         title="gradient norms by horizon (growth: over the previous horizon; rate: ln(growth) per simulated second)")
     for r in records:
         del r["_g"]
-        r["machine"] = info
         r["res"] = args.res
-    common.write_json(args.json, records)
+    common.write_result(args, {"res": args.res, "dt": common.DT, "tape_max": args.tape_max, "records": records})
 
 
 if __name__ == "__main__":

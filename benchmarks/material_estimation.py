@@ -8,8 +8,9 @@ runtime = wall time of the forward + backward evaluations / (evaluations x steps
 Cross-simulator check (``--cross``): fit to the seed's own target sequences (../shared/.../targets, made by the
 seed's C++ code with self-collision, repulsion and lagged wind normals) and report the simulation error.
 
-Usage: python benchmarks/material_estimation.py [--optimizers lbfgs,adam,seed-sgd] [--iters 150]
-       [--materials all|name,...] [--cross 1] [--json PATH]
+Usage: python benchmarks/material_estimation.py [--quick] [--out PATH] [--optimizers lbfgs,adam,seed-sgd]
+       [--iters 150] [--materials all|name,...] [--cross 1] [--steps 50]
+       (--quick: gray-interlock, 4 steps, 2 evaluations, no cross-check)
 """
 
 from __future__ import annotations
@@ -17,21 +18,21 @@ from __future__ import annotations
 import statistics
 import time
 
-import numpy as np
-
 import common
 from common import wc
+
 from warpcloth.tasks import estimation as E
+from warpcloth.tasks.scenes import hanging_cloth
 
 KEYS = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", "stretch_nonlinear_err_pct",
         "bending_err_pct", "sim_err_pct")
 SEED_TARGETS = {"11oz": "11oz-black-denim", "gray": "gray-interlock", "tango": "tango-red-jet-set"}
 
 
-def fit_one(truth_name: str, optimizer: str, iters: int) -> dict:
+def fit_one(truth_name: str, optimizer: str, iters: int, steps: int = E.STEPS) -> dict:
     truth = wc.preset(truth_name, thicken=E.THICKEN)
-    model = E.hanging_cloth(truth, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj")
-    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth))
+    model = hanging_cloth(truth, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj")
+    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=steps), steps=steps)
     result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
     record = {"material": truth_name, "optimizer": optimizer, "iters": iters,
               "runtime_s_per_step_iter": result.seconds_per_step_iter, **E.parameter_errors(result.material, truth),
@@ -55,7 +56,7 @@ def cross_check(optimizer: str, iters: int) -> list[dict]:
     for short, name in SEED_TARGETS.items():
         files = E.target_files(common.seed_dir() / "targets" / short)
         frames = E.load_target_sequence(files)
-        model = E.hanging_cloth(E.initial_guess(), mesh_path=files[0])
+        model = hanging_cloth(E.initial_guess(), mesh_path=files[0])
         fit = E.TrajectoryFit(model, frames)
         result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
         truth = wc.preset(name, thicken=E.THICKEN)
@@ -67,7 +68,8 @@ def cross_check(optimizer: str, iters: int) -> list[dict]:
 
 
 def main():
-    args = common.parse_args(__doc__.splitlines()[0], optimizers="lbfgs", iters=150, materials="all", cross=1)
+    args = common.parse_args(__doc__, optimizers="lbfgs", iters=150, materials="all", cross=1, steps=E.STEPS,
+                             quick={"iters": 2, "materials": "gray-interlock", "cross": 0, "steps": 4})
     names = list(wc.PRESET_NAMES) if args.materials == "all" else args.materials.split(",")
     optimizers = args.optimizers.split(",")
     per_material, means = [], []
@@ -76,7 +78,7 @@ def main():
     for opt in optimizers:
         records = []
         for name in names:
-            record, baseline = fit_one(name, opt, args.iters)
+            record, baseline = fit_one(name, opt, args.iters, args.steps)
             records.append(record)
             if opt == optimizers[0]:
                 baselines.append(baseline)
@@ -116,7 +118,8 @@ def main():
                             "sim_err_pct_true_material", "density_err_pct", "stretch_linear_err_pct",
                             "stretch_nonlinear_err_pct", "bending_err_pct")] for r in cross])
     mean = dict(best)
-    common.write_json(args.json, {"per_material": per_material, "baseline": baselines, "mean": mean,
+    common.write_result(args, {"steps": args.steps, "per_material": per_material, "baseline": baselines,
+                               "seed_baseline": E.SEED_BASELINE, "mean": mean,
                                   "means": means, "seed": seed, "cross_simulator": cross})
 
 

@@ -47,22 +47,23 @@ timings only, and the equal-error summary shows their best possible figure (as i
 threshold) as an optimistic bound; warpcloth's ratio is given against Newton's best measured solver and against
 the bounds too. The target counts as met only if it holds against both.
 
-Usage: python benchmarks/peers.py [--json PATH] [--res 32,64] [--solvers warpcloth,vbd,...] [--quick]
-       [--t-end 0.5] [--thresholds 1,3,10] [--budget-s 150] [--diffsim-iters 10]
+Usage: python benchmarks/peers.py [--quick] [--out PATH] [--res 32,64] [--solvers warpcloth,vbd,...]
+       [--t-end 0.5] [--sweep-points N] [--thresholds 1,3,10] [--budget-s 150] [--diffsim-iters 10]
+       [--diffsim-newton 1]
+--quick: 8x8, 0.1 s, the two coarsest time steps per solver, one warpcloth diffsim iteration (no Newton diffsim);
+without Newton installed it runs warpcloth's side alone and says so (a full run then stops).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 import types
 import warnings
 
+import common
 import numpy as np
 import warp as wp
-
-import common
 from common import wc
 
 try:
@@ -143,8 +144,7 @@ def build_warpcloth(res: int, options: wc.SolverOptions):
     def simulate(k: int, steps: int, step_times: list):
         # one Simulator per dt (built once), states ping-ponged like Newton's examples do
         sim = sims.get(k) or sims.setdefault(k, wc.Simulator(model, 1.0 / k, options=options))
-        sim._previous_dv = None  # every run starts cold, whatever ran before with this dt
-        a, b_ = model.state(), model.empty_state()
+        a, b_ = model.state(), model.empty_state()  # a fresh State: every run starts cold
         for i in range(steps):
             t0 = time.perf_counter()
             sim.step(a, b_)
@@ -289,9 +289,10 @@ def rms_pct(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1)))) / SIZE * 100.0
 
 
-def study(solver: str, res: int, t_end: float, budget_s: float):
-    """Rows for one solver and resolution, plus its reference positions (None when not run)."""
-    sweep = SWEEPS[solver]
+def study(solver: str, res: int, t_end: float, budget_s: float, points: int = 0):
+    """Rows for one solver and resolution, plus its reference positions (None when not run); ``points`` > 0 takes
+    the coarsest ``points`` time steps of the solver's sweep only."""
+    sweep = SWEEPS[solver][:points] if points > 0 else SWEEPS[solver]
     ref_k = REF_FACTOR * max(sweep)
     t0 = time.perf_counter()
     simulate, particles = build(solver, res)
@@ -524,7 +525,7 @@ def diffsim_warpcloth_model():
     return b.finalize("cpu", requires_grad=True)
 
 
-def diffsim_warpcloth(iters: int) -> dict:
+def diffsim_warpcloth(iters: int, dt_error: bool = True) -> dict:
     d = DIFFSIM
     model = diffsim_warpcloth_model()
     sim = wc.Simulator(model, 1.0 / DIFFSIM_WC_FPS)
@@ -563,17 +564,18 @@ def diffsim_warpcloth(iters: int) -> dict:
             st = nxt
         return st.particle_x.numpy().mean(axis=0)
 
-    dt_err = float(np.linalg.norm(final_com(DIFFSIM_WC_FPS) - final_com(round(1.0 / d["dt"]))))
+    dt_err = (float(np.linalg.norm(final_com(DIFFSIM_WC_FPS) - final_com(round(1.0 / d["dt"]))))
+              if dt_error else None)
     return {"s_per_iter": common.median(times), "iter_times_s": times, "losses": losses, "steps": steps,
             "dt": 1.0 / DIFFSIM_WC_FPS, "particles": n, "com_dt_error_m": dt_err,
             "cg_iters_per_step": sim.stats["cg_iterations"] / max(1, sim.stats["steps"])}
 
 
-def diffsim(iters: int, with_newton: bool) -> dict:
+def diffsim(iters: int, with_newton: bool, dt_error: bool = True) -> dict:
     print(f"\ndiffsim: {iters} gradient-descent iterations each (Newton's example as shipped; warpcloth at "
           f"dt 1/{DIFFSIM_WC_FPS})", flush=True)
     out = {"iters": iters, "task": {k: v for k, v in DIFFSIM.items()}}
-    out["warpcloth"] = diffsim_warpcloth(iters)
+    out["warpcloth"] = diffsim_warpcloth(iters, dt_error)
     print(f"  warpcloth: {out['warpcloth']['s_per_iter']:.3f} s/iteration", flush=True)
     if with_newton:
         out["newton"] = diffsim_newton(iters)
@@ -590,8 +592,9 @@ def diffsim(iters: int, with_newton: bool) -> dict:
     common.print_table(["simulator", "steps", "dt", "s / iteration", "first loss", f"loss at iteration {iters}",
                         "ratio"], rows, ["", "d", "", ".3f", ".2f", ".2f", ".3f"],
                        title="diffsim cloth: time per iteration (forward + backward + update, median) and loss")
-    print(f"  warpcloth's dt error on this task: |com(2 s) at 1/{DIFFSIM_WC_FPS} - at 1/960| = "
-          f"{w['com_dt_error_m'] * 100:.2f} cm; {w['cg_iters_per_step']:.1f} CG iterations per step")
+    if w["com_dt_error_m"] is not None:
+        print(f"  warpcloth's dt error on this task: |com(2 s) at 1/{DIFFSIM_WC_FPS} - at 1/960| = "
+              f"{w['com_dt_error_m'] * 100:.2f} cm; {w['cg_iters_per_step']:.1f} CG iterations per step")
     if nw:
         print(f"  target: warpcloth >= {DIFFSIM_TARGET_SPEEDUP:g}x faster per iteration: {out['speedup']:.1f}x "
               f"{'MET' if out['speedup_met'] else 'NOT MET'}; loss <= Newton's after {iters}: "
@@ -602,40 +605,52 @@ def diffsim(iters: int, with_newton: bool) -> dict:
 
 
 # -- main ------------------------------------------------------------------------------------------------------------
-def parse_args():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--json", metavar="PATH", help="write the figures to this JSON file")
-    p.add_argument("--res", default=None, help="comma-separated grid resolutions (default 32,64; --quick: 32)")
+def options(p) -> None:
+    p.add_argument("--res", default=None, help="comma-separated grid resolutions (default 32,64; --quick: 8)")
     p.add_argument("--solvers", default=",".join(DEFAULT_SOLVERS),
                    help=f"comma-separated, from {','.join(SOLVERS)} (warpcloth-fast: the 'fast' preset, cg_tol 1e-3)")
-    p.add_argument("--t-end", type=float, default=T_END, help="simulated time of every run [s]")
+    p.add_argument("--t-end", type=float, default=None, help=f"simulated time of every run [s] (default {T_END:g}; "
+                   "--quick: 0.1)")
+    p.add_argument("--sweep-points", type=int, default=None,
+                   help="time steps per solver: the N coarsest of its sweep (default all; --quick: 2)")
     p.add_argument("--thresholds", default=",".join(f"{t:g}" for t in ERR_THRESHOLDS_PCT),
                    help="self-convergence error thresholds [%%]; the first decides the target")
     p.add_argument("--budget-s", type=float, default=None,
                    help="most projected wall seconds of one solver's error study at one resolution; 0: no limit "
-                        "(default 150; --quick: 60)")
-    p.add_argument("--diffsim-iters", type=int, default=None, help="0 skips the diffsim part (default 10; --quick 3)")
-    p.add_argument("--quick", action="store_true", help="32x32 only, smaller budget, 3 diffsim iterations")
-    args = p.parse_args()
-    args.res = [int(r) for r in (args.res or ("32" if args.quick else "32,64")).split(",") if r]
+                        "(default 150; --quick: 5)")
+    p.add_argument("--diffsim-iters", type=int, default=None, help="0 skips the diffsim part (default 10; --quick 1)")
+    p.add_argument("--diffsim-newton", type=int, default=None,
+                   help="1: run Newton's diffsim example too (default 1; --quick: 0, it takes seconds per iteration)")
+
+
+def parse_args():
+    args = common.parse_args(__doc__, name="peers", configure=options)
+    q = args.quick
+    args.res = [int(r) for r in (args.res or ("8" if q else "32,64")).split(",") if r]
     args.solvers = [s for s in args.solvers.split(",") if s]
     args.thresholds = [float(t) for t in args.thresholds.split(",") if t]
     bad = [s for s in args.solvers if s not in SWEEPS]
     if bad:
-        p.error(f"unknown solver(s) {bad}; choose from {', '.join(SOLVERS)}")
-    if args.budget_s is None:
-        args.budget_s = 60.0 if args.quick else 150.0
-    if args.diffsim_iters is None:
-        args.diffsim_iters = 3 if args.quick else 10
+        raise SystemExit(f"unknown solver(s) {bad}; choose from {', '.join(SOLVERS)}")
+    defaults = {"t_end": (0.1, T_END), "sweep_points": (2, 0), "budget_s": (5.0, 150.0), "diffsim_iters": (1, 10),
+                "diffsim_newton": (0, 1)}
+    for key, (quick, full) in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, quick if q else full)
     return args
 
 
 def main():
     args = parse_args()
     peers = [s for s in args.solvers if s not in WARPCLOTH]
+    newton_skipped = None
     if newton is None and peers:
         print(NEWTON_HINT + f"\n(import error: {NEWTON_ERROR})")
-        raise SystemExit(2)
+        if not args.quick:
+            raise SystemExit(2)
+        newton_skipped = f"newton not installed ({NEWTON_ERROR}): Newton's solvers skipped, warpcloth's side only"
+        print(f"--quick: {newton_skipped}")
+        args.solvers = [s for s in args.solvers if s in WARPCLOTH]
     info = common.machine_info()
     common.print_machine(info)
     if newton is not None:
@@ -655,7 +670,7 @@ def main():
     for res in args.res:
         for solver in args.solvers:
             t0 = time.perf_counter()
-            r, ref = study(solver, res, args.t_end, args.budget_s)
+            r, ref = study(solver, res, args.t_end, args.budget_s, args.sweep_points)
             rows += r
             if ref is not None:
                 refs[(solver, res)] = ref
@@ -681,15 +696,19 @@ def main():
               "solver's reference to warpcloth's at T")
     report_equal_error(summary, args.thresholds[0])
 
-    out = {"machine": info, "settings": {
+    out = {"newton": newton.__version__ if newton is not None else None, "newton_skipped": newton_skipped,
+           "settings": {
         "size_m": SIZE, "density": DENSITY, "mu": MU, "lambda": LAMBDA, "bend_ke": BEND_KE, "gravity": GRAVITY,
         "t_end": args.t_end, "thresholds_pct": args.thresholds, "ref_factor": REF_FACTOR, "iterations": ITERATIONS,
-        "budget_s": args.budget_s, "sweeps_steps_per_s": {s: SWEEPS[s] for s in args.solvers},
+        "budget_s": args.budget_s,
+        "sweeps_steps_per_s": {s: SWEEPS[s][:args.sweep_points] if args.sweep_points > 0 else SWEEPS[s]
+                               for s in args.solvers},
         "self_contact": "off in every solver"},
         "records": rows, "equal_error": summary}
     if args.diffsim_iters > 0:
-        out["diffsim"] = diffsim(args.diffsim_iters, with_newton=newton is not None)
-    common.write_json(args.json, out)
+        out["diffsim"] = diffsim(args.diffsim_iters, with_newton=newton is not None and bool(args.diffsim_newton),
+                                 dt_error=not args.quick)
+    common.write_result(args, out)
 
 
 if __name__ == "__main__":

@@ -28,25 +28,34 @@ frictionless sheet slides off the sphere's top in a direction that tiny differen
 A setting the simulator cannot run raises; the row shows the error. The presets (warpcloth.solver.presets) are measured
 the same way. Output: a table per scene, JSON, and a Pareto plot of error against wall time (PNG).
 
-Usage: python benchmarks/tradeoff.py [--json PATH] [--plot PNG] [--quick 1] [--scenes hanging,sphere]
+Usage: python benchmarks/tradeoff.py [--quick] [--out PATH] [--plot PNG] [--scenes hanging,sphere]
        python benchmarks/tradeoff.py --from-json PATH [--plot PNG]    (table and plot of an earlier run)
+--quick: 8x8 sheets over a few steps (QUICK_SCENES), one or two settings per family: checks that every path runs,
+its figures mean nothing. The plot goes beside the JSON (results/tradeoff.png; results/quick/ with --quick).
 """
 
 from __future__ import annotations
 
-import json
-import math
-import time
-import traceback
-import warnings
-from pathlib import Path
-from typing import Any
+import os
 
-import numpy as np
-import warp as wp
+# The collision projection's dense algebra runs in NumPy on the host; a multi-threaded BLAS spin-waits against other
+# jobs on a shared 2-core machine, so this benchmark uses one BLAS thread unless the environment says otherwise (set
+# before NumPy loads; recorded in the JSON's meta.env).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import common
-from common import wc
+import json  # noqa: E402
+import math  # noqa: E402
+import time  # noqa: E402
+import traceback  # noqa: E402
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import common  # noqa: E402
+import numpy as np  # noqa: E402
+import warp as wp  # noqa: E402
+from common import wc  # noqa: E402
 
 SIZE = 1.0
 """Side of the square cloth [m]: errors are reported in % of it."""
@@ -74,6 +83,13 @@ SCENES = {
     "hanging": (hanging, 0.4, 1.0 / 50, 1.0 / 2000, 1.0 / 25),
     "sphere": (sphere, 0.3, 1.0 / 100, 1.0 / 800, 1.0 / 25),
 }
+QUICK_SCENES = {
+    "hanging": (hanging, 0.08, 1.0 / 50, 1.0 / 400, 1.0 / 25),
+    "sphere": (sphere, 0.16, 1.0 / 50, 1.0 / 100, 1.0 / 25),
+}
+BASE_RES = {"full": 16, "quick": 8}
+"""Resolution of every row but the resolution family's."""
+MODE = {"base_res": BASE_RES["full"]}
 
 
 @wp.kernel
@@ -84,10 +100,11 @@ def displacement_loss(x0: wp.array(dtype=Any), x1: wp.array(dtype=Any), loss: wp
 
 
 # -- one run ---------------------------------------------------------------------------------------------------------
-def run(scene: str, *, res: int = 16, dt: float | None = None, dtype=wp.float32, thickness: float = 5.0e-4,
+def run(scene: str, *, res: int | None = None, dt: float | None = None, dtype=wp.float32, thickness: float = 5.0e-4,
         options: wc.SolverOptions | None = None, gradient: bool = True) -> dict:
     """Forward (timed, no tape) and, with ``gradient``, taped forward + backward of one setting."""
     build, T, base_dt, _, _ = SCENES[scene]
+    res = res or MODE["base_res"]
     dt = dt or base_dt
     steps = int(round(T / dt))
     options = options or wc.SolverOptions()
@@ -169,13 +186,13 @@ def sweeps(scene: str, quick: bool) -> list[tuple[str, str, dict]]:
     dts = [1 / 25, 1 / 50, 1 / 100, 1 / 200, 1 / 500, 1 / 1000] if scene == "hanging" else \
         [1 / 25, 1 / 50, 1 / 100, 1 / 200, 1 / 400]
     if quick:
-        dts = dts[:3]
+        dts = dts[:2]
     for dt in dts:
         rows.append(("dt", f"dt 1/{round(1 / dt)}", {"dt": dt, "options": wc.SolverOptions(cg_tol=1e-8)}))
     for dt in ([1 / 100, 1 / 200, 1 / 400] if not quick else []):  # small steps with a loose solve
         rows.append(("dt+cg_tol 1e-3", f"dt 1/{round(1 / dt)} tol 1e-3", {"dt": dt,
                                                                         "options": wc.SolverOptions(cg_tol=1e-3)}))
-    tols = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8] if not quick else [1e-2, 1e-5]
+    tols = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8] if not quick else [1e-2]
     for tol in tols:
         rows.append(("cg_tol", f"cg_tol {tol:g}", {"options": wc.SolverOptions(cg_tol=tol)}))
     for tol in ([1e-2, 1e-4, 1e-6] if not quick else [1e-2]):
@@ -185,15 +202,15 @@ def sweeps(scene: str, quick: bool) -> list[tuple[str, str, dict]]:
         rows.append(("cg_max_iters", f"{cap} CG iters", {"options": wc.SolverOptions(cg_tol=1e-8, cg_max_iters=cap)}))
     rows.append(("dtype", "float64", {"dtype": wp.float64, "options": wc.SolverOptions(cg_tol=1e-8)}))
     if scene == "hanging":
-        for res in ([8, 16, 32, 64, 128] if not quick else [8, 16, 32]):
+        for res in ([8, 16, 32, 64, 128] if not quick else [8, 16]):
             rows.append(("res", f"{res}x{res}", {"res": res}))
     else:
-        for thickness in ([1e-4, 5e-4, 2e-3, 5e-3] if not quick else [5e-4, 5e-3]):
+        for thickness in ([1e-4, 5e-4, 2e-3, 5e-3] if not quick else [2e-3]):
             rows.append(("thickness", f"thickness {thickness:g}", {"thickness": thickness}))
-        for rounds in ([1, 2, 5, 10, 20] if not quick else [2, 20]):
+        for rounds in ([1, 2, 5, 10, 20] if not quick else [20]):
             rows.append(("collision_rounds", f"{rounds} rounds",
                          {"options": wc.SolverOptions(collision=wc.CollisionOptions(rounds=rounds))}))
-    for name in wc.PRESET_SOLVER_NAMES:
+    for name in wc.PRESET_SOLVER_NAMES[:1] if quick else wc.PRESET_SOLVER_NAMES:
         preset = wc.solver_preset(name)
         rows.append(("preset", f"preset {name}", {"options": preset.options, "dt": preset.dt(base_dt)}))
     return rows
@@ -231,12 +248,12 @@ def measure(scene: str, quick: bool, progress) -> list[dict]:
             # resolution: against the finest mesh at the same dt (the discretisation of space alone)
             score(row, ref_for(("res", finest), res=finest, dt=row["dt"]), compare_lattice=True)
         elif family == "thickness":
-            score(row, ref_for(("thickness", kw["thickness"]), res=16, thickness=kw["thickness"]))
+            score(row, ref_for(("thickness", kw["thickness"]), res=MODE["base_res"], thickness=kw["thickness"]))
         else:
-            score(row, ref_for(("base",), res=16))
+            score(row, ref_for(("base",), res=MODE["base_res"]))
         if family in SOLVER_FAMILIES:
             # the same discrete system solved tightly: what the solver settings alone cost in accuracy
-            same = score(dict(row), ref_for(("dt", row["dt"]), res=16, dt=row["dt"]))
+            same = score(dict(row), ref_for(("dt", row["dt"]), res=MODE["base_res"], dt=row["dt"]))
             row["solve_err_pct"], row["solve_grad_err_pct"] = same.get("err_pct"), same.get("grad_err_pct")
         rows.append(row)
         progress(row)
@@ -307,8 +324,9 @@ def plot(results: dict[str, list[dict]], path: str) -> None:
 
 
 def main():
-    args = common.parse_args(__doc__.splitlines()[0], plot="tradeoff.png", quick=0, scenes="hanging,sphere",
-                             from_json="")
+    args = common.parse_args(__doc__, plot="", scenes="hanging,sphere", from_json="")
+    if not args.plot:
+        args.plot = str(Path(args.out).with_suffix(".png"))
     if args.from_json:  # table and plot again from a previous run's JSON
         data = json.loads(Path(args.from_json).read_text())
         for scene, rows in data["scenes"].items():
@@ -316,6 +334,9 @@ def main():
         if args.plot:
             plot(data["scenes"], args.plot)
         return
+    if args.quick:
+        SCENES.update(QUICK_SCENES)
+        MODE["base_res"] = BASE_RES["quick"]
     info = common.machine_info()
     common.print_machine(info)
     results = {}
@@ -330,9 +351,11 @@ def main():
     if args.plot:
         plot(results, args.plot)
     strip = ("x", "grad")
-    common.write_json(args.json, {"machine": info, "reference_cg_tol": REF_TOL,
-                                  "scenes": {s: [{k: v for k, v in r.items() if k not in strip} for r in rows]
-                                             for s, rows in results.items()}})
+    common.write_result(args, {"reference_cg_tol": REF_TOL, "base_res": MODE["base_res"],
+                               "scenes_settings": {s: {"T": SCENES[s][1], "baseline_dt": SCENES[s][2],
+                                                       "reference_dt": SCENES[s][3]} for s in results},
+                               "scenes": {s: [{k: v for k, v in r.items() if k not in strip} for r in rows]
+                                          for s, rows in results.items()}})
 
 
 if __name__ == "__main__":

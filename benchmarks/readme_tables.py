@@ -1,0 +1,625 @@
+"""The README's benchmark figures, rendered from the JSON files the benchmarks wrote into benchmarks/results/.
+
+Every measured figure in README.md sits in a block
+
+    <!-- results NAME: benchmarks/results/FILE.json [...] -->
+    ... (generated: a table, or sentences with the figures) ...
+    <!-- end results -->
+
+whose body is ``BLOCKS[NAME]`` applied to those files. ``python benchmarks/readme_tables.py`` rewrites every block
+from the current results; ``--check`` only compares and exits 1 on a difference (``tests/test_benchmarks.py`` runs
+the same check, so a hand-edited figure or a stale table fails the tests).
+
+Plain JSON and Markdown only: this module imports neither Warp nor warpcloth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RESULTS_DIR = REPO_ROOT / "benchmarks" / "results"
+README = REPO_ROOT / "README.md"
+
+BLOCK_RE = re.compile(r"^<!-- results (?P<name>[\w-]+): (?P<files>[^>]*?) -->\n(?P<body>.*?)^<!-- end results -->$",
+                      re.S | re.M)
+
+
+# -- number formats --------------------------------------------------------------------------------------------------
+def g(x, n: int = 3) -> str:
+    """``x`` to ``n`` significant digits in fixed notation (integers from 10**n up); "–" for None."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "–"
+    if x == 0:
+        return "0"
+    a = abs(x)
+    if a >= 10 ** (n - 1):
+        return f"{x:.0f}"
+    digits = n - 1 - math.floor(math.log10(a))
+    out = f"{x:.{digits}f}"
+    if abs(float(out)) >= 10 ** (n - digits):  # rounding carried into a new digit (9.996 -> 10.00)
+        out = f"{x:.{max(digits - 1, 0)}f}"
+    return out
+
+
+def pct(x, n: int = 2) -> str:
+    return f"{g(x, n)} %"
+
+
+def length(x) -> str:
+    """A distance [m] in µm, mm or m, two significant digits."""
+    if x < 1e-4:
+        return f"{g(x * 1e6, 2)} µm"
+    if x < 0.1:
+        return f"{g(x * 1e3, 2)} mm"
+    return f"{g(x, 2)} m"
+
+
+def sci(x: float) -> str:
+    """1e-06 -> 1e-6."""
+    text = f"{x:.0e}" if float(f"{x:.0e}") == x else f"{x:g}"
+    return re.sub(r"e([-+])0*(\d)", lambda m: "e" + ("-" if m[1] == "-" else "") + m[2], text)
+
+
+def frac(dt: float) -> str:
+    """1/k for a time step of 1/k s."""
+    return f"1/{round(1 / dt)}"
+
+
+def met(ok: bool) -> str:
+    return "**met**" if ok else "**not met**"
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def provenance(data: dict, what: str = "") -> str:
+    """One line: the command, date and load average of the run (from the file's ``meta``)."""
+    meta = data.get("meta")
+    if not meta:
+        return f"Run: {what}(the file predates run metadata)." if what else "Run: (the file predates run metadata)."
+    load = meta.get("loadavg_start"), meta.get("loadavg_end")
+    load_s = (f"; load average {load[0][0]:g} at the start, {load[1][0]:g} at the end" if all(load) else "")
+    env = meta.get("env") or {}
+    blas = (", one BLAS thread" if env and set(env.values()) == {"1"}
+            else "".join(f", {k}={v}" for k, v in env.items()))
+    return (f"Run: `{meta['command']}`{blas}, {meta['date'][:10]}, {meta['cpu_usable']}/{meta['cpu_count']} CPUs "
+            f"({meta['cpu']}), warp {meta['warp']}, {duration(meta['wall_s'])}{load_s}.")
+
+
+def duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
+# -- blocks ----------------------------------------------------------------------------------------------------------
+def step_time(d: dict) -> str:
+    recs = d["records"]
+    rows = [[f"{r['res']}×{r['res']}", r["particles"], g(r["forward_ms"]), g(r["taped_forward_ms"]),
+             g(r["backward_ms"]), g(r["forward_backward_ms"]), f"{r['cg_iters']:.0f}", f"{r['adjoint_cg_iters']:.0f}"]
+            for r in recs]
+    out = [table(["grid", "particles", "forward ms", "taped forward ms", "backward ms", "forward+backward ms",
+                  "CG it/step", "adjoint CG it/step"], rows), ""]
+    by_res = {r["res"]: r for r in recs}
+    t = d["targets"]
+    targets = []
+    if 64 in by_res:
+        ms = by_res[64]["forward_ms"]
+        targets.append(f"a 64×64 step ≤ {t['step_ms_64']:g} ms ({met(ms <= t['step_ms_64'])}: {g(ms)} ms)")
+    if 16 in by_res:
+        ms = by_res[16]["forward_backward_ms"]
+        targets.append(f"forward+backward ≤ {t['fwd_bwd_ms_16']:g} ms per step at 16×16 "
+                       f"({met(ms <= t['fwd_bwd_ms_16'])}: {g(ms)} ms)")
+    if targets:
+        out.append("Targets from the issue: " + " and ".join(targets) + ".")
+    before = d.get("before")
+    if before:
+        old = {r["res"]: r for r in before["records"]}
+        parts = [f"{r['res']}×{r['res']} {g(old[r['res']]['forward_ms'])} → {g(r['forward_ms'])} ms forward, "
+                 f"{g(old[r['res']]['forward_backward_ms'])} → {g(r['forward_backward_ms'])} ms forward+backward"
+                 for r in recs if r["res"] in old]
+        out.append(f"Against {before['label']} (the same benchmark, run just before this one): " + "; ".join(parts)
+                   + ".")
+    prof = [r for r in recs if r.get("profile")]
+    if prof:
+        parts = []
+        for r in prof:
+            f = r["profile"]["forward"]
+            cg = f["launch_ms"].get("cg_sequential")
+            if cg is not None:
+                parts.append(f"{100 * cg / f['total_ms']:.0f} % at {r['res']}×{r['res']}")
+        if parts:
+            out.append("The CG solve (`cg_sequential`) takes " + ", ".join(parts) + " of the forward step.")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def collision_ablation(d: dict) -> str:
+    seed = d["seed"]
+    rows = []
+    done = set()
+    for r in d["records"]:
+        s = seed.get(r["mesh"])
+        rows.append([
+            r["mesh"].replace("x", "×"),
+            f"{r['kkt_size']:.0f} ± {r['kkt_size_std']:.0f} ({r['kkt_size_max']})",
+            f"{r['qr_size']:.0f} ± {r['qr_size_std']:.0f} ({r['qr_size_max']})",
+            g(r["kkt_backward_s"]), g(r["qr_backward_s"]), g(r["speedup"]),
+            f"{g(r['kkt_backward_zone_s'], 2)} / {g(r['qr_backward_zone_s'], 2)}", g(r["forward_s"], 2),
+            f"{s['kkt_backward_s']:g} / {s['qr_backward_s']:g}, {s['speedup']:g}" if s else "–"])
+        done.add(r["mesh"])
+    for mesh, s in seed.items():
+        if mesh not in done:
+            rows.append([mesh.replace("x", "×"), "not run (see above)", "", "", "", "", "", "",
+                         f"{s['kkt_backward_s']:g} / {s['qr_backward_s']:g}, {s['speedup']:g}"])
+    out = [table(["mesh", "KKT size (n+m)", "QR size", "KKT backward s", "QR backward s", "speedup",
+                  "per zone: KKT / QR s", "forward s", "seed: KKT / QR s, speedup"], rows), ""]
+    measured = [r for r in d["records"] if r["mesh"] in seed]
+    sp = [f"{r['mesh'].replace('x', '×')} {met(r['speedup'] >= seed[r['mesh']]['speedup'])} "
+          f"({g(r['speedup'])} against {seed[r['mesh']]['speedup']:g})" for r in measured]
+    qr = [f"{r['mesh'].replace('x', '×')} {met(r['qr_backward_s'] <= seed[r['mesh']]['qr_backward_s'] / 10)} "
+          f"({g(r['qr_backward_s'], 2)} s against {g(seed[r['mesh']]['qr_backward_s'] / 10, 2)} s)" for r in measured]
+    line = ("Targets from the issue: speedups at least the seed's: " + "; ".join(sp) +
+            ". QR backward at most a tenth of the seed's: " + "; ".join(qr) + ".")
+    r32 = next((r for r in d["records"] if r["mesh"] == "32x32"), None)
+    if r32:
+        lim = d["target_forward_32_s"]
+        line += (f" A 32×32 crumpled forward step under {lim:g} s: {met(r32['forward_s'] < lim)} "
+                 f"({g(r32['forward_s'], 2)} s).")
+    rounds = sorted({r["rounds"] for r in d["records"]})
+    out.append(line + f" Projection rounds per step: {', '.join(map(str, rounds))}.")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+CG_ROWS = (("sequential jacobi", "sequential, Jacobi"), ("sequential block_jacobi", "sequential, block Jacobi"),
+           ("sequential block_ssor w=1.5", "sequential, block SSOR ω=1.5 (CPU default)"),
+           ("sequential block_ssor w=1.5 + warm start", "the same, warm-started from the previous step's dv"),
+           ("warp cg diag (library call)", "`warp.optim.linear.cg`, diag"),
+           ("warp cg block_jacobi (library default)", "`warp.optim.linear.cg`, block Jacobi (the CUDA default)"))
+
+
+def cg_solvers(d: dict) -> str:
+    sizes = [s["res"] for s in d["sizes"]]
+    by = {(r["res"], r["solver"]): r for r in d["solves"]}
+    header = [f"solver (tol {sci(d['tol'])})"]
+    for res in sizes:
+        header += [f"{res}² iterations", f"{res}² ms/solve"]
+    rows = []
+    for key, label in CG_ROWS:
+        row = [label]
+        for res in sizes:
+            r = by.get((res, key))
+            row += [r["iters"] if r else "–", g(r["ms_per_solve"]) if r else "–"]
+        rows.append(row)
+    out = [table(header, rows), ""]
+    parts, ssor = [], []
+    for s in d["sizes"]:
+        res = s["res"]
+        w, bj = by[(res, "warp cg diag (library call)")], by[(res, "sequential block_jacobi")]
+        bs = by[(res, "sequential block_ssor w=1.5")]
+        parts.append(f"{g(w['ms_per_iter'], 2)} ms per iteration at {s['n']} particles against "
+                     f"{g(bj['ms_per_iter'], 2)} ms per block-Jacobi iteration of the sequential CG (its solve "
+                     f"{w['ms_per_solve'] / bj['ms_per_solve']:.0f}× faster)")
+        ssor.append(f"from {bj['iters']} to {bs['iters']} at {res}² (solves "
+                    f"{bj['ms_per_solve'] / bs['ms_per_solve']:.1f}× faster)")
+    out.append("`warp.optim.linear.cg` takes " + "; ".join(parts) + ". Block SSOR cuts iterations against block "
+               "Jacobi " + ", ".join(ssor) + ".")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def seed_trajectories(d: dict) -> str:
+    by = {(r["tag"], r["wind_normals"]): r for r in d["materials"]}
+    tags = list(dict.fromkeys(r["tag"] for r in d["materials"]))
+    names = {r["tag"]: r["material"] for r in d["materials"]}
+    dt_frame = d["dt"] * d["steps"] / (d["frames"] - 1)
+    rows = []
+    lagged_frames = sorted({f for f in (1, 4, 10, d["frames"] - 1) if f < d["frames"]})
+    for frame, normals in [(f, "lagged") for f in lagged_frames] + [(1, "current")]:
+        label = f"{frame} ({round(frame * dt_frame, 3):g} s), " + ("lagged normals" if normals == "lagged"
+                                                                   else "current normals (default)")
+        rows.append([label] + [length(by[(t, normals)]["rms_per_frame"][frame]) for t in tags])
+    out = [table(["frame (t)"] + [names[t] for t in tags], rows), ""]
+    lagged = [by[(t, "lagged")] for t in tags]
+    departs = [r["departs_at_frame"] for r in lagged if r["departs_at_frame"] is not None]
+    com = [r["com_frame10_error"] for r in lagged]
+    if departs:
+        out.append(f"With the lagged normals the trajectories first depart by more than 0.1 mm at frames "
+                   f"{min(departs)}–{max(departs)}; the centre of mass at frame 10 (0.4 s) is within "
+                   f"{length(min(com))}–{length(max(com))} of the seed's.")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def gradient_growth(d: dict) -> str:
+    recs = [r for r in d["records"] if r["dtype"] == "float64"]
+
+    def grown(r, key):
+        gr = r.get(f"growth_{key}")
+        return f"{g(r[f'grad_{key}_norm'])}" + (f" (×{g(gr, 2)})" if gr else "")
+
+    rows = [[f"{r['steps']} steps ({g(r['t_s'], 2)} s)", grown(r, "v0"), grown(r, "density"),
+             grown(r, "stretching"), f"{r['f32_vs_f64_v0']:.1e}"] for r in recs]
+    out = [table(["horizon", "‖dL/dv0‖", "dL/d(density)", "‖dL/d(stretching)‖",
+                  "float32 vs float64 (dL/dv0)"], rows), ""]
+    last = recs[-1]
+    out.append(f"Norms in float64; growth factors over the previous horizon; horizons beyond {d['tape_max']} steps "
+               f"checkpointed. At {last['steps']} steps float32's gradient is within "
+               f"{pct(100 * max(last[f'f32_vs_f64_{k}'] for k in ('v0', 'density', 'stretching')))} of float64 "
+               "(largest over the three gradients).")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def components(d: dict) -> str:
+    sizes = list(dict.fromkeys(r["res"] for r in d["rows"]))
+    cases = list(dict.fromkeys(r["case"] for r in d["rows"]))
+    by = {(r["res"], r["case"]): r for r in d["rows"]}
+    header = ["case"]
+    for res in sizes:
+        header += [f"{res}×{res} ms/step", "vs off", "CG it"]
+    rows = []
+    for case in cases:
+        row = [case]
+        for res in sizes:
+            r = by[(res, case)]
+            vs = r.get("vs_off_pct")
+            row += [g(r["ms_per_step"]), "–" if vs is None else ("±0 %" if round(vs) == 0 else f"{vs:+.0f} %"),
+                    f"{r['cg_iters']:.0f}"]
+        rows.append(row)
+    out = [table(header, rows), ""]
+    out.append("Phases of one cold step of the free sheet (everything off), through the public API:")
+    out.append("")
+    out.append(table(["grid", "`sim.assemble` ms", "`sim.linear_solver.solve` ms", "`sim.step` ms", "CG iterations"],
+                     [[f"{p['res']}×{p['res']}", g(p["assemble_ms"]), g(p["solve_ms"]), g(p["step_ms"]),
+                       p["step_iterations"]] for p in d["phases"]]))
+    out.append("")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+PEER_NAMES = {"warpcloth": "warpcloth", "warpcloth-fast": "warpcloth `fast`", "vbd": "Newton VBD",
+              "style3d": "Newton Style3D", "xpbd": "Newton XPBD", "semi_implicit": "Newton SemiImplicit"}
+
+
+def peers(d: dict) -> str:
+    thresholds = d["settings"]["thresholds_pct"]
+    first = thresholds[0]
+    recs = [r for r in d["records"] if not r.get("is_reference")]
+    rows = []
+    for e in (e for e in d["equal_error"] if e["threshold_pct"] == first):
+        res = e["res"]
+        for solver, s in e["per_solver"].items():
+            mine = [r for r in recs if r["solver"] == solver and r["res"] == res]
+            diverged = [r["dt_label"] for r in mine if r["diverged"]]
+            div = f"; {', '.join(diverged)} diverge{'s' if len(diverged) == 1 else ''}" if diverged else ""
+            if s["kind"] == "met":
+                rows.append([f"{res}×{res}", PEER_NAMES[solver], frac(s["dt"]) + (f" ({div[2:]})" if div else ""),
+                             g(s["self_convergence_err"], 2), g(s["ms_per_step"], 2), g(s["sim_s_per_wall_s"], 2)])
+            elif s["kind"] == "none met":
+                measured = [r for r in mine if r["self_convergence_err"] is not None and not r["diverged"]]
+                best = min(measured, key=lambda r: r["self_convergence_err"]) if measured else None
+                what = (f"none ({g(best['self_convergence_err'], 2)} % at {best['dt_label']}{div})" if best
+                        else "none")
+                rows.append([f"{res}×{res}", PEER_NAMES[solver], what, "", g(best["ms_per_step"], 2) if best else "",
+                             ""])
+            else:
+                fastest = [r for r in mine if not r["diverged"]]
+                ms = min((r["ms_per_step"] for r in fastest), default=None)
+                rows.append([f"{res}×{res}", PEER_NAMES[solver], f"error not measured (over the time budget{div})",
+                             "", g(ms, 2) if ms else "", ""])
+    out = [table(["grid", "solver", f"fastest dt with error ≤ {first:g} %", "error %", "ms/step",
+                  "simulated s per wall s"], rows), ""]
+    parts = []
+    for th in thresholds:
+        ratios = [f"{e['speedup']:.2f}× at {e['res']}²" for e in d["equal_error"]
+                  if e["threshold_pct"] == th and e.get("speedup") is not None]
+        if ratios:
+            parts.append(f"≤ {th:g} %: " + ", ".join(ratios))
+    prim = [e for e in d["equal_error"] if e["threshold_pct"] == first and "met" in e]
+    if prim:
+        target = prim[0]["target"]
+        out.append(f"Target: warpcloth ≥ {target:g}× Newton's best at equal error: "
+                   f"{met(all(e['met'] for e in prim))} at {first:g} %. warpcloth's simulated seconds per wall "
+                   "second over Newton's best (measured, or the optimistic bound of a solver whose error was not "
+                   "measured): " + "; ".join(parts) + ".")
+    ds = d.get("diffsim")
+    if ds and "newton" in ds:
+        w, n = ds["warpcloth"], ds["newton"]
+        out.append(f"Newton's diffsim cloth example ({ds['iters']} iterations): warpcloth {g(w['s_per_iter'], 2)} s "
+                   f"per iteration against {g(n['s_per_iter'], 2)} s ({ds['speedup']:.1f}×; target "
+                   f"{5:g}×: {met(ds['speedup_met'])}); loss after {ds['iters']} iterations {g(w['losses'][-1])} "
+                   f"against {g(n['losses'][-1])} (first loss {g(w['losses'][0])} against {g(n['losses'][0])}). "
+                   f"warpcloth's dt 1/{round(1 / w['dt'])} moves the 2 s centre of mass by "
+                   f"{g(100 * w['com_dt_error_m'], 2)} cm against Newton's dt 1/{round(1 / n['dt'])}.")
+    newton = d.get("newton") or (d.get("machine") or {}).get("newton")
+    out.append(provenance(d) + (f" Newton {newton}." if newton else ""))
+    return "\n".join(out)
+
+
+def _tradeoff_rows(d: dict, scene: str) -> list[dict]:
+    return d["scenes"][scene]
+
+
+def _row(rows, label):
+    return next(r for r in rows if r["label"] == label)
+
+
+def presets(d: dict) -> str:
+    hang, sph = _tradeoff_rows(d, "hanging"), _tradeoff_rows(d, "sphere")
+    rows = []
+    for name in ("fast", "balanced", "accurate"):
+        h, s = _row(hang, f"preset {name}"), _row(sph, f"preset {name}")
+        sphere_err = pct(s["err_pct"])
+        if abs(s["dt"] - h["dt"]) > 1e-12:
+            sphere_err += f" (dt {frac(s['dt'])}, the scene's)"
+        rows.append([f"`{name}`", frac(h["dt"]), sci(h["cg_tol"]),
+                     f"{pct(h['err_pct'])} / {pct(h['grad_err_pct'])}",
+                     f"{g(h['wall_s'], 2)} / {g(h['grad_wall_s'], 2)}",
+                     sphere_err, g(s["wall_s"], 2)])
+    out = [table(["preset", "max dt", "cg_tol", "hanging sheet: trajectory / gradient error",
+                  "wall s per simulated s (fwd / fwd+bwd)", "sphere drape: trajectory error", "wall s per s"],
+                 rows), ""]
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def tradeoff_findings(d: dict) -> str:
+    hang, sph = _tradeoff_rows(d, "hanging"), _tradeoff_rows(d, "sphere")
+
+    def fam(rows, family):
+        return [r for r in rows if r["family"] == family]
+
+    dts = [r for r in fam(hang, "dt") if "err_pct" in r]
+    lines = []
+    lines.append("- **The time step is the error.** Implicit Euler is first order: hanging-sheet error "
+                 + ", ".join(g(r["err_pct"], 3) for r in dts) + " % at dt " + ", ".join(frac(r["dt"]) for r in dts)
+                 + f"; the gradient's error follows ({g(dts[0]['grad_err_pct'], 2)} … "
+                 f"{g(dts[-1]['grad_err_pct'], 2)} %).")
+    tols = [r for r in fam(hang, "cg_tol") if "solve_err_pct" in r]
+    tight = max(tols, key=lambda r: -r["cg_tol"])
+    loose = [r for r in tols if r["cg_tol"] >= 1e-3]
+    sph_dt = {r["label"]: r for r in sph}
+    tol_text = ", ".join(f"cg_tol {r['cg_tol']:g} moves the trajectory by {pct(r['solve_err_pct'])} and the gradient "
+                         f"by {pct(r['solve_grad_err_pct'])}" for r in loose)
+    line = (f"- **The CG tolerance barely matters at a given step**: against the tight solve at the same dt, {tol_text}"
+            f", while cutting CG iterations per step from {tight['cg_iters']:.0f} to "
+            + "–".join(f"{c:.0f}" for c in sorted({min(r["cg_iters"] for r in loose),
+                                                   max(r["cg_iters"] for r in loose)}))
+            + f" and the forward time from {g(tight['wall_s'], 2)} to "
+            + "–".join(g(w, 2) for w in sorted({min(r["wall_s"] for r in loose), max(r["wall_s"] for r in loose)}))
+            + " s per simulated second.")
+    s_loose = sph_dt.get("dt 1/400 tol 1e-3")
+    s_tight = sph_dt.get("dt 1/400")
+    if s_loose and s_tight and "err_pct" in s_loose and "err_pct" in s_tight:
+        line += (f" Over many small steps loose solves add up (sphere at dt 1/400: {pct(s_loose['err_pct'])} at "
+                 f"1e-3 against {pct(s_tight['err_pct'])} at 1e-8), hence the tighter tolerance of `accurate`.")
+    lines.append(line)
+    adj_h = [r for r in fam(hang, "adjoint_cg_tol") if "solve_grad_err_pct" in r]
+    adj_s = [r for r in fam(sph, "adjoint_cg_tol") if "solve_grad_err_pct" in r]
+    if adj_h and adj_s:
+        lines.append(f"- **The adjoint tolerance** (`SolverOptions.adjoint_cg_tol`, default = cg_tol) acts on the "
+                     f"gradient alone: {adj_h[0]['adjoint_cg_tol']:g} costs {pct(adj_h[0]['solve_grad_err_pct'])} "
+                     f"of gradient error on the hanging sheet, {pct(adj_s[0]['solve_grad_err_pct'])} on the sphere.")
+    caps = fam(hang, "cg_max_iters")
+    capped = [r for r in caps if "err_pct" in r and r["cg_max_iters"] <= 5]
+    failed = [r for r in caps if "error" in r]
+    if capped or failed:
+        line = "- **An iteration cap** under ~10 iterations is a different method, not a cheaper one:"
+        if capped:
+            line += " " + ", ".join(f"{r['cg_max_iters']} iterations give {pct(r['err_pct'])} error"
+                                   for r in capped)
+        if failed:
+            line += (", " if capped else " ") + ", ".join(str(r["cg_max_iters"]) for r in failed) + \
+                    " diverge (`SimulationError`)"
+        lines.append(line + ".")
+    f64 = [r for r in fam(hang, "dtype") if "solve_err_pct" in r]
+    ref = next((r for r in fam(hang, "cg_tol") if abs(r["cg_tol"] - 1e-8) < 1e-20), None)
+    if f64 and ref:
+        lines.append(f"- **float64** against float32 at cg_tol 1e-8 and the same dt: trajectories "
+                     f"{pct(abs(f64[0]['err_pct'] - ref['err_pct']), 2)} apart in error against the reference, "
+                     f"{g(f64[0]['wall_s'], 2)} against {g(ref['wall_s'], 2)} s per simulated second (runs vary by "
+                     "tens of per cent on this machine).")
+    res = [r for r in fam(hang, "res") if "err_pct" in r]
+    if res:
+        finest = max(fam(hang, "res"), key=lambda r: r["res"])
+        base = next((r for r in res if r["res"] == 16), res[0])
+        lines.append(f"- **Resolution** (against {finest['res']}×{finest['res']} at the same dt, on the points all "
+                     "grids share): " + ", ".join(pct(r["err_pct"]) for r in res if r is not finest)
+                     + " at " + ", ".join(f"{r['res']}²" for r in res if r is not finest)
+                     + f"; {finest['res']}² is {finest['wall_s'] / base['wall_s']:.0f}× the wall time of "
+                     f"{base['res']}².")
+    walls = [r["wall_s"] for r in fam(sph, "dt") if "wall_s" in r]
+    coarse = [r for r in fam(sph, "dt") if "error" in r]
+    thick = [r for r in fam(sph, "thickness") if "err_pct" in r]
+    rounds = fam(sph, "collision_rounds")
+    line = (f"- **Collisions**: the drape costs {g(min(walls), 2)}–{g(max(walls), 2)} s per simulated second at "
+            "16×16 whatever the step (the host-side QP dominates).")
+    for r in coarse:
+        line += f" At dt {frac(r['dt'])} it stops: {r['error'].split(':')[0]} ({r['error'].split(':')[1].strip()})."
+    if thick:
+        spread = max(r["err_pct"] for r in thick) - min(r["err_pct"] for r in thick)
+        line += (f" Collision thickness {thick[0]['thickness']:g} … {thick[-1]['thickness']:g} m moves the "
+                 f"trajectory error by {pct(spread)}.")
+    bad = [r for r in rounds if "error" in r]
+    good = [r for r in rounds if "err_pct" in r]
+    if bad and good:
+        same = len({round(r["err_pct"], 6) for r in good}) == 1
+        line += (f" {' or '.join(str(r['collision_rounds']) for r in bad)} collision rounds per step are too few "
+                 f"(`CollisionError` naming the step and the setting), {good[0]['collision_rounds']} and more give "
+                 + ("identical results." if same else "the results above."))
+    grads = [r["grad_err_pct"] for r in fam(sph, "dt") if "grad_err_pct" in r]
+    if grads:
+        line += (f" Gradients through contact do not converge with dt ({g(min(grads), 2)}–{g(max(grads), 2)} % "
+                 "against the reference): they leave out the contact set's and the impact times' dependence on "
+                 "the parameters (by design, as the seed), which a finer step does not fix.")
+    lines.append(line)
+    lines.append("")
+    lines.append(provenance(d))
+    return "\n".join(lines)
+
+
+def material_estimation(d: dict) -> str:
+    keys = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", "stretch_nonlinear_err_pct",
+            "bending_err_pct", "sim_err_pct")
+    rows = [[r["material"]] + [g(r[k], 3) for k in keys] for r in d["per_material"]]
+    for m in d["means"]:
+        rows.append([f"**mean** ({m['optimizer']}, {len(d['per_material'])} fabrics)"] + [g(m[k], 3) for k in keys])
+    s = d["seed"]
+    rows.append(["seed \"Ours\" (mean of 10, published)"] + [f"{s[k]:g}" for k in keys])
+    b = d.get("seed_baseline")
+    if b:
+        rows.append(["seed Baseline (the mean-fabric start)", "–"] + [f"{b[k]:g}" for k in keys[1:]])
+    out = [table(["fabric", "s/step/iter", "density %", "linear str. %", "non-linear str. %", "bending %",
+                  "simulation error %"], rows), ""]
+    names = {"density_err_pct": "density", "stretch_linear_err_pct": "linear stretching",
+             "stretch_nonlinear_err_pct": "non-linear stretching", "bending_err_pct": "bending",
+             "sim_err_pct": "simulation error"}
+    for m in d["means"]:
+        better = [names[k] for k in keys[1:] if m[k] < s[k]]
+        worse = [names[k] for k in keys[1:] if m[k] >= s[k]]
+        rt = m["runtime_s_per_step_iter"]
+        out.append(f"Targets ({m['optimizer']}, means over the fabrics): runtime ≤ 0.02 s/step/iter {met(rt <= 0.02)} "
+                   f"({g(rt)}); below the seed's mean error: {', '.join(better) or 'none'}; not below it: "
+                   f"{', '.join(worse) or 'none'}.")
+    cross = d.get("cross_simulator") or []
+    if cross:
+        out.append("Fitted to the seed's own trajectories (its C++ code, with self-collision and repulsion): "
+                   "simulation error " + "; ".join(
+                       f"{c['target']} {g(c['sim_err_pct_start'], 2)} → {g(c['sim_err_pct_fitted'], 2)} % "
+                       f"(the true fabric in warpcloth: {g(c['sim_err_pct_true_material'], 2)} %)" for c in cross)
+                   + ".")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def motion_control(d: dict) -> str:
+    out = []
+    seed = d.get("seed", {})
+    for key, seed_key, label in (("open_loop", "open-loop", "Open loop (Gauss–Newton)"),
+                                 ("mlp", "mlp", "MLP controller")):
+        r = d.get(key)
+        failed = d.get(f"{key}_failed")
+        if failed:
+            out.append(f"- {label}: **training stopped** after {failed['simulations']} simulations: "
+                       f"{failed['error']}.")
+            continue
+        if not r:
+            out.append(f"- {label}: not run (torch not installed)." if key == "mlp" else f"- {label}: not run.")
+            continue
+        line = (f"- {label}: **{g(r['error_pct'], 3)} %** after {r['simulations']} simulations (to the best point), "
+                f"{g(r['seconds'] / max(r['iters'], 1), 2)} s per simulation")
+        s = seed.get(seed_key)
+        if s:
+            ok = r["error_pct"] <= s["target_error_pct"] and r["simulations"] <= s["target_simulations"]
+            line += (f"; target ≤ {s['target_error_pct']:g} % in ≤ {s['target_simulations']}: {met(ok)}; seed: "
+                     f"{s['error_pct']:g} % in {s['simulations']}")
+        out.append(line + ".")
+    out.append("")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
+def memory(d: dict) -> str:
+    mem = d.get("memory")
+    if not mem:
+        return "Peak memory of the throw's forward + backward, full tape against checkpointing: not measured."
+    by = {m["mode"]: m for m in mem}
+    return (f"Peak memory of one {d['steps']}-step forward + backward of the throw (resident memory above the "
+            f"start, `benchmarks/motion_control.py`): full tape {by['full']['peak_mb_above_start']:.0f} MB, "
+            f"checkpointed {by['checkpointed']['peak_mb_above_start']:.0f} MB; the same gradient "
+            f"(|g| {by['full']['grad_norm']:.6g} and {by['checkpointed']['grad_norm']:.6g}).")
+
+
+BLOCKS = {
+    "presets": presets,
+    "tradeoff_findings": tradeoff_findings,
+    "step_time": step_time,
+    "collision_ablation": collision_ablation,
+    "cg_solvers": cg_solvers,
+    "seed_trajectories": seed_trajectories,
+    "gradient_growth": gradient_growth,
+    "components": components,
+    "peers": peers,
+    "material_estimation": material_estimation,
+    "motion_control": motion_control,
+    "memory": memory,
+}
+
+
+# -- README ----------------------------------------------------------------------------------------------------------
+def load(path: str) -> dict:
+    p = REPO_ROOT / path
+    if not p.resolve().is_relative_to(RESULTS_DIR.resolve()) or p.resolve().parent != RESULTS_DIR.resolve():
+        raise ValueError(f"{path}: README figures must come from benchmarks/results/*.json")
+    return json.loads(p.read_text())
+
+
+def blocks(text: str) -> list[re.Match]:
+    return list(BLOCK_RE.finditer(text))
+
+
+def render(name: str, files: str) -> str:
+    paths = files.split()
+    if name not in BLOCKS:
+        raise KeyError(f"unknown results block {name!r} (known: {', '.join(BLOCKS)})")
+    if len(paths) != 1:
+        raise ValueError(f"block {name}: one results file expected, got {paths}")
+    return BLOCKS[name](load(paths[0])).rstrip("\n") + "\n"
+
+
+def update(text: str) -> str:
+    def sub(m):
+        try:
+            body = render(m["name"], m["files"])
+        except FileNotFoundError as err:  # not run yet: the block stays as it is
+            print(f"warning: block {m['name']} left unchanged: {err}", file=sys.stderr)
+            return m[0]
+        return f"<!-- results {m['name']}: {m['files']} -->\n{body}<!-- end results -->"
+
+    return BLOCK_RE.sub(sub, text)
+
+
+def differences(text: str) -> list[str]:
+    """One message per block whose body differs from its rendering (with the first differing line)."""
+    out = []
+    for m in blocks(text):
+        want = render(m["name"], m["files"])
+        if m["body"] != want:
+            have_lines, want_lines = m["body"].splitlines(), want.splitlines()
+            first = next((i for i, (a, b) in enumerate(zip(have_lines, want_lines)) if a != b),
+                         min(len(have_lines), len(want_lines)))
+            line = text[: m.start()].count("\n") + 2 + first
+            out.append(f"README.md:{line}: block {m['name']} differs from {m['files']}:\n"
+                       f"  README:    {have_lines[first] if first < len(have_lines) else '(nothing)'}\n"
+                       f"  generated: {want_lines[first] if first < len(want_lines) else '(nothing)'}")
+    return out
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--check", action="store_true", help="compare only; exit 1 if a block differs")
+    p.add_argument("--readme", default=str(README))
+    args = p.parse_args()
+    path = Path(args.readme)
+    text = path.read_text()
+    if args.check:
+        diffs = differences(text)
+        print("\n".join(diffs) or f"{len(blocks(text))} results blocks match their JSON")
+        sys.exit(1 if diffs else 0)
+    new = update(text)
+    if new != text:
+        path.write_text(new)
+    print(f"{len(blocks(text))} results blocks rendered into {path}" + ("" if new != text else " (unchanged)"))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,147 @@
+"""Benchmarks that cannot rot: every script in benchmarks/ runs with ``--quick`` (a few seconds each) and writes its
+JSON, uses no private attribute, and every figure in the README's results blocks is what benchmarks/readme_tables.py
+renders from the JSON files in benchmarks/results/."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+SEED = ROOT.parent / "shared" / "reference" / "liang2019"
+HAS_SEED = (SEED / "meshes" / "demo_wind.obj").is_file()
+HAS_NEWTON = importlib.util.find_spec("newton") is not None
+HAS_TORCH = importlib.util.find_spec("torch") is not None
+
+HELPERS = {"common", "readme_tables"}
+"""Modules in benchmarks/ that are not benchmarks."""
+
+# name: (top-level keys of its JSON besides "meta", needs the seed's reference data, slow: > 10 s on 2 cores)
+BENCHMARKS = {
+    "step_time": (("scene", "targets", "records"), False, False),
+    "components": (("rows", "phases"), False, False),
+    "cg_solvers": (("tol", "solves", "sizes"), False, False),
+    "gradient_growth": (("records", "tape_max"), False, False),
+    "collision_ablation": (("records", "seed"), True, False),
+    "seed_trajectories": (("materials", "frames", "steps"), True, False),
+    "peers": (("records", "equal_error", "settings", "newton"), False, True),
+    "tradeoff": (("scenes",), False, True),
+    "material_estimation": (("per_material", "means", "seed"), True, True),
+    "motion_control": (("open_loop",), False, True),
+    "contact": (("drape", "incline"), False, False),
+}
+
+
+def _params():
+    for name, (_, needs_seed, slow) in BENCHMARKS.items():
+        marks = [pytest.mark.slow] if slow else []
+        if needs_seed:
+            marks.append(pytest.mark.skipif(not HAS_SEED, reason="../shared/reference/liang2019 not present"))
+        yield pytest.param(name, marks=marks, id=name)
+
+
+def test_every_benchmark_is_tested():
+    scripts = {p.stem for p in BENCH.glob("*.py")} - HELPERS
+    assert scripts == set(BENCHMARKS), "add new benchmarks to BENCHMARKS (and run them with --quick here)"
+
+
+@pytest.mark.parametrize("name", list(_params()))
+def test_quick_run(name, tmp_path):
+    out = tmp_path / f"{name}.json"
+    # one BLAS thread: a multi-threaded BLAS spin-waits against the other tests' processes (minutes, not seconds)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, str(BENCH / f"{name}.py"), "--quick", "--out", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=900, env=env)
+    assert proc.returncode == 0, f"{name} --quick failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    assert out.is_file(), f"{name} --quick wrote no JSON to {out}"
+    data = json.loads(out.read_text())
+    keys, _, _ = BENCHMARKS[name]
+    missing = [k for k in ("meta", *keys) if k not in data]
+    assert not missing, f"{name}: JSON lacks {missing}"
+    meta = data["meta"]
+    assert meta["quick"] is True and meta["benchmark"] == name
+    for key in ("date", "command", "warp", "device", "cpu_count", "loadavg_start", "loadavg_end", "wall_s"):
+        assert key in meta, f"{name}: meta lacks {key}"
+    if name == "peers" and not HAS_NEWTON:
+        assert data["newton"] is None and data["newton_skipped"]
+        pytest.skip("newton is not installed (pip install -e '.[bench]'): peers.py ran warpcloth's side only")
+    if name == "motion_control" and not HAS_TORCH:
+        pytest.skip("torch is not installed: motion_control.py skipped its MLP controller")
+
+
+def test_no_private_access():
+    """Benchmarks use the public API: no ``obj._name`` (Warp's own ``warp._src`` excepted, used for profiling)."""
+    bad = []
+    for path in sorted(BENCH.glob("*.py")):
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            code = line.split("#", 1)[0].replace("warp._src", "")
+            if re.search(r"\w\._[a-z]", code):
+                bad.append(f"{path.name}:{i}: {line.strip()}")
+    assert not bad, "private attribute access in benchmarks:\n" + "\n".join(bad)
+
+
+# -- the README against the results ----------------------------------------------------------------------------------
+def _readme_tables():
+    spec = importlib.util.spec_from_file_location("readme_tables", BENCH / "readme_tables.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def rt():
+    return _readme_tables()
+
+
+@pytest.fixture(scope="module")
+def readme():
+    return (ROOT / "README.md").read_text()
+
+
+def test_readme_figures_match_results(rt, readme):
+    found = rt.blocks(readme)
+    assert len(found) >= 10, "the README's results blocks are missing"
+    diffs = rt.differences(readme)
+    assert not diffs, ("README figures differ from benchmarks/results (regenerate with "
+                       "python benchmarks/readme_tables.py after a full run):\n" + "\n".join(diffs))
+
+
+def test_readme_results_are_full_runs(rt, readme):
+    for m in rt.blocks(readme):
+        for path in m["files"].split():
+            assert path.startswith("benchmarks/results/") and "/quick/" not in path, path
+            meta = json.loads((ROOT / path).read_text()).get("meta")
+            if meta is not None:
+                assert meta["quick"] is False, f"{path} is a --quick run"
+
+
+def test_readme_tables_are_generated(rt, readme):
+    """Every Markdown table of the README is inside a results block: none is copied by hand."""
+    spans = [(m.start(), m.end()) for m in rt.blocks(readme)]
+    pos = 0
+    loose = []
+    for i, line in enumerate(readme.splitlines(keepends=True), 1):
+        if line.startswith("|") and not any(a <= pos < b for a, b in spans):
+            loose.append(f"README.md:{i}: {line.strip()[:80]}")
+        pos += len(line)
+    assert not loose, "tables outside a results block:\n" + "\n".join(loose)
+
+
+def test_readme_check_catches_an_edited_figure(rt, readme):
+    """The comparison fails when one figure of a table is changed."""
+    m = next(m for m in rt.blocks(readme) if m["name"] == "step_time")
+    body = m["body"]
+    digit = re.search(r"\| (\d)", body.split("\n", 2)[2])  # first figure of the first data row
+    assert digit
+    start = m.start("body") + len(body.split("\n", 2)[0]) + len(body.split("\n", 2)[1]) + 2 + digit.start(1)
+    edited = readme[:start] + str((int(readme[start]) + 1) % 10) + readme[start + 1:]
+    assert rt.differences(edited)
+    assert not rt.differences(readme)
