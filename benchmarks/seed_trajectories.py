@@ -10,7 +10,8 @@ centre of mass is the vertex mean (it reproduces SPEC's reference values from th
 
 The targets were made with self-collision and proximity repulsion, which this scene does not turn on yet (warpcloth
 has both now; measuring them here is open): the figures are reported as they come, nothing is tuned to them.
-"departs at" is the first frame whose RMS exceeds 0.1 mm: with the lag reproduced, the trajectories agree to micrometres until then (the collision stage acting, presumably).
+"departs at" is the first frame whose RMS exceeds 0.1 mm: with the lag reproduced, the trajectories agree to
+micrometres until then (the collision stage acting, presumably).
 
 Usage: python benchmarks/seed_trajectories.py [--quick] [--out PATH] [--frames 51]   (--quick: 11 frames)
 """
