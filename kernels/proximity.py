@@ -80,14 +80,29 @@ def proximity_kernels(scalar):
         lowers[i] = lo - pad
         uppers[i] = hi + pad
 
+    @wp.struct
+    class PairSearch:
+        # What the pair queries share: the block pattern (cloth neighbours), the search radius, and the output
+        # buffer (a counter that may pass its capacity: the host reports the overflow).
+        offsets: wp.array(dtype=wp.int32)
+        columns: wp.array(dtype=wp.int32)
+        cloth_count: int
+        radius: scalar
+        count: wp.array(dtype=wp.int32)
+        pair_nodes: wp.array2d(dtype=wp.int32)
+        pair_kind: wp.array(dtype=wp.int32)
+
     @wp.func
-    def emit(count: wp.array(dtype=wp.int32), pair_nodes: wp.array2d(dtype=wp.int32),
-             pair_kind: wp.array(dtype=wp.int32), nodes: wp.vec4i, kind: int):
-        k = wp.atomic_add(count, 0, 1)
-        if k < pair_kind.shape[0]:
+    def emit(search: PairSearch, nodes: wp.vec4i, kind: int):
+        k = wp.atomic_add(search.count, 0, 1)
+        if k < search.pair_kind.shape[0]:
             for c in range(4):
-                pair_nodes[k, c] = nodes[c]
-            pair_kind[k] = kind
+                search.pair_nodes[k, c] = nodes[c]
+            search.pair_kind[k] = kind
+
+    @wp.func
+    def near(search: PairSearch, a: int, b: int):
+        return neighbours(search.offsets, search.columns, search.cloth_count, a, b)
 
     @wp.kernel(enable_backward=False)
     def vertex_face_pairs(
@@ -95,23 +110,16 @@ def proximity_kernels(scalar):
         x: wp.array(dtype=vec3),
         queries: wp.array(dtype=wp.int32),
         triangles: wp.array2d(dtype=wp.int32),
-        offsets: wp.array(dtype=wp.int32),
-        columns: wp.array(dtype=wp.int32),
-        cloth_count: int,
-        radius: scalar,
-        # out:
-        count: wp.array(dtype=wp.int32),
-        pair_nodes: wp.array2d(dtype=wp.int32),
-        pair_kind: wp.array(dtype=wp.int32),
+        search: PairSearch,
     ):
         # the closest triangle within radius of each query vertex
         i = wp.tid()
         q = queries[i]
         p = x[q]
-        r = float(radius)
+        r = float(search.radius)
         query = wp.bvh_query_aabb(bvh, wp.vec3(p) - wp.vec3(r, r, r), wp.vec3(p) + wp.vec3(r, r, r))
         j = int(0)
-        best = radius
+        best = search.radius
         best_j = int(-1)
         while wp.bvh_query_next(query, j):
             a = triangles[j, 0]
@@ -119,8 +127,7 @@ def proximity_kernels(scalar):
             c = triangles[j, 2]
             if q == a or q == b or q == c:
                 continue
-            if neighbours(offsets, columns, cloth_count, q, a) or neighbours(offsets, columns, cloth_count, q, b) \
-                    or neighbours(offsets, columns, cloth_count, q, c):
+            if near(search, q, a) or near(search, q, b) or near(search, q, c):
                 continue
             u, v, w = triangle_barycentric(p, x[a], x[b], x[c])
             d = wp.length(p - (u * x[a] + v * x[b] + w * x[c]))
@@ -128,8 +135,7 @@ def proximity_kernels(scalar):
                 best = d
                 best_j = j
         if best_j >= 0:
-            emit(count, pair_nodes, pair_kind,
-                 wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE)
+            emit(search, wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE)
 
     @wp.kernel(enable_backward=False)
     def edge_edge_pairs(
@@ -138,14 +144,7 @@ def proximity_kernels(scalar):
         edges: wp.array2d(dtype=wp.int32),
         targets: wp.array2d(dtype=wp.int32),
         same_set: int,
-        offsets: wp.array(dtype=wp.int32),
-        columns: wp.array(dtype=wp.int32),
-        cloth_count: int,
-        radius: scalar,
-        # out:
-        count: wp.array(dtype=wp.int32),
-        pair_nodes: wp.array2d(dtype=wp.int32),
-        pair_kind: wp.array(dtype=wp.int32),
+        search: PairSearch,
     ):
         # every target edge within radius whose closest points are inside both edges (within one set: each pair
         # once). Not only the closest: flat sheets tie, and a tie broken either way would move the force.
@@ -154,7 +153,7 @@ def proximity_kernels(scalar):
         e1 = edges[i, 1]
         lo = wp.min(wp.vec3(x[e0]), wp.vec3(x[e1]))
         hi = wp.max(wp.vec3(x[e0]), wp.vec3(x[e1]))
-        r = float(radius)
+        r = float(search.radius)
         query = wp.bvh_query_aabb(bvh, lo - wp.vec3(r, r, r), hi + wp.vec3(r, r, r))
         j = int(0)
         while wp.bvh_query_next(query, j):
@@ -164,14 +163,12 @@ def proximity_kernels(scalar):
                 continue
             if e0 == f0 or e0 == f1 or e1 == f0 or e1 == f1:
                 continue
-            if neighbours(offsets, columns, cloth_count, e0, f0) or neighbours(offsets, columns, cloth_count, e0, f1) \
-                    or neighbours(offsets, columns, cloth_count, e1, f0) \
-                    or neighbours(offsets, columns, cloth_count, e1, f1):
+            if near(search, e0, f0) or near(search, e0, f1) or near(search, e1, f0) or near(search, e1, f1):
                 continue
             s, u = segment_parameters(x[e0], x[e1], x[f0], x[f1], scalar(1.0e-12))
             d = wp.length((x[e0] + s * (x[e1] - x[e0])) - (x[f0] + u * (x[f1] - x[f0])))
-            if d < radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0):
-                emit(count, pair_nodes, pair_kind, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE)
+            if d < search.radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0):
+                emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE)
 
     @wp.struct
     class PairInputs:
@@ -324,7 +321,7 @@ def proximity_kernels(scalar):
             velocity[i] = (obstacle_end[o] - obstacle_start[o]) * inv_dt
 
     return SimpleNamespace(
-        primitive_boxes=primitive_boxes, vertex_face_pairs=vertex_face_pairs, edge_edge_pairs=edge_edge_pairs,
-        PairInputs=PairInputs, assemble_pairs=assemble_pairs, pairs_potential=pairs_potential,
-        node_state=node_state,
+        PairSearch=PairSearch, primitive_boxes=primitive_boxes, vertex_face_pairs=vertex_face_pairs,
+        edge_edge_pairs=edge_edge_pairs, PairInputs=PairInputs, assemble_pairs=assemble_pairs,
+        pairs_potential=pairs_potential, node_state=node_state,
     )

@@ -137,18 +137,19 @@ class ProximityForces:
             else:
                 prims.bvh.refit()
         self._count.zero_()
+        search = k.PairSearch()
+        search.offsets, search.columns, search.cloth_count = m.bsr_offsets, m.bsr_columns, self.cloth_count
+        search.radius = m.scalar(radius)
+        search.count, search.pair_nodes, search.pair_kind = self._count, self._nodes, self._kind
         for rows, target, kind, same in self._queries:
             if rows.shape[0] == 0 or target.count == 0:
                 continue
-            common = [m.bsr_offsets, m.bsr_columns, self.cloth_count, m.scalar(radius)]
             if kind == "vf":
                 wp.launch(k.vertex_face_pairs, rows.shape[0], device=self.device,
-                          inputs=[target.bvh.id, x, rows, target.indices, *common],
-                          outputs=[self._count, self._nodes, self._kind], record_tape=False)
+                          inputs=[target.bvh.id, x, rows, target.indices, search], record_tape=False)
             else:
                 wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
-                          inputs=[target.bvh.id, x, rows, target.indices, same, *common],
-                          outputs=[self._count, self._nodes, self._kind], record_tape=False)
+                          inputs=[target.bvh.id, x, rows, target.indices, same, search], record_tape=False)
         count = int((self._count_host if self._count_host is not None else self._count.numpy())[0])
         if count > self.capacity:
             raise CollisionError(
