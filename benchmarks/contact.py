@@ -9,6 +9,9 @@ collision (the impact-zone projection's detection and QP, the fail-safe).
 Incline: a 0.1 m patch on a plane tilted 10 degrees (below atan 0.3) and 30 degrees with mu 0.3, 1 s at dt 0.01:
 the distance slid, and the fitted acceleration against g (sin theta - mu cos theta).
 
+Drag: a 0.1 m patch (3x3 cells) on a pinned 1 m x 0.4 m sheet (8x8), cloth-cloth mu 0.6, pushed along x by a force
+per particle of m (mu g + 2 m/s^2) for 0.6 s: the friction it feels, (force - m a) / (mu m g), should be 1.
+
 Usage: python benchmarks/contact.py [--quick] [--out PATH] [--sizes 24,64] [--steps 100]
 """
 
@@ -76,6 +79,29 @@ def incline(theta_deg: float, mu: float, steps: int) -> dict:
             "acceleration": float(fitted), "expected_acceleration": expected}
 
 
+def drag(steps: int, mu: float = 0.6, push: float = 2.0) -> dict:
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+    b.add_cloth_grid((8, 8), (1.0, 0.4), material=wc.preset("gray-interlock"), pos=(-0.5, -0.2, 0.0))
+    lower = 81
+    for p in range(lower):
+        b.add_pin(p)
+    b.add_cloth_grid((3, 3), (0.1, 0.1), material=wc.preset("gray-interlock"), pos=(-0.3, -0.0513, 0.00486))
+    b.set_collision(self_collision=True, friction=mu)
+    model = b.finalize("cpu", dtype=wp.float64)
+    control = model.control(particle_force=True)
+    mass = model.particle_mass()
+    force = np.zeros((model.particle_count, 3))
+    force[lower:, 0] = mass[lower:] * (mu * G + push)
+    control.particle_force.assign(force)
+    dt = 0.01
+    traj = wc.rollout(wc.Simulator(model, dt), model.state(), control, steps=steps)
+    com = np.array([s.particle_x.numpy()[lower:].mean(axis=0) for s in traj])
+    t = np.arange(len(com)) * dt
+    a = 2.0 * np.polyfit(t[10:], com[10:, 0], 2)[0]
+    return {"mu": mu, "seconds": steps * dt, "acceleration": float(a), "expected_acceleration": push,
+            "friction_over_mu_load": float((mu * G + push - a) / (mu * G))}
+
+
 def main():
     args = common.parse_args(__doc__, sizes="24,64", steps=100, quick={"sizes": "8", "steps": 5})
     info = common.machine_info()
@@ -94,7 +120,12 @@ def main():
                        [[i["theta_deg"], i["mu"], i["travel_mm"], i["acceleration"], i["expected_acceleration"]]
                         for i in inclines], specs=[".0f", ".1f", ".3f", ".3f", ".3f"],
                        title=f"patch on an incline, {steps * 0.01:g} s")
-    common.write_result(args, {"drape": drapes, "incline": inclines})
+    drags = [drag(30 if args.quick else 60)]
+    common.print_table(["mu", "a fitted", "a expected", "friction / (mu load)"],
+                       [[d["mu"], d["acceleration"], d["expected_acceleration"], d["friction_over_mu_load"]]
+                        for d in drags], specs=[".1f", ".3f", ".3f", ".3f"],
+                       title="patch dragged over a pinned sheet")
+    common.write_result(args, {"drape": drapes, "incline": inclines, "drag": drags})
 
 
 if __name__ == "__main__":

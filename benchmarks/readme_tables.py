@@ -100,6 +100,25 @@ def duration(seconds: float) -> str:
 
 
 # -- blocks ----------------------------------------------------------------------------------------------------------
+def contact(d: dict) -> str:
+    rows = [[f"{r['res']}×{r['res']}", g(r["wall_s"]), g(r["mean_step_ms"]), g(r["max_step_s"]),
+             *(g(r["phase_ms_per_step"][k]) for k in ("assembly", "proximity", "solve", "integrate", "collision")),
+             g(r["cg_iterations_per_step"]), f"{r['pairs_mean']:.0f}"] for r in d["drape"]]
+    out = [table(["drape grid", "wall s (100 steps)", "ms/step", "max step s", "assembly", "repulsion + friction",
+                  "solve", "integrate", "projection", "CG it/step", "pairs"], rows), ""]
+    for i in d["incline"]:
+        a = i["acceleration"] if abs(i["acceleration"]) > 1e-9 else 0.0
+        out.append(f"Patch on a {i['theta_deg']:.0f}° incline, μ {i['mu']:g}, {i['seconds']:g} s: slid "
+                   f"{g(i['travel_mm'])} mm, acceleration {g(a)} m/s² "
+                   f"(closed form {g(i['expected_acceleration'])}).")
+    for r in d.get("drag", []):
+        out.append(f"Patch dragged over a pinned sheet, μ {r['mu']:g}: acceleration {g(r['acceleration'])} m/s² "
+                   f"(expected {g(r['expected_acceleration'])}); friction / (μ × load) = "
+                   f"{g(r['friction_over_mu_load'])}.")
+    out.append(provenance(d))
+    return "\n".join(out)
+
+
 def step_time(d: dict) -> str:
     recs = d["records"]
     rows = [[f"{r['res']}×{r['res']}", r["particles"], g(r["forward_ms"]), g(r["taped_forward_ms"]),
@@ -552,6 +571,7 @@ BLOCKS = {
     "material_estimation": material_estimation,
     "motion_control": motion_control,
     "memory": memory,
+    "contact": contact,
 }
 
 
