@@ -227,7 +227,8 @@ class Simulator:
         fits = (dv is not None and dv.shape[0] == self.model.particle_count and dv.dtype == self.model.types.vec3
                 and dv.device == self.device)
         if not fits or (recording and not dv.requires_grad):
-            dv = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.device,
+            # uninitialised: the solve writes every entry (it starts from the first guess or from zero)
+            dv = wp.empty(self.model.particle_count, dtype=self.model.types.vec3, device=self.device,
                           requires_grad=recording)
             state_out.particle_dv = dv
         return dv
