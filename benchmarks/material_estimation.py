@@ -22,6 +22,7 @@ import common
 from common import wc
 
 from warpcloth.tasks import estimation as E
+from warpcloth.tasks import scenes as S
 from warpcloth.tasks.scenes import hanging_cloth
 
 KEYS = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", "stretch_nonlinear_err_pct",
@@ -30,7 +31,7 @@ SEED_TARGETS = {"11oz": "11oz-black-denim", "gray": "gray-interlock", "tango": "
 
 
 def fit_one(truth_name: str, optimizer: str, iters: int, steps: int = E.STEPS) -> dict:
-    truth = wc.preset(truth_name, thicken=E.THICKEN)
+    truth = wc.preset(truth_name, thicken=S.THICKEN)
     model = hanging_cloth(truth, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj")
     fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=steps), steps=steps)
     result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
@@ -59,7 +60,7 @@ def cross_check(optimizer: str, iters: int) -> list[dict]:
         model = hanging_cloth(E.initial_guess(), mesh_path=files[0])
         fit = E.TrajectoryFit(model, frames)
         result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
-        truth = wc.preset(name, thicken=E.THICKEN)
+        truth = wc.preset(name, thicken=S.THICKEN)
         oracle = fit.simulation_error(truth)  # the true fabric in warpcloth against the seed's trajectory
         rows.append({"target": short, "sim_err_pct_start": result.initial_simulation_error_pct,
                      "sim_err_pct_fitted": result.simulation_error_pct, "sim_err_pct_true_material": oracle,

@@ -13,7 +13,7 @@ from warpcloth.tasks import estimation, scenes
 
 
 def main(material: str = "tango-red-jet-set", iters: int = 60, steps: int = estimation.STEPS, device=None):
-    truth = wc.preset(material, thicken=estimation.THICKEN)
+    truth = wc.preset(material, thicken=scenes.THICKEN)
     model = scenes.hanging_cloth(truth, device=device)  # the material here only sets the initial arrays
     targets = estimation.TrajectoryFit.simulate_targets(model, truth, steps=steps)
     fit = estimation.TrajectoryFit(model, targets, steps=steps)

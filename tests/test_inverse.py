@@ -10,6 +10,7 @@ import warpcloth as wc
 from warpcloth.solver.checkpoint import checkpointed_backward
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes
+from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
 
 EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
@@ -24,7 +25,7 @@ def _weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss
 def _small_hanging(material=None, *, obstacle=False, requires_grad=True):
     b = wc.ModelBuilder()
     b.add_cloth_grid((3, 3), (0.3, 0.3), material=material or wc.preset("gray-interlock", thicken=2),
-                     rot=E.GRID_TO_YZ, pos=(0.0, -0.15, -0.15), vel=(0.5, 0.0, 0.0))
+                     rot=S.GRID_TO_YZ, pos=(0.0, -0.15, -0.15), vel=(0.5, 0.0, 0.0))
     b.add_handle(12)
     b.add_handle(15)
     b.set_wind((3.0, 0.0, 0.0))
@@ -191,19 +192,19 @@ def test_fit_rejects_mismatched_targets(tmp_path):
 
 # -- the throw -------------------------------------------------------------------------------------------------------
 def test_throw_scene_geometry():
-    model = C.basket_scene("cpu", requires_grad=False)
+    model = S.basket_scene("cpu", requires_grad=False)
     x = model.particle_x0.numpy()
     np.testing.assert_allclose(x.min(axis=0), [-3.7, 0.0, 2.0], atol=1e-6)
     np.testing.assert_allclose(x.max(axis=0), [-3.0, 0.7, 2.0], atol=1e-6)
     assert model.particle_count == 81 and model.obstacle_count == 2
-    corners = x[list(C.CORNERS)]
+    corners = x[list(S.THROW_CORNERS)]
     expected = np.array([(-3.7, 0.0), (-3.0, 0.0), (-3.7, 0.7), (-3.0, 0.7)])
     np.testing.assert_allclose(np.sort(corners[:, :2], axis=0), np.sort(expected, axis=0), atol=1e-6)
 
 
 def test_throw_gradient_matches_finite_differences():
     # float64, a short horizon in free flight (contacts are covered by the collision gradient tests)
-    task = C.ThrowTask(C.basket_scene("cpu", dtype=wp.float64), steps=150, options=EXACT, segment_steps=40)
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=150, options=EXACT, segment_steps=40)
     params = np.random.default_rng(4).normal(scale=3.0, size=C.N_PARAMS)
     loss, grad, com = task.loss_and_grad(params)
     assert loss == pytest.approx(0.5 * np.sum((com - C.TARGET) ** 2), rel=1e-12)
@@ -217,7 +218,7 @@ def test_throw_gradient_matches_finite_differences():
 
 
 def test_open_loop_optimisation_improves():
-    task = C.ThrowTask(C.basket_scene("cpu"), steps=300)
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=300)
     result = C.optimize_open_loop(task, iters=4)
     assert result.simulations >= 1 and len(result.errors_pct) == 4
     assert result.error_pct < result.errors_pct[0]
@@ -225,7 +226,7 @@ def test_open_loop_optimisation_improves():
 
 def test_mlp_controller_trains():
     pytest.importorskip("torch")
-    task = C.ThrowTask(C.basket_scene("cpu"), steps=300)
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=300)
     result = C.train_mlp(task, iters=3)
     assert len(result.errors_pct) == 3
     assert result.errors_pct[-1] < result.errors_pct[0]
@@ -248,7 +249,7 @@ def test_mlp_controller_takes_the_models_dtype_and_device(monkeypatch):
     result = C.train_mlp(task, iters=1)
     assert len(seen) == 3 * C.SECONDS_CONTROLLED
     assert set(seen) == {(torch.float64, wct.torch_device(task.model))}
-    assert np.isfinite(result.losses[0]) and result.params.shape == (C.SECONDS_CONTROLLED, len(C.CORNERS), 3)
+    assert np.isfinite(result.losses[0]) and result.params.shape == (C.SECONDS_CONTROLLED, len(S.THROW_CORNERS), 3)
 
 
 # -- command line ----------------------------------------------------------------------------------------------------

@@ -188,6 +188,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.materials import preset
     from warpcloth.tasks import estimation as E
+    from warpcloth.tasks import scenes as S
     from warpcloth.tasks.scenes import hanging_cloth
     from warpcloth.usd import write_usd
 
@@ -200,7 +201,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             model = hanging_cloth(initial, mesh_path=files[0], handles=handles, device=args.device)
             truth = None
         else:
-            truth = preset(args.material or "gray-interlock", thicken=E.THICKEN)
+            truth = preset(args.material or "gray-interlock", thicken=S.THICKEN)
             model = hanging_cloth(truth, device=args.device)
             frames = E.TrajectoryFit.simulate_targets(model, truth, steps=args.steps)
         fit = E.TrajectoryFit(model, frames, steps=args.steps)

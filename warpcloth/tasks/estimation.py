@@ -30,7 +30,7 @@ from warpcloth.materials import (
     STRETCHING_SHAPE,
 )
 from warpcloth.tasks.optim import adam, lbfgs
-from warpcloth.tasks.scenes import GRID_RES, GRID_TO_YZ, SEED_HANDLES, THICKEN, WIND, hanging_cloth  # noqa: F401
+from warpcloth.tasks.scenes import THICKEN
 
 # -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
 DT = 0.02

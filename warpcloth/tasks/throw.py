@@ -24,10 +24,8 @@ import warpcloth as wc
 from warpcloth.kernels.losses import loss_kernels
 
 # the scene (warpcloth.tasks.scenes), importable from here too
-from warpcloth.tasks.scenes import THROW_CELLS as CELLS  # noqa: F401
 from warpcloth.tasks.scenes import THROW_CORNERS as CORNERS
-from warpcloth.tasks.scenes import THROW_SIZE as SIZE  # noqa: F401
-from warpcloth.tasks.scenes import basket_scene, basket_vertices_triangles, wall_vertices_triangles  # noqa: F401
+from warpcloth.tasks.scenes import basket_scene
 
 DT = 0.01
 STEPS = 700
