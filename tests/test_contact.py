@@ -19,14 +19,16 @@ def rotation_y(theta):
     return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
 
 
-def incline(theta_deg, mu, *, res=4, size=0.1, dtype=wp.float64, requires_grad=False, gap=REST_GAP, vel=None):
+def incline(theta_deg, mu, *, res=4, size=0.1, dtype=wp.float64, requires_grad=False, gap=REST_GAP, vel=None,
+            shear=0.0):
     """A square patch lying on a plane tilted by theta about y (downhill: -x of the tilted frame), away from the
     plane's diagonal edge (where edge-edge pairs would add to the vertex-face ones)."""
     R = rotation_y(math.radians(theta_deg))
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
     b.add_obstacle_plane((4.0, 4.0), rot=R)
     mesh = wc.grid_mesh(res, res, size, size)
-    mesh.positions = (mesh.positions + [0.5 - size / 2, 1.2 - size / 2, gap]) @ R.T
+    jitter = np.random.default_rng(7).uniform(-shear, shear, (len(mesh.positions), 3)) * [1.0, 1.0, 0.0]
+    mesh.positions = (mesh.positions + jitter + [0.5 - size / 2, 1.2 - size / 2, gap]) @ R.T
     if vel is not None:
         mesh.velocities = np.tile(np.asarray(vel, dtype=np.float64), (len(mesh.positions), 1))
     b.add_cloth_mesh(mesh, material=MATERIAL)
@@ -190,23 +192,28 @@ def directions(model, rng):
 
 @pytest.mark.parametrize("theta, regime", [(10.0, "resting"), (30.0, "sliding")])
 def test_cloth_obstacle_gradients_match_central_differences(theta, regime):
-    model, _ = incline(theta, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0))
+    # sheared a little: at zero shear the stretching lookup has a kink (see the cloth-cloth test)
+    model, _ = incline(theta, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4)
     results, sim = gradient_check(model, 6, 0.01, directions(model, np.random.default_rng(1)))
     assert sim.proximity.last_count > 0
     assert all(abs(r[0]) > 0 for r in results.values())
 
 
-# Not yet here: cloth-cloth *sliding* friction, whose tape gradient differs from central differences by ~1e-3
-# relative on this scene (cloth-obstacle sliding friction matches to 1e-4): an open gap, README "Contact".
 @pytest.mark.parametrize("regime, mu, vel", [("sliding, frictionless", 0.0, (0.03, 0.01, 0.0)),
+                                              ("sliding, friction", 0.6, (0.03, 0.01, 0.0)),
                                               ("resting, friction", 0.6, (0.0, 0.0, 0.0))])
 def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel):
     # a small free sheet on a larger pinned one, under gravity: cloth-cloth vertex-face and edge-edge pairs
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
     b.add_cloth_grid((2, 2), (0.2, 0.2), material=MATERIAL, pos=(-0.1, -0.1, 0.0))
-    # placed so that no edge crossing sits on a kink of the edge-edge fade (kernels/proximity.py EDGE_FADE), where
-    # central differences average two one-sided derivatives
-    b.add_cloth_grid((1, 1), (0.04, 0.04), material=MATERIAL, pos=(-0.0313, -0.0217, REST_GAP), vel=vel)
+    # placed so that no edge crossing sits on a kink of the edge-edge fade (kernels/proximity.py EDGE_FADE), and
+    # sheared a little in its plane: at zero shear the stretching lookup (|G01|) has a kink where central differences
+    # average two one-sided derivatives (tests/test_gradients.py)
+    mesh = wc.grid_mesh(1, 1, 0.04, 0.04)
+    jitter = np.random.default_rng(7).uniform(-4e-4, 4e-4, (len(mesh.positions), 3)) * [1.0, 1.0, 0.0]
+    mesh.positions = mesh.positions + jitter + [-0.0313, -0.0217, REST_GAP]
+    mesh.velocities = np.tile(np.asarray(vel, dtype=np.float64), (len(mesh.positions), 1))
+    b.add_cloth_mesh(mesh, material=MATERIAL)
     for p in range(9):
         b.add_pin(p)
     b.set_collision(self_collision=True, friction=mu)
