@@ -10,7 +10,8 @@ Incline: a 0.1 m patch on a plane tilted 10 degrees (below atan 0.3) and 30 degr
 the distance slid, and the fitted acceleration against g (sin theta - mu cos theta).
 
 Drag: a 0.1 m patch (3x3 cells) on a pinned 1 m x 0.4 m sheet (8x8), cloth-cloth mu 0.6, pushed along x by a force
-per particle of m (mu g + 2 m/s^2) for 0.6 s: the friction it feels, (force - m a) / (mu m g), should be 1.
+per particle of m (mu g + p), p = 0.5 and 2 m/s^2, for 0.6 s: the friction it feels, (force - m a) / (mu m g),
+should be 1.
 
 Usage: python benchmarks/contact.py [--quick] [--out PATH] [--sizes 24,64] [--steps 100]
 """
@@ -120,7 +121,7 @@ def main():
                        [[i["theta_deg"], i["mu"], i["travel_mm"], i["acceleration"], i["expected_acceleration"]]
                         for i in inclines], specs=[".0f", ".1f", ".3f", ".3f", ".3f"],
                        title=f"patch on an incline, {steps * 0.01:g} s")
-    drags = [drag(30 if args.quick else 60)]
+    drags = [drag(30 if args.quick else 60, push=push) for push in (0.5, 2.0)]
     common.print_table(["mu", "a fitted", "a expected", "friction / (mu load)"],
                        [[d["mu"], d["acceleration"], d["expected_acceleration"], d["friction_over_mu_load"]]
                         for d in drags], specs=[".1f", ".3f", ".3f", ".3f"],

@@ -93,6 +93,28 @@ def test_cloth_dropped_on_a_sphere_with_friction_stays_on_it():
     assert np.linalg.norm(y.mean(axis=0)[:2]) > np.linalg.norm(x.mean(axis=0)[:2]) + 0.05  # frictionless slides
 
 
+def test_sheet_dragged_over_a_sheet_feels_mu_times_its_load():
+    # a patch on a pinned sheet, pushed along x with m (mu g + 0.5 m/s^2): friction mu m g leaves 0.5 m/s^2
+    mu, push = 0.6, 0.5
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+    b.add_cloth_grid((8, 8), (1.0, 0.4), material=MATERIAL, pos=(-0.5, -0.2, 0.0))
+    for p in range(81):
+        b.add_pin(p)
+    b.add_cloth_grid((3, 3), (0.1, 0.1), material=MATERIAL, pos=(-0.3, -0.0513, REST_GAP))
+    b.set_collision(self_collision=True, friction=mu)
+    model = b.finalize("cpu", dtype=wp.float64)
+    control = model.control(particle_force=True)
+    force = np.zeros((model.particle_count, 3))
+    force[81:, 0] = model.particle_mass()[81:] * (mu * G + push)
+    control.particle_force.assign(force)
+    traj = wc.rollout(wc.Simulator(model, 0.01), model.state(), control, steps=60)
+    x = np.array([s.particle_x.numpy()[81:, 0].mean() for s in traj])
+    t = np.arange(len(x)) * 0.01
+    a = 2.0 * np.polyfit(t[10:], x[10:], 2)[0]
+    friction = mu * G + push - a
+    assert friction == pytest.approx(mu * G, rel=0.05)
+
+
 def test_system_with_pairs_matches_a_dense_solve():
     model, _ = incline(20.0, 0.3, res=3, vel=(0.05, 0.02, 0.0))
     sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30))
