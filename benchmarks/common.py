@@ -156,7 +156,7 @@ def seed_dir() -> Path:
 
 
 def seed_wind_cloth(material: str, *, requires_grad: bool = False, dtype=wp.float32, device: str = "cpu",
-                    lagged_normals: bool = False) -> wc.Model:
+                    lagged_normals: bool = False, self_collision: bool = False) -> wc.Model:
     """The seed's material-estimation scene (SPEC §5(b)): demo_wind.obj, handles on vertices 2 and 3, 5 m/s wind.
 
     The cloth starts at rest: the seed's targets match a start from rest to 1e-6 m after one frame, not the
@@ -165,7 +165,8 @@ def seed_wind_cloth(material: str, *, requires_grad: bool = False, dtype=wp.floa
     """
     mesh = seed_dir() / "meshes" / "demo_wind.obj"
     return scenes.hanging_cloth(wc.preset(material, thicken=THICKEN), mesh_path=mesh, lagged_normals=lagged_normals,
-                                device=device, dtype=dtype, requires_grad=requires_grad)
+                                self_collision=self_collision, device=device, dtype=dtype,
+                                requires_grad=requires_grad)
 
 
 def advance(sim: wc.Simulator, state: wc.State, steps: int) -> wc.State:

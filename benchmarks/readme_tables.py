@@ -236,24 +236,31 @@ def cg_solvers(d: dict) -> str:
 
 
 def seed_trajectories(d: dict) -> str:
-    by = {(r["tag"], r["wind_normals"]): r for r in d["materials"]}
+    by = {(r["tag"], r["wind_normals"], r.get("contact", False)): r for r in d["materials"]}
     tags = list(dict.fromkeys(r["tag"] for r in d["materials"]))
     names = {r["tag"]: r["material"] for r in d["materials"]}
     dt_frame = d["dt"] * d["steps"] / (d["frames"] - 1)
+    variants = [("lagged", False, "lagged normals"), ("lagged", True, "lagged normals + contact")]
+    variants = [v for v in variants if (tags[0], v[0], v[1]) in by]
     rows = []
-    lagged_frames = sorted({f for f in (1, 4, 10, d["frames"] - 1) if f < d["frames"]})
-    for frame, normals in [(f, "lagged") for f in lagged_frames] + [(1, "current")]:
-        label = f"{frame} ({round(frame * dt_frame, 3):g} s), " + ("lagged normals" if normals == "lagged"
-                                                                   else "current normals (default)")
-        rows.append([label] + [length(by[(t, normals)]["rms_per_frame"][frame]) for t in tags])
+    frames = sorted({f for f in (1, 4, 10, d["frames"] - 1) if f < d["frames"]})
+    for normals, contact, text in variants:
+        for frame in frames:
+            rows.append([f"{frame} ({round(frame * dt_frame, 3):g} s), {text}"]
+                        + [length(by[(t, normals, contact)]["rms_per_frame"][frame]) for t in tags])
+    rows.append(["1 (0.04 s), current normals (default)"]
+                + [length(by[(t, "current", False)]["rms_per_frame"][1]) for t in tags])
     out = [table(["frame (t)"] + [names[t] for t in tags], rows), ""]
-    lagged = [by[(t, "lagged")] for t in tags]
-    departs = [r["departs_at_frame"] for r in lagged if r["departs_at_frame"] is not None]
-    com = [r["com_frame10_error"] for r in lagged]
-    if departs:
-        out.append(f"With the lagged normals the trajectories first depart by more than 0.1 mm at frames "
-                   f"{min(departs)}–{max(departs)}; the centre of mass at frame 10 (0.4 s) is within "
-                   f"{length(min(com))}–{length(max(com))} of the seed's.")
+    for normals, contact, text in variants:
+        runs = [by[(t, normals, contact)] for t in tags]
+        departs = [r["departs_at_frame"] for r in runs if r["departs_at_frame"] is not None]
+        com = [r["com_frame10_error"] for r in runs]
+        mean = [r["rms_mean"] for r in runs]
+        if departs:
+            out.append(f"With the {text} the trajectories first depart by more than 0.1 mm at frames "
+                       f"{min(departs)}–{max(departs)}; the centre of mass at frame 10 (0.4 s) is within "
+                       f"{length(min(com))}–{length(max(com))} of the seed's; the RMS distance averaged over the "
+                       f"{round((d['frames'] - 1) * dt_frame, 3):g} s is {length(min(mean))}–{length(max(mean))}.")
     out.append(provenance(d))
     return "\n".join(out)
 

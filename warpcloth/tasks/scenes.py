@@ -53,8 +53,8 @@ SEED_HANDLES = (2, 3)
 
 
 def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str | Path | None = None,
-                  handles: Sequence[int] | None = None, lagged_normals: bool = False, device=None,
-                  dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
+                  handles: Sequence[int] | None = None, lagged_normals: bool = False, self_collision: bool = False,
+                  device=None, dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
     """The seed's material-estimation scene: a 1 m cloth held at its two top corners by soft handles
     (``DEFAULT_HANDLE_STIFFNESS``, ARCSim's), gravity, a 5 m/s wind along +x, starting at rest.
 
@@ -64,8 +64,8 @@ def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str 
     shape, at rest: the seed's targets match a start from rest to 1e-6 m after one frame, not the ``nv`` velocities
     stored in demo_wind.obj (0.1 mm off).
 
-    Self-collision is off: a cloth hanging in a steady wind does not touch itself (the seed's targets were made with
-    it on; their cross-simulator fit shows what that costs).
+    Self-collision is off by default: a cloth hanging in a steady wind barely touches itself (the seed's targets were
+    made with it on, and with ARCSim's proximity repulsion and friction, which ``self_collision`` turns on).
 
     Args:
         material: The cloth's material (the seed's fabrics: ``wc.preset(name, thicken=THICKEN)``).
@@ -74,6 +74,7 @@ def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str 
         handles: The handled particles; default: the top corners of the grid, or ``SEED_HANDLES`` with
             ``mesh_path``.
         lagged_normals: Reproduce ARCSim's one-step lag of the wind's face normals.
+        self_collision: Cloth-cloth collisions with ARCSim's repulsion and friction (``set_collision`` defaults).
         device: Warp device (default: Warp's default device).
         dtype: ``wp.float32`` or ``wp.float64``.
         requires_grad: Build the model's arrays with gradients.
@@ -92,6 +93,8 @@ def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str 
     for p in handles:
         b.add_handle(int(p), stiffness=DEFAULT_HANDLE_STIFFNESS)
     b.set_wind(WIND, density=1.0, drag=0.0, lagged_normals=lagged_normals)
+    if self_collision:
+        b.set_collision(self_collision=True)
     return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
 
 
