@@ -42,7 +42,7 @@ def capture_system(res):
     m = common.hanging_cloth(res)
     sim = wc.Simulator(m, common.DT, options=wc.SolverOptions(cg_tol=TOL, cg_backend="sequential"))
     s = common.advance(sim, m.state(), SPINUP)
-    values, rhs = sim.assemble(s)
+    values, rhs, _ = sim.assemble(s)
     dv_prev = wp.clone(s.particle_dv)
     nxt = m.empty_state()
     sim.step(s, nxt)  # the step's own solution, for the bsr_mv timing

@@ -106,7 +106,7 @@ def phases(res: int, reps: int) -> dict:
     sim = wc.Simulator(model, common.DT)
     s0 = start_state(model, sim)
     out = model.empty_state()
-    values, rhs = sim.assemble(s0)
+    values, rhs, _ = sim.assemble(s0)
     x = model.empty_state().particle_v  # a vec3 array of the model's size for the solution
     info = sim.linear_solver.solve(values, rhs, x)  # also compiles
     t_assemble = common.median_time(lambda: sim.assemble(s0), reps=reps, warmup=1)

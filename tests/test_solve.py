@@ -24,7 +24,7 @@ def assembled(sim):
     """A state a few steps in (bent, moving), its dense system, its blocks and a solution buffer."""
     traj = wc.rollout(sim, sim.model.state(), steps=3)
     A, b = sim.dense_system(traj[-1])
-    values, rhs = sim.assemble(traj[-1])
+    values, rhs, _ = sim.assemble(traj[-1])
     dv = wp.zeros_like(rhs)
     return traj[-1], A, b, values, rhs, dv
 

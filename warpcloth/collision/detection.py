@@ -44,7 +44,7 @@ class Contacts:
                    t=np.concatenate([p.t for p in parts]), sign=np.concatenate([p.sign for p in parts]))
 
 
-class _Primitives:
+class PrimitiveSet:
     """Vertices, edges or triangles (node indices, one row each) with their swept bounding boxes."""
 
     def __init__(self, indices: np.ndarray, device):
@@ -74,17 +74,17 @@ class ContactDetector:
         self.capacity = int(capacity)
         self.kernels = collision_kernels(model.scalar)
         n = model.particle_count
-        cloth_tris = _Primitives(model.triangles_np, dev)
-        cloth_vertices = _Primitives(np.arange(n)[:, None], dev)
-        cloth_edges = _Primitives(model.edge_indices.numpy(), dev)
+        cloth_tris = PrimitiveSet(model.triangles_np, dev)
+        cloth_vertices = PrimitiveSet(np.arange(n)[:, None], dev)
+        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev)
         self._sets = [cloth_tris, cloth_vertices, cloth_edges]
         # (query set, target set, kind, skip-incident/same-set flag)
-        self._queries: list[tuple[_Primitives, _Primitives, str, int]] = []
+        self._queries: list[tuple[PrimitiveSet, PrimitiveSet, str, int]] = []
         if obstacles:
             V = model.obstacle_vertex_count
-            obst_tris = _Primitives(model.obstacle_tri_indices.numpy() + n, dev)
-            obst_vertices = _Primitives(np.arange(n, n + V)[:, None], dev)
-            obst_edges = _Primitives(model.obstacle_edge_indices.numpy() + n, dev)
+            obst_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev)
+            obst_vertices = PrimitiveSet(np.arange(n, n + V)[:, None], dev)
+            obst_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev)
             self._sets += [obst_tris, obst_vertices, obst_edges]
             self._queries += [(cloth_vertices, obst_tris, "vf", 0), (obst_vertices, cloth_tris, "vf", 0),
                               (cloth_edges, obst_edges, "ee", 0)]

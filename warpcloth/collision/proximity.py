@@ -21,10 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warpcloth.collision.detection import PrimitiveSet
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.contact import contact_kernels
 from warpcloth.kernels.proximity import proximity_kernels
-from warpcloth.model import Control, Model, State
+from warpcloth.model import Model, State
 from warpcloth.tape import record_adjoint
 
 FRICTION_REGULARISATION = 1.0e-4
@@ -44,17 +45,6 @@ class ProximityPairs:
     """Weight of each node, 0 where it is not a free cloth particle [-], (>= count,) vec4."""
     stiffness: wp.array
     """The pair's 3x3 block K (dt^2 h n n^T + dt mu f_n J) [kg], (>= count,) mat33."""
-
-
-class _Primitives:
-    """Node-index rows (vertices, edges or triangles) with their bounding boxes and BVH."""
-
-    def __init__(self, indices: np.ndarray, device):
-        self.count = len(indices)
-        self.indices = wp.array(indices.astype(np.int32).reshape(len(indices), -1), dtype=wp.int32, device=device)
-        self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
-        self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
-        self.bvh: wp.Bvh | None = None
 
 
 class ProximityForces:
@@ -79,15 +69,15 @@ class ProximityForces:
         V = model.obstacle_vertex_count if obstacles else 0
         self.cloth_count, self.node_count = n, n + V
         self.capacity = int(capacity or 4 * (n + V))
-        cloth_tris = _Primitives(model.triangles_np, dev)
-        cloth_edges = _Primitives(model.edge_indices.numpy(), dev)
+        cloth_tris = PrimitiveSet(model.triangles_np, dev)
+        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev)
         cloth_vertices = np.arange(n)
         # (query rows, target set, kind, same set): query rows are node ids (VF) or edges (EE)
         self._queries = []
         self._targets = []
         if obstacles:
-            obstacle_tris = _Primitives(model.obstacle_tri_indices.numpy() + n, dev)
-            obstacle_edges = _Primitives(model.obstacle_edge_indices.numpy() + n, dev)
+            obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev)
+            obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev)
             self._targets += [obstacle_tris, obstacle_edges]
             self._queries += [
                 (wp.array(cloth_vertices.astype(np.int32), dtype=wp.int32, device=dev), obstacle_tris, "vf", 0),
@@ -106,6 +96,8 @@ class ProximityForces:
         self._count_host = self._count.numpy() if dev.is_cpu else None
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self._weights = wp.empty(self.capacity, dtype=model.types.vec4, device=dev)
+        self._stiffness = wp.empty(self.capacity, dtype=model.types.mat33, device=dev)
         free = np.zeros(n + V, dtype=np.int32)
         free[:n] = model.particle_pin.numpy() < 0
         self._free = wp.array(free, dtype=wp.int32, device=dev)
@@ -158,22 +150,16 @@ class ProximityForces:
         self.last_count = count
         return count
 
-    def assemble(self, state_in: State, control: Control, pin_dv: wp.array, dv: wp.array, values: wp.array,
-                 rhs: wp.array, recording: bool) -> ProximityPairs:
+    def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,
+                 dv: wp.array, values: wp.array, rhs: wp.array, recording: bool) -> ProximityPairs:
         """Find the step's pairs and add their terms to ``values`` (block diagonal) and ``rhs``; returns the pairs
-        for the solver's matrix-free cross blocks. On a tape, records the terms' adjoint."""
+        for the solver's matrix-free cross blocks. On a tape, records the terms' adjoint. ``obstacle_start`` and
+        ``obstacle_end``: the obstacle vertices at the step's start and end (empty without obstacles)."""
         model = self.model
         k = self.kernels
         dev = self.device
         n, N = self.cloth_count, self.node_count
         vec3 = model.types.vec3
-        if N > n:
-            from warpcloth.obstacles import obstacle_points
-
-            obstacle_start = obstacle_points(model, control, state_in.time)
-            obstacle_end = obstacle_points(model, control, state_in.time + self.dt)
-        else:
-            obstacle_start = obstacle_end = wp.zeros(0, dtype=vec3, device=dev)
         x = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
         velocity = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
         wp.launch(k.node_state, N, device=dev,
@@ -181,11 +167,11 @@ class ProximityForces:
                           obstacle_end, model.scalar(1.0 / self.dt), n],
                   outputs=[x, velocity])
         count = self.detect(x)
-        nodes, kind = self._nodes, self._kind
-        if recording:  # the backward pass reads this step's pairs: copies that later steps do not overwrite
+        nodes, kind, weights, stiffness = self._nodes, self._kind, self._weights, self._stiffness
+        if recording:  # the backward pass reads this step's pairs: arrays that later steps do not overwrite
             nodes, kind = wp.clone(nodes[:count]), wp.clone(kind[:count])
-        weights = wp.empty(max(count, 1), dtype=model.types.vec4, device=dev)
-        stiffness = wp.empty(max(count, 1), dtype=model.types.mat33, device=dev)
+            weights = wp.empty(max(count, 1), dtype=model.types.vec4, device=dev)
+            stiffness = wp.empty(max(count, 1), dtype=model.types.mat33, device=dev)
         pairs = ProximityPairs(count, nodes, weights, stiffness)
         if count == 0:
             return pairs

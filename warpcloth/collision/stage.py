@@ -27,7 +27,7 @@ from warpcloth.collision import projection
 from warpcloth.collision.detection import ContactDetector, Contacts
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.contact import contact_kernels
-from warpcloth.model import Control, Model, State
+from warpcloth.model import Model, State
 from warpcloth.tape import active_tape, record_adjoint
 
 
@@ -69,23 +69,17 @@ class CollisionStage:
         """Wall time spent in the projection's adjoint (accumulates over backward passes)."""
 
     # -- response ------------------------------------------------------------------------------------------------
-    def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, control: Control, t_start: float,
-                state_out: State, step: int) -> None:
-        """Write the collision-free positions and corrected velocities of the step into ``state_out``."""
+    def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
+                obstacle_end: wp.array, state_out: State, step: int) -> None:
+        """Write the collision-free positions and corrected velocities of the step into ``state_out``;
+        ``obstacle_start`` and ``obstacle_end`` are the obstacle vertices at the step's start and end (empty without
+        obstacles)."""
         model = self.model
         k = self.kernels
         recording = active_tape() is not None and model.requires_grad
         vec3 = model.types.vec3
         n, N = self.cloth_count, self.node_count
         dev = self.device
-
-        if self.obstacle_vertex_count:
-            from warpcloth.obstacles import obstacle_points
-
-            obstacle_start = obstacle_points(model, control, t_start)
-            obstacle_end = obstacle_points(model, control, t_start + self.dt)
-        else:
-            obstacle_start = obstacle_end = wp.zeros(0, dtype=vec3, device=dev)
 
         def gather(cloth_x, obstacle_x):
             out = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)

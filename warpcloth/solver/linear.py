@@ -67,9 +67,12 @@ class LinearSolver:
         self._info_host = self._info.numpy() if self.device.is_cpu else None
         self._adjoint = wp.zeros(n, dtype=vec3, device=self.device)
         self._warp_matrix = None
-        self._no_nodes = wp.zeros((0, 4), dtype=wp.int32, device=self.device)
-        self._no_w = wp.zeros(0, dtype=model.types.vec4, device=self.device)
-        self._no_k = wp.zeros(0, dtype=mat33, device=self.device)
+        self._plain = self.kernels.BlockMatrix()
+        self._plain.offsets, self._plain.columns = model.bsr_offsets, model.bsr_columns
+        self._plain.diag_slot, self._plain.pair_count = model.particle_diag_slot, 0
+        self._plain.pair_nodes = wp.zeros((0, 4), dtype=wp.int32, device=self.device)
+        self._plain.pair_w = wp.zeros(0, dtype=model.types.vec4, device=self.device)
+        self._plain.pair_k = wp.zeros(0, dtype=mat33, device=self.device)
 
     def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
               adjoint: bool = False, pairs=None) -> SolveInfo:
@@ -140,13 +143,14 @@ class LinearSolver:
     def block_matrix(self, values: wp.array, pairs=None):
         """The matrix with blocks ``values`` on the model's pattern and the cross blocks of ``pairs`` (a
         :class:`~warpcloth.collision.proximity.ProximityPairs`, or None), as the CG kernels read it."""
-        A = self.kernels.BlockMatrix()
-        A.offsets, A.columns, A.diag_slot, A.values = (self.model.bsr_offsets, self.model.bsr_columns,
-                                                       self.model.particle_diag_slot, values)
         if pairs is None or pairs.count == 0:
-            A.pair_count, A.pair_nodes, A.pair_w, A.pair_k = 0, self._no_nodes, self._no_w, self._no_k
+            A = self._plain  # built once: a step without pairs only swaps the blocks
         else:
+            A = self.kernels.BlockMatrix()
+            A.offsets, A.columns, A.diag_slot = self._plain.offsets, self._plain.columns, self._plain.diag_slot
             A.pair_count, A.pair_nodes, A.pair_w, A.pair_k = pairs.count, pairs.nodes, pairs.weights, pairs.stiffness
+        if A.values is not values:
+            A.values = values
         return A
 
     def check(self, info: SolveInfo, which: str, step: int) -> None:

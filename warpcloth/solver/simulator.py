@@ -20,6 +20,7 @@ from warpcloth.collision.proximity import ProximityForces
 from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.model import Control, Model, State
+from warpcloth.obstacles import obstacle_points
 from warpcloth.solver.assembly import SystemAssembler
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import SolverOptions
@@ -107,9 +108,10 @@ class Simulator:
         clock = _PhaseClock(self.phase_seconds)
         self.assembler.assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
         clock.lap("assembly")
+        obstacles = self._obstacle_points(control, state_in.time) if self.collision is not None else None
         pairs = None
         if self.proximity is not None:
-            pairs = self.proximity.assemble(state_in, control, pin_dv, dv, values, rhs, recording)
+            pairs = self.proximity.assemble(state_in, *obstacles, pin_dv, dv, values, rhs, recording)
             clock.lap("proximity")
         self._solve(values, rhs, dv, state_in, state_out, step, pairs)
         clock.lap("solve")
@@ -132,7 +134,7 @@ class Simulator:
             # no NaN or runaway particle reaches the collision stage
             self._raise_if_diverged(candidate, t_next, step)
             clock.lap("integrate")
-            self.collision.resolve(state_in, x_hat, v_hat, control, state_in.time, state_out, step)
+            self.collision.resolve(state_in, x_hat, v_hat, *obstacles, state_out, step)
             wp.launch(self.kernels.check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
                       record_tape=False)  # the projection's velocity change too
@@ -161,25 +163,24 @@ class Simulator:
         e["total"] = sum(e.values())
         return e
 
-    def assemble(self, state: State, control: Control | None = None) -> tuple[wp.array, wp.array]:
-        """The system ``A dv = b`` of the step from ``state``: A's blocks on the model's block pattern
-        (``bsr_offsets``/``bsr_columns``, mat33) and b (vec3), in new arrays (not taped). Solve it with
-        ``linear_solver``."""
-        control = control if control is not None else self._default_control()
-        values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
-        with wp.ScopedDevice(self.device):
-            self.assembler.assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
-        return values, rhs
-
-    def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The step's system A (3n x 3n) and b (3n) as dense NumPy arrays, for inspection and tests (small n)."""
+    def assemble(self, state: State, control: Control | None = None):
+        """The system ``A dv = b`` of the step from ``state``, in new arrays (not taped): A's blocks on the model's
+        block pattern (``bsr_offsets``/``bsr_columns``, mat33), b (vec3), and the proximity pairs whose cross blocks
+        A also has (a ``ProximityPairs``, or None). Solve it with ``linear_solver.solve(values, b, x, pairs=pairs)``.
+        """
         control = control if control is not None else self._default_control()
         values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
         pairs = None
         with wp.ScopedDevice(self.device):
             self.assembler.assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
             if self.proximity is not None:
-                pairs = self.proximity.assemble(state, control, pin_dv, wp.zeros_like(rhs), values, rhs, False)
+                pairs = self.proximity.assemble(state, *self._obstacle_points(control, state.time), pin_dv,
+                                                wp.zeros_like(rhs), values, rhs, False)
+        return values, rhs, pairs
+
+    def dense_system(self, state: State, control: Control | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The step's system A (3n x 3n) and b (3n) as dense NumPy arrays, for inspection and tests (small n)."""
+        values, rhs, pairs = self.assemble(state, control)
         n = self.model.particle_count
         offsets, columns = self.model.bsr_offsets.numpy(), self.model.bsr_columns.numpy()
         blocks = values.numpy()
@@ -197,6 +198,15 @@ class Simulator:
         return A.reshape(3 * n, 3 * n), rhs.numpy().reshape(-1).astype(np.float64)
 
     # -- internals -----------------------------------------------------------------------------------------------
+
+    def _obstacle_points(self, control: Control, t_start: float) -> tuple[wp.array, wp.array]:
+        """The obstacle vertices at the step's start and end [m], for the proximity forces and the collision stage
+        alike (empty arrays where the model has no obstacle collisions)."""
+        model = self.model
+        if not model.collision.obstacles or model.obstacle_count == 0:
+            empty = wp.zeros(0, dtype=model.types.vec3, device=self.device)
+            return empty, empty
+        return obstacle_points(model, control, t_start), obstacle_points(model, control, t_start + self.dt)
 
     def _default_control(self) -> Control:
         if not hasattr(self, "_control_default"):
