@@ -23,7 +23,6 @@ import warp as wp
 
 from warpcloth.collision.detection import PrimitiveSet
 from warpcloth.errors import CollisionError
-from warpcloth.kernels.contact import contact_kernels
 from warpcloth.kernels.proximity import proximity_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import record_adjoint
@@ -62,7 +61,6 @@ class ProximityForces:
         self.dt = float(dt)
         self.device = dev = model.device
         self.kernels = proximity_kernels(model.scalar)
-        self.gather = contact_kernels(model.scalar).gather_nodes
         self.thickness = float(settings.repulsion_thickness)
         n = model.particle_count
         obstacles = settings.obstacles and model.obstacle_count > 0
@@ -71,27 +69,20 @@ class ProximityForces:
         self.capacity = int(capacity or 4 * (n + V))
         cloth_tris = PrimitiveSet(model.triangles_np, dev)
         cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev)
-        cloth_vertices = np.arange(n)
+        cloth_vertices = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=dev)
         # (query rows, target set, kind, same set): query rows are node ids (VF) or edges (EE)
         self._queries = []
-        self._targets = []
         if obstacles:
             obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev)
             obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev)
-            self._targets += [obstacle_tris, obstacle_edges]
             self._queries += [
-                (wp.array(cloth_vertices.astype(np.int32), dtype=wp.int32, device=dev), obstacle_tris, "vf", 0),
+                (cloth_vertices, obstacle_tris, "vf", 0),
                 (wp.array(np.arange(n, n + V, dtype=np.int32), dtype=wp.int32, device=dev), cloth_tris, "vf", 0),
                 (cloth_edges.indices, obstacle_edges, "ee", 0),
             ]
-            if cloth_tris not in self._targets:
-                self._targets.append(cloth_tris)
         if settings.self_collision:
-            self._targets += [t for t in (cloth_tris, cloth_edges) if t not in self._targets]
-            self._queries += [
-                (wp.array(cloth_vertices.astype(np.int32), dtype=wp.int32, device=dev), cloth_tris, "vf", 0),
-                (cloth_edges.indices, cloth_edges, "ee", 1),
-            ]
+            self._queries += [(cloth_vertices, cloth_tris, "vf", 0), (cloth_edges.indices, cloth_edges, "ee", 1)]
+        self._targets = list({id(q[1]): q[1] for q in self._queries}.values())  # each BVH refitted once a step
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._count_host = self._count.numpy() if dev.is_cpu else None
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
