@@ -236,11 +236,15 @@ def cg_solvers(d: dict) -> str:
 
 
 def seed_trajectories(d: dict) -> str:
-    by = {(r["tag"], r["wind_normals"], r.get("contact", False)): r for r in d["materials"]}
+    def contact(r):  # no contact, contact with friction (older files: no "friction" key), contact without
+        return ("friction" if r.get("friction", True) else "repulsion") if r.get("contact") else None
+
+    by = {(r["tag"], r["wind_normals"], contact(r)): r for r in d["materials"]}
     tags = list(dict.fromkeys(r["tag"] for r in d["materials"]))
     names = {r["tag"]: r["material"] for r in d["materials"]}
     dt_frame = d["dt"] * d["steps"] / (d["frames"] - 1)
-    variants = [("lagged", False, "lagged normals"), ("lagged", True, "lagged normals + contact")]
+    variants = [("lagged", None, "lagged normals"), ("lagged", "friction", "lagged normals + contact"),
+                ("lagged", "repulsion", "lagged normals + contact without friction")]
     variants = [v for v in variants if (tags[0], v[0], v[1]) in by]
     rows = []
     frames = sorted({f for f in (1, 4, 10, d["frames"] - 1) if f < d["frames"]})
@@ -249,7 +253,7 @@ def seed_trajectories(d: dict) -> str:
             rows.append([f"{frame} ({round(frame * dt_frame, 3):g} s), {text}"]
                         + [length(by[(t, normals, contact)]["rms_per_frame"][frame]) for t in tags])
     rows.append(["1 (0.04 s), current normals (default)"]
-                + [length(by[(t, "current", False)]["rms_per_frame"][1]) for t in tags])
+                + [length(by[(t, "current", None)]["rms_per_frame"][1]) for t in tags])
     out = [table(["frame (t)"] + [names[t] for t in tags], rows), ""]
     for normals, contact, text in variants:
         runs = [by[(t, normals, contact)] for t in tags]

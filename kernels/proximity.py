@@ -4,17 +4,22 @@ Detection (not differentiated) finds, at the start of a step, vertex-face and ed
 repulsion thickness delta: for each vertex the closest triangle (ARCSim keeps the closest per primitive); for each
 edge every edge whose closest points lie inside both, the pair's stiffness fading to 0 near either end (so pairs
 appear and vanish with zero force, and ties between equally close edges of flat sheets cannot move the force).
+Primitives of neighbouring elements pair only where the cloth folds onto itself (a vertex over the interior of a
+triangle, edges crossing at more than 30 degrees): a sharp crease repels as in ARCSim, which excludes only primitives
+sharing a node, while a flat or gently curved cloth has no such pairs.
 Each pair k has nodes (up to 4, in the
 combined node space: cloth particles, then obstacle vertices) and weights w with sum_i w_i x_i = the gap vector
 (VF: w = (1, -b0, -b1, -b2); EE: w = (1 - s, s, -(1 - u), -u)), unit normal n along it and distance
 d = n . sum_i w_i x_i.
 
 With c = d - delta, the pair's energy is E(c) = k max(-c, 0)^3 / (6 delta) (k = repulsion stiffness [N/m^3] times
-the smallest rest area of the pair's cloth nodes [m^2]): normal force f_n = k max(-c, 0)^2 / (2 delta) along
-w_i n, stiffness h = k max(-c, 0) / delta. Friction opposes the relative tangential velocity u_t = T sum_i w_i V_i
-(T = I - n n^T; V: the start velocity of free nodes, the known end velocity of pinned and obstacle nodes) with
-magnitude mu f_n min(|u_t| / eps, 1): Coulomb's law regularised below eps [m/s] (a stiff damper, so a cloth at
-rest on a slope creeps at most eps (slope force / (mu f_n)) instead of ARCSim's dt g sin(theta)).
+the smaller rest area of the pair's two primitives [m^2], as ARCSim: a vertex's is a third of its triangles', an edge's
+a third of its one or two triangles'; against an obstacle, the cloth primitive's): normal force
+f_n = k max(-c, 0)^2 / (2 delta) along w_i n, stiffness h = k max(-c, 0) / delta. Friction opposes the relative
+tangential velocity u_t = T sum_i w_i V_i (T = I - n n^T; V: the start velocity of free nodes, the known end
+velocity of pinned and obstacle nodes) with magnitude mu f_n min(|u_t| / eps, 1): Coulomb's law regularised below
+eps [m/s] (a stiff damper, so a cloth at rest on a slope creeps at most eps (slope force / (mu f_n)) instead of
+ARCSim's dt g sin(theta)).
 
 One linearised backward-Euler step (Baraff and Witkin) adds, for free nodes i, j of a pair,
     A_ij += w_i w_j K,  b_i += w_i R,
@@ -36,6 +41,8 @@ VERTEX_FACE = 0
 EDGE_EDGE = 1
 EDGE_FADE = 0.1
 """Fraction of an edge at each end over which an edge-edge pair's stiffness fades to 0 (kernels edge_fade)."""
+NEIGHBOUR_EDGE_SINE2 = 0.25
+"""Edges of neighbouring elements make a pair only when they cross at more than asin(sqrt(this)) = 30 degrees."""
 
 
 @wp.func
@@ -91,14 +98,16 @@ def proximity_kernels(scalar):
         count: wp.array(dtype=wp.int32)
         pair_nodes: wp.array2d(dtype=wp.int32)
         pair_kind: wp.array(dtype=wp.int32)
+        pair_area: wp.array(dtype=scalar)
 
     @wp.func
-    def emit(search: PairSearch, nodes: wp.vec4i, kind: int):
+    def emit(search: PairSearch, nodes: wp.vec4i, kind: int, area: scalar):
         k = wp.atomic_add(search.count, 0, 1)
         if k < search.pair_kind.shape[0]:
             for c in range(4):
                 search.pair_nodes[k, c] = nodes[c]
             search.pair_kind[k] = kind
+            search.pair_area[k] = area
 
     @wp.func
     def near(search: PairSearch, a: int, b: int):
@@ -110,6 +119,8 @@ def proximity_kernels(scalar):
         x: wp.array(dtype=vec3),
         queries: wp.array(dtype=wp.int32),
         triangles: wp.array2d(dtype=wp.int32),
+        node_area: wp.array(dtype=scalar),
+        triangle_area: wp.array(dtype=scalar),
         search: PairSearch,
     ):
         # the closest triangle within radius of each query vertex
@@ -127,15 +138,19 @@ def proximity_kernels(scalar):
             c = triangles[j, 2]
             if q == a or q == b or q == c:
                 continue
-            if near(search, q, a) or near(search, q, b) or near(search, q, c):
-                continue
             u, v, w = triangle_barycentric(p, x[a], x[b], x[c])
+            # a mesh neighbour of the triangle counts only where the cloth folds over it (ARCSim excludes only the
+            # triangles around q): its closest point must be interior, so a flat or gently curved cloth has none
+            if near(search, q, a) or near(search, q, b) or near(search, q, c):
+                if wp.min(wp.min(u, v), w) <= scalar(0.0):
+                    continue
             d = wp.length(p - (u * x[a] + v * x[b] + w * x[c]))
             if d < best:
                 best = d
                 best_j = j
         if best_j >= 0:
-            emit(search, wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE)
+            emit(search, wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE,
+                 wp.min(node_area[q], triangle_area[best_j]))
 
     @wp.kernel(enable_backward=False)
     def edge_edge_pairs(
@@ -143,6 +158,8 @@ def proximity_kernels(scalar):
         x: wp.array(dtype=vec3),
         edges: wp.array2d(dtype=wp.int32),
         targets: wp.array2d(dtype=wp.int32),
+        edge_area: wp.array(dtype=scalar),
+        target_area: wp.array(dtype=scalar),
         same_set: int,
         search: PairSearch,
     ):
@@ -163,12 +180,18 @@ def proximity_kernels(scalar):
                 continue
             if e0 == f0 or e0 == f1 or e1 == f0 or e1 == f1:
                 continue
+            a = x[e1] - x[e0]
+            b = x[f1] - x[f0]
             if near(search, e0, f0) or near(search, e0, f1) or near(search, e1, f0) or near(search, e1, f1):
-                continue
+                # mesh neighbours only where a crease brings crossing edges together: the parallel edges of a
+                # fine flat mesh are close too, and must not repel
+                cross = wp.cross(a, b)
+                if wp.dot(cross, cross) < scalar(NEIGHBOUR_EDGE_SINE2) * wp.dot(a, a) * wp.dot(b, b):
+                    continue
             s, u = segment_parameters(x[e0], x[e1], x[f0], x[f1], scalar(1.0e-12))
-            d = wp.length((x[e0] + s * (x[e1] - x[e0])) - (x[f0] + u * (x[f1] - x[f0])))
+            d = wp.length((x[e0] + s * a) - (x[f0] + u * b))
             if d < search.radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0):
-                emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE)
+                emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE, wp.min(edge_area[i], target_area[j]))
 
     @wp.struct
     class PairInputs:
@@ -178,7 +201,7 @@ def proximity_kernels(scalar):
         x: wp.array(dtype=vec3)
         velocity: wp.array(dtype=vec3)
         free: wp.array(dtype=wp.int32)
-        area: wp.array(dtype=scalar)
+        area: wp.array(dtype=scalar)  # per pair
         stiffness: wp.array(dtype=scalar)
         friction: wp.array(dtype=scalar)
         cloth_count: int
@@ -216,21 +239,18 @@ def proximity_kernels(scalar):
         d = wp.length(gap)
         n = gap / d
         c = d - p.thickness
-        area = scalar(1.0e30)
         obstacle = False
         u = vec3()
         for a in range(4):
             node = idx[a]
-            if node < p.cloth_count:
-                area = wp.min(area, p.area[node])
-            else:
+            if node >= p.cloth_count:
                 obstacle = True
             u += w[a] * p.velocity[node]
         # the weights of free nodes (built whole: Warp does not differentiate in-place component writes)
         one = scalar(1.0)
         wf = vec4(w[0] * wp.where(p.free[idx[0]] != 0, one, zero), w[1] * wp.where(p.free[idx[1]] != 0, one, zero),
                   w[2] * wp.where(p.free[idx[2]] != 0, one, zero), w[3] * wp.where(p.free[idx[3]] != 0, one, zero))
-        k_rep = p.stiffness[0] * area
+        k_rep = p.stiffness[0] * p.area[k]
         if p.kind[k] == EDGE_EDGE:
             k_rep = k_rep * edge_fade(w[1]) * edge_fade(-w[3])
         depth = wp.max(-c, zero)

@@ -8,7 +8,7 @@ import pytest
 from scipy.optimize import nnls
 
 from warpcloth.collision.dual import ZoneSolver
-from warpcloth.collision.projection import ProjectionError, backward, project
+from warpcloth.collision.projection import ProjectionError, backward, mass_gradient, project
 
 DELTA = 5.0e-4
 
@@ -550,6 +550,20 @@ def test_finite_differences(mode):
     for group, g in grads.items():
         fd = _finite_differences(prob, R, group, 1e-7)
         np.testing.assert_allclose(g, fd, rtol=0, atol=1e-6 * max(1.0, np.max(np.abs(fd))), err_msg=group)
+
+
+@pytest.mark.parametrize("problem", ["random", "layered"])
+def test_mass_gradient_matches_finite_differences(problem):
+    """The masses in W (two fabrics in contact: which side gives way), from either adjoint's dL/dx̂."""
+    prob = clean_problems(1, start=20, groups=2)[0] if problem == "random" else layered_problem(7, res=4)
+    res = solve(prob)
+    assert strictly_complementary(prob, res)
+    R = np.random.default_rng(6).normal(size=res.z.shape)
+    fd = _finite_differences(prob, R, "mass", 1e-7)
+    assert np.abs(fd).max() > 1e-3  # the masses matter here
+    for mode in ("qr", "kkt"):
+        gm = mass_gradient(res, backward(res, R, mode=mode)[0])
+        np.testing.assert_allclose(gm, fd, rtol=0, atol=1e-6 * np.abs(fd).max(), err_msg=mode)
 
 
 def test_finite_differences_layered():

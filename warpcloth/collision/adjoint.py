@@ -11,6 +11,9 @@ which on the contacts reads, with p and d the position and d_z of each node (d =
 ∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a), and for a constant node
 ∂L/∂x_a += d_λj w_ja n_j (obstacle vertices and pinned particles get this gradient here, unlike the seed).
 
+The masses in W: as W(z − x̂) = G_Aᵀλ, dL = d_zᵀ dW (x̂ − z) + ..., so ∂L/∂m_i = −(W d_z)_i·(z_i − x̂_i)/m_i
+= −(∂L/∂x̂)_i·(z_i − x̂_i)/m_i (:func:`mass_gradient`; 0 outside the zones, where z = x̂).
+
 * ``mode="qr"`` (the paper's method): Ã = W^{-1/2} G_Aᵀ (rows of particles touched by active contacts only;
   block diagonal over groups of active contacts linked by shared particles, each group factorised on its own),
   Householder QR Ã = QR; columns with |R_kk| < 1e-10·max|R_kk| are dependent on earlier ones and are dropped, the
@@ -264,3 +267,13 @@ def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
          "kkt_size": zone.stats["kkt_size"], "qr_size": zone.stats["qr_size"]} for zone in result.zones]
     grad_x += grad_ext[:n]  # only pinned particles (constant cloth nodes) receive anything here
     return grad_x, grad_w, grad_n, grad_ext[n:].copy()
+
+
+def mass_gradient(result: ProjectionResult, grad_x: np.ndarray) -> np.ndarray:
+    """∂L/∂m (n,) of the free particles' masses in W, from ∂L/∂x̂ as :func:`backward` returned it (module
+    docstring); 0 for pinned particles and particles in no zone."""
+    n = result.x_hat.shape[0]
+    grad_x = float_array("grad_x", grad_x, (n, 3))
+    shift = result.z - result.x_hat
+    return np.where(result.fixed, 0.0, -np.einsum("id,id->i", grad_x, shift) / np.where(result.fixed, 1.0,
+                                                                                         result.mass))

@@ -10,13 +10,14 @@ contact: δ − Σ_a w_ja n_j·p(node_ja) ≤ 0). The code lives in
 * :mod:`warpcloth.collision.zones`: impact zones (connected components), :class:`Zone`, the dual matrix and the
   contact colouring;
 * :mod:`warpcloth.collision.dual`: the dual active-set solver of one zone and its Gauss–Seidel warm start;
-* :mod:`warpcloth.collision.adjoint`: :func:`backward`, by the QR formula or the dense KKT system;
+* :mod:`warpcloth.collision.adjoint`: :func:`backward`, by the QR formula or the dense KKT system, and
+  :func:`mass_gradient` (the masses in W);
 * :mod:`warpcloth.collision.linalg`: triangular and semidefinite solves, Householder QR;
 * :mod:`warpcloth.collision.checks`: argument checks.
 """
 
-from warpcloth.collision.adjoint import backward
+from warpcloth.collision.adjoint import backward, mass_gradient
 from warpcloth.collision.qp import ProjectionError, ProjectionResult, project
 from warpcloth.collision.zones import Zone
 
-__all__ = ["ProjectionError", "ProjectionResult", "Zone", "backward", "project"]
+__all__ = ["ProjectionError", "ProjectionResult", "Zone", "backward", "mass_gradient", "project"]

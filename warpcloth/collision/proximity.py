@@ -52,7 +52,8 @@ class ProximityForces:
     Args:
         model: a model with collisions (``model.collision``).
         dt: time step [s].
-        capacity: most pairs one step may have (0: 4 per cloth particle and obstacle vertex).
+        capacity: most pairs one step may have (0: 8 per cloth particle and obstacle vertex; a crumpled cloth has
+            about 5).
     """
 
     def __init__(self, model: Model, dt: float, *, capacity: int = 0):
@@ -66,34 +67,49 @@ class ProximityForces:
         obstacles = settings.obstacles and model.obstacle_count > 0
         V = model.obstacle_vertex_count if obstacles else 0
         self.cloth_count, self.node_count = n, n + V
-        self.capacity = int(capacity or 4 * (n + V))
+        self.capacity = int(capacity or 8 * (n + V))
+        scalar = model.scalar
         cloth_tris = PrimitiveSet(model.triangles_np, dev)
         cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev)
         cloth_vertices = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=dev)
-        # (query rows, target set, kind, same set): query rows are node ids (VF) or edges (EE)
+        # the primitives' areas, for the pairs' stiffness (kernels/proximity.py): the cloth's rest areas; obstacles
+        # count as infinite, so a pair takes its cloth primitive's area and an obstacle's tessellation cannot change
+        # the contact's stiffness (ARCSim takes the smaller of the two: a 0.25 m icosphere's faces made repulsion
+        # 6x weaker under an 8x8 cloth, and a 20 m/s impact on it then overstretched the cloth in the projection)
+        tri_area = model.tri_area.numpy().astype(np.float64)
+        node_area = wp.array(np.concatenate([model.particle_area.numpy(), np.full(V, np.inf)]), dtype=scalar,
+                                   device=dev)
+        tri_area_wp = wp.array(tri_area, dtype=scalar, device=dev)
+        cloth_edge_area = wp.array(_edge_area(model.triangles_np, tri_area, model.edge_indices.numpy()),
+                                   dtype=scalar, device=dev)
+        # (query rows, target set, kind, row areas, target areas, same set): query rows are node ids (VF, rows'
+        # areas by node id) or edges (EE)
         self._queries = []
         if obstacles:
             obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev)
             obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev)
+            infinite = wp.array(np.full(max(obstacle_tris.count, obstacle_edges.count), np.inf), dtype=scalar,
+                                device=dev)
             self._queries += [
-                (cloth_vertices, obstacle_tris, "vf", 0),
-                (wp.array(np.arange(n, n + V, dtype=np.int32), dtype=wp.int32, device=dev), cloth_tris, "vf", 0),
-                (cloth_edges.indices, obstacle_edges, "ee", 0),
+                (cloth_vertices, obstacle_tris, "vf", node_area, infinite, 0),
+                (wp.array(np.arange(n, n + V, dtype=np.int32), dtype=wp.int32, device=dev), cloth_tris, "vf",
+                 node_area, tri_area_wp, 0),
+                (cloth_edges.indices, obstacle_edges, "ee", cloth_edge_area, infinite, 0),
             ]
         if settings.self_collision:
-            self._queries += [(cloth_vertices, cloth_tris, "vf", 0), (cloth_edges.indices, cloth_edges, "ee", 1)]
+            self._queries += [(cloth_vertices, cloth_tris, "vf", node_area, tri_area_wp, 0),
+                              (cloth_edges.indices, cloth_edges, "ee", cloth_edge_area, cloth_edge_area, 1)]
         self._targets = list({id(q[1]): q[1] for q in self._queries}.values())  # each BVH refitted once a step
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._count_host = self._count.numpy() if dev.is_cpu else None
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self._pair_area = wp.zeros(self.capacity, dtype=scalar, device=dev)
         self._weights = wp.empty(self.capacity, dtype=model.types.vec4, device=dev)
         self._stiffness = wp.empty(self.capacity, dtype=model.types.mat33, device=dev)
         free = np.zeros(n + V, dtype=np.int32)
         free[:n] = model.particle_pin.numpy() < 0
         self._free = wp.array(free, dtype=wp.int32, device=dev)
-        self._area = wp.array(np.concatenate([model.particle_area.numpy(), np.zeros(V)]), dtype=model.scalar,
-                              device=dev)
         self.last_count = 0
         """Pairs found in the last step (diagnostics only)."""
 
@@ -124,15 +140,18 @@ class ProximityForces:
         search.offsets, search.columns, search.cloth_count = m.bsr_offsets, m.bsr_columns, self.cloth_count
         search.radius = m.scalar(radius)
         search.count, search.pair_nodes, search.pair_kind = self._count, self._nodes, self._kind
-        for rows, target, kind, same in self._queries:
+        search.pair_area = self._pair_area
+        for rows, target, kind, row_area, target_area, same in self._queries:
             if rows.shape[0] == 0 or target.count == 0:
                 continue
             if kind == "vf":
                 wp.launch(k.vertex_face_pairs, rows.shape[0], device=self.device,
-                          inputs=[target.bvh.id, x, rows, target.indices, search], record_tape=False)
+                          inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, search],
+                          record_tape=False)
             else:
                 wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
-                          inputs=[target.bvh.id, x, rows, target.indices, same, search], record_tape=False)
+                          inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, same, search],
+                          record_tape=False)
         count = int((self._count_host if self._count_host is not None else self._count.numpy())[0])
         if count > self.capacity:
             raise CollisionError(
@@ -158,15 +177,16 @@ class ProximityForces:
                           obstacle_end, model.scalar(1.0 / self.dt), n],
                   outputs=[x, velocity])
         count = self.detect(x)
-        nodes, kind, weights, stiffness = self._nodes, self._kind, self._weights, self._stiffness
+        nodes, kind, area = self._nodes, self._kind, self._pair_area
+        weights, stiffness = self._weights, self._stiffness
         if recording:  # the backward pass reads this step's pairs: arrays that later steps do not overwrite
-            nodes, kind = wp.clone(nodes[:count]), wp.clone(kind[:count])
+            nodes, kind, area = wp.clone(nodes[:count]), wp.clone(kind[:count]), wp.clone(area[:count])
             weights = wp.empty(max(count, 1), dtype=model.types.vec4, device=dev)
             stiffness = wp.empty(max(count, 1), dtype=model.types.mat33, device=dev)
         pairs = ProximityPairs(count, nodes, weights, stiffness)
         if count == 0:
             return pairs
-        inputs = self.pair_inputs(x, velocity, nodes, kind)
+        inputs = self.pair_inputs(x, velocity, nodes, kind, area)
         wp.launch(k.assemble_pairs, count, device=dev, inputs=[inputs, model.particle_diag_slot],
                   outputs=[values, rhs, weights, stiffness], record_tape=False)
         if recording:
@@ -180,14 +200,25 @@ class ProximityForces:
             record_adjoint(adjoint, arrays=[rhs, dv])
         return pairs
 
-    def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array):
+    def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array, area: wp.array):
         """What the pair kernels read (kernels/proximity.py PairInputs)."""
         model = self.model
         p = self.kernels.PairInputs()
-        p.nodes, p.kind, p.x, p.velocity, p.free, p.area = nodes, kind, x, velocity, self._free, self._area
+        p.nodes, p.kind, p.x, p.velocity, p.free, p.area = nodes, kind, x, velocity, self._free, area
         p.stiffness, p.friction = model.contact_repulsion_stiffness, model.contact_friction
         p.cloth_count = self.cloth_count
         p.thickness = model.scalar(self.thickness)
         p.eps = model.scalar(FRICTION_REGULARISATION)
         p.dt = model.scalar(self.dt)
         return p
+
+
+def _edge_area(triangles: np.ndarray, tri_area: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Each edge's area: a third of its one or two triangles' [m^2] (ARCSim's, for edge-edge repulsion)."""
+    row = {(int(a), int(b)): i for i, (a, b) in enumerate(np.sort(edges, axis=1))}
+    area = np.zeros(len(edges))
+    for c in range(3):
+        ends = np.sort(np.stack([triangles[:, c], triangles[:, (c + 1) % 3]], axis=1), axis=1)
+        idx = np.array([row[(int(a), int(b))] for a, b in ends], dtype=np.int64)
+        np.add.at(area, idx, tri_area / 3.0)
+    return area

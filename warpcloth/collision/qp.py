@@ -87,6 +87,7 @@ class ProjectionResult:
     """Multiplier of every contact (m,); 0 for contacts in no zone."""
     zones: list[Zone]
     x_hat: np.ndarray
+    mass: np.ndarray
     obstacle_x: np.ndarray
     fixed: np.ndarray
     nodes: np.ndarray
@@ -253,7 +254,7 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
             adjoint.factorise(zone)
             zone.stats["forward_s"] += zone.qr.seconds
         zones[zi] = zone
-    return ProjectionResult(z=z, lam=lam_all, zones=zones, x_hat=x_hat, obstacle_x=obstacle_x, fixed=fixed,
+    return ProjectionResult(z=z, lam=lam_all, zones=zones, x_hat=x_hat, mass=mass, obstacle_x=obstacle_x, fixed=fixed,
                             nodes=nodes, weights=weights, normals=normals, thickness=thickness, tol=float(tol),
                             active_tol=float(active_tol), singles=singles)
 

@@ -48,7 +48,6 @@ class CollisionStage:
         self.cloth_count = n
         self.obstacle_vertex_count = V
         self.node_count = n + V
-        self.mass = model.particle_mass()
         self.fixed = model.particle_pin.numpy() >= 0
         capacity = options.collision.contact_capacity or 16 * (n + V)
         self.detector = ContactDetector(model, thickness=self.thickness, capacity=capacity, obstacles=obstacles,
@@ -177,7 +176,7 @@ class CollisionStage:
         weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
         try:
             result = projection.project(
-                x_hat.numpy().astype(np.float64), self.mass, self.fixed,
+                x_hat.numpy().astype(np.float64), model.particle_mass(), self.fixed,
                 obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts.nodes.astype(np.int64),
                 weights, normals, self.thickness, tol=self.options.collision.qp_tol,
                 lam_init=np.concatenate([lam, np.zeros(len(normals) - len(lam))]))
@@ -195,6 +194,7 @@ class CollisionStage:
                 gx, gw, gn, gob = projection.backward(result, z.grad.numpy().astype(np.float64), mode=mode)
                 self.backward_seconds += time.perf_counter() - t0
                 _accumulate(x_hat, gx)
+                self._accumulate_density(projection.mass_gradient(result, gx))
                 for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
                     _accumulate(normal, gn[lo:hi])
                     _accumulate(weight, gw[lo:hi])
@@ -203,6 +203,17 @@ class CollisionStage:
 
             record_adjoint(adjoint, arrays=[z])
         return z, result.lam
+
+
+    def _accumulate_density(self, grad_mass: np.ndarray) -> None:
+        """material_density.grad += the chain of ∂L/∂m through m_i = Σ_faces of i density thicken area / 3."""
+        model = self.model
+        density = model.material_density
+        if density.grad is None or not np.any(grad_mass):
+            return
+        per_face = grad_mass[model.triangles_np].sum(axis=1) * model.tri_area.numpy() / 3.0
+        grad = np.bincount(model.tri_material.numpy(), weights=per_face, minlength=density.shape[0])
+        _accumulate(density, grad * model.material_thicken.numpy())
 
 
 def _accumulate(array: wp.array, grad: np.ndarray) -> None:

@@ -36,7 +36,7 @@ class CollisionOptions:
     rounds: int = 20
     """Most detect -> project rounds per step; a step still finding new contacts after them raises CollisionError."""
     contact_capacity: int = 0
-    """Contacts one detection may find, and proximity pairs one step may have (0: 16 contacts and 4 pairs per cloth
+    """Contacts one detection may find, and proximity pairs one step may have (0: 16 contacts and 8 pairs per cloth
     particle and obstacle vertex); more raises CollisionError with the capacity needed."""
     adjoint: str = "qr"
     """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
