@@ -207,6 +207,23 @@ def linear_kernels(scalar):
         info[2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
 
     @wp.kernel
+    def pair_product(A: BlockMatrix, x: wp.array(dtype=vec3), alpha: scalar, z: wp.array(dtype=vec3)):
+        # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term; the
+        # sequential CG has it inline, add_pair_products)
+        k = wp.tid()
+        w = A.pair_w[k]
+        K = A.pair_k[k]
+        s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        for a in range(4):
+            if w[a] != scalar(0.0):
+                s += w[a] * x[A.pair_nodes[k, a]]
+        Ks = K * s
+        for a in range(4):
+            if w[a] != scalar(0.0):
+                node = A.pair_nodes[k, a]
+                wp.atomic_add(z, node, (alpha * w[a]) * (Ks - K * (w[a] * x[node])))
+
+    @wp.kernel
     def solve_adjoint_scatter(
         A: BlockMatrix,
         lam: wp.array(dtype=vec3),
@@ -224,6 +241,7 @@ def linear_kernels(scalar):
     return SimpleNamespace(
         BlockMatrix=BlockMatrix,
         cg_sequential=cg_sequential,
+        pair_product=pair_product,
         solve_adjoint_scatter=solve_adjoint_scatter,
     )
 

@@ -1,5 +1,7 @@
 """The one place that touches Warp's tape internals."""
 
+from contextlib import contextmanager
+
 import warp as wp
 
 
@@ -13,3 +15,15 @@ def record_adjoint(backward, *, arrays) -> None:
     tape = active_tape()
     if tape is not None:
         tape.record_func(backward, arrays=arrays)
+
+
+@contextmanager
+def untaped():
+    """Launches inside are not recorded on the active tape (library code that launches its own kernels without a
+    ``record_tape`` flag, such as ``warp.optim.linear.cg``, whose adjoint the caller records by hand)."""
+    runtime = wp._src.context.runtime
+    tape, runtime.tape = runtime.tape, None
+    try:
+        yield
+    finally:
+        runtime.tape = tape

@@ -16,7 +16,7 @@ from warpcloth.errors import SimulationError
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Model
 from warpcloth.solver.options import SolverOptions
-from warpcloth.tape import record_adjoint
+from warpcloth.tape import record_adjoint, untaped
 
 
 class SolveInfo(NamedTuple):
@@ -85,11 +85,8 @@ class LinearSolver:
         tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
         model = self.model
         if self.backend == "warp":
-            if pairs is not None and pairs.count:
-                raise NotImplementedError(
-                    "proximity repulsion and friction need cg_backend='sequential' for now (the warp backend has no "
-                    "matrix-free pair term); set SolverOptions(cg_backend='sequential') or repulsion_stiffness=0")
-            return self._solve_warp(values, b, x, tol, guess)
+            with untaped():  # its adjoint is the one solve_recorded records
+                return self._solve_warp(values, b, x, tol, guess, pairs)
         kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
         r, z, p, q = self._scratch
         wp.launch(self.kernels.cg_sequential, 1, device=self.device,
@@ -173,8 +170,9 @@ class LinearSolver:
             raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual; "
                                   "the system is not positive definite or the state is already invalid")
 
-    def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None) -> SolveInfo:
-        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path)."""
+    def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None, pairs) -> SolveInfo:
+        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path), plus the pairs' cross blocks as a
+        matrix-free term of the operator (one launch per product, a thread per pair)."""
         import warp.optim.linear as wl
         import warp.sparse as ws
 
@@ -194,10 +192,30 @@ class LinearSolver:
             x.zero_()
         elif guess is not x:
             wp.copy(x, guess)
+        # the pairs' own blocks are on the diagonal: the preconditioner of the BSR part is theirs too
         M = wl.preconditioner(A, "block_jacobi_direct" if self.preconditioner == "block_jacobi" else "diag")
+        if pairs is not None and pairs.count:
+            A = self._with_pairs(A, self.block_matrix(values, pairs), pairs.count)
         opt = self.options
         # warp's cg tests |r| <= max(tol |b|, atol); check_every=1 reports the exact iteration count
         iters, residual, threshold = wl.cg(A, b, x, tol=tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters,
                                            M=M, check_every=1, use_cuda_graph=False)
         bnorm = float(np.linalg.norm(b.numpy()))
         return SolveInfo(int(iters), float(residual) / max(bnorm, 1e-300), bool(residual <= threshold))
+
+    def _with_pairs(self, bsr, matrix, count: int):
+        """A warp LinearOperator for the BSR blocks plus the ``count`` pairs' cross blocks of ``matrix``."""
+        import warp.optim.linear as wl
+        import warp.sparse as ws
+
+        kernel, device, scalar = self.kernels.pair_product, self.device, self.model.scalar
+
+        def matvec(x, y, z, alpha, beta):
+            # z = alpha A x + beta y
+            if beta != 0.0 and z.ptr != y.ptr:
+                wp.copy(z, y)
+            ws.bsr_mv(bsr, x, z, alpha=alpha, beta=beta)
+            wp.launch(kernel, count, device=device, inputs=[matrix, x, scalar(alpha)], outputs=[z],
+                      record_tape=False)
+
+        return wl.LinearOperator(bsr.shape, bsr.dtype, device, matvec)
