@@ -22,24 +22,37 @@ def _weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss
     wp.atomic_add(loss, 0, wp.dot(w[i], x[i]) + wp.float64(0.5) * wp.dot(x[i], x[i]))
 
 
-def _small_hanging(material=None, *, obstacle=False, requires_grad=True):
+def _small_hanging(material=None, *, obstacle=False, requires_grad=True, lagged=False):
     b = wc.ModelBuilder()
     b.add_cloth_grid((3, 3), (0.3, 0.3), material=material or wc.preset("gray-interlock", thicken=2),
                      rot=S.GRID_TO_YZ, pos=(0.0, -0.15, -0.15), vel=(0.5, 0.0, 0.0))
     b.add_handle(12)
     b.add_handle(15)
-    b.set_wind((3.0, 0.0, 0.0))
+    b.set_wind((3.0, 0.0, 0.0), lagged_normals=lagged)
     if obstacle:  # a plate the cloth swings into
         b.add_obstacle_plane((1.0, 1.0), pos=(0.02, 0.0, 0.0), rot=[[0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    if lagged:  # the projection acts, after which ARCSim's normals are the current ones for a step
+        b.set_collision(repulsion_stiffness=0.0)
     return b.finalize("cpu", requires_grad=requires_grad, dtype=wp.float64)
 
 
 # -- checkpointing ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("segment", [None, 4, 1, 12])
-@pytest.mark.parametrize("obstacle", [False, True])
-def test_checkpointed_gradients_equal_full_tape(segment, obstacle):
+@pytest.mark.parametrize("obstacle, lagged", [(False, False), (True, False), (True, True)])
+def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged):
     steps = 12
-    model = _small_hanging(obstacle=obstacle)
+    model = _small_hanging(obstacle=obstacle, lagged=lagged)
+    if lagged:  # segment boundaries fall after steps with and without a collision response
+        sim = wc.Simulator(model, 0.01, options=EXACT)
+        control = model.control(particle_force=True)
+        control.particle_force.fill_(wp.vec3d(0.01, 0.0, 0.02))
+        state, moved = model.state(requires_grad=False), []
+        for _ in range(steps):
+            nxt = model.empty_state(requires_grad=False)
+            sim.step(state, nxt, control)
+            state = nxt
+            moved.append(sim.collision.last["contacts"] > 0)
+        assert any(moved) and not all(moved), moved
     rng = np.random.default_rng(1)
     weights = [wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d) for _ in range(steps + 1)]
 

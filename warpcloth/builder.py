@@ -404,7 +404,8 @@ class ModelBuilder:
 
         ARCSim's defaults are density 1 (not air's 1.2) and drag 0. With ``lagged_normals`` the face normals come
         from the previous step's start positions, as ARCSim computes them (SPEC §2: ``compute_ws_data`` runs before
-        ``step_mesh``); use it to reproduce the seed's trajectories, not for new work.
+        ``step_mesh``, and again after a collision response that moved the cloth: the step after one sees current
+        normals); use it to reproduce the seed's trajectories, not for new work.
         """
         v = _finite_vector("wind velocity", velocity)
         for name, val in (("wind density", density), ("wind drag", drag)):

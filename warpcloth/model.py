@@ -58,9 +58,12 @@ class State:
         def copy(a):
             return None if a is None else wp.clone(a, requires_grad=rg)
 
-        return State(copy(self.particle_x), copy(self.particle_v), self.time, step=self.step,
+        x = copy(self.particle_x)
+        # after a collision response the lagged normals' positions are the current ones (the same array)
+        previous = x if self.particle_x_previous is self.particle_x else copy(self.particle_x_previous)
+        return State(x, copy(self.particle_v), self.time, step=self.step,
                      particle_dv=None if self.particle_dv is None else wp.clone(self.particle_dv, requires_grad=False),
-                     particle_x_previous=copy(self.particle_x_previous))
+                     particle_x_previous=previous)
 
 
 class Control:

@@ -104,10 +104,16 @@ def checkpointed_backward(
             end = advance(start, first, min(first + seg, steps), requires_grad=True)
         seeds = {out: wp.ones_like(out), end.particle_x: adj_x, end.particle_v: adj_v}
         if adj_x_previous is not None:
-            seeds[end.particle_x_previous] = adj_x_previous  # the last step's start positions: never another seed
+            if end.particle_x_previous is end.particle_x:  # after a collision response: the current positions
+                seeds[end.particle_x] = wp.array(adj_x.numpy() + adj_x_previous.numpy(), dtype=adj_x.dtype,
+                                                 device=adj_x.device)
+            else:  # the last step's start positions: never another seed
+                seeds[end.particle_x_previous] = adj_x_previous
         tape.backward(grads=seeds)
         adj_x, adj_v = start.particle_x.grad, start.particle_v.grad
-        adj_x_previous = None if start.particle_x_previous is None else start.particle_x_previous.grad
+        adj_x_previous = None
+        if start.particle_x_previous is not None and start.particle_x_previous is not start.particle_x:
+            adj_x_previous = start.particle_x_previous.grad
         del tape
         if bar is not None:
             bar.update()

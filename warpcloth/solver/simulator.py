@@ -140,7 +140,12 @@ class Simulator:
                       record_tape=False)  # the projection's velocity change too
         state_out.time = t_next
         state_out.step = step
-        state_out.particle_x_previous = state_in.particle_x if model.wind_lagged_normals else None
+        state_out.particle_x_previous = None
+        if model.wind_lagged_normals:
+            # ARCSim's face normals lag a step, except after a collision response that moved the cloth: it
+            # recomputes them then (SPEC §2), so the next step's wind sees the current positions
+            moved = self.collision is not None and self.collision.last["contacts"] > 0
+            state_out.particle_x_previous = state_out.particle_x if moved else state_in.particle_x
         self.stats["steps"] += 1
         clock.lap("collision" if self.collision is not None else "integrate")
         self._raise_if_diverged(state_out, t_next, step)
