@@ -630,3 +630,17 @@ def test_lazy_qr():
     assert [rec["qr_in_backward"] for rec in lazy.backward_stats] == multi
     assert not any(rec["qr_in_backward"] for rec in eager.backward_stats)
     assert [rec["qr_size"] for rec in lazy.zones_stats()] == [rec["independent"] for rec in eager.stats]
+
+
+def test_gram_cholesky_is_qr_r_without_q_and_drops_dependent_columns():
+    from warpcloth.collision.linalg import gram_cholesky
+
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(12, 5))
+    A = np.column_stack([A[:, :3], A[:, 1], A[:, 3], A[:, 0] - 2.0 * A[:, 2], A[:, 4]])  # 3: copy, 5: combination
+    keep, drop, L = gram_cholesky(A.T @ A)
+    assert keep.tolist() == [0, 1, 2, 4, 6] and drop.tolist() == [3, 5]
+    R = np.linalg.qr(A[:, keep])[1]
+    np.testing.assert_allclose(L.T, np.sign(np.diag(R))[:, None] * R, rtol=1e-10, atol=1e-12)
+    keep, drop, L = gram_cholesky(A[:, keep].T @ A[:, keep])  # full rank: LAPACK's factorisation, nothing dropped
+    assert drop.size == 0 and keep.size == 5

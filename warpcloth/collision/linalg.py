@@ -1,5 +1,6 @@
 """Dense linear algebra for the projection (float64 NumPy): blocked triangular solves, a semidefinite solve with
-iterative refinement, and a Householder QR that drops dependent columns. NumPy has no triangular solve."""
+iterative refinement, and the Cholesky factor of a Gram matrix that drops dependent columns (the adjoint's R without
+Q). NumPy has no triangular solve."""
 
 from __future__ import annotations
 
@@ -7,8 +8,10 @@ import numpy as np
 
 BLOCK = 128
 """Block size of the blocked triangular solves."""
-DEPENDENT_RTOL = 1.0e-10
-"""|R_kk| < this · max|R_kk| marks a dependent column in :func:`householder`."""
+DEPENDENT_PIVOT = 1.0e-10
+"""A Cholesky pivot below this times its column's diagonal entry (the squared norm left after projecting the column
+onto the ones kept before it, relative to its squared norm: an angle under 1e-5 rad) marks a dependent column in
+:func:`gram_cholesky`; cancellation leaves about k·1e-16 there for a column that is exactly dependent."""
 SHIFT = 1.0e-12
 """Relative diagonal shift of the Cholesky factorisations of :func:`spd_solve`."""
 
@@ -91,42 +94,35 @@ def spd_solve(M: np.ndarray, rhs: np.ndarray, *, atol: float, refinements: int =
     return x
 
 
-def householder(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Reduced Householder QR of the columns of A that are independent of the columns before them.
+def gram_cholesky(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lower Cholesky factor of a Gram matrix M = AᵀA over the columns of A that are independent of the columns
+    before them: L Lᵀ = M[keep][:, keep], so Lᵀ is the R of A[:, keep] = Q R (up to the signs of its rows).
 
-    A column with |R_kk| < 1e-10·max|R_kk| is dependent on earlier ones: it is dropped and the rest refactorised.
-    (A dropped column that turns out not to lie in the span of the kept ones, which the unpivoted QR can cause
-    after a dependent column, is put back at the end.)
-
-    Args:
-        A: (r, c) matrix.
+    LAPACK's factorisation when every pivot passes :data:`DEPENDENT_PIVOT`; otherwise a right-looking one that skips
+    each column whose pivot does not (the dependent columns: exact duplicates and other linear combinations).
 
     Returns:
-        (keep, drop, Q, R): the column indices kept, in factorisation order, and dropped; Q (r, len(keep)) and
-        R (len(keep), len(keep)) with A[:, keep] = Q R.
+        (keep, drop, L): the column indices kept (in order) and dropped, and L (len(keep), len(keep)).
     """
-    ncols = A.shape[1]
-    keep = np.arange(ncols)
-    Q, R = np.zeros((A.shape[0], 0)), np.zeros((0, 0))
-    for _ in range(2 * ncols + 2):
-        if keep.size == 0:
-            break
-        Q, R = np.linalg.qr(A[:, keep])
-        r = R.shape[0]
-        diag = np.abs(np.diag(R))
-        good = np.zeros(keep.size, dtype=bool)
-        if r:
-            good[:r] = diag >= DEPENDENT_RTOL * float(np.max(diag))
-        if not good.all():
-            keep = keep[good]
+    k = M.shape[0]
+    diag = np.diag(M).copy()
+    if k:
+        try:
+            L = np.linalg.cholesky(M)
+            if np.all(np.diag(L) ** 2 >= DEPENDENT_PIVOT * diag):
+                return np.arange(k), np.zeros(0, dtype=np.int64), L
+        except np.linalg.LinAlgError:
+            pass
+    S = np.array(M, dtype=np.float64, copy=True)  # the Schur complement, updated in place
+    L = np.zeros((k, k))
+    kept = np.zeros(k, dtype=bool)
+    for j in range(k):
+        pivot = S[j, j]
+        if not pivot >= DEPENDENT_PIVOT * diag[j] or pivot <= 0.0:
             continue
-        drop = np.setdiff1d(np.arange(ncols), keep)
-        if drop.size == 0:
-            break
-        Ad = A[:, drop]
-        res = np.linalg.norm(Ad - Q @ (Q.T @ Ad), axis=0)
-        back = drop[res > 1e-6 * np.maximum(np.linalg.norm(Ad, axis=0), 1e-300)]
-        if back.size == 0:
-            break
-        keep = np.concatenate([keep, back])
-    return keep, np.setdiff1d(np.arange(ncols), keep), Q, R
+        kept[j] = True
+        col = S[j:, j] / np.sqrt(pivot)
+        L[j:, j] = col
+        S[j + 1:, j + 1:] -= np.outer(col[1:], col[1:])
+    keep = np.flatnonzero(kept)
+    return keep, np.flatnonzero(~kept), np.ascontiguousarray(L[np.ix_(keep, keep)])

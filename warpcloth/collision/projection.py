@@ -12,7 +12,7 @@ contact: δ − Σ_a w_ja n_j·p(node_ja) ≤ 0). The code lives in
 * :mod:`warpcloth.collision.dual`: the dual active-set solver of one zone and its Gauss–Seidel warm start;
 * :mod:`warpcloth.collision.adjoint`: :func:`backward`, by the QR formula or the dense KKT system, and
   :func:`mass_gradient` (the masses in W);
-* :mod:`warpcloth.collision.linalg`: triangular and semidefinite solves, Householder QR;
+* :mod:`warpcloth.collision.linalg`: triangular and semidefinite solves, the Gram matrix's Cholesky factor;
 * :mod:`warpcloth.collision.checks`: argument checks.
 """
 
