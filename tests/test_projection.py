@@ -497,7 +497,10 @@ def test_no_contacts():
 # Adjoint
 
 
-def test_qr_equals_kkt_independent():
+@pytest.mark.parametrize("one_block", [0, 64])
+def test_qr_equals_kkt_independent(one_block, monkeypatch):
+    # one_block 0: every zone split into groups of active contacts sharing no particle (the path of big zones)
+    monkeypatch.setattr("warpcloth.collision.adjoint.ONE_BLOCK", one_block)
     blocks = 0
     for prob in clean_problems(5):
         res = solve(prob, precompute_qr=True)
@@ -509,7 +512,7 @@ def test_qr_equals_kkt_independent():
         for a, b in zip(qr, kkt):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b)))
         assert [rec["qr_size"] for rec in res.backward_stats] == [rec["active"] for rec in res.stats]
-    assert blocks > 1  # a zone whose active contacts fall into groups sharing no particle
+    assert (blocks > 1) == (one_block == 0)  # a zone whose active contacts fall into groups sharing no particle
 
 
 def test_qr_kkt_dependent():

@@ -48,6 +48,11 @@ if TYPE_CHECKING:
     from warpcloth.collision.qp import ProjectionResult
 
 
+ONE_BLOCK = 64
+"""Zones with at most this many active constraints are factorised whole, not split into groups linked by shared
+particles (the split's bookkeeping costs more than the smaller factorisations save there)."""
+
+
 @dataclass
 class QRBlock:
     """The adjoint's factorisation of one connected group of active constraints (see the module docstring): Ã of
@@ -120,11 +125,14 @@ def factorise(zone: Zone) -> ZoneQR:
     if act.size:
         sel = np.isin(zone.slot_con, act)
         sc, snode, sdir = zone.slot_con[sel], zone.slot_node[sel], zone.slot_dir[sel]
-        first = np.full(zone.lam.size, -1, dtype=np.int64)
-        first[sc[::-1]] = snode[::-1]  # one particle of each active contact
-        label = components(zone.mass.size, first[sc], snode)
-        group = label[first[act]]
-        slot_group = label[snode]
+        if act.size <= ONE_BLOCK:  # splitting costs more than it saves
+            group, slot_group = np.zeros(act.size, dtype=np.int64), np.zeros(sc.size, dtype=np.int64)
+        else:
+            first = np.full(zone.lam.size, -1, dtype=np.int64)
+            first[sc[::-1]] = snode[::-1]  # one particle of each active contact
+            label = components(zone.mass.size, first[sc], snode)
+            group = label[first[act]]
+            slot_group = label[snode]
         invm = 1.0 / zone.mass
         for g in np.unique(group):
             cols = act[group == g]  # sorted: act is

@@ -66,6 +66,10 @@ class CollisionStage:
         """(result, z) of each round of the last step (z.grad holds dL/dz after a backward pass): for benchmarks."""
         self.backward_seconds = 0.0
         """Wall time spent in the projection's adjoint (accumulates over backward passes)."""
+        self.phase_seconds = dict.fromkeys(("detection", "geometry", "projection", "adjoint"), 0.0)
+        """Wall time per phase, accumulated over steps (forward) and backward passes (``adjoint``): contact detection
+        (swept BVH queries and the copy to the host), the contacts' normals and weights, the projection (zones and
+        QP), and the projection's adjoint (the same as ``backward_seconds``)."""
 
     # -- response ------------------------------------------------------------------------------------------------
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
@@ -94,9 +98,12 @@ class CollisionStage:
         stats = {"rounds": 0, "contacts": 0, "zones": []}
         self.last_projections = []
         opt = self.options
+        phases = self.phase_seconds
         for round_index in range(opt.collision.rounds + 1):
+            t0 = time.perf_counter()
             end = gather(z, obstacle_end)
             found = self.detector.detect(start, end)
+            phases["detection"] += time.perf_counter() - t0
             # Every contact found is new: a pair found again is violated again (the projection leaves resolved
             # pairs exactly at the thickness, which proximity detection does not count), and its new
             # linearisation joins the old one.
@@ -109,9 +116,13 @@ class CollisionStage:
                     f"{len(found)} new contacts (of {len(keys)}) still found, e.g. nodes "
                     f"{found.nodes[0].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
                     "for cloth trapped between obstacles")
+            t0 = time.perf_counter()
             geometry.append(self._geometry(start, end, found, recording, step))
+            t1 = time.perf_counter()
+            phases["geometry"] += t1 - t0
             contacts = Contacts.concatenate([contacts, found])
             z, lam = self._project(x_hat, obstacle_end, contacts, geometry, lam, recording, stats, step)
+            phases["projection"] += time.perf_counter() - t1
             stats["rounds"] = round_index + 1
         stats["contacts"] = len(contacts)
         self.last = stats
@@ -193,6 +204,7 @@ class CollisionStage:
                 t0 = time.perf_counter()
                 gx, gw, gn, gob = projection.backward(result, z.grad.numpy().astype(np.float64), mode=mode)
                 self.backward_seconds += time.perf_counter() - t0
+                self.phase_seconds["adjoint"] += time.perf_counter() - t0
                 _accumulate(x_hat, gx)
                 self._accumulate_density(projection.mass_gradient(result, gx))
                 for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
