@@ -43,9 +43,10 @@ def layers_scene(top=MATERIAL):
     return b
 
 
-def loss_fn(model, steps, dt, adjoint="qr"):
+def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10):
     """Build a simulator and a function (x0, v0, transforms) -> (loss, contact counts) with a random linear loss."""
-    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000, collision=wc.CollisionOptions(adjoint=adjoint))
+    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000,
+                               collision=wc.CollisionOptions(adjoint=adjoint, solver=solver, qp_tol=qp_tol))
     sim = wc.Simulator(model, dt, options=options)
     rng = np.random.default_rng(3)
     cx = rng.standard_normal((model.particle_count, 3))
@@ -129,12 +130,14 @@ def test_cloth_cloth_contact_gradients_match_finite_differences():
         fd_check(run, (x0, v0, None), g, name, eps, rng)
 
 
+HEAVY = wc.Material.isotropic(density=0.8, stretch_stiffness=200.0, shear_stiffness=20.0, bend_stiffness=2e-5)
+
+
 def test_density_gradients_of_two_fabrics_in_contact_match_finite_differences():
     # The projection weighs each particle's move by its mass: which fabric gives way depends on both densities.
     # The tape's dL/d(density) includes that dependence (collision/adjoint.py mass_gradient); without it this test
     # fails: the implicit step's share alone is 0.3 % off for the lower sheet.
-    heavy = wc.Material.isotropic(density=0.8, stretch_stiffness=200.0, shear_stiffness=20.0, bend_stiffness=2e-5)
-    model = layers_scene(top=heavy).finalize("cpu", requires_grad=True, dtype=wp.float64)
+    model = layers_scene(top=HEAVY).finalize("cpu", requires_grad=True, dtype=wp.float64)
     assert model.material_density.shape[0] == 2
     sim, run = loss_fn(model, 1, 0.005)
     x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
@@ -172,3 +175,24 @@ def test_qr_adjoint_equals_dense_kkt_adjoint_in_a_step(scene):
     for name in grads["qr"]:
         np.testing.assert_allclose(grads["qr"][name], grads["kkt"][name], rtol=1e-8, atol=1e-10 * np.abs(
             grads["kkt"][name]).max())
+
+
+@pytest.mark.parametrize("scene", [plane_scene, layers_scene, lambda: layers_scene(top=HEAVY)])
+def test_device_projection_equals_the_numpy_one(scene):
+    # CollisionOptions(solver="device"): Warp kernels over all contacts at once, no zones; the same z and, through
+    # its CG adjoint on the active set, the same gradients as the zone-by-zone NumPy solver and its QR adjoint
+    out = {}
+    for solver in ("numpy", "device"):
+        model = scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+        sim, run = loss_fn(model, 2, 0.005, solver=solver, qp_tol=1e-13)  # both solutions exact to round-off
+        tf = model.obstacle_rest_transform.copy() if model.obstacle_count else None
+        model.material_density.grad.zero_()
+        loss, keys, g = tape_gradients(model, run, model.particle_x0.numpy(), model.particle_v0.numpy(), tf)
+        g["density"] = model.material_density.grad.numpy().copy()
+        assert keys[0] > 0
+        out[solver] = (loss, keys, g)
+    assert out["device"][1] == out["numpy"][1]
+    assert out["device"][0] == pytest.approx(out["numpy"][0], rel=1e-12)
+    for name, ref in out["numpy"][2].items():
+        np.testing.assert_allclose(out["device"][2][name], ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max(),
+                                   err_msg=name)

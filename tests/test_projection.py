@@ -647,3 +647,59 @@ def test_gram_cholesky_is_qr_r_without_q_and_drops_dependent_columns():
     np.testing.assert_allclose(L.T, np.sign(np.diag(R))[:, None] * R, rtol=1e-10, atol=1e-12)
     keep, drop, L = gram_cholesky(A[:, keep].T @ A[:, keep])  # full rank: LAPACK's factorisation, nothing dropped
     assert drop.size == 0 and keep.size == 5
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The device solver (kernels/projection.py): the same problem over all contacts at once, no zones
+
+
+def _device_solve(prob, **kw):
+    import warp as wp
+
+    from warpcloth.collision.device_projection import DeviceProjection
+
+    n, V = prob["x_hat"].shape[0], prob["obstacle_x"].shape[0]
+    inv_mass = np.zeros(n + V)
+    inv_mass[:n] = np.where(prob["fixed"], 0.0, 1.0 / prob["mass"])
+    solver = DeviceProjection("cpu", n + V, prob["nodes"].shape[0])
+    solution = solver.project(
+        wp.array(np.concatenate([prob["x_hat"], prob["obstacle_x"]]), dtype=wp.vec3d),
+        wp.array(np.concatenate([~prob["fixed"], np.zeros(V, bool)]).astype(np.int32), dtype=wp.int32),
+        wp.array(inv_mass, dtype=wp.float64), wp.array(prob["nodes"].astype(np.int32), dtype=wp.int32),
+        wp.array(prob["weights"], dtype=wp.vec4d), wp.array(prob["normals"], dtype=wp.vec3d),
+        prob["nodes"].shape[0], prob["thickness"], keep=True, **kw)
+    return solver, solution
+
+
+@pytest.mark.parametrize("problem", ["random", "layered", "dependent"])
+def test_device_solver_and_adjoint_match_the_zone_solver_and_the_kkt_adjoint(problem):
+    probs = {"random": lambda: clean_problems(3, groups=3),
+             "layered": lambda: [layered_problem(7, res=6)],
+             "dependent": lambda: [random_problem(s, duplicates=True, split=True) for s in range(2)]}[problem]()
+    for prob in probs:
+        res = solve(prob, tol=1e-13)
+        solver, solution = _device_solve(prob, tol=1e-13)
+        assert solution.converged
+        n = prob["x_hat"].shape[0]
+        np.testing.assert_allclose(solution.z.numpy()[:n], res.z, rtol=0, atol=1e-12)
+        assert len(res.zones) > 1  # several zones, one solve
+        g = np.random.default_rng(2).normal(size=res.z.shape)
+        kkt = backward(res, g, mode="kkt")
+        dev = solver.backward(solution, g, x_hat=prob["x_hat"], mass=prob["mass"], fixed=prob["fixed"],
+                              obstacle_x=prob["obstacle_x"], nodes=prob["nodes"], weights=prob["weights"],
+                              normals=prob["normals"])
+        names = ("x_hat", "weights", "normals", "obstacle_x")
+        # dependent contacts share their multipliers differently (minimum norm here, folded in the QR): z* and
+        # dL/dx_hat are unique, the split of the contacts' own gradients is not
+        for name, a, b in list(zip(names, dev, kkt))[:1 if problem == "dependent" else 4]:
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * max(np.abs(b).max(), 1e-300), err_msg=name)
+
+
+def test_device_solver_reports_contacts_no_positions_satisfy():
+    # a particle pressed between two obstacle planes 0.5 delta apart: infeasible
+    prob = dict(x_hat=np.zeros((1, 3)), mass=np.ones(1), fixed=np.zeros(1, bool),
+                obstacle_x=np.array([[0, 0, -0.25 * DELTA], [0, 0, 0.25 * DELTA]], dtype=float),
+                nodes=np.array([[0, 1, 1, 1], [0, 2, 2, 2]]), weights=np.array([[1.0, -1.0, 0, 0], [1.0, -1.0, 0, 0]]),
+                normals=np.array([[0, 0, 1.0], [0, 0, -1.0]]), thickness=DELTA)
+    _, solution = _device_solve(prob, max_iters=500)
+    assert not solution.converged and solution.unbounded

@@ -267,27 +267,9 @@ def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
         lam[zone.contacts] = lz
         seconds[zone.index] = time.perf_counter() - t0
 
-    # Push onto the contacts: ∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a),
-    # and ∂L/∂x_a += d_λj w_ja n_j for the constant nodes (d_a = 0 there).
     t0 = time.perf_counter()
-    cons = np.flatnonzero((d_lam != 0.0) | (lam != 0.0))
-    nd = result.nodes[cons]
-    w = result.weights[cons]
-    nrm = result.normals[cons]
-    free_ext = np.concatenate([~result.fixed, np.zeros(V, dtype=bool)])
-    fr = free_ext[nd]
-    positions = np.concatenate([result.z, result.obstacle_x])
-    v = d_lam[cons, None, None] * positions[nd] + lam[cons, None, None] * d_ext[nd]  # (k, 4, 3)
-    grad_w = np.zeros((m, 4))
-    grad_n = np.zeros((m, 3))
-    grad_w[cons] = np.einsum("kad,kd->ka", v, nrm)
-    grad_n[cons] = np.einsum("ka,kad->kd", w, v)
-    grad_ext = np.zeros((n + V, 3))
-    cj, ca = np.nonzero(~fr)
-    if cj.size:
-        contrib = (d_lam[cons[cj]] * w[cj, ca])[:, None] * nrm[cj]
-        for d in range(3):
-            grad_ext[:, d] += np.bincount(nd[cj, ca], weights=contrib[:, d], minlength=n + V)
+    grad_w, grad_n, grad_ext = push_onto_contacts(result.nodes, result.weights, result.normals, result.fixed,
+                                                  result.z, result.obstacle_x, d_ext, d_lam, lam)
     push = time.perf_counter() - t0
     ncon = np.array([zone.stats["ncon"] for zone in result.zones], dtype=float)
     if ncon.size:
@@ -304,6 +286,38 @@ def mass_gradient(result: ProjectionResult, grad_x: np.ndarray) -> np.ndarray:
     docstring); 0 for pinned particles and particles in no zone."""
     n = result.x_hat.shape[0]
     grad_x = float_array("grad_x", grad_x, (n, 3))
-    shift = result.z - result.x_hat
-    return np.where(result.fixed, 0.0, -np.einsum("id,id->i", grad_x, shift) / np.where(result.fixed, 1.0,
-                                                                                         result.mass))
+    return mass_gradient_of(grad_x, result.z, result.x_hat, result.mass, result.fixed)
+
+
+def mass_gradient_of(grad_x: np.ndarray, z: np.ndarray, x_hat: np.ndarray, mass: np.ndarray,
+                     fixed: np.ndarray) -> np.ndarray:
+    """:func:`mass_gradient` from its parts (any solver's z and ∂L/∂x̂)."""
+    shift = z - x_hat
+    return np.where(fixed, 0.0, -np.einsum("id,id->i", grad_x, shift) / np.where(fixed, 1.0, mass))
+
+
+def push_onto_contacts(nodes, weights, normals, fixed, z, obstacle_x, d_ext, d_lam, lam):
+    """(∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂x of the constant nodes (n + V, 3)) from the multipliers λ and
+    d_λ of every contact and d_z of every node (``d_ext``; 0 for constant nodes):
+    ∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a), and ∂L/∂x_a += d_λj w_ja n_j for
+    the constant nodes (pinned particles at z = x̂, obstacle vertices)."""
+    n, V, m = z.shape[0], obstacle_x.shape[0], nodes.shape[0]
+    cons = np.flatnonzero((d_lam != 0.0) | (lam != 0.0))
+    nd = nodes[cons]
+    w = weights[cons]
+    nrm = normals[cons]
+    free_ext = np.concatenate([~fixed, np.zeros(V, dtype=bool)])
+    fr = free_ext[nd]
+    positions = np.concatenate([z, obstacle_x])
+    v = d_lam[cons, None, None] * positions[nd] + lam[cons, None, None] * d_ext[nd]  # (k, 4, 3)
+    grad_w = np.zeros((m, 4))
+    grad_n = np.zeros((m, 3))
+    grad_w[cons] = np.einsum("kad,kd->ka", v, nrm)
+    grad_n[cons] = np.einsum("ka,kad->kd", w, v)
+    grad_ext = np.zeros((n + V, 3))
+    cj, ca = np.nonzero(~fr)
+    if cj.size:
+        contrib = (d_lam[cons[cj]] * w[cj, ca])[:, None] * nrm[cj]
+        for d in range(3):
+            grad_ext[:, d] += np.bincount(nd[cj, ca], weights=contrib[:, d], minlength=n + V)
+    return grad_w, grad_n, grad_ext

@@ -16,8 +16,9 @@ contact: δ − Σ_a w_ja n_j·p(node_ja) ≤ 0). The code lives in
 * :mod:`warpcloth.collision.checks`: argument checks.
 """
 
-from warpcloth.collision.adjoint import backward, mass_gradient
+from warpcloth.collision.adjoint import backward, mass_gradient, mass_gradient_of, push_onto_contacts
 from warpcloth.collision.qp import ProjectionError, ProjectionResult, project
 from warpcloth.collision.zones import Zone
 
-__all__ = ["ProjectionError", "ProjectionResult", "Zone", "backward", "mass_gradient", "project"]
+__all__ = ["ProjectionError", "ProjectionResult", "Zone", "backward", "mass_gradient", "mass_gradient_of", "project",
+           "push_onto_contacts"]

@@ -25,6 +25,7 @@ import warp as wp
 
 from warpcloth.collision import projection
 from warpcloth.collision.detection import ContactDetector, Contacts
+from warpcloth.collision.device_projection import DeviceProjection
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.contact import contact_kernels
 from warpcloth.model import Model, State
@@ -49,6 +50,7 @@ class CollisionStage:
         self.obstacle_vertex_count = V
         self.node_count = n + V
         self.fixed = model.particle_pin.numpy() >= 0
+        self._device = None  # the device projection's buffers (CollisionOptions.solver "device"), made on first use
         capacity = options.collision.contact_capacity or 16 * (n + V)
         self.detector = ContactDetector(model, thickness=self.thickness, capacity=capacity, obstacles=obstacles,
                                         self_collision=settings.self_collision)
@@ -185,6 +187,9 @@ class CollisionStage:
         model = self.model
         normals = np.concatenate([g[0].numpy() for g in geometry]).astype(np.float64)
         weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
+        if self.options.collision.solver == "device":
+            return self._project_device(x_hat, obstacle_end, contacts, geometry, normals, weights, lam, recording,
+                                        stats, step)
         try:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), model.particle_mass(), self.fixed,
@@ -216,6 +221,68 @@ class CollisionStage:
             record_adjoint(adjoint, arrays=[z])
         return z, result.lam
 
+
+    def _project_device(self, x_hat, obstacle_end, contacts, geometry, normals, weights, lam, recording, stats,
+                        step):
+        """:meth:`_project` by the device kernels (warpcloth/collision/device_projection.py)."""
+        model = self.model
+        dev = self.device
+        n, N = self.cloth_count, self.node_count
+        count = len(contacts)
+        if self._device is None or self._device.capacity < count:
+            self._device = DeviceProjection(dev, N, max(2 * count, 64))
+        mass = model.particle_mass()
+        xh = x_hat.numpy().astype(np.float64)
+        obstacle = obstacle_end.numpy().astype(np.float64).reshape(-1, 3)
+        free = np.concatenate([~self.fixed, np.zeros(N - n, dtype=bool)])
+        inv_mass = np.zeros(N)
+        inv_mass[:n][~self.fixed] = 1.0 / mass[~self.fixed]
+        lam_init = np.concatenate([lam, np.zeros(count - len(lam))])
+        solution = self._device.project(
+            wp.array(np.concatenate([xh, obstacle]), dtype=wp.vec3d, device=dev),
+            wp.array(free.astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(inv_mass, dtype=wp.float64, device=dev),
+            wp.array(contacts.nodes.astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(weights, dtype=wp.vec4d, device=dev), wp.array(normals, dtype=wp.vec3d, device=dev), count,
+            self.thickness, lam_init=wp.array(lam_init, dtype=wp.float64, device=dev),
+            tol=self.options.collision.qp_tol, keep=recording)
+        stats["zones"] = []
+        stats["device"] = {"iterations": solution.iterations, "violation": solution.violation}
+        if solution.unbounded:
+            raise CollisionError(
+                f"step {step}: no positions satisfy the {count} contacts of the device projection (its dual is "
+                "unbounded): cloth squeezed between obstacles closer than twice the thickness, or contacts that "
+                "contradict each other")
+        if not solution.converged:
+            raise CollisionError(
+                f"step {step}: the device projection of {count} contacts did not converge in {solution.iterations} "
+                f"iterations: a contact violated or an active one off by {solution.violation:.3e} m > tol "
+                f"{self.options.collision.qp_tol:.1e} (contacts no positions satisfy, or too few iterations)")
+        z_nodes = solution.z.numpy()
+        z = wp.array(z_nodes[:n], dtype=model.types.vec3, device=dev, requires_grad=recording)
+        lam_out = solution.lam.numpy()[:count].copy()
+        if recording:
+            sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
+            nodes = contacts.nodes.astype(np.int64)
+
+            def adjoint():
+                t0 = time.perf_counter()
+                gx, gw, gn, gob = self._device.backward(
+                    solution, z.grad.numpy().astype(np.float64), x_hat=xh, mass=mass, fixed=self.fixed,
+                    obstacle_x=obstacle, nodes=nodes, weights=weights, normals=normals)
+                seconds = time.perf_counter() - t0
+                self.backward_seconds += seconds
+                self.phase_seconds["adjoint"] += seconds
+                _accumulate(x_hat, gx)
+                self._accumulate_density(projection.mass_gradient_of(gx, z_nodes[:n], xh, mass, self.fixed))
+                for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
+                    _accumulate(normal, gn[lo:hi])
+                    _accumulate(weight, gw[lo:hi])
+                if obstacle_end.shape[0]:
+                    _accumulate(obstacle_end, gob)
+
+            record_adjoint(adjoint, arrays=[z])
+        return z, lam_out
 
     def _accumulate_density(self, grad_mass: np.ndarray) -> None:
         """material_density.grad += the chain of ∂L/∂m through m_i = Σ_faces of i density thicken area / 3."""

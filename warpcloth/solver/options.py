@@ -47,6 +47,10 @@ class CollisionOptions:
     (warpcloth/collision/stage.py, check_projection_strain)."""
     qp_tol: float = 1.0e-10
     """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
+    solver: str = "numpy"
+    """The projection's solver: ``"numpy"`` (per impact zone on the host: dual Gauss-Seidel, then an active set;
+    ``adjoint`` picks its adjoint) or ``"device"`` (Warp kernels over all contacts at once: dual Gauss-Seidel with
+    an active-set polish by CG, and the adjoint by CG on the active set; ``adjoint`` does not apply)."""
 
     def __post_init__(self):
         self.validate()
@@ -55,7 +59,7 @@ class CollisionOptions:
         """Raise ValueError naming the first option out of range."""
         _check_positive("CollisionOptions", self, ("max_projection_strain", "qp_tol"))
         _check_int("CollisionOptions", self, {"rounds": 1, "contact_capacity": 0})
-        _check_choice("CollisionOptions", self, {"adjoint": ("qr", "kkt")})
+        _check_choice("CollisionOptions", self, {"adjoint": ("qr", "kkt"), "solver": ("numpy", "device")})
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,347 @@
+"""The collision projection and its adjoint on the device, over all contacts at once (no impact zones needed).
+
+The problem is warpcloth/collision/qp.py's: contact j couples nodes a = 0..3 (cloth particles, then obstacle
+vertices) with weights w_ja along a unit normal n_j; with g_j the row that gathers sum_a w_ja n_j . z_a over the
+free particles and h_j = delta - sum_{constant a} w_ja n_j . p_a, the constraint is c_j(z) = g_j z - h_j >= 0 and
+
+    min_z 1/2 (z - x^)^T W (z - x^)  s.t.  c(z) >= 0,   z = x^ + W^-1 G^T lam,  lam >= 0,  lam_j c_j = 0.
+
+Solver (one thread: the CPU runs Warp kernels on one thread anyway): the dual, min 1/2 lam^T H lam - b^T lam over
+lam >= 0 (H = G W^-1 G^T applied matrix-free, b = h - G x^), by MPRGP (Dostal's modified proportioning with reduced
+gradient projections: conjugate gradient steps on the free multipliers, expansion steps by projected gradient when
+a step would cross the bound, proportioning steps that release multipliers whose gradient says they should grow),
+on the Jacobi-scaled variables x = D lam (D = sqrt(diag H)), which keeps the bounds. It converges where projected
+Gauss-Seidel stalls and where a primal-dual active set cycles: on the seed's crumpled 16x16 cloth, 205-1949
+iterations per round, 9-36 ms, against Gauss-Seidel still 1e-5 m off after 20000 sweeps and an active set cycling
+from anything short of a converged Gauss-Seidel iterate (measured on the dumped rounds). The dual's gradient
+H lam - b is c(z), so the stopping test is the projection's KKT test itself: max violation and max |c_j| over
+lam_j > 0 within ``tol``.
+
+Adjoint (the same formulas as warpcloth/collision/adjoint.py): on the active set A, CG on H_AA d_lam = G_A W^-1 g
+(g = dL/dz), then d_z = W^-1 (g - G_A^T d_lam). A consistent singular H_AA (dependent contacts) is fine for CG
+from zero: d_z is unique, d_lam is the minimum-norm split among the dependent contacts.
+"""
+
+import warp as wp
+
+CONVERGED = 0
+NOT_CONVERGED = 1
+UNBOUNDED = 2
+"""The dual decreases without bound along a direction: no positions satisfy the contacts."""
+DIVERGED = 1.0e4
+"""A KKT residual this many times the first one means the multipliers are running away (UNBOUNDED)."""
+
+
+@wp.func
+def merged_weight(nodes: wp.array2d(dtype=wp.int32), w: wp.array(dtype=wp.vec4d), free: wp.array(dtype=wp.int32),
+                  j: int, a: int):
+    """Contact j's weight on its a-th node with repeated nodes merged into their first slot; 0 for a repeat and
+    for a node that is not free."""
+    node = nodes[j, a]
+    if free[node] == 0:
+        return wp.float64(0.0)
+    for b in range(a):
+        if nodes[j, b] == node:
+            return wp.float64(0.0)
+    s = w[j][a]
+    for b in range(a + 1, 4):
+        if nodes[j, b] == node:
+            s += w[j][b]
+    return s
+
+
+@wp.struct
+class Rows:
+    # the contacts as the solver reads them
+    count: int
+    nodes: wp.array2d(dtype=wp.int32)
+    fw: wp.array(dtype=wp.vec4d)  # merged weights of free nodes, 0 elsewhere
+    normal: wp.array(dtype=wp.vec3d)
+    h: wp.array(dtype=wp.float64)
+    diag: wp.array(dtype=wp.float64)  # H_jj
+    inv_mass: wp.array(dtype=wp.float64)  # per node; 0 for constant nodes
+
+
+@wp.kernel(enable_backward=False)
+def prepare_rows(nodes: wp.array2d(dtype=wp.int32), w: wp.array(dtype=wp.vec4d), normal: wp.array(dtype=wp.vec3d),
+                 positions: wp.array(dtype=wp.vec3d), free: wp.array(dtype=wp.int32),
+                 inv_mass: wp.array(dtype=wp.float64), thickness: wp.float64,
+                 fw: wp.array(dtype=wp.vec4d), h: wp.array(dtype=wp.float64), diag: wp.array(dtype=wp.float64)):
+    j = wp.tid()
+    n = normal[j]
+    hj = thickness
+    d = wp.float64(0.0)
+    f = wp.vec4d()
+    for a in range(4):
+        node = nodes[j, a]
+        if free[node] == 0:
+            hj -= w[j][a] * wp.dot(n, positions[node])
+        m = merged_weight(nodes, w, free, j, a)
+        f[a] = m
+        d += m * m * inv_mass[node]
+    fw[j] = f
+    h[j] = hj
+    diag[j] = d
+
+
+@wp.func
+def constraint(r: Rows, z: wp.array(dtype=wp.vec3d), j: int):
+    s = wp.float64(0.0)
+    for a in range(4):
+        if r.fw[j][a] != wp.float64(0.0):
+            s += r.fw[j][a] * wp.dot(r.normal[j], z[r.nodes[j, a]])
+    return s - r.h[j]
+
+
+@wp.func
+def push(r: Rows, z: wp.array(dtype=wp.vec3d), j: int, amount: wp.float64):
+    # z += W^-1 g_j^T amount
+    for a in range(4):
+        if r.fw[j][a] != wp.float64(0.0):
+            node = r.nodes[j, a]
+            z[node] = z[node] + (r.fw[j][a] * r.inv_mass[node] * amount) * r.normal[j]
+
+
+@wp.func
+def dual_product(r: Rows, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
+                 scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+    # out = H_MM v on the contacts with mask != 0 (0 elsewhere); scratch: per node, zeroed on return
+    for j in range(r.count):
+        if mask[j] != 0:
+            push(r, scratch, j, v[j])
+    for j in range(r.count):
+        o = wp.float64(0.0)
+        if mask[j] != 0:
+            for a in range(4):
+                if r.fw[j][a] != wp.float64(0.0):
+                    o += r.fw[j][a] * wp.dot(r.normal[j], scratch[r.nodes[j, a]])
+        out[j] = o
+    for j in range(r.count):
+        for a in range(4):
+            scratch[r.nodes[j, a]] = wp.vec3d()
+
+
+@wp.func
+def masked_cg(r: Rows, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64),
+              res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
+              scratch: wp.array(dtype=wp.vec3d), rtol: wp.float64, max_iters: int):
+    """CG on H_MM x = rhs_M from x (masked entries only; Jacobi preconditioned). Returns the iterations."""
+    dual_product(r, mask, x, scratch, q)
+    rz = wp.float64(0.0)
+    bnorm = wp.float64(0.0)
+    for j in range(r.count):
+        rj = wp.float64(0.0)
+        if mask[j] != 0:
+            rj = rhs[j] - q[j]
+            bnorm += rhs[j] * rhs[j]
+        res[j] = rj
+        p[j] = rj / wp.max(r.diag[j], wp.float64(1.0e-300))
+        rz += rj * p[j]
+    limit = rtol * rtol * bnorm
+    it = int(0)
+    while it < max_iters:
+        rr = wp.float64(0.0)
+        for j in range(r.count):
+            rr += res[j] * res[j]
+        if rr <= limit or rz <= wp.float64(0.0):
+            break
+        dual_product(r, mask, p, scratch, q)
+        pq = wp.float64(0.0)
+        for j in range(r.count):
+            pq += p[j] * q[j]
+        if pq <= wp.float64(0.0):
+            break
+        alpha = rz / pq
+        rz_new = wp.float64(0.0)
+        for j in range(r.count):
+            x[j] = x[j] + alpha * p[j]
+            res[j] = res[j] - alpha * q[j]
+            rz_new += res[j] * res[j] / wp.max(r.diag[j], wp.float64(1.0e-300))
+        beta = rz_new / rz
+        rz = rz_new
+        for j in range(r.count):
+            p[j] = res[j] / wp.max(r.diag[j], wp.float64(1.0e-300)) + beta * p[j]
+        it += 1
+    return it
+
+
+@wp.func
+def scale(r: Rows, j: int):
+    # D_j = sqrt(H_jj); 1 for a contact with no free node (its row of H is 0, its multiplier stays 0)
+    return wp.where(r.diag[j] > wp.float64(0.0), wp.sqrt(r.diag[j]), wp.float64(1.0))
+
+
+@wp.func
+def scaled_product(r: Rows, ones: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
+                   tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+    # out = D^-1 H D^-1 v (D = sqrt(diag H)): the Jacobi-scaled dual matrix
+    for j in range(r.count):
+        tmp[j] = v[j] / scale(r, j)
+    dual_product(r, ones, tmp, scratch, out)
+    for j in range(r.count):
+        out[j] = out[j] / scale(r, j)
+
+
+@wp.kernel(enable_backward=False)
+def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: int, ones: wp.array(dtype=wp.int32),
+          lam: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.float64),
+          g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), hp: wp.array(dtype=wp.float64),
+          tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
+    # MPRGP on the Jacobi-scaled dual min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1,
+    # bs = D^-1 (h - G x^)); its gradient g = Hs x - bs is D^-1 c(z), so the stopping test
+    # max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the projection's KKT test.
+    # On entry lam holds the warm start and z the positions of every node (x^ for free ones).
+    m = r.count
+    # the step of the expansions: 1.9 / ||Hs||, ||Hs|| by power iteration (x, g as scratch)
+    for j in range(m):
+        p[j] = wp.float64(1.0) + wp.float64(0.001) * wp.float64(j % 7)
+    norm = wp.float64(1.0)
+    for _k in range(30):
+        scaled_product(r, ones, p, tmp, scratch, hp)
+        s = wp.float64(0.0)
+        for j in range(m):
+            s += hp[j] * hp[j]
+        norm = wp.sqrt(s)
+        if norm <= wp.float64(0.0):
+            break
+        for j in range(m):
+            p[j] = hp[j] / norm
+    step = wp.float64(1.9) / (wp.float64(1.05) * wp.max(norm, wp.float64(1.0e-300)))
+    # start: x = D lam (projected), g = Hs x - bs with bs_j = (h_j - g_j x^) / D_j
+    for j in range(m):
+        x[j] = wp.where(r.diag[j] > wp.float64(0.0), wp.max(lam[j] * scale(r, j), wp.float64(0.0)), wp.float64(0.0))
+    scaled_product(r, ones, x, tmp, scratch, g)
+    for j in range(m):
+        gx = wp.float64(0.0)
+        for a in range(4):
+            if r.fw[j][a] != wp.float64(0.0):
+                gx += r.fw[j][a] * wp.dot(r.normal[j], x_hat[r.nodes[j, a]])
+        g[j] = g[j] - (r.h[j] - gx) / scale(r, j)
+        p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+    status = int(NOT_CONVERGED)
+    it = int(0)
+    worst = wp.float64(0.0)
+    first = wp.float64(-1.0)
+    while it < max_iters:
+        # free (phi), chopped (beta) and reduced free gradients
+        worst = wp.float64(0.0)
+        bb = wp.float64(0.0)
+        ff = wp.float64(0.0)
+        for j in range(m):
+            if x[j] > wp.float64(0.0):
+                worst = wp.max(worst, wp.abs(g[j]) * scale(r, j))
+                ff += wp.min(x[j] / step, g[j]) * g[j]
+            else:
+                beta = wp.min(g[j], wp.float64(0.0))
+                worst = wp.max(worst, -beta * scale(r, j))
+                if r.diag[j] > wp.float64(0.0):
+                    bb += beta * beta
+        if worst <= tol:
+            status = CONVERGED
+            break
+        if first < wp.float64(0.0):
+            first = worst
+        elif not (worst <= wp.float64(DIVERGED) * (first + tol)):  # NaN included
+            status = UNBOUNDED  # the multipliers run away: the dual has no minimum
+            break
+        it += 1
+        if bb <= ff:
+            scaled_product(r, ones, p, tmp, scratch, hp)
+            php = wp.float64(0.0)
+            gp = wp.float64(0.0)
+            feasible = wp.float64(1.0e300)
+            for j in range(m):
+                php += p[j] * hp[j]
+                gp += g[j] * p[j]
+                if p[j] > wp.float64(0.0):
+                    feasible = wp.min(feasible, x[j] / p[j])
+            a_cg = wp.where(php > wp.float64(0.0), gp / php, wp.float64(0.0))
+            if a_cg <= feasible:  # conjugate gradient step
+                fhp = wp.float64(0.0)
+                for j in range(m):
+                    x[j] = x[j] - a_cg * p[j]
+                    g[j] = g[j] - a_cg * hp[j]
+                    if x[j] > wp.float64(0.0):
+                        fhp += g[j] * hp[j]
+                gamma = fhp / php
+                for j in range(m):
+                    p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0)) - gamma * p[j]
+            else:  # expansion: to the boundary, then a projected gradient step on the free set
+                for j in range(m):
+                    x[j] = wp.max(x[j] - feasible * p[j], wp.float64(0.0))
+                    g[j] = g[j] - feasible * hp[j]
+                for j in range(m):
+                    if x[j] > wp.float64(0.0):
+                        x[j] = wp.max(x[j] - step * g[j], wp.float64(0.0))
+                scaled_product(r, ones, x, tmp, scratch, g)
+                for j in range(m):
+                    gx = wp.float64(0.0)
+                    for a in range(4):
+                        if r.fw[j][a] != wp.float64(0.0):
+                            gx += r.fw[j][a] * wp.dot(r.normal[j], x_hat[r.nodes[j, a]])
+                    g[j] = g[j] - (r.h[j] - gx) / scale(r, j)
+                    p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+        else:  # proportioning: release the contacts whose multipliers should grow
+            for j in range(m):
+                chopped = wp.min(g[j], wp.float64(0.0))
+                tmp[j] = wp.where(x[j] > wp.float64(0.0) or r.diag[j] <= wp.float64(0.0), wp.float64(0.0), chopped)
+            for j in range(m):
+                p[j] = tmp[j]
+            scaled_product(r, ones, p, tmp, scratch, hp)
+            dhd = wp.float64(0.0)
+            gd = wp.float64(0.0)
+            for j in range(m):
+                dhd += p[j] * hp[j]
+                gd += g[j] * p[j]
+            if dhd <= wp.float64(0.0):  # H d = 0 while g.d < 0: the dual is unbounded below
+                status = UNBOUNDED
+                break
+            a_p = gd / dhd
+            for j in range(m):
+                x[j] = x[j] - a_p * p[j]
+                g[j] = g[j] - a_p * hp[j]
+            for j in range(m):
+                p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+    # lam = D^-1 x and z = x^ + W^-1 G^T lam
+    for j in range(m):
+        lam[j] = x[j] / scale(r, j)
+        if lam[j] != wp.float64(0.0):
+            push(r, z, j, lam[j])
+    info[0] = wp.float64(status)
+    info[1] = wp.float64(it)
+    info[2] = worst
+    info[3] = norm
+
+
+@wp.kernel(enable_backward=False)
+def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64, max_iters: int,
+            d_lam: wp.array(dtype=wp.float64), d_z: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.float64),
+            res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
+            scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
+    # d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0 elsewhere; on return W^-1 (g - G_A^T d_lam)
+    for j in range(r.count):
+        o = wp.float64(0.0)
+        if active[j] != 0:
+            for a in range(4):
+                if r.fw[j][a] != wp.float64(0.0):
+                    o += r.fw[j][a] * wp.dot(r.normal[j], d_z[r.nodes[j, a]])
+        rhs[j] = o
+        d_lam[j] = wp.float64(0.0)
+    iters = masked_cg(r, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters)
+    for j in range(r.count):
+        if active[j] != 0:
+            push(r, d_z, j, -d_lam[j])
+    rr = wp.float64(0.0)
+    for j in range(r.count):
+        rr += res[j] * res[j]
+    info[0] = wp.float64(iters)
+    info[1] = wp.sqrt(rr)
+
+
+@wp.kernel(enable_backward=False)
+def active_set(r: Rows, z: wp.array(dtype=wp.vec3d), lam: wp.array(dtype=wp.float64), active_tol: wp.float64,
+               active: wp.array(dtype=wp.int32)):
+    # the adjoint's active set: lam_j > 0 or |c_j| <= active_tol (a contact with no free node is never active)
+    j = wp.tid()
+    on = lam[j] > wp.float64(0.0) or wp.abs(constraint(r, z, j)) <= active_tol
+    active[j] = wp.where(on and r.diag[j] > wp.float64(0.0), 1, 0)

@@ -1,0 +1,155 @@
+"""The collision projection and its adjoint as Warp kernels over all contacts at once (kernels/projection.py has
+the method): the first step of the collision stage without host round trips (issue 14). Same problem, same
+tolerance and same adjoint formulas as the NumPy solver (:mod:`warpcloth.collision.qp`), which stays the default
+and the oracle of these kernels' tests."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warpcloth.collision.adjoint import push_onto_contacts
+from warpcloth.kernels import projection as kp
+
+
+@dataclass
+class DeviceSolution:
+    """What :meth:`DeviceProjection.project` found (device arrays, valid until the next call)."""
+
+    z: wp.array
+    """Positions of every node (cloth particles, then obstacle vertices) [m], vec3d."""
+    lam: wp.array
+    """Multiplier of every contact (the raw masses' scale) [kg m], float64."""
+    rows: object
+    """The contacts as the kernels read them (kernels/projection.py Rows)."""
+    converged: bool
+    unbounded: bool
+    """The dual fell without bound: no positions satisfy the contacts."""
+    iterations: int
+    """MPRGP iterations taken."""
+    violation: float
+    """Largest violation or active |c_j| at the end [m]."""
+
+
+class DeviceProjection:
+    """Buffers and launches of the device projection for up to ``capacity`` contacts among ``node_count`` nodes.
+
+    Args:
+        device: Warp device.
+        node_count: cloth particles plus obstacle vertices.
+        capacity: most contacts one call may hold.
+    """
+
+    def __init__(self, device, node_count: int, capacity: int):
+        self.device = device
+        self.node_count = int(node_count)
+        self.capacity = int(capacity)
+        f64 = wp.float64
+        m, N = max(self.capacity, 1), max(self.node_count, 1)
+        self._fw = wp.zeros(m, dtype=wp.vec4d, device=device)
+        self._h = wp.zeros(m, dtype=f64, device=device)
+        self._diag = wp.zeros(m, dtype=f64, device=device)
+        self._lam = wp.zeros(m, dtype=f64, device=device)
+        self._ones = wp.ones(m, dtype=wp.int32, device=device)
+        self._work = [wp.zeros(m, dtype=f64, device=device) for _ in range(5)]
+        self._z = wp.zeros(N, dtype=wp.vec3d, device=device)
+        self._x_hat = wp.zeros(N, dtype=wp.vec3d, device=device)
+        self._scratch = wp.zeros(N, dtype=wp.vec3d, device=device)
+        self._info = wp.zeros(4, dtype=f64, device=device)
+        self._rows = None
+
+    def project(self, positions: wp.array, free: wp.array, inv_mass: wp.array, nodes: wp.array, weights: wp.array,
+                normals: wp.array, count: int, thickness: float, *, lam_init: wp.array | None = None,
+                tol: float = 1.0e-10, max_iters: int = 100000, keep: bool = False) -> DeviceSolution:
+        """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts.
+
+        Args:
+            positions: (node_count,) vec3d: x̂ for free particles, the constant position of every other node.
+            free: (node_count,) int32, 1 for a free particle.
+            inv_mass: (node_count,) float64, 1/m for free particles (0 elsewhere).
+            nodes, weights, normals: the contacts, (>= count, 4) int32, vec4d, vec3d.
+            count: number of contacts.
+            thickness: δ [m].
+            lam_init: warm start (>= count,) or None.
+            tol: KKT tolerance [m] (violation, and |c_j| where λ_j > 0).
+            max_iters: most MPRGP iterations (each one product with the dual matrix).
+            keep: return arrays of its own (for a later :meth:`adjoint`), not this object's buffers.
+        """
+        if count > self.capacity:
+            raise ValueError(f"{count} contacts for a device projection of capacity {self.capacity}")
+        dev = self.device
+        r = kp.Rows()
+        r.count, r.nodes, r.fw, r.normal, r.h, r.diag, r.inv_mass = (count, nodes, self._fw, normals, self._h,
+                                                                      self._diag, inv_mass)
+        self._rows = r
+        if count:
+            wp.launch(kp.prepare_rows, count, device=dev,
+                      inputs=[nodes, weights, normals, positions, free, inv_mass, wp.float64(thickness)],
+                      outputs=[self._fw, self._h, self._diag], record_tape=False)
+        if lam_init is None:
+            self._lam.zero_()
+        else:
+            wp.copy(self._lam, lam_init, count=count)
+        wp.copy(self._z, positions)
+        wp.copy(self._x_hat, positions)
+        x, g, p, hp, tmp = self._work
+        wp.launch(kp.solve, 1, device=dev,
+                  inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), self._ones],
+                  outputs=[self._lam, self._z, x, g, p, hp, tmp, self._scratch, self._info], record_tape=False)
+        status, iterations, violation, norm = self._info.numpy()
+        z, lam = self._z, self._lam
+        status = int(status) if np.isfinite(violation) else kp.NOT_CONVERGED
+        if keep:
+            kept = kp.Rows()
+            kept.count = count
+            kept.nodes, kept.fw, kept.normal = wp.clone(nodes), wp.clone(self._fw), wp.clone(normals)
+            kept.h, kept.diag, kept.inv_mass = wp.clone(self._h), wp.clone(self._diag), wp.clone(inv_mass)
+            r, z, lam = kept, wp.clone(z), wp.clone(lam)
+        return DeviceSolution(z=z, lam=lam, rows=r, converged=status == kp.CONVERGED, unbounded=status == kp.UNBOUNDED,
+                              iterations=int(iterations), violation=float(violation))
+
+    def adjoint(self, solution: DeviceSolution, grad_z: np.ndarray, *, active_tol: float = 1.0e-9,
+                rtol: float = 1.0e-13) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d_z (node_count, 3), d_λ (count,), active (count,) bool) of ``solution`` for ∂L/∂z (node_count, 3), in
+        :mod:`warpcloth.collision.adjoint`'s convention (d_z = W⁻¹(ḡ − G_Aᵀd_λ) with its G = −g, so its d_λ is the
+        negative of the kernels'); d_z is W⁻¹ḡ for free particles in no active contact, 0 for constant nodes."""
+        r = solution.rows
+        dev = self.device
+        count = r.count
+        m = max(count, 1)
+        active = wp.zeros(m, dtype=wp.int32, device=dev)
+        if count:
+            wp.launch(kp.active_set, count, device=dev,
+                      inputs=[r, solution.z, solution.lam, wp.float64(active_tol)], outputs=[active],
+                      record_tape=False)
+        inv_mass = r.inv_mass.numpy()
+        d_z = wp.array(np.asarray(grad_z, dtype=np.float64) * inv_mass[:, None], dtype=wp.vec3d, device=dev)
+        d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
+        rhs, res, p, q = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(4))
+        info = wp.zeros(2, dtype=wp.float64, device=dev)
+        wp.launch(kp.adjoint, 1, device=dev, inputs=[r, active, wp.float64(rtol), 10 * count + 100],
+                  outputs=[d_lam, d_z, rhs, res, p, q, self._scratch, info], record_tape=False)
+        return d_z.numpy(), -d_lam.numpy()[:count], active.numpy()[:count].astype(bool)
+
+    def backward(self, solution: DeviceSolution, grad_z: np.ndarray, *, x_hat: np.ndarray, mass: np.ndarray,
+                 fixed: np.ndarray, obstacle_x: np.ndarray, nodes: np.ndarray, weights: np.ndarray,
+                 normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3)) for ∂L/∂z (n, 3) of the
+        cloth particles, as :func:`warpcloth.collision.adjoint.backward` returns them (the arguments: the problem
+        :meth:`project` solved, on the host)."""
+        n = x_hat.shape[0]
+        V = obstacle_x.shape[0]
+        grad_z = np.asarray(grad_z, dtype=np.float64)
+        d_z, d_lam, _ = self.adjoint(solution, np.concatenate([grad_z, np.zeros((V, 3))]))
+        movable = ~fixed
+        grad_x = grad_z.copy()
+        grad_x[movable] = d_z[:n][movable] * mass[movable, None]
+        d_ext = np.zeros((n + V, 3))
+        d_ext[:n][movable] = d_z[:n][movable]
+        z = np.where(movable[:, None], solution.z.numpy()[:n], x_hat)
+        lam = solution.lam.numpy()[:solution.rows.count]
+        grad_w, grad_n, grad_ext = push_onto_contacts(nodes, weights, normals, fixed, z, obstacle_x, d_ext, d_lam, lam)
+        grad_x += grad_ext[:n]
+        return grad_x, grad_w, grad_n, grad_ext[n:].copy()
