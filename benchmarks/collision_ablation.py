@@ -18,8 +18,10 @@ Usage: python benchmarks/collision_ablation.py [--quick] [--out PATH] [--meshes 
 A mesh whose step raises (CollisionError) is recorded with the error and the seconds it took (64×64: its second
 projection round holds contacts that no positions satisfy; a linear program on the dumped round finds the smallest
 achievable worst violation to be exactly the thickness δ, a contradiction among three contacts of five particles).
-Per phase (seconds of one step, medians): detection (BVH queries and the copy to the host), geometry (normals and
-weights), projection (zones and QP) and adjoint (the backward pass's share), from ``sim.collision.phase_seconds``.
+A third run per mesh uses ``CollisionOptions(solver="device")`` (kernels/projection.py: the QP over all contacts by
+MPRGP, the adjoint by CG on the active set). Per phase (seconds of one step, medians): detection (BVH queries and
+the copy to the host), geometry (normals and weights), projection (zones and QP) and adjoint (the backward pass's
+share), from ``sim.collision.phase_seconds``.
 """
 
 from __future__ import annotations
@@ -51,14 +53,14 @@ TARGET_FORWARD_64_S = 1.0
 PHASES = ("detection", "geometry", "projection", "adjoint")
 
 
-def build(mesh: str, adjoint: str):
+def build(mesh: str, adjoint: str, solver: str = "numpy"):
     meshes = common.seed_dir() / "meshes"
     b = wc.ModelBuilder()
     b.add_cloth_obj(meshes / f"demo_collision{mesh}.obj", material=wc.preset("gray-interlock", thicken=2))
     b.add_obstacle_obj(meshes / "contain.obj", pos=(-0.5, -1.0, -0.55))
     b.set_collision(self_collision=True)
     model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
-    options = wc.SolverOptions(collision=wc.CollisionOptions(adjoint=adjoint))
+    options = wc.SolverOptions(collision=wc.CollisionOptions(adjoint=adjoint, solver=solver))
     return model, wc.Simulator(model, 0.02, options=options)
 
 
@@ -87,6 +89,23 @@ def one_step(model, sim) -> dict:
             "phases": phases,
             "zones": [z for z in zones if z["ncon"] > 1], "rounds": stage.last["rounds"],
             "contacts": stage.last["contacts"]}
+
+
+def run_device(mesh: str, reps: int) -> dict:
+    """The same step with ``CollisionOptions(solver="device")`` (MPRGP and a CG adjoint, Warp kernels)."""
+    model, sim = build(mesh, "qr", "device")
+    runs = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        try:
+            runs.append(one_step(model, sim))
+        except wc.CollisionError as err:
+            return {"error": str(err), "error_after_s": time.perf_counter() - t0}
+    return {"forward_s": float(np.median([r["forward_s"] for r in runs])),
+            "backward_s": float(np.median([r["backward_s"] for r in runs])),
+            "phases_s": {k: float(np.median([r["phases"][k] for r in runs])) for k in runs[0]["phases"]},
+            "rounds": int(np.median([r["rounds"] for r in runs])),
+            "contacts": int(np.median([r["contacts"] for r in runs]))}
 
 
 def run_mesh(mesh: str, reps: int) -> dict:
@@ -140,6 +159,8 @@ def main():
     meshes = [m for m in args.meshes.split(",") if m]
     one_step(*build(meshes[0], "qr"))  # loads every kernel and its adjoint (untimed)
     records = [run_mesh(m, args.reps) for m in meshes]
+    for record in records:
+        record["device"] = run_device(record["mesh"], args.reps)
 
     print(f"one step of the crumpled cloth in the funnel, float64, {args.reps} repetitions (medians); "
           "sizes: mean ± std (max) over impact zones with > 1 contact; seed: slides, authors' machine")
@@ -167,6 +188,19 @@ def main():
     print()
     common.print_table(["mesh", *PHASES, "forward", "QR backward"], phase_rows, ["", *[".4f"] * (len(PHASES) + 2)],
                        title="seconds per step by phase (QR runs, medians; forward: the whole step)")
+    device_rows = []
+    for r in records:
+        dv = r["device"]
+        if "error" in dv:
+            device_rows.append([r["mesh"], f"raised after {dv['error_after_s']:.1f} s: {dv['error'][:90]}", "", "", ""])
+        else:
+            p = dv["phases_s"]
+            device_rows.append([r["mesh"], f"{dv['forward_s']:.3f}", f"{p['projection']:.4f}",
+                                f"{dv['backward_s']:.4f}", f"{dv['contacts']}"])
+    print()
+    common.print_table(["mesh", "forward s", "projection s", "adjoint s", "contacts"], device_rows,
+                       title='CollisionOptions(solver="device"): MPRGP on the dual and a CG adjoint, Warp kernels, '
+                             "no zones (medians)")
     common.write_result(args, {"dt": 0.02, "dtype": "float64", "records": records,
                                "seed": {mesh: {"kkt_size": v[0], "kkt_backward_s": v[1], "qr_size": v[2],
                                                "qr_backward_s": v[3], "speedup": v[4]} for mesh, v in SEED.items()},

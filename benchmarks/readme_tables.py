@@ -193,6 +193,20 @@ def collision_ablation(d: dict) -> str:
         out += ["Seconds per step by phase (QR runs):", "",
                 table(["mesh", "detection", "normals and weights", "projection (zones, QP)", "adjoint", "whole step"],
                       phase_rows), ""]
+    device_rows = []
+    for r in d["records"]:
+        dv = r.get("device")
+        if dv is None:
+            continue
+        if "error" in dv:
+            device_rows.append([r["mesh"].replace("x", "×"), f"raised after {g(dv['error_after_s'], 2)} s", "", "", ""])
+        else:
+            device_rows.append([r["mesh"].replace("x", "×"), g(dv["forward_s"], 2), g(dv["phases_s"]["projection"], 2),
+                                g(dv["backward_s"], 2), str(dv["contacts"])])
+    if device_rows:
+        out += ['With `CollisionOptions(solver="device")` (MPRGP on the dual and a CG adjoint on the active set, Warp '
+                "kernels over all contacts, no zones):", "",
+                table(["mesh", "whole step s", "projection s", "adjoint s", "contacts"], device_rows), ""]
     measured = [r for r in d["records"] if r["mesh"] in seed and "error" not in r]
     qr = [f"{r['mesh'].replace('x', '×')} {met(r['qr_backward_s'] <= seed[r['mesh']]['qr_backward_s'])} "
           f"({g(r['qr_backward_s'], 2)} s against {g(seed[r['mesh']]['qr_backward_s'], 2)} s)" for r in measured]

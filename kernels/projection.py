@@ -183,13 +183,15 @@ def scaled_product(r: Rows, ones: wp.array(dtype=wp.int32), v: wp.array(dtype=wp
 
 
 @wp.kernel(enable_backward=False)
-def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: int, ones: wp.array(dtype=wp.int32),
+def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: int, stall: int,
+          ones: wp.array(dtype=wp.int32),
           lam: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.float64),
           g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), hp: wp.array(dtype=wp.float64),
           tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
     # MPRGP on the Jacobi-scaled dual min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1,
     # bs = D^-1 (h - G x^)); its gradient g = Hs x - bs is D^-1 c(z), so the stopping test
-    # max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the projection's KKT test.
+    # max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the projection's KKT test. Stops as NOT_CONVERGED when
+    # its residual has not halved in ``stall`` iterations (contacts that contradict each other stall it).
     # On entry lam holds the warm start and z the positions of every node (x^ for free ones).
     m = r.count
     # the step of the expansions: 1.9 / ||Hs||, ||Hs|| by power iteration (x, g as scratch)
@@ -222,6 +224,8 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
     it = int(0)
     worst = wp.float64(0.0)
     first = wp.float64(-1.0)
+    best = wp.float64(1.0e300)
+    best_it = int(0)
     while it < max_iters:
         # free (phi), chopped (beta) and reduced free gradients
         worst = wp.float64(0.0)
@@ -243,6 +247,11 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
             first = worst
         elif not (worst <= wp.float64(DIVERGED) * (first + tol)):  # NaN included
             status = UNBOUNDED  # the multipliers run away: the dual has no minimum
+            break
+        if worst < wp.float64(0.5) * best:
+            best = worst
+            best_it = it
+        elif it - best_it > stall:
             break
         it += 1
         if bb <= ff:
@@ -307,10 +316,14 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
         lam[j] = x[j] / scale(r, j)
         if lam[j] != wp.float64(0.0):
             push(r, z, j, lam[j])
+    violated = wp.float64(0.0)
+    for j in range(m):
+        violated = wp.max(violated, -constraint(r, z, j))
     info[0] = wp.float64(status)
     info[1] = wp.float64(it)
     info[2] = worst
     info[3] = norm
+    info[4] = violated
 
 
 @wp.kernel(enable_backward=False)

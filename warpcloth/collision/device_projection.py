@@ -29,8 +29,10 @@ class DeviceSolution:
     """The dual fell without bound: no positions satisfy the contacts."""
     iterations: int
     """MPRGP iterations taken."""
+    residual: float
+    """The KKT test's residual at the end [m]: largest violation, and |c_j| where λ_j > 0."""
     violation: float
-    """Largest violation or active |c_j| at the end [m]."""
+    """Largest violation of a contact at the end [m]."""
 
 
 class DeviceProjection:
@@ -57,12 +59,13 @@ class DeviceProjection:
         self._z = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._x_hat = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._scratch = wp.zeros(N, dtype=wp.vec3d, device=device)
-        self._info = wp.zeros(4, dtype=f64, device=device)
+        self._info = wp.zeros(5, dtype=f64, device=device)
         self._rows = None
 
     def project(self, positions: wp.array, free: wp.array, inv_mass: wp.array, nodes: wp.array, weights: wp.array,
                 normals: wp.array, count: int, thickness: float, *, lam_init: wp.array | None = None,
-                tol: float = 1.0e-10, max_iters: int = 100000, keep: bool = False) -> DeviceSolution:
+                tol: float = 1.0e-10, max_iters: int = 100000, stall: int = 5000,
+                keep: bool = False) -> DeviceSolution:
         """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts.
 
         Args:
@@ -75,6 +78,7 @@ class DeviceProjection:
             lam_init: warm start (>= count,) or None.
             tol: KKT tolerance [m] (violation, and |c_j| where λ_j > 0).
             max_iters: most MPRGP iterations (each one product with the dual matrix).
+            stall: stop (not converged) when the KKT residual has not halved in this many iterations.
             keep: return arrays of its own (for a later :meth:`adjoint`), not this object's buffers.
         """
         if count > self.capacity:
@@ -96,11 +100,11 @@ class DeviceProjection:
         wp.copy(self._x_hat, positions)
         x, g, p, hp, tmp = self._work
         wp.launch(kp.solve, 1, device=dev,
-                  inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), self._ones],
+                  inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones],
                   outputs=[self._lam, self._z, x, g, p, hp, tmp, self._scratch, self._info], record_tape=False)
-        status, iterations, violation, norm = self._info.numpy()
+        status, iterations, residual, norm, violation = self._info.numpy()
         z, lam = self._z, self._lam
-        status = int(status) if np.isfinite(violation) else kp.NOT_CONVERGED
+        status = int(status) if np.isfinite(residual) else kp.NOT_CONVERGED
         if keep:
             kept = kp.Rows()
             kept.count = count
@@ -108,7 +112,7 @@ class DeviceProjection:
             kept.h, kept.diag, kept.inv_mass = wp.clone(self._h), wp.clone(self._diag), wp.clone(inv_mass)
             r, z, lam = kept, wp.clone(z), wp.clone(lam)
         return DeviceSolution(z=z, lam=lam, rows=r, converged=status == kp.CONVERGED, unbounded=status == kp.UNBOUNDED,
-                              iterations=int(iterations), violation=float(violation))
+                              iterations=int(iterations), residual=float(residual), violation=float(violation))
 
     def adjoint(self, solution: DeviceSolution, grad_z: np.ndarray, *, active_tol: float = 1.0e-9,
                 rtol: float = 1.0e-13) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -238,16 +238,15 @@ class CollisionStage:
         inv_mass = np.zeros(N)
         inv_mass[:n][~self.fixed] = 1.0 / mass[~self.fixed]
         lam_init = np.concatenate([lam, np.zeros(count - len(lam))])
-        solution = self._device.project(
-            wp.array(np.concatenate([xh, obstacle]), dtype=wp.vec3d, device=dev),
-            wp.array(free.astype(np.int32), dtype=wp.int32, device=dev),
-            wp.array(inv_mass, dtype=wp.float64, device=dev),
-            wp.array(contacts.nodes.astype(np.int32), dtype=wp.int32, device=dev),
-            wp.array(weights, dtype=wp.vec4d, device=dev), wp.array(normals, dtype=wp.vec3d, device=dev), count,
-            self.thickness, lam_init=wp.array(lam_init, dtype=wp.float64, device=dev),
-            tol=self.options.collision.qp_tol, keep=recording)
-        stats["zones"] = []
-        stats["device"] = {"iterations": solution.iterations, "violation": solution.violation}
+        problem = (wp.array(np.concatenate([xh, obstacle]), dtype=wp.vec3d, device=dev),
+                   wp.array(free.astype(np.int32), dtype=wp.int32, device=dev),
+                   wp.array(inv_mass, dtype=wp.float64, device=dev),
+                   wp.array(contacts.nodes.astype(np.int32), dtype=wp.int32, device=dev),
+                   wp.array(weights, dtype=wp.vec4d, device=dev), wp.array(normals, dtype=wp.vec3d, device=dev), count,
+                   self.thickness)
+        opt = self.options.collision
+        solution = self._device.project(*problem, lam_init=wp.array(lam_init, dtype=wp.float64, device=dev),
+                                        tol=opt.qp_tol, keep=recording)
         if solution.unbounded:
             raise CollisionError(
                 f"step {step}: no positions satisfy the {count} contacts of the device projection (its dual is "
@@ -256,8 +255,10 @@ class CollisionStage:
         if not solution.converged:
             raise CollisionError(
                 f"step {step}: the device projection of {count} contacts did not converge in {solution.iterations} "
-                f"iterations: a contact violated or an active one off by {solution.violation:.3e} m > tol "
-                f"{self.options.collision.qp_tol:.1e} (contacts no positions satisfy, or too few iterations)")
+                f"iterations: a contact violated or an active one off by {solution.residual:.3e} m > tol "
+                f"{opt.qp_tol:.1e} (contacts that contradict each other stall it)")
+        stats["zones"] = []
+        stats["device"] = {"iterations": solution.iterations, "violation": solution.violation}
         z_nodes = solution.z.numpy()
         z = wp.array(z_nodes[:n], dtype=model.types.vec3, device=dev, requires_grad=recording)
         lam_out = solution.lam.numpy()[:count].copy()

@@ -49,8 +49,8 @@ class CollisionOptions:
     """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
     solver: str = "numpy"
     """The projection's solver: ``"numpy"`` (per impact zone on the host: dual Gauss-Seidel, then an active set;
-    ``adjoint`` picks its adjoint) or ``"device"`` (Warp kernels over all contacts at once: dual Gauss-Seidel with
-    an active-set polish by CG, and the adjoint by CG on the active set; ``adjoint`` does not apply)."""
+    ``adjoint`` picks its adjoint) or ``"device"`` (Warp kernels over all contacts at once: MPRGP on the dual and
+    the adjoint by CG on the active set; ``adjoint`` does not apply)."""
 
     def __post_init__(self):
         self.validate()
