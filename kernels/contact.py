@@ -41,12 +41,13 @@ def contact_kernels(scalar):
 
     @wp.kernel
     def geometry(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), contact_nodes: wp.array2d(dtype=wp.int32),
-                 contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=scalar),
-                 contact_sign: wp.array(dtype=scalar),
+                 contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
+                 contact_sign: wp.array(dtype=wp.float64),
                  # out:
                  normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4)):
         j = wp.tid()
-        tj = contact_t[j]
+        tj = scalar(contact_t[j])
+        sign = scalar(contact_sign[j])
         a = x0[contact_nodes[j, 0]] + tj * (x1[contact_nodes[j, 0]] - x0[contact_nodes[j, 0]])
         b = x0[contact_nodes[j, 1]] + tj * (x1[contact_nodes[j, 1]] - x0[contact_nodes[j, 1]])
         c = x0[contact_nodes[j, 2]] + tj * (x1[contact_nodes[j, 2]] - x0[contact_nodes[j, 2]])
@@ -57,7 +58,7 @@ def contact_kernels(scalar):
             e1 = c - b
             e2 = d - b
             u, v, _det, _scale = span_coordinates(e1, e2, a - b)
-            normal[j] = contact_sign[j] * wp.normalize(wp.cross(e1, e2))
+            normal[j] = sign * wp.normalize(wp.cross(e1, e2))
             weight[j] = vec4(one, -(one - u - v), -u, -v)
         elif mode == EE_PLANE:
             # crossing edges (a, b) and (c, d): the normal of the plane they span, the lines' closest points
@@ -65,7 +66,7 @@ def contact_kernels(scalar):
             d1 = b - a
             d2 = d - c
             s, u, _det, _scale = span_coordinates(d1, c - d, c - a)
-            normal[j] = contact_sign[j] * wp.normalize(wp.cross(d1, d2))
+            normal[j] = sign * wp.normalize(wp.cross(d1, d2))
             weight[j] = vec4(one - s, s, -(one - u), -u)
         else:
             # closest points of the two segments; the normal points from the second to the first

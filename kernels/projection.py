@@ -22,7 +22,11 @@ Adjoint (the same formulas as warpcloth/collision/adjoint.py): on the active set
 from zero: d_z is unique, d_lam is the minimum-norm split among the dependent contacts.
 """
 
+from types import SimpleNamespace
+
 import warp as wp
+
+from warpcloth.kernels.types import per_precision, types
 
 CONVERGED = 0
 NOT_CONVERGED = 1
@@ -358,3 +362,143 @@ def active_set(r: Rows, z: wp.array(dtype=wp.vec3d), lam: wp.array(dtype=wp.floa
     j = wp.tid()
     on = lam[j] > wp.float64(0.0) or wp.abs(constraint(r, z, j)) <= active_tol
     active[j] = wp.where(on and r.diag[j] > wp.float64(0.0), 1, 0)
+
+
+@per_precision
+def device_round_kernels(scalar):
+    """Kernels that move the collision stage's data between the model's precision and the projection's float64,
+    and push the adjoint back onto the contacts, the particles and the materials, all on the device."""
+    t = types(scalar)
+    vec3, vec4 = t.vec3, t.vec4
+
+    @wp.kernel(enable_backward=False)
+    def positions64(x_hat: wp.array(dtype=vec3), obstacle: wp.array(dtype=vec3), cloth_count: int,
+                    out: wp.array(dtype=wp.vec3d)):
+        i = wp.tid()
+        if i < cloth_count:
+            out[i] = wp.vec3d(x_hat[i])
+        else:
+            out[i] = wp.vec3d(obstacle[i - cloth_count])
+
+    @wp.kernel(enable_backward=False)
+    def particle_mass(triangles: wp.array2d(dtype=wp.int32), area: wp.array(dtype=scalar),
+                      material: wp.array(dtype=wp.int32), density: wp.array(dtype=scalar),
+                      thicken: wp.array(dtype=scalar), mass: wp.array(dtype=wp.float64)):
+        # lumped masses, a third of each face's (Model.particle_mass)
+        f = wp.tid()
+        m = material[f]
+        third = wp.float64(area[f] * density[m] * thicken[m]) / wp.float64(3.0)
+        for c in range(3):
+            wp.atomic_add(mass, triangles[f, c], third)
+
+    @wp.kernel(enable_backward=False)
+    def inverse_mass(mass: wp.array(dtype=wp.float64), pin: wp.array(dtype=wp.int32), cloth_count: int,
+                     free: wp.array(dtype=wp.int32), inv_mass: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        movable = i < cloth_count and pin[wp.min(i, cloth_count - 1)] < 0
+        free[i] = wp.where(movable, 1, 0)
+        inv_mass[i] = wp.where(movable, wp.float64(1.0) / mass[wp.min(i, cloth_count - 1)], wp.float64(0.0))
+
+    @wp.kernel(enable_backward=False)
+    def append_geometry(normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4), offset: int,
+                        normals: wp.array(dtype=wp.vec3d), weights: wp.array(dtype=wp.vec4d),
+                        bad: wp.array(dtype=wp.int32)):
+        # a round's contacts into the step's float64 lists; bad[0] = 1 + the first degenerate one, if any
+        j = wp.tid()
+        n = wp.vec3d(normal[j])
+        w = wp.vec4d(weight[j])
+        normals[offset + j] = n
+        weights[offset + j] = w
+        if not (wp.isfinite(n) and wp.isfinite(w)):
+            wp.atomic_min(bad, 0, j + 1)
+
+    @wp.kernel(enable_backward=False)
+    def cloth_positions(z: wp.array(dtype=wp.vec3d), out: wp.array(dtype=vec3)):
+        i = wp.tid()
+        out[i] = vec3(z[i])
+
+    @wp.kernel(enable_backward=False)
+    def scaled_gradient(grad: wp.array(dtype=vec3), inv_mass: wp.array(dtype=wp.float64), cloth_count: int,
+                        d_z: wp.array(dtype=wp.vec3d)):
+        # d_z = W^-1 dL/dz for free particles, 0 for every other node
+        i = wp.tid()
+        d = wp.vec3d()
+        if i < cloth_count:
+            d = inv_mass[i] * wp.vec3d(grad[i])
+        d_z[i] = d
+
+    @wp.kernel(enable_backward=False)
+    def push_contacts(nodes: wp.array2d(dtype=wp.int32), weights: wp.array(dtype=wp.vec4d),
+                      normals: wp.array(dtype=wp.vec3d), free: wp.array(dtype=wp.int32),
+                      z: wp.array(dtype=wp.vec3d), d_z: wp.array(dtype=wp.vec3d), lam: wp.array(dtype=wp.float64),
+                      d_lam: wp.array(dtype=wp.float64),
+                      grad_w: wp.array(dtype=wp.vec4d), grad_n: wp.array(dtype=wp.vec3d),
+                      grad_const: wp.array(dtype=wp.vec3d)):
+        # warpcloth/collision/adjoint.py push_onto_contacts, with the kernels' d_lam (its negative there):
+        # dL/dw_ja = (-d_lam_j p_a + lam_j d_a) . n_j, dL/dn_j = sum_a w_ja (...), constant nodes -d_lam_j w_ja n_j
+        j = wp.tid()
+        n = normals[j]
+        gw = wp.vec4d()
+        gn = wp.vec3d()
+        for a in range(4):
+            node = nodes[j, a]
+            v = -d_lam[j] * z[node] + lam[j] * d_z[node]
+            gw[a] = wp.dot(v, n)
+            gn += weights[j][a] * v
+            if free[node] == 0:
+                wp.atomic_add(grad_const, node, (-d_lam[j] * weights[j][a]) * n)
+        grad_w[j] = gw
+        grad_n[j] = gn
+
+    @wp.kernel(enable_backward=False)
+    def position_gradients(grad_z: wp.array(dtype=vec3), d_z: wp.array(dtype=wp.vec3d),
+                           inv_mass: wp.array(dtype=wp.float64), grad_const: wp.array(dtype=wp.vec3d),
+                           z: wp.array(dtype=wp.vec3d), x_hat: wp.array(dtype=wp.vec3d), cloth_count: int,
+                           x_hat_grad: wp.array(dtype=vec3), obstacle_grad: wp.array(dtype=vec3),
+                           mass_grad: wp.array(dtype=wp.float64)):
+        # dL/dx^ (free: W d_z; pinned: dL/dz plus the push), dL/dobstacle, and dL/dm_i = -dL/dx^_i . (z_i - x^_i) / m_i
+        i = wp.tid()
+        if i < cloth_count:
+            g = wp.vec3d(grad_z[i]) + grad_const[i]
+            m = wp.float64(0.0)
+            if inv_mass[i] > wp.float64(0.0):
+                g = d_z[i] / inv_mass[i]
+                m = -wp.dot(g, z[i] - x_hat[i]) * inv_mass[i]
+            x_hat_grad[i] = x_hat_grad[i] + vec3(g)
+            mass_grad[i] = m
+        else:
+            o = i - cloth_count
+            obstacle_grad[o] = obstacle_grad[o] + vec3(grad_const[i])
+
+    @wp.kernel(enable_backward=False)
+    def density_gradient(triangles: wp.array2d(dtype=wp.int32), area: wp.array(dtype=scalar),
+                         material: wp.array(dtype=wp.int32), thicken: wp.array(dtype=scalar),
+                         mass_grad: wp.array(dtype=wp.float64), density_grad: wp.array(dtype=scalar)):
+        f = wp.tid()
+        s = mass_grad[triangles[f, 0]] + mass_grad[triangles[f, 1]] + mass_grad[triangles[f, 2]]
+        m = material[f]
+        wp.atomic_add(density_grad, m, scalar(s * wp.float64(area[f] * thicken[m]) / wp.float64(3.0)))
+
+    @wp.kernel(enable_backward=False)
+    def geometry_gradients(grad_n: wp.array(dtype=wp.vec3d), grad_w: wp.array(dtype=wp.vec4d), offset: int,
+                           normal_grad: wp.array(dtype=vec3), weight_grad: wp.array(dtype=vec4)):
+        j = wp.tid()
+        normal_grad[j] = normal_grad[j] + vec3(grad_n[offset + j])
+        weight_grad[j] = weight_grad[j] + vec4(grad_w[offset + j])
+
+    @wp.kernel(enable_backward=False)
+    def largest_strain(x_hat: wp.array(dtype=vec3), z: wp.array(dtype=vec3), ends: wp.array2d(dtype=wp.int32),
+                       rest: wp.array(dtype=wp.float64), largest: wp.array(dtype=wp.float64)):
+        # the projection-strain guard's measure (warpcloth/collision/stage.py), its maximum over the edges
+        e = wp.tid()
+        a = ends[e, 0]
+        b = ends[e, 1]
+        grown = wp.float64(wp.length(z[a] - z[b])) - wp.float64(wp.length(x_hat[a] - x_hat[b]))
+        wp.atomic_max(largest, 0, grown / rest[e])
+
+    return SimpleNamespace(largest_strain=largest_strain, positions64=positions64, particle_mass=particle_mass,
+                           inverse_mass=inverse_mass,
+                           append_geometry=append_geometry, cloth_positions=cloth_positions,
+                           scaled_gradient=scaled_gradient, push_contacts=push_contacts,
+                           position_gradients=position_gradients, density_gradient=density_gradient,
+                           geometry_gradients=geometry_gradients)

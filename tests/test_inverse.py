@@ -38,8 +38,9 @@ def _small_hanging(material=None, *, obstacle=False, requires_grad=True, lagged=
 
 # -- checkpointing ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("segment", [None, 4, 1, 12])
-@pytest.mark.parametrize("obstacle, lagged", [(False, False), (True, False), (True, True)])
-def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged):
+@pytest.mark.parametrize("obstacle, lagged, solver", [(False, False, "numpy"), (True, False, "numpy"),
+                                                     (True, True, "numpy"), (True, True, "device")])
+def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solver):
     steps = 12
     model = _small_hanging(obstacle=obstacle, lagged=lagged)
     if lagged:  # segment boundaries fall after steps with and without a collision response
@@ -60,8 +61,10 @@ def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged):
         if i % 3 == 0:  # a loss on some intermediate frames, not only the last
             wp.launch(_weighted_sum, model.particle_count, inputs=[state.particle_x, weights[i]], outputs=[out])
 
+    options = wc.SolverOptions(cg_tol=1e-12, warm_start=False, collision=wc.CollisionOptions(solver=solver))
+
     def gradients(run):
-        sim = wc.Simulator(model, 0.01, options=EXACT)
+        sim = wc.Simulator(model, 0.01, options=options)
         control = model.control(particle_force=True)
         control.particle_force.fill_(wp.vec3d(0.01, 0.0, 0.02))
         state = model.state()

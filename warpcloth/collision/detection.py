@@ -103,6 +103,33 @@ class ContactDetector:
             CollisionError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
                 and the count needed).
         """
+        count = self.detect_on_device(x0, x1)
+        return Contacts(nodes=self.nodes.numpy()[:count].copy(), mode=self.mode.numpy()[:count].copy(),
+                        t=self.t.numpy()[:count].copy(), sign=self.sign.numpy()[:count].copy())
+
+    @property
+    def nodes(self) -> wp.array:
+        """The last detection's contacts' node ids (first ``count`` rows), (capacity, 4) int32 on the device."""
+        return self._nodes
+
+    @property
+    def mode(self) -> wp.array:
+        """... their modes (kernels/collision.py), (capacity,) int32."""
+        return self._mode
+
+    @property
+    def t(self) -> wp.array:
+        """... their times of impact, (capacity,) float64."""
+        return self._t
+
+    @property
+    def sign(self) -> wp.array:
+        """... their normals' sides, (capacity,) float64."""
+        return self._sign
+
+    def detect_on_device(self, x0: wp.array, x1: wp.array) -> int:
+        """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
+        :attr:`sign`); returns their count (the one value read back)."""
         k = self.kernels
         half = 0.5 * self.thickness
         for prims in self._sets:
@@ -131,8 +158,7 @@ class ContactDetector:
             raise CollisionError(
                 f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
                 f"raise CollisionOptions.contact_capacity to at least {count}")
-        return Contacts(nodes=self._nodes.numpy()[:count].copy(), mode=self._mode.numpy()[:count].copy(),
-                        t=self._t.numpy()[:count].copy(), sign=self._sign.numpy()[:count].copy())
+        return count
 
     def check_start_outside(self, model: Model) -> None:
         """Raise ValueError if a cloth particle starts inside a closed obstacle (the response cannot fix that)."""

@@ -64,7 +64,7 @@ class DeviceProjection:
 
     def project(self, positions: wp.array, free: wp.array, inv_mass: wp.array, nodes: wp.array, weights: wp.array,
                 normals: wp.array, count: int, thickness: float, *, lam_init: wp.array | None = None,
-                tol: float = 1.0e-10, max_iters: int = 100000, stall: int = 5000,
+                warm: int | None = None, tol: float = 1.0e-10, max_iters: int = 100000, stall: int = 5000,
                 keep: bool = False) -> DeviceSolution:
         """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts.
 
@@ -75,7 +75,8 @@ class DeviceProjection:
             nodes, weights, normals: the contacts, (>= count, 4) int32, vec4d, vec3d.
             count: number of contacts.
             thickness: δ [m].
-            lam_init: warm start (>= count,) or None.
+            lam_init: warm start, or None (zeros); it may be this object's last solution's ``lam``.
+            warm: how many leading entries of ``lam_init`` to use (default ``count``); the rest start at 0.
             tol: KKT tolerance [m] (violation, and |c_j| where λ_j > 0).
             max_iters: most MPRGP iterations (each one product with the dual matrix).
             stall: stop (not converged) when the KKT residual has not halved in this many iterations.
@@ -92,10 +93,10 @@ class DeviceProjection:
             wp.launch(kp.prepare_rows, count, device=dev,
                       inputs=[nodes, weights, normals, positions, free, inv_mass, wp.float64(thickness)],
                       outputs=[self._fw, self._h, self._diag], record_tape=False)
-        if lam_init is None:
-            self._lam.zero_()
-        else:
-            wp.copy(self._lam, lam_init, count=count)
+        k = 0 if lam_init is None else min(count if warm is None else int(warm), count)
+        if k and lam_init is not self._lam:
+            wp.copy(self._lam, lam_init, count=k)
+        self._lam[k:].zero_()
         wp.copy(self._z, positions)
         wp.copy(self._x_hat, positions)
         x, g, p, hp, tmp = self._work
@@ -114,28 +115,39 @@ class DeviceProjection:
         return DeviceSolution(z=z, lam=lam, rows=r, converged=status == kp.CONVERGED, unbounded=status == kp.UNBOUNDED,
                               iterations=int(iterations), residual=float(residual), violation=float(violation))
 
-    def adjoint(self, solution: DeviceSolution, grad_z: np.ndarray, *, active_tol: float = 1.0e-9,
-                rtol: float = 1.0e-13) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(d_z (node_count, 3), d_λ (count,), active (count,) bool) of ``solution`` for ∂L/∂z (node_count, 3), in
-        :mod:`warpcloth.collision.adjoint`'s convention (d_z = W⁻¹(ḡ − G_Aᵀd_λ) with its G = −g, so its d_λ is the
-        negative of the kernels'); d_z is W⁻¹ḡ for free particles in no active contact, 0 for constant nodes."""
+    @property
+    def lam(self) -> wp.array:
+        """The last solve's multipliers (this object's buffer: a warm start for the next, larger solve)."""
+        return self._lam
+
+    def adjoint_on_device(self, solution: DeviceSolution, d_z: wp.array, *, active_tol: float = 1.0e-9,
+                          rtol: float = 1.0e-13) -> wp.array:
+        """In place on the device: ``d_z`` (node_count,) vec3d holds W⁻¹ ∂L/∂z on entry (0 for constant nodes) and
+        W⁻¹(∂L/∂z − G_Aᵀd_λ) on return; returns the kernels' d_λ (count,) (the negative of
+        :mod:`warpcloth.collision.adjoint`'s)."""
         r = solution.rows
         dev = self.device
-        count = r.count
-        m = max(count, 1)
+        m = max(r.count, 1)
         active = wp.zeros(m, dtype=wp.int32, device=dev)
-        if count:
-            wp.launch(kp.active_set, count, device=dev,
+        if r.count:
+            wp.launch(kp.active_set, r.count, device=dev,
                       inputs=[r, solution.z, solution.lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
-        inv_mass = r.inv_mass.numpy()
-        d_z = wp.array(np.asarray(grad_z, dtype=np.float64) * inv_mass[:, None], dtype=wp.vec3d, device=dev)
         d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
         rhs, res, p, q = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(4))
         info = wp.zeros(2, dtype=wp.float64, device=dev)
-        wp.launch(kp.adjoint, 1, device=dev, inputs=[r, active, wp.float64(rtol), 10 * count + 100],
+        wp.launch(kp.adjoint, 1, device=dev, inputs=[r, active, wp.float64(rtol), 10 * r.count + 100],
                   outputs=[d_lam, d_z, rhs, res, p, q, self._scratch, info], record_tape=False)
-        return d_z.numpy(), -d_lam.numpy()[:count], active.numpy()[:count].astype(bool)
+        return d_lam
+
+    def adjoint(self, solution: DeviceSolution, grad_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(d_z (node_count, 3), d_λ (count,)) of ``solution`` for ∂L/∂z (node_count, 3), on the host, in
+        :mod:`warpcloth.collision.adjoint`'s convention (d_z = W⁻¹(ḡ − G_Aᵀd_λ) with its G = −g, so its d_λ is the
+        negative of the kernels'); d_z is W⁻¹ḡ for free particles in no active contact, 0 for constant nodes."""
+        inv_mass = solution.rows.inv_mass.numpy()
+        d_z = wp.array(np.asarray(grad_z, dtype=np.float64) * inv_mass[:, None], dtype=wp.vec3d, device=self.device)
+        d_lam = self.adjoint_on_device(solution, d_z)
+        return d_z.numpy(), -d_lam.numpy()[:solution.rows.count]
 
     def backward(self, solution: DeviceSolution, grad_z: np.ndarray, *, x_hat: np.ndarray, mass: np.ndarray,
                  fixed: np.ndarray, obstacle_x: np.ndarray, nodes: np.ndarray, weights: np.ndarray,
@@ -146,7 +158,7 @@ class DeviceProjection:
         n = x_hat.shape[0]
         V = obstacle_x.shape[0]
         grad_z = np.asarray(grad_z, dtype=np.float64)
-        d_z, d_lam, _ = self.adjoint(solution, np.concatenate([grad_z, np.zeros((V, 3))]))
+        d_z, d_lam = self.adjoint(solution, np.concatenate([grad_z, np.zeros((V, 3))]))
         movable = ~fixed
         grad_x = grad_z.copy()
         grad_x[movable] = d_z[:n][movable] * mass[movable, None]

@@ -28,6 +28,7 @@ from warpcloth.collision.detection import ContactDetector, Contacts
 from warpcloth.collision.device_projection import DeviceProjection
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.contact import contact_kernels
+from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import active_tape, record_adjoint
 
@@ -50,7 +51,10 @@ class CollisionStage:
         self.obstacle_vertex_count = V
         self.node_count = n + V
         self.fixed = model.particle_pin.numpy() >= 0
-        self._device = None  # the device projection's buffers (CollisionOptions.solver "device"), made on first use
+        # the device solver's buffers (CollisionOptions.solver "device"), made on first use
+        self._device = None
+        self._contact_nodes = self._contact_normals = self._contact_weights = None
+        self._edge_ends_device = self._edge_rest_device = None
         capacity = options.collision.contact_capacity or 16 * (n + V)
         self.detector = ContactDetector(model, thickness=self.thickness, capacity=capacity, obstacles=obstacles,
                                         self_collision=settings.self_collision)
@@ -85,6 +89,9 @@ class CollisionStage:
         vec3 = model.types.vec3
         n, N = self.cloth_count, self.node_count
         dev = self.device
+        if self.options.collision.solver == "device":
+            self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, recording)
+            return
 
         def gather(cloth_x, obstacle_x):
             out = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
@@ -133,6 +140,178 @@ class CollisionStage:
         wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
                   outputs=[state_out.particle_x, state_out.particle_v])
 
+    def _resolve_on_device(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
+                           obstacle_end: wp.array, state_out: State, step: int, recording: bool) -> None:
+        """:meth:`resolve` with ``CollisionOptions(solver="device")``: contacts, their geometry, the projection and
+        its adjoint stay on the device; each round reads back the contact count and the solver's status."""
+        model = self.model
+        k = self.kernels
+        kr = device_round_kernels(model.scalar)
+        vec3 = model.types.vec3
+        n, N = self.cloth_count, self.node_count
+        dev = self.device
+        opt = self.options.collision
+        phases = self.phase_seconds
+
+        def gather(cloth_x, obstacle_x):
+            out = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
+            wp.launch(k.gather_nodes, N, device=dev, inputs=[cloth_x, obstacle_x, n], outputs=[out])
+            return out
+
+        # the step's constants: x^ and obstacle vertices in float64, masses from the model's densities now
+        positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+        wp.launch(kr.positions64, N, device=dev, inputs=[x_hat, obstacle_end, n], outputs=[positions],
+                  record_tape=False)
+        mass = wp.zeros(n, dtype=wp.float64, device=dev)
+        wp.launch(kr.particle_mass, model.tri_count, device=dev,
+                  inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
+                          model.material_thicken], outputs=[mass], record_tape=False)
+        free = wp.empty(N, dtype=wp.int32, device=dev)
+        inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
+        wp.launch(kr.inverse_mass, N, device=dev, inputs=[mass, model.particle_pin, n], outputs=[free, inv_mass],
+                  record_tape=False)
+        start = gather(state_in.particle_x, obstacle_start)
+        z = x_hat
+        total = 0
+        rounds = []  # (offset, count, normal, weight) of each round's contacts
+        solution = None
+        stats = {"rounds": 0, "contacts": 0, "zones": []}
+        for round_index in range(opt.rounds + 1):
+            t0 = time.perf_counter()
+            end = gather(z, obstacle_end)
+            found = self.detector.detect_on_device(start, end)
+            phases["detection"] += time.perf_counter() - t0
+            if found == 0:
+                break
+            if round_index == opt.rounds:
+                raise CollisionError(
+                    f"step {step}: the collision response did not converge in {opt.rounds} rounds: {found} new "
+                    f"contacts (of {total + found}) still found, e.g. nodes "
+                    f"{self.detector.nodes.numpy()[0].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
+                    "for cloth trapped between obstacles")
+            t0 = time.perf_counter()
+            self._grow_contact_lists(total + found)
+            normal = wp.empty(found, dtype=vec3, device=dev, requires_grad=recording)
+            weight = wp.empty(found, dtype=model.types.vec4, device=dev, requires_grad=recording)
+            det = self.detector
+            found_arrays = [det.nodes[:found], det.mode[:found], det.t[:found], det.sign[:found]]
+            if recording:  # the tape replays this launch after later detections reuse the buffers
+                found_arrays = [wp.clone(a) for a in found_arrays]
+            wp.launch(k.geometry, found, device=dev, inputs=[start, end, *found_arrays], outputs=[normal, weight])
+            wp.copy(self._contact_nodes, det.nodes, dest_offset=4 * total, count=4 * found)
+            bad = wp.full(1, found + 1, dtype=wp.int32, device=dev)
+            wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, total],
+                      outputs=[self._contact_normals, self._contact_weights, bad], record_tape=False)
+            j = int(bad.numpy()[0]) - 1
+            if j < found:
+                raise CollisionError(
+                    f"step {step}: a contact between nodes {det.nodes.numpy()[j].tolist()} has a degenerate normal; "
+                    "a triangle or edge of the cloth or of an obstacle collapsed")
+            rounds.append((total, found, normal, weight))
+            t1 = time.perf_counter()
+            phases["geometry"] += t1 - t0
+            warm = total
+            total += found
+            if self._device is None or self._device.capacity < total:
+                self._device = DeviceProjection(dev, N, max(2 * total, 1024))
+                warm = 0  # a new buffer: the previous multipliers are gone
+            solution = self._device.project(
+                positions, free, inv_mass, self._contact_nodes, self._contact_weights, self._contact_normals, total,
+                self.thickness, lam_init=None if solution is None or warm == 0 else self._device.lam, warm=warm,
+                tol=opt.qp_tol, keep=recording)
+            if solution.unbounded:
+                raise CollisionError(
+                    f"step {step}: no positions satisfy the {total} contacts of the device projection (its dual is "
+                    "unbounded): cloth squeezed between obstacles closer than twice the thickness, or contacts that "
+                    "contradict each other")
+            if not solution.converged:
+                raise CollisionError(
+                    f"step {step}: the device projection of {total} contacts did not converge in "
+                    f"{solution.iterations} iterations: a contact violated or an active one off by "
+                    f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)")
+            z = wp.empty(n, dtype=vec3, device=dev, requires_grad=recording)
+            wp.launch(kr.cloth_positions, n, device=dev, inputs=[solution.z], outputs=[z], record_tape=False)
+            if recording:
+                self._record_device_adjoint(solution, x_hat, obstacle_end, positions, free, inv_mass, list(rounds),
+                                            z)
+            phases["projection"] += time.perf_counter() - t1
+            stats["rounds"] = round_index + 1
+            stats["device"] = {"iterations": solution.iterations, "violation": solution.violation}
+        stats["contacts"] = total
+        self.last = stats
+        self.last_projections = []
+        if total:  # the guard's largest strain is the one value read back; the host names the edge only if it fails
+            if self._edge_ends_device is None:
+                self._edge_ends_device = wp.array(self._edge_ends.astype(np.int32), dtype=wp.int32, device=dev)
+                self._edge_rest_device = wp.array(self._edge_rest, dtype=wp.float64, device=dev)
+            largest = wp.full(1, -np.inf, dtype=wp.float64, device=dev)
+            wp.launch(kr.largest_strain, len(self._edge_rest), device=dev,
+                      inputs=[x_hat, z, self._edge_ends_device, self._edge_rest_device], outputs=[largest],
+                      record_tape=False)
+            if float(largest.numpy()[0]) > opt.max_projection_strain:
+                self._check_projection_strain(x_hat, z, step)
+        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
+                  outputs=[state_out.particle_x, state_out.particle_v])
+
+    def _grow_contact_lists(self, count: int) -> None:
+        """The step's float64 contact lists (device solver), at least ``count`` long (kept across steps)."""
+        have = 0 if self._contact_nodes is None else self._contact_nodes.shape[0]
+        if have >= count:
+            return
+        size = max(2 * count, 1024)
+        dev = self.device
+        nodes = wp.zeros((size, 4), dtype=wp.int32, device=dev)
+        normals = wp.zeros(size, dtype=wp.vec3d, device=dev)
+        weights = wp.zeros(size, dtype=wp.vec4d, device=dev)
+        if have:  # this step's earlier rounds
+            wp.copy(nodes, self._contact_nodes)
+            wp.copy(normals, self._contact_normals)
+            wp.copy(weights, self._contact_weights)
+        self._contact_nodes, self._contact_normals, self._contact_weights = nodes, normals, weights
+
+    def _record_device_adjoint(self, solution, x_hat, obstacle_end, positions, free, inv_mass, rounds, z) -> None:
+        """Record the adjoint of one device projection (kernels only): dL/dz -> x^, the contacts' normals and
+        weights, the obstacle vertices and the densities."""
+        model = self.model
+        kr = device_round_kernels(model.scalar)
+        n, N = self.cloth_count, self.node_count
+        dev = self.device
+        count = solution.rows.count
+        nodes, weights, normals = (wp.clone(a[:count]) for a in (self._contact_nodes, self._contact_weights,
+                                                                   self._contact_normals))
+        device = self._device
+
+        def adjoint():
+            t0 = time.perf_counter()
+            d_z = wp.empty(N, dtype=wp.vec3d, device=dev)
+            wp.launch(kr.scaled_gradient, N, device=dev, inputs=[z.grad, inv_mass, n], outputs=[d_z])
+            d_lam = device.adjoint_on_device(solution, d_z)
+            grad_w = wp.empty(max(count, 1), dtype=wp.vec4d, device=dev)
+            grad_n = wp.empty(max(count, 1), dtype=wp.vec3d, device=dev)
+            grad_const = wp.zeros(N, dtype=wp.vec3d, device=dev)
+            wp.launch(kr.push_contacts, count, device=dev,
+                      inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
+                      outputs=[grad_w, grad_n, grad_const])
+            mass_grad = wp.zeros(n, dtype=wp.float64, device=dev)
+            obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else wp.zeros(
+                max(N - n, 1), dtype=model.types.vec3, device=dev)
+            wp.launch(kr.position_gradients, N, device=dev,
+                      inputs=[z.grad, d_z, inv_mass, grad_const, solution.z, positions, n],
+                      outputs=[x_hat.grad, obstacle_grad, mass_grad])
+            if model.material_density.grad is not None:
+                wp.launch(kr.density_gradient, model.tri_count, device=dev,
+                          inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_thicken,
+                                  mass_grad], outputs=[model.material_density.grad])
+            for offset, found, normal, weight in rounds:
+                if normal.grad is not None:
+                    wp.launch(kr.geometry_gradients, found, device=dev, inputs=[grad_n, grad_w, offset],
+                              outputs=[normal.grad, weight.grad])
+            seconds = time.perf_counter() - t0
+            self.backward_seconds += seconds
+            self.phase_seconds["adjoint"] += seconds
+
+        record_adjoint(adjoint, arrays=[z])
+
     def _check_projection_strain(self, x_hat: wp.array, z: wp.array, step: int) -> None:
         """Raise CollisionError if the projection alone lengthened an edge by more than
         ``CollisionOptions.max_projection_strain`` of its rest length.
@@ -162,7 +341,7 @@ class CollisionStage:
         """Normals and weights of new contacts at their frozen time of impact, from the positions they were found
         at (they stay frozen in later rounds, as in ARCSim's impact zones)."""
         model = self.model
-        scalar, vec3, vec4 = model.scalar, model.types.vec3, model.types.vec4
+        vec3, vec4 = model.types.vec3, model.types.vec4
         dev = self.device
         m = len(contacts)
         normal = wp.empty(m, dtype=vec3, device=dev, requires_grad=recording)
@@ -170,8 +349,8 @@ class CollisionStage:
         wp.launch(self.kernels.geometry, m, device=dev,
                   inputs=[start, end, wp.array(contacts.nodes, dtype=wp.int32, device=dev),
                           wp.array(contacts.mode, dtype=wp.int32, device=dev),
-                          wp.array(contacts.t, dtype=scalar, device=dev),
-                          wp.array(contacts.sign, dtype=scalar, device=dev)],
+                          wp.array(contacts.t, dtype=wp.float64, device=dev),
+                          wp.array(contacts.sign, dtype=wp.float64, device=dev)],
                   outputs=[normal, weight])
         ok = np.all(np.isfinite(normal.numpy()), axis=1) & np.all(np.isfinite(weight.numpy()), axis=1)
         if not ok.all():
@@ -187,9 +366,6 @@ class CollisionStage:
         model = self.model
         normals = np.concatenate([g[0].numpy() for g in geometry]).astype(np.float64)
         weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
-        if self.options.collision.solver == "device":
-            return self._project_device(x_hat, obstacle_end, contacts, geometry, normals, weights, lam, recording,
-                                        stats, step)
         try:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), model.particle_mass(), self.fixed,
@@ -221,69 +397,6 @@ class CollisionStage:
             record_adjoint(adjoint, arrays=[z])
         return z, result.lam
 
-
-    def _project_device(self, x_hat, obstacle_end, contacts, geometry, normals, weights, lam, recording, stats,
-                        step):
-        """:meth:`_project` by the device kernels (warpcloth/collision/device_projection.py)."""
-        model = self.model
-        dev = self.device
-        n, N = self.cloth_count, self.node_count
-        count = len(contacts)
-        if self._device is None or self._device.capacity < count:
-            self._device = DeviceProjection(dev, N, max(2 * count, 64))
-        mass = model.particle_mass()
-        xh = x_hat.numpy().astype(np.float64)
-        obstacle = obstacle_end.numpy().astype(np.float64).reshape(-1, 3)
-        free = np.concatenate([~self.fixed, np.zeros(N - n, dtype=bool)])
-        inv_mass = np.zeros(N)
-        inv_mass[:n][~self.fixed] = 1.0 / mass[~self.fixed]
-        lam_init = np.concatenate([lam, np.zeros(count - len(lam))])
-        problem = (wp.array(np.concatenate([xh, obstacle]), dtype=wp.vec3d, device=dev),
-                   wp.array(free.astype(np.int32), dtype=wp.int32, device=dev),
-                   wp.array(inv_mass, dtype=wp.float64, device=dev),
-                   wp.array(contacts.nodes.astype(np.int32), dtype=wp.int32, device=dev),
-                   wp.array(weights, dtype=wp.vec4d, device=dev), wp.array(normals, dtype=wp.vec3d, device=dev), count,
-                   self.thickness)
-        opt = self.options.collision
-        solution = self._device.project(*problem, lam_init=wp.array(lam_init, dtype=wp.float64, device=dev),
-                                        tol=opt.qp_tol, keep=recording)
-        if solution.unbounded:
-            raise CollisionError(
-                f"step {step}: no positions satisfy the {count} contacts of the device projection (its dual is "
-                "unbounded): cloth squeezed between obstacles closer than twice the thickness, or contacts that "
-                "contradict each other")
-        if not solution.converged:
-            raise CollisionError(
-                f"step {step}: the device projection of {count} contacts did not converge in {solution.iterations} "
-                f"iterations: a contact violated or an active one off by {solution.residual:.3e} m > tol "
-                f"{opt.qp_tol:.1e} (contacts that contradict each other stall it)")
-        stats["zones"] = []
-        stats["device"] = {"iterations": solution.iterations, "violation": solution.violation}
-        z_nodes = solution.z.numpy()
-        z = wp.array(z_nodes[:n], dtype=model.types.vec3, device=dev, requires_grad=recording)
-        lam_out = solution.lam.numpy()[:count].copy()
-        if recording:
-            sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
-            nodes = contacts.nodes.astype(np.int64)
-
-            def adjoint():
-                t0 = time.perf_counter()
-                gx, gw, gn, gob = self._device.backward(
-                    solution, z.grad.numpy().astype(np.float64), x_hat=xh, mass=mass, fixed=self.fixed,
-                    obstacle_x=obstacle, nodes=nodes, weights=weights, normals=normals)
-                seconds = time.perf_counter() - t0
-                self.backward_seconds += seconds
-                self.phase_seconds["adjoint"] += seconds
-                _accumulate(x_hat, gx)
-                self._accumulate_density(projection.mass_gradient_of(gx, z_nodes[:n], xh, mass, self.fixed))
-                for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
-                    _accumulate(normal, gn[lo:hi])
-                    _accumulate(weight, gw[lo:hi])
-                if obstacle_end.shape[0]:
-                    _accumulate(obstacle_end, gob)
-
-            record_adjoint(adjoint, arrays=[z])
-        return z, lam_out
 
     def _accumulate_density(self, grad_mass: np.ndarray) -> None:
         """material_density.grad += the chain of ∂L/∂m through m_i = Σ_faces of i density thicken area / 3."""
