@@ -349,10 +349,12 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64, max_ite
         if active[j] != 0:
             push(r, d_z, j, -d_lam[j])
     rr = wp.float64(0.0)
+    bb = wp.float64(0.0)
     for j in range(r.count):
         rr += res[j] * res[j]
+        bb += rhs[j] * rhs[j]
     info[0] = wp.float64(iters)
-    info[1] = wp.sqrt(rr)
+    info[1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # relative residual
 
 
 @wp.kernel(enable_backward=False)

@@ -1,10 +1,12 @@
 """The collision projection and its adjoint as Warp kernels over all contacts at once (kernels/projection.py has
-the method): the first step of the collision stage without host round trips (issue 14). Same problem, same
-tolerance and same adjoint formulas as the NumPy solver (:mod:`warpcloth.collision.qp`), which stays the default
-and the oracle of these kernels' tests."""
+the method), the default solver of the collision stage (``CollisionOptions.solver="device"``). Same problem, same
+tolerance and same adjoint formulas as the NumPy zone solver (:mod:`warpcloth.collision.qp`), the oracle of these
+kernels' tests. The host-side :meth:`DeviceProjection.adjoint` and :meth:`DeviceProjection.backward` serve those
+tests; the stage uses :meth:`DeviceProjection.adjoint_on_device` and the kernels of kernels/projection.py."""
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,6 +14,9 @@ import warp as wp
 
 from warpcloth.collision.adjoint import push_onto_contacts
 from warpcloth.kernels import projection as kp
+
+ADJOINT_WARN = 1.0e-8
+"""An adjoint CG that ends above this relative residual warns (it aims at 1e-13)."""
 
 
 @dataclass
@@ -138,6 +143,11 @@ class DeviceProjection:
         info = wp.zeros(2, dtype=wp.float64, device=dev)
         wp.launch(kp.adjoint, 1, device=dev, inputs=[r, active, wp.float64(rtol), 10 * r.count + 100],
                   outputs=[d_lam, d_z, rhs, res, p, q, self._scratch, info], record_tape=False)
+        iterations, residual = info.numpy()
+        if not residual <= ADJOINT_WARN:
+            warnings.warn(f"the device projection's adjoint CG stopped at relative residual {residual:.2e} after "
+                          f"{int(iterations)} iterations ({r.count} contacts): its gradient is that inexact",
+                          RuntimeWarning, stacklevel=3)
         return d_lam
 
     def adjoint(self, solution: DeviceSolution, grad_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -6,14 +6,16 @@ After the implicit step has moved the cloth from x0 to x̂, each round
    kernels/collision.py, not differentiated);
 2. evaluates the new contacts at their frozen time of impact, from the positions they were found at: unit normal n
    and weights w (kernels/contact.py, differentiated by Warp); they stay frozen in later rounds;
-3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over impact zones (warpcloth/collision/projection.py,
-   NumPy), recording the QR (or dense KKT) adjoint on the tape.
+3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over all contacts so far and records its adjoint on
+   the tape: by default on the device (``CollisionOptions.solver="device"``, kernels/projection.py: MPRGP on the
+   dual, a CG adjoint on the active set; contacts, geometry and gradients never leave the device, each round reads
+   back the contact count and the solver's status), or zone by zone in NumPy (``"numpy"``,
+   warpcloth/collision/projection.py, with the QR or dense KKT adjoint).
 Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
 
 Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
-transforms of the Control) through n and w. Deliberately dropped: the time of impact and the set of contacts
-(piecewise constant), and the masses in W (held constant; for a single-material cloth W's normalised masses do not
-depend on its density at all).
+transforms of the Control) through n and w, and the densities through the masses in W. Deliberately dropped: the
+time of impact and the set of contacts (piecewise constant).
 """
 
 from __future__ import annotations

@@ -39,18 +39,19 @@ class CollisionOptions:
     """Contacts one detection may find, and proximity pairs one step may have (0: 16 contacts and 8 pairs per cloth
     particle and obstacle vertex); more raises CollisionError with the capacity needed."""
     adjoint: str = "qr"
-    """Adjoint of the collision projection: ``"qr"`` (QR of the active constraints, SPEC §4.2) or ``"kkt"`` (the
-    dense KKT system of the whole zone: the seed's baseline, for comparison)."""
+    """Adjoint of the NumPy solver's projection (``solver="numpy"``): ``"qr"`` (QR of the active constraints,
+    SPEC §4.2) or ``"kkt"`` (the dense KKT system of the whole zone: the seed's baseline, for comparison)."""
     max_projection_strain: float = 0.5
     """Most an edge may lengthen in the collision projection of one step, in rest lengths; more raises
     CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
     (warpcloth/collision/stage.py, check_projection_strain)."""
     qp_tol: float = 1.0e-10
     """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
-    solver: str = "numpy"
-    """The projection's solver: ``"numpy"`` (per impact zone on the host: dual Gauss-Seidel, then an active set;
-    ``adjoint`` picks its adjoint) or ``"device"`` (Warp kernels over all contacts at once: MPRGP on the dual and
-    the adjoint by CG on the active set; ``adjoint`` does not apply)."""
+    solver: str = "device"
+    """The projection's solver: ``"device"`` (Warp kernels over all contacts at once, no zones: MPRGP on the dual and
+    the adjoint by CG on the active set; contacts and gradients stay on the device) or ``"numpy"`` (per impact zone
+    on the host: dual Gauss-Seidel, then an active set; its adjoint by the QR formula or, ``adjoint="kkt"``, the dense
+    KKT system: the seed's method and the tests' oracle)."""
 
     def __post_init__(self):
         self.validate()
@@ -60,6 +61,9 @@ class CollisionOptions:
         _check_positive("CollisionOptions", self, ("max_projection_strain", "qp_tol"))
         _check_int("CollisionOptions", self, {"rounds": 1, "contact_capacity": 0})
         _check_choice("CollisionOptions", self, {"adjoint": ("qr", "kkt"), "solver": ("numpy", "device")})
+        if self.adjoint == "kkt" and self.solver != "numpy":
+            raise ValueError("CollisionOptions.adjoint 'kkt' is the NumPy solver's; set solver='numpy' with it "
+                             f"(solver is {self.solver!r})")
 
 
 @dataclass(frozen=True)
