@@ -76,8 +76,8 @@ class CollisionStage:
         """Wall time spent in the projection's adjoint (accumulates over backward passes)."""
         self.phase_seconds = dict.fromkeys(("detection", "geometry", "projection", "adjoint"), 0.0)
         """Wall time per phase, accumulated over steps (forward) and backward passes (``adjoint``): contact detection
-        (swept BVH queries and the copy to the host), the contacts' normals and weights, the projection (zones and
-        QP), and the projection's adjoint (the same as ``backward_seconds``)."""
+        (swept BVH queries; the NumPy solver's also copies the contacts to the host), the contacts' normals and
+        weights, the projection, and the projection's adjoint (the same as ``backward_seconds``)."""
 
     # -- response ------------------------------------------------------------------------------------------------
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
@@ -122,11 +122,7 @@ class CollisionStage:
             if len(found) == 0:
                 break
             if round_index == opt.collision.rounds:
-                raise CollisionError(
-                    f"step {step}: the collision response did not converge in {opt.collision.rounds} rounds: "
-                    f"{len(found)} new contacts (of {len(keys)}) still found, e.g. nodes "
-                    f"{found.nodes[0].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
-                    "for cloth trapped between obstacles")
+                raise _rounds_error(step, opt.collision.rounds, len(found), len(keys), found.nodes[0])
             t0 = time.perf_counter()
             geometry.append(self._geometry(start, end, found, recording, step))
             t1 = time.perf_counter()
@@ -160,18 +156,6 @@ class CollisionStage:
             wp.launch(k.gather_nodes, N, device=dev, inputs=[cloth_x, obstacle_x, n], outputs=[out])
             return out
 
-        # the step's constants: x^ and obstacle vertices in float64, masses from the model's densities now
-        positions = wp.empty(N, dtype=wp.vec3d, device=dev)
-        wp.launch(kr.positions64, N, device=dev, inputs=[x_hat, obstacle_end, n], outputs=[positions],
-                  record_tape=False)
-        mass = wp.zeros(n, dtype=wp.float64, device=dev)
-        wp.launch(kr.particle_mass, model.tri_count, device=dev,
-                  inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
-                          model.material_thicken], outputs=[mass], record_tape=False)
-        free = wp.empty(N, dtype=wp.int32, device=dev)
-        inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
-        wp.launch(kr.inverse_mass, N, device=dev, inputs=[mass, model.particle_pin, n], outputs=[free, inv_mass],
-                  record_tape=False)
         start = gather(state_in.particle_x, obstacle_start)
         z = x_hat
         total = 0
@@ -186,12 +170,20 @@ class CollisionStage:
             if found == 0:
                 break
             if round_index == opt.rounds:
-                raise CollisionError(
-                    f"step {step}: the collision response did not converge in {opt.rounds} rounds: {found} new "
-                    f"contacts (of {total + found}) still found, e.g. nodes "
-                    f"{self.detector.nodes.numpy()[0].tolist()}; raise CollisionOptions.rounds, lower dt, or check "
-                    "for cloth trapped between obstacles")
+                raise _rounds_error(step, opt.rounds, found, total + found, self.detector.nodes.numpy()[0])
             t0 = time.perf_counter()
+            if total == 0:  # the step's constants, once it has contacts: x^ and the obstacle in float64, masses
+                positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+                wp.launch(kr.positions64, N, device=dev, inputs=[x_hat, obstacle_end, n], outputs=[positions],
+                          record_tape=False)
+                mass = wp.zeros(n, dtype=wp.float64, device=dev)
+                wp.launch(kr.particle_mass, model.tri_count, device=dev,
+                          inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
+                                  model.material_thicken], outputs=[mass], record_tape=False)
+                free = wp.empty(N, dtype=wp.int32, device=dev)
+                inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
+                wp.launch(kr.inverse_mass, N, device=dev, inputs=[mass, model.particle_pin, n],
+                          outputs=[free, inv_mass], record_tape=False)
             self._grow_contact_lists(total + found)
             normal = wp.empty(found, dtype=vec3, device=dev, requires_grad=recording)
             weight = wp.empty(found, dtype=model.types.vec4, device=dev, requires_grad=recording)
@@ -409,6 +401,13 @@ class CollisionStage:
         per_face = grad_mass[model.triangles_np].sum(axis=1) * model.tri_area.numpy() / 3.0
         grad = np.bincount(model.tri_material.numpy(), weights=per_face, minlength=density.shape[0])
         _accumulate(density, grad * model.material_thicken.numpy())
+
+
+def _rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarray) -> CollisionError:
+    return CollisionError(
+        f"step {step}: the collision response did not converge in {rounds} rounds: {found} new contacts (of "
+        f"{total}) still found, e.g. nodes {nodes.tolist()}; raise CollisionOptions.rounds, lower dt, or check for "
+        "cloth trapped between obstacles")
 
 
 def _accumulate(array: wp.array, grad: np.ndarray) -> None:
