@@ -186,6 +186,21 @@ def scaled_product(r: Rows, ones: wp.array(dtype=wp.int32), v: wp.array(dtype=wp
         out[j] = out[j] / scale(r, j)
 
 
+@wp.func
+def dual_gradient(r: Rows, ones: wp.array(dtype=wp.int32), x_hat: wp.array(dtype=wp.vec3d),
+                  x: wp.array(dtype=wp.float64), tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d),
+                  g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64)):
+    # g = Hs x - bs (bs_j = (h_j - g_j x^) / D_j), the scaled dual's gradient, and p its free part
+    scaled_product(r, ones, x, tmp, scratch, g)
+    for j in range(r.count):
+        gx = wp.float64(0.0)
+        for a in range(4):
+            if r.fw[j][a] != wp.float64(0.0):
+                gx += r.fw[j][a] * wp.dot(r.normal[j], x_hat[r.nodes[j, a]])
+        g[j] = g[j] - (r.h[j] - gx) / scale(r, j)
+        p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+
+
 @wp.kernel(enable_backward=False)
 def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: int, stall: int,
           ones: wp.array(dtype=wp.int32),
@@ -213,17 +228,10 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
         for j in range(m):
             p[j] = hp[j] / norm
     step = wp.float64(1.9) / (wp.float64(1.05) * wp.max(norm, wp.float64(1.0e-300)))
-    # start: x = D lam (projected), g = Hs x - bs with bs_j = (h_j - g_j x^) / D_j
+    # start: x = D lam (projected)
     for j in range(m):
         x[j] = wp.where(r.diag[j] > wp.float64(0.0), wp.max(lam[j] * scale(r, j), wp.float64(0.0)), wp.float64(0.0))
-    scaled_product(r, ones, x, tmp, scratch, g)
-    for j in range(m):
-        gx = wp.float64(0.0)
-        for a in range(4):
-            if r.fw[j][a] != wp.float64(0.0):
-                gx += r.fw[j][a] * wp.dot(r.normal[j], x_hat[r.nodes[j, a]])
-        g[j] = g[j] - (r.h[j] - gx) / scale(r, j)
-        p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+    dual_gradient(r, ones, x_hat, x, tmp, scratch, g, p)
     status = int(NOT_CONVERGED)
     it = int(0)
     worst = wp.float64(0.0)
@@ -286,14 +294,7 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
                 for j in range(m):
                     if x[j] > wp.float64(0.0):
                         x[j] = wp.max(x[j] - step * g[j], wp.float64(0.0))
-                scaled_product(r, ones, x, tmp, scratch, g)
-                for j in range(m):
-                    gx = wp.float64(0.0)
-                    for a in range(4):
-                        if r.fw[j][a] != wp.float64(0.0):
-                            gx += r.fw[j][a] * wp.dot(r.normal[j], x_hat[r.nodes[j, a]])
-                    g[j] = g[j] - (r.h[j] - gx) / scale(r, j)
-                    p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+                dual_gradient(r, ones, x_hat, x, tmp, scratch, g, p)
         else:  # proportioning: release the contacts whose multipliers should grow
             for j in range(m):
                 chopped = wp.min(g[j], wp.float64(0.0))

@@ -88,19 +88,13 @@ class CollisionStage:
         model = self.model
         k = self.kernels
         recording = active_tape() is not None and model.requires_grad
-        vec3 = model.types.vec3
-        n, N = self.cloth_count, self.node_count
+        n = self.cloth_count
         dev = self.device
         if self.options.collision.solver == "device":
             self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, recording)
             return
 
-        def gather(cloth_x, obstacle_x):
-            out = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
-            wp.launch(k.gather_nodes, N, device=dev, inputs=[cloth_x, obstacle_x, n], outputs=[out])
-            return out
-
-        start = gather(state_in.particle_x, obstacle_start)
+        start = self._gather(state_in.particle_x, obstacle_start, recording)
         z = x_hat
         contacts = Contacts.empty()
         lam = np.zeros(0)  # the last round's multipliers: the next round starts from them
@@ -112,7 +106,7 @@ class CollisionStage:
         phases = self.phase_seconds
         for round_index in range(opt.collision.rounds + 1):
             t0 = time.perf_counter()
-            end = gather(z, obstacle_end)
+            end = self._gather(z, obstacle_end, recording)
             found = self.detector.detect(start, end)
             phases["detection"] += time.perf_counter() - t0
             # Every contact found is new: a pair found again is violated again (the projection leaves resolved
@@ -151,12 +145,7 @@ class CollisionStage:
         opt = self.options.collision
         phases = self.phase_seconds
 
-        def gather(cloth_x, obstacle_x):
-            out = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
-            wp.launch(k.gather_nodes, N, device=dev, inputs=[cloth_x, obstacle_x, n], outputs=[out])
-            return out
-
-        start = gather(state_in.particle_x, obstacle_start)
+        start = self._gather(state_in.particle_x, obstacle_start, recording)
         z = x_hat
         total = 0
         rounds = []  # (offset, count, normal, weight) of each round's contacts
@@ -164,7 +153,7 @@ class CollisionStage:
         stats = {"rounds": 0, "contacts": 0, "zones": []}
         for round_index in range(opt.rounds + 1):
             t0 = time.perf_counter()
-            end = gather(z, obstacle_end)
+            end = self._gather(z, obstacle_end, recording)
             found = self.detector.detect_on_device(start, end)
             phases["detection"] += time.perf_counter() - t0
             if found == 0:
@@ -246,6 +235,13 @@ class CollisionStage:
                 self._check_projection_strain(x_hat, z, step)
         wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
                   outputs=[state_out.particle_x, state_out.particle_v])
+
+    def _gather(self, cloth_x: wp.array, obstacle_x: wp.array, recording: bool) -> wp.array:
+        """One array of every node's position: cloth particles first, then obstacle vertices."""
+        out = wp.empty(self.node_count, dtype=self.model.types.vec3, device=self.device, requires_grad=recording)
+        wp.launch(self.kernels.gather_nodes, self.node_count, device=self.device,
+                  inputs=[cloth_x, obstacle_x, self.cloth_count], outputs=[out])
+        return out
 
     def _grow_contact_lists(self, count: int) -> None:
         """The step's float64 contact lists (device solver), at least ``count`` long (kept across steps)."""
