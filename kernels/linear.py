@@ -39,24 +39,30 @@ def linear_kernels(scalar):
         pair_k: wp.array(dtype=mat33)
 
     @wp.func
+    def add_pair_product(A: BlockMatrix, k: int, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar):
+        """q += sign * (pair k's cross blocks) p; returns p . (that product), in float64."""
+        w = A.pair_w[k]
+        K = A.pair_k[k]
+        s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        for a in range(4):
+            if w[a] != scalar(0.0):
+                s += w[a] * p[A.pair_nodes[k, a]]
+        Ks = K * s
+        pq = wp.float64(wp.dot(s, Ks))
+        for a in range(4):
+            if w[a] != scalar(0.0):
+                node = A.pair_nodes[k, a]
+                own = K * (w[a] * p[node])
+                wp.atomic_add(q, node, sign * (w[a] * (Ks - own)))
+                pq -= wp.float64(w[a] * wp.dot(p[node], own))
+        return pq
+
+    @wp.func
     def add_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar):
         """q += sign * (the pairs' cross blocks) p; returns p . (that product), in float64."""
         pq = wp.float64(0.0)
         for k in range(A.pair_count):
-            w = A.pair_w[k]
-            K = A.pair_k[k]
-            s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            for a in range(4):
-                if w[a] != scalar(0.0):
-                    s += w[a] * p[A.pair_nodes[k, a]]
-            Ks = K * s
-            pq += wp.float64(wp.dot(s, Ks))
-            for a in range(4):
-                if w[a] != scalar(0.0):
-                    node = A.pair_nodes[k, a]
-                    own = K * (w[a] * p[node])
-                    q[node] = q[node] + sign * (w[a] * (Ks - own))
-                    pq -= wp.float64(w[a] * wp.dot(p[node], own))
+            pq += add_pair_product(A, k, p, q, sign)
         return pq
 
     @wp.func
@@ -208,20 +214,8 @@ def linear_kernels(scalar):
 
     @wp.kernel
     def pair_product(A: BlockMatrix, x: wp.array(dtype=vec3), alpha: scalar, z: wp.array(dtype=vec3)):
-        # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term; the
-        # sequential CG has it inline, add_pair_products)
-        k = wp.tid()
-        w = A.pair_w[k]
-        K = A.pair_k[k]
-        s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        for a in range(4):
-            if w[a] != scalar(0.0):
-                s += w[a] * x[A.pair_nodes[k, a]]
-        Ks = K * s
-        for a in range(4):
-            if w[a] != scalar(0.0):
-                node = A.pair_nodes[k, a]
-                wp.atomic_add(z, node, (alpha * w[a]) * (Ks - K * (w[a] * x[node])))
+        # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term)
+        add_pair_product(A, wp.tid(), x, z, alpha)
 
     @wp.kernel
     def solve_adjoint_scatter(

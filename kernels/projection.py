@@ -89,12 +89,18 @@ def prepare_rows(nodes: wp.array2d(dtype=wp.int32), w: wp.array(dtype=wp.vec4d),
 
 
 @wp.func
-def constraint(r: Rows, z: wp.array(dtype=wp.vec3d), j: int):
+def row_dot(r: Rows, v: wp.array(dtype=wp.vec3d), j: int):
+    # g_j v: contact j's row of G applied to per-node vectors v
     s = wp.float64(0.0)
     for a in range(4):
         if r.fw[j][a] != wp.float64(0.0):
-            s += r.fw[j][a] * wp.dot(r.normal[j], z[r.nodes[j, a]])
-    return s - r.h[j]
+            s += r.fw[j][a] * wp.dot(r.normal[j], v[r.nodes[j, a]])
+    return s
+
+
+@wp.func
+def constraint(r: Rows, z: wp.array(dtype=wp.vec3d), j: int):
+    return row_dot(r, z, j) - r.h[j]
 
 
 @wp.func
@@ -113,7 +119,7 @@ def dual_product(r: Rows, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.f
     for j in range(r.count):
         if mask[j] != 0:
             push(r, scratch, j, v[j])
-    for j in range(r.count):
+    for j in range(r.count):  # row_dot inlined: this loop is the solver's hot path, and a Rows argument is copied
         o = wp.float64(0.0)
         if mask[j] != 0:
             for a in range(4):
@@ -193,11 +199,7 @@ def dual_gradient(r: Rows, ones: wp.array(dtype=wp.int32), x_hat: wp.array(dtype
     # g = Hs x - bs (bs_j = (h_j - g_j x^) / D_j), the scaled dual's gradient, and p its free part
     scaled_product(r, ones, x, tmp, scratch, g)
     for j in range(r.count):
-        gx = wp.float64(0.0)
-        for a in range(4):
-            if r.fw[j][a] != wp.float64(0.0):
-                gx += r.fw[j][a] * wp.dot(r.normal[j], x_hat[r.nodes[j, a]])
-        g[j] = g[j] - (r.h[j] - gx) / scale(r, j)
+        g[j] = g[j] - (r.h[j] - row_dot(r, x_hat, j)) / scale(r, j)
         p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
 
 
@@ -338,12 +340,7 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64, max_ite
             scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
     # d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0 elsewhere; on return W^-1 (g - G_A^T d_lam)
     for j in range(r.count):
-        o = wp.float64(0.0)
-        if active[j] != 0:
-            for a in range(4):
-                if r.fw[j][a] != wp.float64(0.0):
-                    o += r.fw[j][a] * wp.dot(r.normal[j], d_z[r.nodes[j, a]])
-        rhs[j] = o
+        rhs[j] = wp.where(active[j] != 0, row_dot(r, d_z, j), wp.float64(0.0))
         d_lam[j] = wp.float64(0.0)
     iters = masked_cg(r, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters)
     for j in range(r.count):

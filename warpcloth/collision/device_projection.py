@@ -114,9 +114,10 @@ class DeviceProjection:
         if keep:
             kept = kp.Rows()
             kept.count = count
-            kept.nodes, kept.fw, kept.normal = wp.clone(nodes), wp.clone(self._fw), wp.clone(normals)
-            kept.h, kept.diag, kept.inv_mass = wp.clone(self._h), wp.clone(self._diag), wp.clone(inv_mass)
-            r, z, lam = kept, wp.clone(z), wp.clone(lam)
+            m = max(count, 1)  # the buffers hold up to their capacity: keep the first count rows
+            kept.nodes, kept.fw, kept.normal = wp.clone(nodes[:m]), wp.clone(self._fw[:m]), wp.clone(normals[:m])
+            kept.h, kept.diag, kept.inv_mass = wp.clone(self._h[:m]), wp.clone(self._diag[:m]), wp.clone(inv_mass)
+            r, z, lam = kept, wp.clone(z), wp.clone(lam[:m])
         return DeviceSolution(z=z, lam=lam, rows=r, converged=status == kp.CONVERGED, unbounded=status == kp.UNBOUNDED,
                               iterations=int(iterations), residual=float(residual), violation=float(violation))
 

@@ -267,8 +267,8 @@ class CollisionStage:
         n, N = self.cloth_count, self.node_count
         dev = self.device
         count = solution.rows.count
-        nodes, weights, normals = (wp.clone(a[:count]) for a in (self._contact_nodes, self._contact_weights,
-                                                                   self._contact_normals))
+        nodes, normals = solution.rows.nodes, solution.rows.normal  # the solution's own copies
+        weights = wp.clone(self._contact_weights[:count])
         device = self._device
 
         def adjoint():
