@@ -41,6 +41,10 @@ PARALLEL_SINE2 = wp.constant(wp.float64(1.0e-20))
 """Lines or segments whose squared sine is at most this count as parallel (no crossing point; closest points from
 the segment ends). Only guards the division: detection needs the values, not their derivatives."""
 
+TOUCHING = wp.constant(wp.float64(1.0e-3))
+"""Primitives closer than this fraction of the thickness along their normal at the start of the step touch: their
+start side is rounding noise, and the side at the step's unprojected end decides (kernels/collision.py start_side)."""
+
 PROXIMITY_MARGIN = wp.constant(wp.float64(1.0 - 1.0e-2))
 """Proximity contacts need a distance below thickness * margin: pairs the projection just left at the thickness
 are not found again as new contacts in the next round (that would only add dependent constraints). The 1 % slack
@@ -163,15 +167,44 @@ def coplanarity_roots(A0: wp.vec3d, B0: wp.vec3d, C0: wp.vec3d, A1: wp.vec3d, B1
 
 
 @wp.func
-def side_sign(n: wp.vec3d, gap: wp.vec3d):
-    """+1 if ``gap`` points to the side of the plane that ``n`` points to (or lies in the plane), -1 otherwise."""
-    if wp.dot(n, gap) < wp.float64(0.0):
-        return wp.float64(-1.0)
-    return wp.float64(1.0)
+def signed_volume(vertex_face: bool, x: wp.vec3d, y: wp.vec3d, z: wp.vec3d, w: wp.vec3d):
+    """Which side of the face (y, z, w) vertex x is on, along the face normal (vertex_face); otherwise which side
+    of edge (z, w) edge (x, y) is on, along the edges' cross product (the sign conventions of the contact normals)."""
+    if vertex_face:
+        return wp.dot(wp.cross(z - y, w - y), x - y)
+    return wp.dot(wp.cross(y - x, w - z), x - z)
 
 
 @wp.func
-def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int,
+def start_side(vertex_face: bool, x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: wp.vec3d,
+               xr: wp.vec3d, yr: wp.vec3d, zr: wp.vec3d, wr: wp.vec3d, thickness: wp.float64):
+    """(+1 or -1, touching): the side (signed_volume's convention) the primitives start on; ``touching`` when they
+    start closer than TOUCHING * thickness along the normal, the side then being the one at the reference positions
+    xr.. (the step's end before any projection), or +1 if those touch too.
+
+    A pair that starts touching (a triangle folded flat onto its neighbour in the seed's crumpled 64x64 cloth) has no
+    start side: its rounding noise chose opposite sides for one vertex-face pair in successive rounds, contacts no
+    positions satisfy. The reference positions are the same in every round, so each pair keeps one side."""
+    one = wp.float64(1.0)
+    volume = signed_volume(vertex_face, x0, y0, z0, w0)
+    if wp.abs(volume) > TOUCHING * thickness * normal_length(vertex_face, x0, y0, z0, w0):
+        return wp.sign(volume), False
+    volume = signed_volume(vertex_face, xr, yr, zr, wr)
+    if wp.abs(volume) > TOUCHING * thickness * normal_length(vertex_face, xr, yr, zr, wr):
+        return wp.sign(volume), True
+    return one, True
+
+
+@wp.func
+def normal_length(vertex_face: bool, x: wp.vec3d, y: wp.vec3d, z: wp.vec3d, w: wp.vec3d):
+    """Length of the unnormalised normal of signed_volume (face normal, or the edges' cross product)."""
+    if vertex_face:
+        return wp.length(wp.cross(z - y, w - y))
+    return wp.length(wp.cross(y - x, w - z))
+
+
+@wp.func
+def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int, side0: wp.float64, touching: bool,
                       x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: wp.vec3d,
                       x1: wp.vec3d, y1: wp.vec3d, z1: wp.vec3d, w1: wp.vec3d):
     """(crossed, t, sign): the earliest of the coplanarity times ``roots[:count]`` at which the primitives touch (CCD).
@@ -179,13 +212,26 @@ def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int,
     ``vertex_face``: vertex x against triangle (y, z, w), touching when the vertex is inside the face; otherwise edge
     (x, y) against edge (z, w), touching when the segments cross and are not closer to parallel than MIN_EDGE_SINE.
     Positions x0.. are at the start of the step, x1.. at its end. ``sign`` makes the normal at t (the face's, or the
-    cross product of the edges) point to the side the primitives started on, where ARCSim uses the net relative
-    motion: a double crossing that ends back on that side then asks for nothing new, and the net motion would give
-    no clear side.
+    cross product of the edges) point to the side the primitives were on just before t: the sign of their signed
+    volume halfway between the previous root (or the start) and t. ARCSim uses the net relative motion instead; a
+    double crossing that ends back on the start side then asks for nothing new. A pair that starts ``touching`` keeps
+    its ``side0`` (start_side).
     """
     one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    previous = zero
     for r in range(count):
         t = roots[r]
+        sign = side0
+        if not touching:
+            before = wp.float64(0.5) * (previous + t)
+            volume = signed_volume(vertex_face, lerp3(x0, x1, before), lerp3(y0, y1, before),
+                                   lerp3(z0, z1, before), lerp3(w0, w1, before))
+            if volume < zero:
+                sign = -one
+            elif volume > zero:
+                sign = one
+        previous = t
         x = lerp3(x0, x1, t)
         y = lerp3(y0, y1, t)
         z = lerp3(z0, z1, t)
@@ -193,21 +239,20 @@ def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int,
         if vertex_face:
             b = face_barycentric(x, y, z, w)
             if b[0] >= -BARY_EPS and b[1] >= -BARY_EPS and b[2] >= -BARY_EPS:
-                gap0 = x0 - (b[0] * y0 + b[1] * z0 + b[2] * w0)
-                return True, t, side_sign(wp.cross(z - y, w - y), gap0)
+                return True, t, sign
         else:
             s, u, ok = line_parameters(x, y, z, w)
             sine = wp.length(wp.cross(y - x, w - z)) / (wp.length(y - x) * wp.length(w - z))
             inside = s >= -BARY_EPS and s <= one + BARY_EPS and u >= -BARY_EPS and u <= one + BARY_EPS
             if ok and sine > MIN_EDGE_SINE and inside:
-                gap0 = ((one - s) * x0 + s * y0) - ((one - u) * z0 + u * w0)
-                return True, t, side_sign(wp.cross(y - x, w - z), gap0)
+                return True, t, sign
     return False, one, one
 
 
 @wp.func
 def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
-                     p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d, thickness: wp.float64):
+                     p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d,
+                     pr: wp.vec3d, ar: wp.vec3d, br: wp.vec3d, cr: wp.vec3d, thickness: wp.float64):
     """(hit, mode, t, sign, rank) of a vertex against a triangle moving linearly over the step.
 
     First the earliest coplanarity time t in [0, 1] at which the vertex is inside the face (CCD, signed towards the
@@ -215,8 +260,9 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     vertex over the face's interior and closer than the thickness (signed towards the side it started on).
     rank orders hits by urgency: t - 1 (in [-1, 0]) for a crossing, distance / thickness (in [0, 1)) otherwise.
     """
+    side0, touching = start_side(True, p0, a0, b0, c0, pr, ar, br, cr, thickness)
     roots, count = coplanarity_roots(b0 - a0, c0 - a0, p0 - a0, b1 - a1, c1 - a1, p1 - a1)
-    crossed, t, sign = earliest_crossing(True, roots, count, p0, a0, b0, c0, p1, a1, b1, c1)
+    crossed, t, sign = earliest_crossing(True, roots, count, side0, touching, p0, a0, b0, c0, p1, a1, b1, c1)
     if crossed:
         return True, VF_PLANE, t, sign, t - wp.float64(1.0)
     zero = wp.float64(0.0)
@@ -233,24 +279,23 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
         return False, VF_PLANE, one, one, wp.float64(2.0)
     # the side the vertex started on: a vertex that crossed the face's plane outside the face (through a
     # neighbour, whose CCD test catches it) must come back to that side here too, not be pushed on through
-    side0 = wp.dot(wp.cross(b0 - a0, c0 - a0), p0 - a0)
-    sign = one
-    if side0 < zero or (side0 == zero and dist < zero):
-        sign = -one
-    return True, VF_PLANE, one, sign, wp.abs(dist) / thickness
+    return True, VF_PLANE, one, side0, wp.abs(dist) / thickness
 
 
 @wp.func
 def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
-                   P0: wp.vec3d, P1: wp.vec3d, Q0: wp.vec3d, Q1: wp.vec3d, thickness: wp.float64):
-    """(hit, mode, t, sign, rank) of edge (p0, p1) against edge (q0, q1); lower case at the start, upper at the end.
+                   P0: wp.vec3d, P1: wp.vec3d, Q0: wp.vec3d, Q1: wp.vec3d,
+                   pr0: wp.vec3d, pr1: wp.vec3d, qr0: wp.vec3d, qr1: wp.vec3d, thickness: wp.float64):
+    """(hit, mode, t, sign, rank) of edge (p0, p1) against edge (q0, q1); lower case at the start, upper at the end,
+    r at the reference positions (start_side).
 
     CCD: the earliest coplanarity time at which the two segments cross (EE_PLANE, signed by the start side);
     otherwise proximity of the two segments at the end positions (EE_DIRECTION, or EE_PLANE signed by the
     start side when the segments touch so closely that their connecting direction is undefined).
     """
+    side0, touching = start_side(False, p0, p1, q0, q1, pr0, pr1, qr0, qr1, thickness)
     roots, count = coplanarity_roots(p1 - p0, q1 - q0, q0 - p0, P1 - P0, Q1 - Q0, Q0 - P0)
-    crossed, t, sign = earliest_crossing(False, roots, count, p0, p1, q0, q1, P0, P1, Q0, Q1)
+    crossed, t, sign = earliest_crossing(False, roots, count, side0, touching, p0, p1, q0, q1, P0, P1, Q0, Q1)
     if crossed:
         return True, EE_PLANE, t, sign, t - wp.float64(1.0)
     s, u = segment_parameters(P0, P1, Q0, Q1, PARALLEL_SINE2)
@@ -261,6 +306,8 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
     if dist >= thickness * PROXIMITY_MARGIN:
         return False, EE_DIRECTION, one, one, wp.float64(2.0)
     gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)
+    if wp.length(gap0) <= TOUCHING * thickness:  # touching at the start: the reference side decides
+        gap0 = ((one - s) * pr0 + s * pr1) - ((one - u) * qr0 + u * qr1)
     if dist > wp.float64(1.0e-3) * thickness:
         if wp.dot(gap, gap0) <= zero:
             # the closest points changed sides over the step: a crossing the CCD above did not accept (near
@@ -272,7 +319,7 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
     if wp.length(n) <= MIN_EDGE_SINE * wp.length(P1 - P0) * wp.length(Q1 - Q0):
         # touching and parallel: the vertex-face tests of the ends cover it
         return False, EE_DIRECTION, one, one, wp.float64(2.0)
-    return True, EE_PLANE, one, side_sign(wp.cross(p1 - p0, q1 - q0), gap0), dist / thickness
+    return True, EE_PLANE, one, side0, dist / thickness
 
 
 @wp.func
@@ -342,7 +389,7 @@ def collision_kernels(scalar):
 
         @wp.kernel
         def query_contacts(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
-                           queries: query_array, targets: wp.array2d(dtype=wp.int32),
+                           x_ref: wp.array(dtype=vec3), queries: query_array, targets: wp.array2d(dtype=wp.int32),
                            query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
                            same_cloth: int, thickness: wp.float64, capacity: int,
                            # out:
@@ -374,13 +421,16 @@ def collision_kernels(scalar):
                         continue
                     hit, mode, t, sign, rank = vertex_face_test(
                         wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
-                        wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]), thickness)
+                        wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]),
+                        wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]), wp.vec3d(x_ref[c]), thickness)
                 else:
                     if same_cloth != 0 and (j <= i or q0 == a or q0 == b or q1 == a or q1 == b):
                         continue  # each pair once; edges sharing a vertex do not collide
                     hit, mode, t, sign, rank = edge_edge_test(
                         wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
-                        wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), thickness)
+                        wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]),
+                        wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[q1]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]),
+                        thickness)
                 best, best_target, best_t, best_mode = keep_most_urgent(hit, rank, sign, t, mode, j, best,
                                                                         best_target, best_t, best_mode)
             for side in range(2):

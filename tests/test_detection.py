@@ -10,12 +10,14 @@ from warpcloth.kernels.contact import EE_DIRECTION, EE_PLANE, VF_PLANE, contact_
 DELTA = 5e-4
 
 
-def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.float64):
-    """Run one detection kernel on node positions x0 -> x1; returns (count, nodes, mode, t, sign)."""
+def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.float64, reference=None):
+    """Run one detection kernel on node positions x0 -> x1 (``reference``: the positions that side a pair touching
+    at the start, default x1); returns (count, nodes, mode, t, sign)."""
     k = collision_kernels(dtype)
     vec3 = wp.types.vector(3, dtype)
     X0 = wp.array(x0, dtype=vec3)
     X1 = wp.array(x1, dtype=vec3)
+    XR = X1 if reference is None else wp.array(reference, dtype=vec3)
     q = wp.array(np.asarray(queries, dtype=np.int32).reshape(len(queries), -1), dtype=wp.int32)
     tg = wp.array(np.asarray(targets, dtype=np.int32), dtype=wp.int32)
     bounds = []
@@ -33,7 +35,7 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
     sign = wp.zeros(capacity, dtype=wp.float64)
     kernel = k.vertex_face if kind == "vf" else k.edge_edge
     query_index = q.flatten() if kind == "vf" else q
-    wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, query_index, tg, bounds[0][0], bounds[0][1], flag,
+    wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, XR, query_index, tg, bounds[0][0], bounds[0][1], flag,
                                           wp.float64(DELTA), capacity],
               outputs=[count, nodes, mode, t, sign])
     c = int(count.numpy()[0])
@@ -86,6 +88,24 @@ def test_vertex_near_a_face_from_below_gets_a_downward_normal():
     n, w = _geometry(x0, x1, nodes, mode, t, sign)
     np.testing.assert_allclose(n[0], [0.0, 0.0, -1.0], atol=1e-12)
     assert _constraint(x1, nodes, n, w)[0] == pytest.approx(0.2 * DELTA)
+
+
+def test_vertex_touching_a_face_at_the_start_takes_its_side_from_the_reference():
+    # A vertex in the face's plane at the start (a triangle folded flat onto its neighbour) has no start side: the
+    # reference positions (the step's unprojected end, the same in every round) give it, whatever this round's end.
+    for sign_noise in (1e-14, -1e-14):  # rounding noise either way must not decide
+        x0 = np.vstack([TRI, [0.3, 0.3, sign_noise]])
+        reference = np.vstack([TRI, [0.3, 0.3, 0.2 * DELTA]])  # above
+        for end_z in (0.2 * DELTA, -0.2 * DELTA, -0.01):  # proximity above, proximity below, crossing or leaving
+            x1 = np.vstack([TRI, [0.3, 0.3, end_z]])
+            c, nodes, mode, t, sign = _detect(x0, x1, [3], [[0, 1, 2]], "vf", reference=reference)
+            crossing = sign_noise > 0 and end_z < 0  # a vertex starting just below and moving down touches nothing
+            assert c == (1 if abs(end_z) < DELTA or crossing else 0), (sign_noise, end_z)
+            if c:
+                assert sign[0] == 1.0, (sign_noise, end_z)
+        below = np.vstack([TRI, [0.3, 0.3, -0.2 * DELTA]])
+        c, nodes, mode, t, sign = _detect(x0, below, [3], [[0, 1, 2]], "vf", reference=below)
+        assert c == 1 and sign[0] == -1.0
 
 
 def test_far_or_outside_vertices_are_not_contacts():

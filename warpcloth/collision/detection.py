@@ -96,14 +96,16 @@ class ContactDetector:
         self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
         self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
 
-    def detect(self, x0: wp.array, x1: wp.array) -> Contacts:
-        """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host.
+    def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> Contacts:
+        """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host. ``reference``
+        (default ``x1``): positions that give the side of a pair touching at the start (kernels/collision.py
+        start_side); the collision stage passes the step's unprojected end in every round, so a pair keeps its side.
 
         Raises:
             CollisionError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
                 and the count needed).
         """
-        count = self.detect_on_device(x0, x1)
+        count = self.detect_on_device(x0, x1, reference)
         return Contacts(nodes=self.nodes.numpy()[:count].copy(), mode=self.mode.numpy()[:count].copy(),
                         t=self.t.numpy()[:count].copy(), sign=self.sign.numpy()[:count].copy())
 
@@ -127,7 +129,7 @@ class ContactDetector:
         """... their normals' sides, (capacity,) float64."""
         return self._sign
 
-    def detect_on_device(self, x0: wp.array, x1: wp.array) -> int:
+    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> int:
         """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
         :attr:`sign`); returns their count (the one value read back)."""
         k = self.kernels
@@ -138,6 +140,7 @@ class ContactDetector:
                           inputs=[x0, x1, prims.indices, prims.corners, half],
                           outputs=[prims.lowers, prims.uppers], record_tape=False)
         self._count.zero_()
+        reference = x1 if reference is None else reference
         refitted = set()
         for query, target, kind, flag in self._queries:
             if query.count == 0 or target.count == 0:
@@ -150,8 +153,8 @@ class ContactDetector:
             kernel = k.vertex_face if kind == "vf" else k.edge_edge
             query_index = query.indices if kind == "ee" else query.indices.flatten()
             wp.launch(kernel, query.count, device=self.device,
-                      inputs=[target.bvh.id, x0, x1, query_index, target.indices, query.lowers, query.uppers, flag,
-                              wp.float64(self.thickness), self.capacity],
+                      inputs=[target.bvh.id, x0, x1, reference, query_index, target.indices, query.lowers,
+                              query.uppers, flag, wp.float64(self.thickness), self.capacity],
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
         count = int(self._count.numpy()[0])
         if count > self.capacity:

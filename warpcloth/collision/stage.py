@@ -107,7 +107,9 @@ class CollisionStage:
         for round_index in range(opt.collision.rounds + 1):
             t0 = time.perf_counter()
             end = self._gather(z, obstacle_end, recording)
-            found = self.detector.detect(start, end)
+            if round_index == 0:
+                reference = end  # the unprojected end: the side of pairs touching at the start
+            found = self.detector.detect(start, end, reference)
             phases["detection"] += time.perf_counter() - t0
             # Every contact found is new: a pair found again is violated again (the projection leaves resolved
             # pairs exactly at the thickness, which proximity detection does not count), and its new
@@ -154,7 +156,9 @@ class CollisionStage:
         for round_index in range(opt.rounds + 1):
             t0 = time.perf_counter()
             end = self._gather(z, obstacle_end, recording)
-            found = self.detector.detect_on_device(start, end)
+            if round_index == 0:
+                reference = end  # the unprojected end: the side of pairs touching at the start
+            found = self.detector.detect_on_device(start, end, reference)
             phases["detection"] += time.perf_counter() - t0
             if found == 0:
                 break
