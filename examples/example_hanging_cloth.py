@@ -21,7 +21,7 @@ class Example:
         self.sim = wc.Simulator(self.model, 1.0 / 50.0)
         self.state = self.model.state()
         self.next_state = self.model.empty_state()
-        self.frames = [self.state.particle_x.numpy()]
+        self.frames = [self.state.particle_x.numpy().copy()]  # a copy: the states' buffers are reused
         self.usd_path = usd_path
 
     def step(self):
@@ -29,7 +29,7 @@ class Example:
         self.state, self.next_state = self.next_state, self.state
 
     def render(self):
-        self.frames.append(self.state.particle_x.numpy())
+        self.frames.append(self.state.particle_x.numpy().copy())
 
     def save(self):
         if self.usd_path:

@@ -82,6 +82,13 @@ class ModelBuilder:
         >>> model = b.finalize(device="cpu", requires_grad=True)
     """
 
+    max_particles: int = 4_000_000
+    """Most particles a model may have; more is refused before anything is allocated (a 5000x5000 grid grew past
+    14 GB for minutes before). An instance may raise it."""
+    BYTES_PER_PARTICLE = 6000
+    """Peak memory of building and stepping a model, per particle (measured: 256x256 grid, float32, CPU, gradients
+    on, one taped step: 6.1 kB; the error message's estimate)."""
+
     def __init__(self, *, gravity: Sequence[float] = (0.0, 0.0, -9.8)):
         self.gravity = _finite_vector("gravity", gravity)
         self._positions: list[np.ndarray] = []
@@ -120,6 +127,9 @@ class ModelBuilder:
     # -- cloth -----------------------------------------------------------------------------------------------------
     def add_material(self, material: Material) -> int:
         """Register a material (validated) and return its index; the same object is registered once."""
+        if not isinstance(material, Material):
+            hint = f" (for a preset: warpcloth.preset({material!r}))" if isinstance(material, str) else ""
+            raise TypeError(f"material must be a warpcloth.Material, got {type(material).__name__} {material!r}{hint}")
         for i, m in enumerate(self._materials):
             if m is material:
                 return i
@@ -152,10 +162,16 @@ class ModelBuilder:
         triangles = np.asarray(mesh.triangles, dtype=np.int64)
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"mesh positions must have shape (N, 3), got {positions.shape}")
+        self._check_size(len(positions), f"a cloth mesh of {len(positions):,} vertices")
         if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
             raise ValueError(f"mesh triangles must have shape (T, 3) with T > 0, got {triangles.shape}")
         tri_uv = None if mesh.tri_uv is None else np.asarray(mesh.tri_uv, dtype=np.float64)
         mesh_io.validate_triangles(positions, triangles, tri_uv)
+        unused = np.setdiff1d(np.arange(len(positions)), triangles)
+        if unused.size:  # it would get no mass and hang frozen in mid-air
+            v = int(unused[0])
+            raise ValueError(f"cloth vertex {v} at {positions[v].tolist()} is in no triangle ({unused.size} such "
+                             "vertices); remove unused vertices from the mesh")
         if tri_uv is None:
             tri_uv = _local_frame_uv(positions, triangles)
         if vel is not None:
@@ -193,9 +209,11 @@ class ModelBuilder:
         The grid lies in its local XY plane with its corner at the origin (material coordinates = local XY),
         vertices row-major with x fastest; it is rotated by ``rot`` (3x3) and then translated by ``pos``.
         """
-        res = tuple(int(r) for r in res)
-        if len(res) != 2 or min(res) < 1:
+        res = tuple(res)
+        if len(res) != 2 or not all(_is_integer(r) and r >= 1 for r in res):
             raise ValueError(f"res must be two positive cell counts, got {res}")
+        res = (int(res[0]), int(res[1]))
+        self._check_size((res[0] + 1) * (res[1] + 1), f"a grid of {res[0]}x{res[1]} cells")
         size = _finite_vector("size", size, 2)
         if np.any(size <= 0.0):
             raise ValueError(f"size must be positive, got {size.tolist()}")
@@ -232,7 +250,18 @@ class ModelBuilder:
         return self.add_cloth_mesh(mesh_io.load_usd_mesh(path, prim_path=prim_path), material=material, vel=vel)
 
     # -- handles -----------------------------------------------------------------------------------------------------
+    def _check_size(self, added: int, what: str) -> None:
+        """Refuse, before allocating, a model past ``max_particles``: its memory would grow for minutes first."""
+        total = self._particle_count + added
+        if total > self.max_particles:
+            raise ValueError(
+                f"{what} makes {total:,} particles, more than ModelBuilder.max_particles = {self.max_particles:,} "
+                f"(about {self.BYTES_PER_PARTICLE * total / 2**30:.0f} GiB to simulate); use a coarser cloth, or "
+                "raise max_particles on a machine with that memory")
+
     def _check_particle(self, what: str, particle: int) -> int:
+        if not _is_integer(particle):
+            raise TypeError(f"{what}: particle must be an integer index, got {type(particle).__name__} {particle!r}")
         p = int(particle)
         if not 0 <= p < self._particle_count:
             raise ValueError(f"{what}: particle {particle} out of range [0, {self._particle_count})")
@@ -245,6 +274,8 @@ class ModelBuilder:
         ``motion`` (a list of ``(time [s], (dx, dy, dz) [m])`` keyframes, piecewise linear) adds a scripted offset.
         """
         p = self._check_particle("add_handle", particle)
+        if any(q == p for q, _, _ in self._handles):
+            raise ValueError(f"particle {p} has a handle already")
         k = float(stiffness)
         if not math.isfinite(k) or k < 0.0:
             raise ValueError(f"handle on particle {p}: stiffness must be finite and >= 0, got {stiffness}")
@@ -658,3 +689,8 @@ def _block_structure(n, triangles, hinges):
     tri_slot = slot(tri_rows, tri_cols).reshape(-1, 9)
     hinge_slot = slot(h_rows, h_cols).reshape(-1, 16)
     return offsets, columns, tri_slot, hinge_slot, slot(diag, diag)
+
+
+def _is_integer(value) -> bool:
+    """An int or NumPy integer, not a bool, float or string."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))

@@ -90,6 +90,7 @@ def _cmd_scenes() -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.outputs import USD_SUFFIXES, prepare_output_path
     from warpcloth.scene import load_scene
     from warpcloth.solver.rollout import rollout
     from warpcloth.usd import write_usd
@@ -105,8 +106,16 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.steps is not None:
         scene.steps = args.steps
     if args.dt is not None:
-        scene.dt = args.dt
-    usd_path = args.usd if args.usd is not None else f"{scene.name}.usda"
+        try:
+            scene.set_dt(args.dt)
+        except ValueError as exc:
+            return _error(f"--dt: {exc}", _USAGE_ERROR)
+    usd_path = args.usd if args.usd is not None else f"{scene.name}.usda"  # scene names are plain file names
+    try:
+        prepare_output_path(usd_path, "--usd", USD_SUFFIXES)
+        scene.check_frame_memory()
+    except ValueError as exc:
+        return _error(str(exc), _USAGE_ERROR)
 
     try:
         model, sim = scene.build(device=args.device)
@@ -138,13 +147,20 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _check_outputs(args: argparse.Namespace) -> str | None:
-    if args.iters is not None and args.iters < 1:
-        return f"--iters must be >= 1, got {args.iters}"
-    for flag, suffixes in (("json", (".json",)), ("plot", (".png", ".pdf", ".svg")),
-                           ("usd", (".usd", ".usda", ".usdc"))):
+    """The first problem with the run's counts or output flags (warpcloth/outputs.py's rule), before any work."""
+    from warpcloth.outputs import JSON_SUFFIXES, PLOT_SUFFIXES, USD_SUFFIXES, prepare_output_path
+
+    for flag in ("iters", "steps"):
+        value = getattr(args, flag, None)
+        if value is not None and value < 1:
+            return f"--{flag} must be >= 1, got {value}"
+    for flag, suffixes in (("json", JSON_SUFFIXES), ("plot", PLOT_SUFFIXES), ("usd", USD_SUFFIXES)):
         path = getattr(args, flag)
-        if path is not None and not path.lower().endswith(suffixes):
-            return f"--{flag} {path!r}: expected a file ending in {' or '.join(suffixes)}"
+        if path is not None:
+            try:
+                prepare_output_path(path, f"--{flag}", suffixes)
+            except ValueError as exc:
+                return str(exc)
     return None
 
 
@@ -182,6 +198,17 @@ def _write_json(path: str, record: dict) -> None:
         json.dump(record, f, indent=2)
 
 
+def _parse_handles(text: str) -> list[int]:
+    """--handles: distinct vertex indices separated by commas."""
+    try:
+        handles = [int(h) for h in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--handles {text!r}: expected vertex indices separated by commas, e.g. 2,3") from None
+    if len(set(handles)) != len(handles):
+        raise ValueError(f"--handles {text!r} names a vertex twice")
+    return handles
+
+
 def _cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -197,7 +224,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         if args.target is not None:
             files = E.target_files(args.target)
             frames = E.load_target_sequence(files)
-            handles = [int(h) for h in args.handles.split(",")]
+            handles = _parse_handles(args.handles)
             model = hanging_cloth(initial, mesh_path=files[0], handles=handles, device=args.device)
             truth = None
         else:

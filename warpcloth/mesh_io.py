@@ -67,9 +67,9 @@ def validate_triangles(positions: np.ndarray, triangles: np.ndarray, tri_uv: np.
 
     Raises:
         ValueError: for a wrong shape or dtype; a non-finite position (naming the vertex); an index out of range or
-            repeated within a triangle (naming the triangle); a non-finite, zero-area or inverted material triangle
-            (naming the triangle); an edge shared by more than two triangles (naming the edge's vertices and the
-            triangles).
+            repeated within a triangle (naming the triangle); a triangle listed twice (either winding); a
+            non-finite, zero-area or inverted material triangle (naming the triangle); an edge shared by more than
+            two triangles (naming the edge's vertices and the triangles).
     """
     positions = np.asarray(positions)
     triangles = np.asarray(triangles)
@@ -116,6 +116,15 @@ def validate_triangles(positions: np.ndarray, triangles: np.ndarray, tri_uv: np.
                 )
 
     if len(triangles):
+        # the same three vertices twice (either winding): double mass, and hinges between coincident faces
+        corners = np.sort(triangles.astype(np.int64), axis=1)
+        _, first, inverse = np.unique(corners, axis=0, return_index=True, return_inverse=True)
+        repeats = np.flatnonzero(first[inverse.reshape(-1)] != np.arange(len(triangles)))
+        if len(repeats):
+            t = int(repeats[0])
+            t0 = int(first[inverse.reshape(-1)[t]])
+            raise ValueError(f"triangle {t} {triangles[t].tolist()} repeats triangle {t0} {triangles[t0].tolist()} "
+                             "(the same vertices, in either winding)")
         # Undirected edges: sort each edge's two vertices, then count how many triangles hold it.
         edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]).astype(np.int64)
         edges.sort(axis=1)

@@ -84,6 +84,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -108,6 +109,7 @@ SCENE_NAMES: tuple[str, ...] = tuple(
 """Names of the embedded scenes."""
 
 _DEFAULT_GRAVITY = (0.0, 0.0, -9.8)
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 
 
 @dataclass
@@ -124,6 +126,7 @@ class Scene:
         source: Where the scene came from (file path, or ``embedded:<name>``).
         grid_res: (cells_x, cells_y) of a grid cloth, else None; grid vertex (i, j) is particle
             ``j * (cells_x + 1) + i``.
+        max_dt: the solver preset's time-step ceiling [s], else None (:meth:`set_dt` keeps to it).
     """
 
     name: str
@@ -134,6 +137,29 @@ class Scene:
     solver_options: Any
     source: str = "<string>"
     grid_res: tuple[int, int] | None = None
+    max_dt: float | None = None
+
+    MAX_FRAME_BYTES = 4 * 2**30
+    """Most memory the frames of one ``warpcloth simulate`` run may take (they are kept until the USD is written)."""
+
+    def set_dt(self, dt: float) -> None:
+        """Change the time step; raises ValueError for a dt that is not finite and > 0, or above the preset's
+        ceiling (the one the scene file's own sim.dt is held to)."""
+        if not (isinstance(dt, (int, float)) and 0.0 < dt < math.inf):
+            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+        if self.max_dt is not None and dt > self.max_dt * (1.0 + 1e-9):
+            raise ValueError(f"scene {self.name!r} uses a solver preset that steps at most {self.max_dt:g} s, "
+                             f"got {dt:g} s")
+        self.dt = float(dt)
+
+    def check_frame_memory(self) -> None:
+        """Raise ValueError if keeping every frame of ``steps`` steps would take more than MAX_FRAME_BYTES."""
+        need = (self.steps + 1) * self.model_builder.particle_count * 3 * 8
+        if need > self.MAX_FRAME_BYTES:
+            most = self.MAX_FRAME_BYTES // (self.model_builder.particle_count * 3 * 8) - 1
+            raise ValueError(f"{self.steps} steps of {self.model_builder.particle_count} particles keep "
+                             f"{need / 2**30:.1f} GiB of frames, more than {self.MAX_FRAME_BYTES / 2**30:g} GiB; "
+                             f"simulate at most {most} steps per run")
 
     def build(self, device=None, requires_grad: bool = False):
         """Finalises the model and creates its simulator.
@@ -307,6 +333,9 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         required=("name", "sim", "cloth"),
     )
     name = _str(data["name"], "name")
+    if not _PLAIN_NAME.fullmatch(name):
+        raise _err("name", f"{name!r} must be a plain file name (letters, digits, '_', '-', '.', not starting with "
+                           "'.' or '-'): it names the default output <name>.usda")
     description = _str(data.get("description", ""), "description")
     gravity = _vector(data["gravity"], "gravity") if "gravity" in data else _DEFAULT_GRAVITY
 
@@ -315,7 +344,7 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     dt = _float(sim["dt"], "sim.dt", min_value=0.0, strict=True)
     steps = _int(sim["steps"], "sim.steps", min_value=1)
 
-    solver_options = _parse_solver(data.get("solver", {}), dt)
+    solver_options, max_dt = _parse_solver(data.get("solver", {}), dt)
 
     builder = ModelBuilder(gravity=gravity)
     first, grid_res, count = _parse_cloth(builder, _table(data["cloth"], "cloth"), base_dir)
@@ -377,13 +406,14 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         solver_options=solver_options,
         source=source,
         grid_res=grid_res,
+        max_dt=max_dt,
     )
 
 
 def _parse_solver(value: Any, dt: float):
     """SolverOptions from the [solver] table: an optional ``preset`` (warpcloth.solver.presets), then single fields,
     each checked against SolverOptions' fields and their defaults' types (and a ``collision`` table of
-    CollisionOptions fields)."""
+    CollisionOptions fields). Returns (options, the preset's time-step ceiling or None)."""
     from warpcloth.solver.options import CollisionOptions, SolverOptions
     from warpcloth.solver.presets import PRESET_SOLVER_NAMES, solver_preset
 
@@ -391,6 +421,7 @@ def _parse_solver(value: Any, dt: float):
     defaults = {f.name: f.default for f in dataclasses.fields(SolverOptions) if f.name != "collision"}
     _check_keys(table, "solver", ("preset", "collision") + tuple(defaults))
     base = SolverOptions()
+    max_dt = None
     if "preset" in table:
         name = _str(table.pop("preset"), "solver.preset")
         if name not in PRESET_SOLVER_NAMES:
@@ -400,6 +431,7 @@ def _parse_solver(value: Any, dt: float):
             raise _err("solver.preset", f"the {name!r} preset steps at most {preset.max_dt:g} s but sim.dt is "
                                         f"{dt:g} s; lower sim.dt (and raise sim.steps) or choose another preset")
         base = preset.options
+        max_dt = preset.max_dt
     kwargs = _option_fields(table, "solver", defaults)
     with _Context("solver.collision"):
         if "collision" in table:
@@ -409,7 +441,7 @@ def _parse_solver(value: Any, dt: float):
             kwargs["collision"] = dataclasses.replace(base.collision, **_option_fields(collision, "solver.collision",
                                                                                        fields))
     with _Context("solver"):
-        return dataclasses.replace(base, **kwargs)
+        return dataclasses.replace(base, **kwargs), max_dt
 
 
 def _option_fields(table: dict, prefix: str, defaults: dict) -> dict:

@@ -8,6 +8,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from warpcloth.outputs import USD_SUFFIXES, prepare_output_path
+
 __all__ = ["read_usd_points", "write_usd"]
 
 
@@ -73,9 +75,10 @@ def write_usd(
 
     Raises:
         ImportError: when ``pxr`` is missing.
-        ValueError: for no frames, frames of different shapes, a non-finite position (naming frame and vertex),
-            an index out of range, a bad ``fps``/``up_axis``/prim path, an invalid or repeated obstacle name, or
-            time-sampled obstacle vertices whose frame count differs from the cloth's.
+        ValueError: for a path that does not end in .usd, .usda or .usdc or is a directory (warpcloth/outputs.py;
+            missing parent directories are created); no frames, frames of different shapes, a non-finite position
+            (naming frame and vertex), an index out of range, a bad ``fps``/``up_axis``/prim path, an invalid or
+            repeated obstacle name, or time-sampled obstacle vertices whose frame count differs from the cloth's.
     """
     Gf, Sdf, Usd, UsdGeom, Vt = _import_pxr()
 
@@ -128,6 +131,7 @@ def write_usd(
             (name, verts, _check_triangles(otris, verts.shape[-2], f"write_usd obstacle {name!r}"))
         )
 
+    path = prepare_output_path(path, "write_usd: path", USD_SUFFIXES)
     # Build in memory and export: Usd.Stage.CreateNew refuses a path whose layer is already open in this process.
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, axes[up_axis])

@@ -96,6 +96,8 @@ class Simulator:
         if state_out is state_in:
             raise ValueError("step() needs distinct state_in and state_out (a tape cannot record in-place updates)")
         model = self.model
+        self._check_state("state_in", state_in)
+        self._check_state("state_out", state_out)
         control = control if control is not None else self._default_control()
         dt = model.scalar(self.dt)
         recording = active_tape() is not None and model.requires_grad
@@ -234,6 +236,20 @@ class Simulator:
         if not recording:
             self._step_buffers = bufs
         return bufs
+
+    def _check_state(self, name: str, state: State) -> None:
+        """Raise ValueError if ``state`` is not one of this model's (another particle count, precision or device):
+        stepping it would read and write past its arrays."""
+        model = self.model
+        for field in ("particle_x", "particle_v"):
+            array = getattr(state, field)
+            if array.shape[0] != model.particle_count or array.dtype != model.types.vec3 \
+                    or array.device != model.device:
+                raise ValueError(
+                    f"step(): {name}.{field} holds {array.shape[0]} {wp.types.type_repr(array.dtype)} on "
+                    f"{array.device}, but the model has {model.particle_count} particles of "
+                    f"{wp.types.type_repr(model.types.vec3)} on {model.device}; use model.state() / "
+                    "model.empty_state() of the Simulator's model")
 
     def _output_dv(self, state_out: State, recording: bool) -> wp.array:
         """The array the solve writes: ``state_out.particle_dv`` (allocated here when the State has none, or a

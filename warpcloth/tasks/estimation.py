@@ -11,6 +11,7 @@ come from Warp's tape through the whole rollout.
 from __future__ import annotations
 
 import math
+import re
 import time
 import warnings
 from collections.abc import Sequence
@@ -47,10 +48,13 @@ def initial_guess() -> wc.Material:
 
 
 def target_files(directory: str | Path) -> list[Path]:
-    """The .obj files of a target sequence, sorted by name (frame 0 first: the start shape)."""
+    """The .obj files of a target sequence in frame order (frame 0 first: the start shape): sorted by name with
+    digit runs compared as numbers, so 2.obj comes before 10.obj."""
     if not Path(directory).is_dir():
         raise ValueError(f"target directory {str(directory)!r} does not exist")
-    files = sorted(Path(directory).glob("*.obj"))
+    files = sorted(Path(directory).glob("*.obj"),
+                   key=lambda f: [(0, int(part), "") if part.isdigit() else (1, 0, part)
+                                  for part in re.split(r"(\d+)", f.name)])
     if len(files) < 2:
         raise ValueError(f"target directory {str(directory)!r} holds {len(files)} .obj files; need a sequence of >= 2")
     return files
@@ -62,6 +66,10 @@ def load_target_sequence(files: Sequence[Path]) -> list[np.ndarray]:
     for f, x in zip(files, frames):
         if x.shape != frames[0].shape:
             raise ValueError(f"target frame {f.name} has {len(x)} vertices, frame 0 has {len(frames[0])}")
+        bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+        if bad.size:
+            raise ValueError(f"target frame {f.name}: vertex {int(bad[0])} has a non-finite position "
+                             f"{x[bad[0]].tolist()}")
     return frames
 
 
