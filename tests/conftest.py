@@ -1,6 +1,10 @@
 """Shared scene for the gradient, physics and error tests: a small cloth hanging in a vertical plane."""
 
+import os
+from pathlib import Path
+
 import numpy as np
+import pytest
 import warp as wp
 
 import warpcloth as wc
@@ -39,3 +43,27 @@ def hanging_builder(*, res=4, size=0.5, material=None, gravity=(0.0, 0.0, -2.0),
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 """Every device the suite runs on: the CPU always, CUDA when present."""
+
+SEED_DATA = Path(__file__).resolve().parents[2] / "shared" / "reference" / "liang2019"
+"""The seed's reference data, in ../shared beside the checkout (as in CI)."""
+
+
+def seed_data(relative: str = "") -> Path:
+    """A path in the seed's reference data. Missing data fails the test, naming the path: CI has ../shared beside
+    the checkout, so a skip there would hide a broken check. WARPCLOTH_SKIP_SEED_DATA=1 skips instead, for
+    checkouts without it."""
+    path = SEED_DATA / relative
+    if not path.exists():
+        message = f"seed reference data missing: {path} (expected ../shared beside the checkout)"
+        if os.environ.get("WARPCLOTH_SKIP_SEED_DATA") == "1":
+            pytest.skip(message)
+        pytest.fail(message + "; set WARPCLOTH_SKIP_SEED_DATA=1 to skip the tests that need it")
+    return path
+
+
+def gpu_devices() -> list:
+    """The CUDA devices a cross-device test compares with the CPU; a test without one skips, saying so."""
+    if wp.is_cuda_available():
+        return ["cuda:0"]
+    reason = "no CUDA device: the CPU is compared with a GPU only where there is one"
+    return [pytest.param("cuda:0", marks=pytest.mark.skip(reason=reason))]

@@ -205,6 +205,13 @@ def test_overlapping_obstacles_act_as_their_union():
     b.add_obstacle_box((0.2, 0.2, 0.05), pos=(-0.1, 0.0, 0.0))
     b.add_obstacle_box((0.2, 0.2, 0.1), pos=(0.1, 0.0, 0.0))
     model, sim, state = run(b, 25, 0.01, check=no_penetration)
+    x = state.particle_x.numpy()
+    # over the higher box (top z = 0.1, x in [-0.1, 0.3]) the cloth lies on its top, a thickness above it, and is
+    # not pushed down onto the lower box's top (0.05) that the higher box encloses there
+    over = (x[:, 0] > -0.1) & (x[:, 0] < 0.3) & (np.abs(x[:, 1]) < 0.2)
+    assert over.sum() >= 20
+    assert x[over, 2].min() == pytest.approx(0.1 + DELTA, abs=1e-6)
+    assert x[over, 2].max() < 0.115
 
 
 @pytest.mark.parametrize("solver, message", [("numpy", "zone"), ("device", "no positions satisfy")])

@@ -1,9 +1,9 @@
 import json
 import math
-import pathlib
 
 import numpy as np
 import pytest
+from conftest import seed_data
 
 from warpcloth.materials import (
     DIFFCLOTH_BENDING_SCALE,
@@ -16,9 +16,6 @@ from warpcloth.materials import (
     preset,
 )
 
-SHARED_MATERIALS = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "liang2019" / "materials"
-needs_shared = pytest.mark.skipif(not SHARED_MATERIALS.is_dir(), reason="../shared reference data not present")
-
 
 def _valid_tables():
     return dict(density=0.2, stretching=np.full((6, 4), 10.0), bending=np.full((3, 5), 1e-5))
@@ -30,10 +27,9 @@ def test_preset_names():
     assert "royal-target" not in SEED_INITIAL_GUESS_NAMES and "white-dots-on-blk" not in SEED_INITIAL_GUESS_NAMES
 
 
-@needs_shared
 @pytest.mark.parametrize("name", PRESET_NAMES)
 def test_presets_equal_arcsim_files(name):
-    data = json.loads((SHARED_MATERIALS / f"{name}.json").read_text())
+    data = json.loads((seed_data("materials") / f"{name}.json").read_text())
     m = preset(name)
     assert m.name == name and m.thicken == 1.0
     assert m.density == data["density"]
@@ -42,19 +38,17 @@ def test_presets_equal_arcsim_files(name):
     assert m.stretching.dtype == np.float64 and m.bending.dtype == np.float64
 
 
-@needs_shared
 def test_load_material_json_matches_preset():
-    m = load_material_json(SHARED_MATERIALS / "gray-interlock.json", thicken=2.0)
+    m = load_material_json(seed_data("materials") / "gray-interlock.json", thicken=2.0)
     p = preset("gray-interlock", thicken=2.0)
     assert m.name == "gray-interlock" and m.thicken == 2.0
     np.testing.assert_array_equal(m.stretching, p.stretching)
     np.testing.assert_array_equal(m.bending, p.bending)
 
 
-@needs_shared
 def test_mean_of_eight_is_seed_initial_guess():
     init = load_material_json(
-        SHARED_MATERIALS / "init_mat.json",
+        seed_data("materials") / "init_mat.json",
         stretching_mult=DIFFCLOTH_STRETCHING_SCALE,
         bending_mult=DIFFCLOTH_BENDING_SCALE,
     )

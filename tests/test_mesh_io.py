@@ -1,11 +1,9 @@
-import pathlib
 
 import numpy as np
 import pytest
+from conftest import seed_data
 
 from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_usd_mesh, validate_triangles
-
-SHARED_MESHES = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "liang2019" / "meshes"
 
 
 def _signed_uv_areas(tri_uv):
@@ -248,9 +246,8 @@ def test_triangle_mesh_counts():
     assert isinstance(g, TriangleMesh) and g.vertex_count == 12 and g.triangle_count == 12
 
 
-@pytest.mark.skipif(not (SHARED_MESHES / "demo_wind.obj").is_file(), reason="../shared reference data not present")
 def test_demo_wind_mesh():
-    mesh = load_obj(SHARED_MESHES / "demo_wind.obj")
+    mesh = load_obj(seed_data("meshes/demo_wind.obj"))
     assert mesh.positions.shape == (289, 3)
     assert mesh.triangles.shape == (512, 3)
     assert mesh.tri_uv.shape == (512, 3, 2)

@@ -1,11 +1,11 @@
 """Rigid obstacles: shapes, keyframed motion, world points (kernel, gradients), builder, scenes and USD output."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import warp as wp
 import warp.autograd
+from conftest import seed_data
 
 import warpcloth as wc
 from warpcloth.geometry.primitives import unique_edges
@@ -15,7 +15,6 @@ from warpcloth.mesh_io import load_obj
 from warpcloth.scene import load_scene, scene_from_toml
 from warpcloth.usd import write_usd
 
-CONTAIN_OBJ = Path("/work/shared/reference/liang2019/meshes/contain.obj")
 MATERIAL = wc.preset("gray-interlock")
 
 
@@ -73,10 +72,9 @@ def test_box_and_plane_meshes():
     assert np.all(n[:, 2] > 0.0) and np.allclose(n[:, :2], 0.0)
 
 
-@pytest.mark.skipif(not CONTAIN_OBJ.is_file(), reason="seed reference meshes not available")
 def test_funnel_mesh_reproduces_contain_obj():
     v, f = wc.funnel_mesh()
-    ref = load_obj(CONTAIN_OBJ, validate=False)
+    ref = load_obj(seed_data("meshes/contain.obj"), validate=False)
     np.testing.assert_array_equal(v, ref.positions)
     np.testing.assert_array_equal(f, ref.triangles)
     # The faces look up into the cavity, towards the funnel's axis (x = y = 0.5).

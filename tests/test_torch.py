@@ -227,6 +227,20 @@ def test_gradcheck(small):
         torch.autograd.gradcheck(rollout_fn(small, sim, density_scale=1.001), only_density, **GRADCHECK)
 
 
+def test_gradcheck_positions_and_stiffness_tables(small):
+    # x0, stretching and bending against central differences too, not only against the Warp tape of the same
+    # simulator (the bridge's own gradients: test_gradients_equal_tape)
+    sim = wc.Simulator(small.model, DT, options=OPTIONS)
+    v0, density = small.tensor(small.v0, False), small.tensor(small.density, False)
+
+    def fn(x0, stretching, bending):
+        x, v = wct.simulate(sim, x0, v0, steps=2, density=density, stretching=stretching, bending=bending)
+        return x[1:], v[-1]
+
+    inputs = (small.tensor(small.x0), small.tensor(small.stretching), small.tensor(small.bending))
+    assert torch.autograd.gradcheck(fn, inputs, **GRADCHECK)
+
+
 # -- 4. chained calls, releasing the tape -----------------------------------------------------------------------------
 
 
@@ -328,6 +342,24 @@ def test_bad_inputs_name_the_argument(small):
     for changes, pattern in cases:
         with pytest.raises(ValueError, match=pattern):
             call(**changes)
+    # values no material may hold, named; the model keeps the materials it had
+    before = {k: getattr(small.model, f"material_{k}").numpy().copy() for k in ("density", "stretching", "bending")}
+    stretching_nan = small.stretching.copy()
+    stretching_nan[0, 2, 1] = np.nan
+    stretching_negative = small.stretching.copy()
+    stretching_negative[0, 4, 2] = -1.0
+    bad_values = [
+        ({"density": torch.zeros(1, dtype=f64)}, r"simulate: density\[0\] must be > 0, got 0.0"),
+        ({"density": -small.tensor(small.density)}, r"density\[0\] must be > 0"),
+        ({"stretching": small.tensor(stretching_nan)}, r"stretching\[0, 2, 1\] is not finite"),
+        ({"stretching": small.tensor(stretching_negative)}, r"stretching\[0, 4, 2\] \(weft stretch k2\) must be >= 0"),
+        ({"bending": -small.tensor(small.bending)}, r"bending\[0, 0, 0\] must be >= 0"),
+    ]
+    for changes, pattern in bad_values:
+        with pytest.raises(ValueError, match=pattern):
+            call(**changes)
+    for k, value in before.items():
+        np.testing.assert_array_equal(getattr(small.model, f"material_{k}").numpy(), value)
     with pytest.raises(ValueError, match="steps"):
         wct.simulate(sim, ok["x0"], ok["v0"], steps=-1)
     no_grad_model = build_model(requires_grad=False)

@@ -63,6 +63,40 @@ _STRETCHING_COLUMNS = ("warp stretch k0", "coupling k1", "weft stretch k2", "she
 _NONNEGATIVE_STRETCHING_COLUMNS = (0, 2)
 
 
+def check_material_values(where: str, *, density=None, stretching=None, bending=None) -> None:
+    """Raise ValueError naming ``where``, the table and the entry for a value no material may hold: any non-finite
+    value, a density <= 0, a negative warp/weft stretch entry (stretching columns 0 and 2) or a negative bending
+    entry. Tables may carry leading dimensions (one row per material: the model's arrays, the torch bridge's
+    tensors): density (...,), stretching (..., 6, 4), bending (..., 3, 5)."""
+
+    def entry(name, index):
+        return f"{name}[{', '.join(str(int(i)) for i in index)}]" if len(index) else name
+
+    tables = {"density": density, "stretching": stretching, "bending": bending}
+    tables = {k: np.asarray(v, dtype=np.float64) for k, v in tables.items() if v is not None}
+    for name, table in tables.items():
+        bad = np.argwhere(~np.isfinite(table))
+        if len(bad):
+            raise ValueError(f"{where}: {entry(name, bad[0])} is not finite ({table[tuple(bad[0])]})")
+    if "density" in tables:
+        bad = np.argwhere(tables["density"] <= 0.0)
+        if len(bad):
+            value = tables["density"][tuple(bad[0])]
+            raise ValueError(f"{where}: {entry('density', bad[0])} must be > 0, got {value}")
+    if "stretching" in tables:
+        stretch = tables["stretching"][..., list(_NONNEGATIVE_STRETCHING_COLUMNS)]
+        bad = np.argwhere(stretch < 0.0)
+        if len(bad):
+            index = (*bad[0][:-1], _NONNEGATIVE_STRETCHING_COLUMNS[bad[0][-1]])
+            raise ValueError(f"{where}: {entry('stretching', index)} ({_STRETCHING_COLUMNS[index[-1]]}) must be "
+                             f">= 0, got {tables['stretching'][tuple(index)]}")
+    if "bending" in tables:
+        bad = np.argwhere(tables["bending"] < 0.0)
+        if len(bad):
+            value = tables["bending"][tuple(bad[0])]
+            raise ValueError(f"{where}: {entry('bending', bad[0])} must be >= 0, got {value}")
+
+
 @dataclass(eq=False)
 class Material:
     """A fabric's measured elastic tables in raw Wang et al. 2011 units.
@@ -113,21 +147,7 @@ class Material:
         # Re-read the fields: they are public and may have been reassigned since construction.
         stretching = _as_float_table(self.stretching, "stretching", STRETCHING_SHAPE, self.name)
         bending = _as_float_table(self.bending, "bending", BENDING_SHAPE, self.name)
-        for fname, table in (("stretching", stretching), ("bending", bending)):
-            bad = np.argwhere(~np.isfinite(table))
-            if len(bad):
-                r, c = (int(i) for i in bad[0])
-                raise ValueError(f"{where}: {fname}[{r}, {c}] is not finite ({table[r, c]})")
-        for c in _NONNEGATIVE_STRETCHING_COLUMNS:
-            for r in range(STRETCHING_SHAPE[0]):
-                if stretching[r, c] < 0.0:
-                    raise ValueError(
-                        f"{where}: stretching[{r}, {c}] ({_STRETCHING_COLUMNS[c]}) must be >= 0, got {stretching[r, c]}"
-                    )
-        bad = np.argwhere(bending < 0.0)
-        if len(bad):
-            r, c = (int(i) for i in bad[0])
-            raise ValueError(f"{where}: bending[{r}, {c}] must be >= 0, got {bending[r, c]}")
+        check_material_values(where, stretching=stretching, bending=bending)
 
     @classmethod
     def isotropic(

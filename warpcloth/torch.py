@@ -22,6 +22,7 @@ except ImportError as exc:  # pragma: no cover - exercised in a subprocess by th
 
 import warp as wp
 
+from warpcloth.materials import check_material_values
 from warpcloth.model import Control, Model, State
 from warpcloth.solver.simulator import Simulator
 
@@ -89,6 +90,8 @@ def simulate(
     for name, t in materials.items():
         if t is not None:
             _check_tensor(name, t, model, [tuple(getattr(model, f"material_{name}").shape)])
+    # before anything is written into the model: a rejected call leaves its materials as they were
+    check_material_values("simulate", **{k: t.detach().cpu().numpy() for k, t in materials.items() if t is not None})
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (x0, v0, particle_force, density, stretching, bending)
     )
