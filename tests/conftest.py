@@ -9,7 +9,7 @@ import warp as wp
 
 import warpcloth as wc
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING  # no module-load lines in the test output
 
 VERTICAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 """Rotation taking the grid's local XY plane to world XZ (local y -> world z, so the grid hangs in a wall)."""

@@ -10,7 +10,7 @@ from warpcloth.cli import main
 from warpcloth.mesh_io import TriangleMesh
 from warpcloth.scene import scene_from_toml
 from warpcloth.tasks.estimation import load_target_sequence, target_files
-from warpcloth.usd import write_usd
+from warpcloth.usd import read_usd_points, write_usd
 
 MAT = wc.preset("gray-interlock")
 SCENE = """\
@@ -85,6 +85,19 @@ def test_a_run_whose_frames_do_not_fit_is_refused_up_front(capsys, tmp_path):
     one_line_error(capsys, ["simulate", "free-fall", "--steps", "100000000", "--usd", str(tmp_path / "f.usda")],
                    "simulate at most")
     assert not (tmp_path / "f.usda").exists()
+
+
+def test_a_failing_run_writes_the_frames_before_the_failure(tmp_path, capsys):
+    # free fall passes a 0.25 m/s speed limit at step 3: the initial frame and steps 1-2 are kept, and the error
+    # says it is the speed limit, not necessarily a divergence
+    path = tmp_path / "fall.toml"
+    path.write_text(SCENE.format(name='"fall"').replace("steps = 2", "steps = 10") + "[solver]\nmax_speed = 0.25\n")
+    usd = tmp_path / "fall.usda"
+    assert main(["simulate", str(path), "--usd", str(usd)]) == 1
+    err = capsys.readouterr().err
+    assert "step 3" in err and "max_speed = 0.25" in err and "wrote the 3 frames before it" in err
+    frames = read_usd_points(usd)
+    assert len(frames) == 3 and frames[2][:, 2].max() < frames[0][:, 2].max()
 
 
 def test_dt_override_keeps_the_presets_ceiling(tmp_path, capsys):
@@ -165,3 +178,17 @@ def test_a_non_finite_target_frame_is_named(tmp_path):
     (tmp_path / "1.obj").write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(ValueError, match="target frame 1.obj: vertex 1 has a non-finite position"):
         load_target_sequence(target_files(tmp_path))
+
+
+def test_progress_bars_silence_warps_module_lines_while_open():
+    from warpcloth.progress import progress_bar
+
+    before = wp.config.log_level
+    try:
+        wp.config.log_level = wp.LOG_INFO  # Warp's default: "Module ... load" lines printed
+        with progress_bar(2, "test", "step") as bar:
+            assert wp.config.log_level == wp.LOG_WARNING
+            bar.update(2)
+        assert wp.config.log_level == wp.LOG_INFO
+    finally:
+        wp.config.log_level = before

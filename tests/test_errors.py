@@ -191,7 +191,8 @@ def test_divergence_names_the_step():
     # free fall gains 0.098 m/s per step: it passes a 0.25 m/s speed limit on the third step
     model = free_fall_model()
     sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(max_speed=0.25))
-    with pytest.raises(wc.SimulationError, match=r"diverged at step 3 .*particle \d+"):
+    with pytest.raises(wc.SimulationError, match=r"diverged at step 3 .*particle \d+ moves at 0.29\d+ m/s, over "
+                                                 r"SolverOptions.max_speed = 0.25 m/s.*raise max_speed"):
         wc.rollout(sim, model.state(), steps=10)
 
 
@@ -210,8 +211,36 @@ def test_non_finite_state_is_caught_at_the_first_step():
     x = state.particle_x.numpy()
     x[4, 2] = NAN
     state.particle_x.assign(x)
-    with pytest.raises(wc.SimulationError, match=r"step"):
+    with pytest.raises(wc.SimulationError, match=r"step 1: particle 4 enters the step with a non-finite position"):
         wc.rollout(wc.Simulator(model, 0.01), state, steps=1)
+
+
+def test_overflowing_positions_and_stiffness_are_named():
+    model = free_fall_model()
+    state = model.state()
+    state.particle_x.assign(state.particle_x.numpy() + 1.0e30)
+    with pytest.raises(wc.SimulationError, match=r"step 1: particle 0 is at .*more than 1e6 m .*overflow in float64"):
+        wc.rollout(wc.Simulator(model, 0.01), state, steps=1)
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((4, 4), (1.0, 1.0), material=MAT.scaled(stretching=1.0e30))
+    b.add_handle(0)
+    model = b.finalize("cpu")
+    with pytest.raises(wc.SimulationError, match=r"step 1: .*largest stretching entry .*overflow float32"):
+        wc.rollout(wc.Simulator(model, 0.01), model.state(), steps=1)
+
+
+def test_a_model_too_light_for_the_absolute_floor_warns():
+    # a 1e-12 kg/m^2 cloth: |b| is below cg_atol, the solve stops at once and the cloth never moves
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((4, 4), (1.0, 1.0), material=MAT.scaled(density=1.0e-12))
+    model = b.finalize("cpu", dtype=wp.float64)
+    with pytest.warns(RuntimeWarning, match=r"step 1: .*cg_atol = 1e-12.*too light.*does not move; lower cg_atol"):
+        wc.rollout(wc.Simulator(model, 0.01), model.state(), steps=2)
+    lighter_floor = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_atol=1.0e-30))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        traj = wc.rollout(lighter_floor, model.state(), steps=2)
+    assert traj[-1].particle_x.numpy()[:, 2].max() < -1e-4  # it falls
 
 
 def hard_problem(**options):

@@ -58,8 +58,8 @@ def _parser() -> argparse.ArgumentParser:
 
     ctl = sub.add_parser("control", help="find corner pushes that throw a cloth over a wall into a basket")
     ctl.add_argument("--controller", default="open-loop", choices=("open-loop", "mlp"),
-                     help="open-loop: 36 corner accelerations (Adam); mlp: a PyTorch MLP of the cloth's state, "
-                     "trained through the simulator (needs the torch extra)")
+                     help="open-loop: 36 corner accelerations, damped Gauss-Newton; mlp: a PyTorch MLP of the cloth's "
+                     "state, trained with Adam through the simulator (needs the torch extra)")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: 50 open-loop, 100 mlp)")
     _add_outputs(ctl)
     return parser
@@ -91,8 +91,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
     from warpcloth.outputs import USD_SUFFIXES, prepare_output_path
+    from warpcloth.progress import progress_bar
     from warpcloth.scene import load_scene
-    from warpcloth.solver.rollout import rollout
     from warpcloth.usd import write_usd
 
     if args.steps is not None and args.steps < 1:
@@ -121,23 +121,34 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         model, sim = scene.build(device=args.device)
     except (ValueError, RuntimeError) as exc:  # RuntimeError: Warp's answer to an unknown --device
         return _error(str(exc), _USAGE_ERROR)
-    state0 = model.state()
+    state, nxt = model.state(), model.empty_state()
     control = model.control()
+    frames, times = [state.particle_x.numpy().copy()], [state.time]  # copies: the two states swap every step
+    failure = None
     start = time.perf_counter()
-    try:
-        traj = rollout(sim, state0, control, steps=scene.steps, progress=True)
-    except SimulationError as exc:
-        return _error(str(exc), _RUNTIME_ERROR)
+    with progress_bar(scene.steps, "simulate", "step") as bar:
+        for _ in range(scene.steps):
+            try:
+                sim.step(state, nxt, control)
+            except SimulationError as exc:  # keep what was simulated: the frames before the failing step are written
+                failure = exc
+                break
+            state, nxt = nxt, state
+            frames.append(state.particle_x.numpy().copy())
+            times.append(state.time)
+            bar.update()
     wall = time.perf_counter() - start
 
-    frames = [s.particle_x.numpy() for s in traj]
     # Obstacles: static ones once, moving ones at every frame's time (at the control's base placements).
-    obstacles = obstacle_meshes_numpy(model, [s.time for s in traj])
+    obstacles = obstacle_meshes_numpy(model, times)
     try:
         write_usd(usd_path, triangles=model.tri_indices.numpy(), frames=frames, fps=1.0 / scene.dt,
                   obstacles=obstacles)
     except (ValueError, OSError) as exc:
         return _error(str(exc), _RUNTIME_ERROR)
+    if failure is not None:
+        return _error(f"{failure}; wrote the {len(frames)} frames before it to {os.path.abspath(usd_path)}",
+                      _RUNTIME_ERROR)
 
     total_cg = sim.stats["cg_iterations"]
     print(f"{scene.name}: {scene.steps} steps of {scene.dt:g} s on {model.device} in {wall:.2f} s wall time")
@@ -336,7 +347,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     import warp as wp
 
-    wp.config.quiet = True  # no Warp banner or module-load lines in the tool's output
+    wp.config.log_level = wp.LOG_WARNING  # no module-load lines in the tool's output (Warp logs them at info level)
     parser = _parser()
     args = parser.parse_args(argv)
     if args.command == "simulate":

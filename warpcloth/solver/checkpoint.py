@@ -17,6 +17,7 @@ from collections.abc import Callable
 import warp as wp
 
 from warpcloth.model import State
+from warpcloth.progress import progress_bar
 from warpcloth.solver.rollout import ControlSchedule, check_schedule, control_at
 from warpcloth.solver.simulator import Simulator
 
@@ -72,11 +73,7 @@ def checkpointed_backward(
             current = nxt
         return current
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=2 * len(starts), desc="checkpointed rollout", unit="segment")
+    bar = progress_bar(2 * len(starts), "checkpointed rollout", "segment") if progress else None
 
     # forward: untaped, keep the state at the start of every segment
     checkpoints = []

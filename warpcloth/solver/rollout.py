@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from warpcloth.model import Control, State
+from warpcloth.progress import progress_bar
 from warpcloth.solver.simulator import Simulator
 
 ControlSchedule = Control | Sequence[Control] | Callable[[int], Control] | None
@@ -49,13 +50,15 @@ def rollout(
         raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
     check_schedule(control, steps)
     trajectory = [state]
-    indices = range(int(steps))
-    if progress:
-        from tqdm import tqdm
-
-        indices = tqdm(indices, desc="simulate", unit="step")
-    for i in indices:
-        nxt = sim.model.empty_state()
-        sim.step(trajectory[-1], nxt, control_at(control, i))
-        trajectory.append(nxt)
+    bar = progress_bar(int(steps), "simulate", "step") if progress else None
+    try:
+        for i in range(int(steps)):
+            nxt = sim.model.empty_state()
+            sim.step(trajectory[-1], nxt, control_at(control, i))
+            trajectory.append(nxt)
+            if bar is not None:
+                bar.update()
+    finally:
+        if bar is not None:
+            bar.close()
     return trajectory

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 import warp as wp
@@ -56,6 +57,7 @@ class Simulator:
         self.last_solve = SolveInfo(0, 0.0, True)
         """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
+        self._atol_checked = False
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
@@ -278,12 +280,62 @@ class Simulator:
         def count_adjoint(info: SolveInfo) -> None:
             self.stats["adjoint_cg_iterations"] += info.iterations
 
-        info = self.linear_solver.solve_recorded(
-            values, rhs, dv, step=step, guess=guess if warm else None,
-            adjoint_guess=state_out.solve_adjoint if recording else None,
-            adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint, pairs=pairs)
+        try:
+            info = self.linear_solver.solve_recorded(
+                values, rhs, dv, step=step, guess=guess if warm else None,
+                adjoint_guess=state_out.solve_adjoint if recording else None,
+                adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint, pairs=pairs)
+        except SimulationError as exc:
+            cause = self._non_finite_cause(state_in, values, rhs)
+            if cause is None:
+                raise
+            raise SimulationError(f"step {step}: {cause} ({exc})") from None
+        if info.iterations == 0 and not self._atol_checked:
+            self._atol_checked = True  # once per Simulator, at its first skipped solve
+            self._warn_if_below_atol(step)
         self.last_solve = info
         self.stats["cg_iterations"] += info.iterations
+
+    def _warn_if_below_atol(self, step: int) -> None:
+        """Warn when the model is so light that its weight's impulse over a step, dt |g| |m|, is within ten times
+        SolverOptions.cg_atol: every solve then stops at once on that absolute floor and the cloth never moves (a
+        cloth at rest also skips its solves, rightly: its forces balance, so the test is on the model's scale)."""
+        g = max(float(np.linalg.norm(self.model.gravity.numpy())), 1.0)
+        impulse = self.dt * g * float(np.linalg.norm(self.model.particle_mass()))
+        if impulse <= 10.0 * self.options.cg_atol:
+            warnings.warn(
+                f"step {step}: the solve stopped after 0 iterations on SolverOptions.cg_atol = "
+                f"{self.options.cg_atol:g}, and this model is too light for that floor (its weight's impulse over a "
+                f"step is {impulse:.3g} N*s): its solves are skipped and the cloth does not move; lower cg_atol",
+                RuntimeWarning, stacklevel=4)
+
+    def _non_finite_cause(self, state_in: State, values: wp.array, rhs: wp.array) -> str | None:
+        """What made a solve's residual non-finite, naming the particle: a non-finite or overflowing input state,
+        or non-finite forces or stiffness blocks (a material too stiff for the precision); None if none of those."""
+        for field, what in (("particle_x", "position"), ("particle_v", "velocity")):
+            a = getattr(state_in, field).numpy()
+            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1))
+            if bad.size:
+                p = int(bad[0])
+                return f"particle {p} enters the step with a non-finite {what} {a[p].tolist()}"
+        b = rhs.numpy().reshape(self.model.particle_count, -1)
+        blocks = values.numpy().reshape(len(values), -1)
+        largest = float(np.abs(blocks).max()) if np.all(np.isfinite(blocks)) else math.inf
+        overflow = math.sqrt(np.finfo(blocks.dtype).max)  # the CG's products p.Ap overflow above about this
+        if np.all(np.isfinite(b)) and largest < overflow:
+            return None
+        x = state_in.particle_x.numpy()
+        far = np.flatnonzero(np.abs(x).max(axis=1) > 1.0e6)
+        if far.size:
+            p = int(far[0])
+            return (f"particle {p} is at {x[p].tolist()}, more than 1e6 m from the origin: its edge vectors lose "
+                    f"their precision or overflow in {self.model.scalar.__name__}")
+        bad = np.flatnonzero(~np.all(np.isfinite(b), axis=1))
+        stiffest = float(np.abs(self.model.material_stretching.numpy()).max())
+        which = (f"the forces on particle {int(bad[0])} are not finite" if bad.size else
+                 f"the implicit system's largest entry is {largest:.3g}")
+        return (f"{which}: the material's stiffness (largest stretching entry {stiffest:.3g}) or the forces "
+                f"overflow {self.model.scalar.__name__}")
 
     def _raise_if_diverged(self, state: State, t: float, step: int) -> None:
         """Raise SimulationError if the divergence guard (``self._status``) flagged a particle of ``state``, the
@@ -293,9 +345,16 @@ class Simulator:
             p = bad - 1
             x = state.particle_x.numpy()[p]
             v = state.particle_v.numpy()[p]
+            speed = float(np.linalg.norm(v))
+            if np.all(np.isfinite(x)) and np.all(np.isfinite(v)):
+                raise SimulationError(
+                    f"simulation diverged at step {step} (t = {t:.4g} s): particle {p} moves at {speed:.4g} m/s, over "
+                    f"SolverOptions.max_speed = {self.options.max_speed:g} m/s (x = {x.tolist()}); lower dt, raise "
+                    "damping, or check the material and forces; if the motion really is this fast (a long free fall), "
+                    "raise max_speed" + self._wind_hint() + self._mesh_hint())
             raise SimulationError(
                 f"simulation diverged at step {step} (t = {t:.4g} s): particle {p} has "
-                f"x = {x.tolist()}, v = {v.tolist()} (speed limit {self.options.max_speed:g} m/s); "
+                f"x = {x.tolist()}, v = {v.tolist()}; "
                 "lower dt, raise damping, or check the material and forces" + self._wind_hint() + self._mesh_hint())
 
     def _wind_hint(self) -> str:

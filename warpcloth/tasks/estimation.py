@@ -30,6 +30,7 @@ from warpcloth.materials import (
     SEED_INITIAL_GUESS_NAMES,
     STRETCHING_SHAPE,
 )
+from warpcloth.progress import progress_bar
 from warpcloth.tasks.optim import adam, lbfgs
 from warpcloth.tasks.scenes import THICKEN
 
@@ -282,11 +283,7 @@ def estimate_material(fit: TrajectoryFit, *, initial: wc.Material | None = None,
     initial = initial or initial_guess()
     param = MaterialParameterization(initial)
     result = EstimationResult(material=initial, initial=initial)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=iters, desc=f"estimate ({optimizer})", unit="iter")
+    bar = progress_bar(iters, f"estimate ({optimizer})", "iter") if progress else None
 
     def record(loss: float, steps: int) -> None:
         result.losses.append(loss)

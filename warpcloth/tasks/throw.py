@@ -22,6 +22,7 @@ import warp as wp
 
 import warpcloth as wc
 from warpcloth.kernels.losses import loss_kernels
+from warpcloth.progress import progress_bar
 
 # the scene (warpcloth.tasks.scenes), importable from here too
 from warpcloth.tasks.scenes import THROW_CORNERS as CORNERS
@@ -37,7 +38,9 @@ N_PARAMS = SECONDS_CONTROLLED * len(CORNERS) * 3
 
 
 def error_pct(com_final: np.ndarray, com_initial: np.ndarray) -> float:
-    """|com_T - target| / |com_0 - target| x 100 (100 % = no better than doing nothing)."""
+    """|com_T - target| / |com_0 - target| x 100: 100 % ends as far from the target as it started. Not "no
+    better than doing nothing": with no pushes the cloth drops straight down outside the wall, with no floor to stop
+    it, to z = -238 m after the 7 s (5508 %)."""
     target = np.asarray(TARGET)
     return 100.0 * float(np.linalg.norm(com_final - target) / np.linalg.norm(com_initial - target))
 
@@ -169,11 +172,7 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
     is worse. ``max_step`` [m/s^2] bounds how far one step moves any push.
     """
     result = ControlResult(params=np.zeros((SECONDS_CONTROLLED, len(CORNERS), 3)))
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=iters, desc="control (open-loop)", unit="sim")
+    bar = progress_bar(iters, "control (open-loop)", "sim") if progress else None
     t0 = time.perf_counter()
     target = np.asarray(TARGET)
 
@@ -307,11 +306,7 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
 
     result = ControlResult(params=np.zeros((SECONDS_CONTROLLED, len(CORNERS), 3)))
     best = math.inf
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=iters, desc="control (mlp)", unit="sim")
+    bar = progress_bar(iters, "control (mlp)", "sim") if progress else None
     t0 = time.perf_counter()
     for k in range(1, iters + 1):
         x, v = x0, v0
