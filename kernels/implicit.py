@@ -385,6 +385,23 @@ def implicit_kernels(scalar):
         flag_divergence(i, x_new, v_new, max_speed, status)
 
     @wp.kernel
+    def bdf2_blend(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        x_last: wp.array(dtype=vec3),
+        v_last: wp.array(dtype=vec3),
+        # out:
+        x_out: wp.array(dtype=vec3),
+        v_out: wp.array(dtype=vec3),
+    ):
+        # BDF2's start point: x~ = (4 x_n - x_{n-1}) / 3, v~ = (4 v_n - v_{n-1}) / 3; a backward Euler step of
+        # 2/3 dt from (x~, v~) is then BDF2's step (SolverOptions.integrator)
+        i = wp.tid()
+        third = scalar(1.0 / 3.0)
+        x_out[i] = third * (scalar(4.0) * x[i] - x_last[i])
+        v_out[i] = third * (scalar(4.0) * v[i] - v_last[i])
+
+    @wp.kernel
     def check_state(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
@@ -401,5 +418,6 @@ def implicit_kernels(scalar):
         pin_rows=pin_rows, handles=handles, external_forces=external_forces, wind=wind,
         faces=faces, hinges=hinges, faces_potential=faces_potential, hinges_potential=hinges_potential,
         face_energy=face_energy, hinge_energy=hinge_energy, integrate=integrate, check_state=check_state,
+        bdf2_blend=bdf2_blend,
     )
 

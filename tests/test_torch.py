@@ -6,6 +6,7 @@ CG tolerance 1e-12. The reference for every gradient is the same loss differenti
 with Warp arrays, on a Simulator of its own.
 """
 
+import dataclasses
 import subprocess
 import sys
 
@@ -239,6 +240,24 @@ def test_gradcheck_positions_and_stiffness_tables(small):
 
     inputs = (small.tensor(small.x0), small.tensor(small.stretching), small.tensor(small.bending))
     assert torch.autograd.gradcheck(fn, inputs, **GRADCHECK)
+
+
+def test_bdf2_through_the_bridge(small):
+    # the bridge's preallocated States carry BDF2's history like wc.rollout's, and its gradients hold
+    sim = wc.Simulator(small.model, DT, options=dataclasses.replace(OPTIONS, integrator="bdf2"))
+    x0, v0 = small.tensor(small.x0, False), small.tensor(small.v0, False)
+    x, _ = wct.simulate(sim, x0, v0, steps=3)
+    start = wc.State(wp.array(small.x0, dtype=wp.vec3d), wp.array(small.v0, dtype=wp.vec3d))
+    traj = wc.rollout(sim, start, steps=3)
+    np.testing.assert_allclose(x[-1].numpy(), traj[-1].particle_x.numpy(), rtol=0, atol=1e-12)
+    euler = wc.rollout(wc.Simulator(small.model, DT, options=OPTIONS), start, steps=3)[-1].particle_x.numpy()
+    assert np.abs(euler - traj[-1].particle_x.numpy()).max() > 1e-6  # a different integrator was used
+
+    def fn(v0, density):
+        x, v = wct.simulate(sim, x0, v0, steps=3, density=density)
+        return x[1:], v[-1]
+
+    assert torch.autograd.gradcheck(fn, (small.tensor(small.v0), small.tensor(small.density)), **GRADCHECK)
 
 
 # -- 4. chained calls, releasing the tape -----------------------------------------------------------------------------

@@ -24,7 +24,8 @@ class State:
     """
 
     def __init__(self, particle_x: wp.array, particle_v: wp.array, time: float = 0.0, *, step: int = 0,
-                 particle_dv: wp.array | None = None, particle_x_previous: wp.array | None = None):
+                 particle_dv: wp.array | None = None, particle_x_previous: wp.array | None = None,
+                 particle_x_last: wp.array | None = None, particle_v_last: wp.array | None = None):
         self.particle_x = particle_x
         """Particle positions [m], shape (particle_count,), vec3."""
         self.particle_v = particle_v
@@ -41,6 +42,11 @@ class State:
         """Positions [m] at the start of the step that produced this state, shape (particle_count,), vec3: the
         face normals of ARCSim's lagged wind (``ModelBuilder.set_wind(lagged_normals=True)``); None at the start of
         a trajectory (the current positions are used)."""
+        self.particle_x_last = particle_x_last
+        """Positions [m] one step before this state, shape (particle_count,), vec3, for a two-step integrator
+        (``SolverOptions.integrator="bdf2"``); None at the start of a trajectory or with backward Euler."""
+        self.particle_v_last = particle_v_last
+        """Velocities [m/s] one step before this state, shape (particle_count,), vec3 (as ``particle_x_last``)."""
         self.solve_adjoint = None
         """Adjoint of the linear solve of the step that read this state [m/s per unit loss], shape
         (particle_count,), vec3, written during a backward pass: the first guess of the adjoint solve of the step
@@ -61,9 +67,14 @@ class State:
         x = copy(self.particle_x)
         # after a collision response the lagged normals' positions are the current ones (the same array)
         previous = x if self.particle_x_previous is self.particle_x else copy(self.particle_x_previous)
+        # with lagged normals and no collision response, the normals' positions are the last step's
+        x_last = copy(self.particle_x_last)
+        if self.particle_x_previous is not None and self.particle_x_previous is self.particle_x_last:
+            previous = x_last
         return State(x, copy(self.particle_v), self.time, step=self.step,
                      particle_dv=None if self.particle_dv is None else wp.clone(self.particle_dv, requires_grad=False),
-                     particle_x_previous=previous)
+                     particle_x_previous=previous, particle_x_last=x_last,
+                     particle_v_last=copy(self.particle_v_last))
 
 
 class Control:

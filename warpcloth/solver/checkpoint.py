@@ -86,12 +86,12 @@ def checkpointed_backward(
     final = current
     value = float(out.numpy()[0])
 
-    # backward: re-simulate each segment on its own tape, last first, chaining the state adjoints
-    # (with lagged wind normals a segment's first step also reads the positions one step before the segment: their
-    # adjoint goes to the previous segment's end.particle_x_previous)
+    # backward: re-simulate each segment on its own tape, last first, chaining the state adjoints. A segment's first
+    # step may also read arrays of the step before the segment, whose adjoints go to the previous segment's end:
+    # the lagged wind normals' positions (particle_x_previous) and BDF2's previous state (particle_x_last/_v_last).
     adj_x = wp.zeros_like(final.particle_x)
     adj_v = wp.zeros_like(final.particle_v)
-    adj_x_previous = None
+    adj_x_previous = adj_x_last = adj_v_last = None
     for k in reversed(range(len(starts))):
         first = starts[k]
         start = checkpoints.pop().clone(requires_grad=True)
@@ -102,22 +102,32 @@ def checkpointed_backward(
         seeds = {out: wp.ones_like(out), end.particle_x: adj_x, end.particle_v: adj_v}
         if adj_x_previous is not None:
             if end.particle_x_previous is end.particle_x:  # after a collision response: the current positions
-                seeds[end.particle_x] = wp.array(adj_x.numpy() + adj_x_previous.numpy(), dtype=adj_x.dtype,
-                                                 device=adj_x.device)
+                seeds[end.particle_x] = _sum(adj_x, adj_x_previous)
             else:  # the last step's start positions: never another seed
                 seeds[end.particle_x_previous] = adj_x_previous
+        if adj_x_last is not None:
+            seeds[end.particle_x_last] = adj_x_last
+            seeds[end.particle_v_last] = adj_v_last
         tape.backward(grads=seeds)
         adj_x, adj_v = start.particle_x.grad, start.particle_v.grad
-        adj_x_previous = None
-        if start.particle_x_previous is not None and start.particle_x_previous is not start.particle_x:
+        adj_x_previous = adj_x_last = adj_v_last = None
+        if start.particle_x_last is not None:  # it holds the lagged normals' adjoint too where they are the same
+            adj_x_last, adj_v_last = start.particle_x_last.grad, start.particle_v_last.grad
+        if start.particle_x_previous is not None and start.particle_x_previous is not start.particle_x \
+                and start.particle_x_previous is not start.particle_x_last:
             adj_x_previous = start.particle_x_previous.grad
         del tape
         if bar is not None:
             bar.update()
     if bar is not None:
         bar.close()
-    for arr, adj in ((state.particle_x, adj_x), (state.particle_v, adj_v), (state.particle_x_previous, adj_x_previous)):
+    for arr, adj in ((state.particle_x, adj_x), (state.particle_v, adj_v), (state.particle_x_previous, adj_x_previous),
+                     (state.particle_x_last, adj_x_last), (state.particle_v_last, adj_v_last)):
         if arr is not None and adj is not None and arr.requires_grad:  # one host round trip per rollout
             arr.grad.assign(arr.grad.numpy() + adj.numpy())
     return value, final
 
+
+def _sum(a: wp.array, b: wp.array) -> wp.array:
+    """a + b as a new array (host arithmetic: once per segment)."""
+    return wp.array(a.numpy() + b.numpy(), dtype=a.dtype, device=a.device)

@@ -96,6 +96,12 @@ class SolverOptions:
     adjoint: the later step's adjoint): fewer iterations, and results that differ only within the tolerance."""
     max_speed: float = 1.0e3
     """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
+    integrator: str = "euler"
+    """``"euler"``: ARCSim's linearised backward Euler (first order; reproduces the seed). ``"bdf2"``: the
+    second-order backward differentiation formula (Choi and Ko 2002), written as a backward Euler step of 2/3 dt
+    from the blend (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3, so it reuses the same assembly, solve and adjoint;
+    a trajectory's first step, which has no previous state, is backward Euler. Not yet with collisions or
+    proximity forces (ValueError)."""
     collision: CollisionOptions = field(default_factory=CollisionOptions)
     """Options of the collision stage (used only by scenes with collisions)."""
 
@@ -114,6 +120,7 @@ class SolverOptions:
             "preconditioner": ("auto", "block_jacobi", "jacobi", "block_ssor"),
             "cg_backend": ("auto", "sequential", "warp"),
             "on_cg_failure": ("warn", "raise"),
+            "integrator": ("euler", "bdf2"),
         })
         if not isinstance(self.collision, CollisionOptions):
             raise ValueError(f"SolverOptions.collision must be a CollisionOptions, got {self.collision!r}")

@@ -58,6 +58,7 @@ class Simulator:
         """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
         self._atol_checked = False
+        self._assembler_bdf2: SystemAssembler | None = None
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
@@ -72,6 +73,7 @@ class Simulator:
         self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity)
                           if ProximityForces.needed(model) else None)
         """Proximity repulsion and friction inside the implicit step, or None where the model has neither."""
+        self._check_integrator(self._options)
 
     # -- public ------------------------------------------------------------------------------------------------------
     @property
@@ -83,6 +85,7 @@ class Simulator:
     @options.setter
     def options(self, options: SolverOptions) -> None:
         options.validate()
+        self._check_integrator(options)
         self._options = options
         self.linear_solver.options = options
         if self.collision is not None:
@@ -101,7 +104,6 @@ class Simulator:
         self._check_state("state_in", state_in)
         self._check_state("state_out", state_out)
         control = control if control is not None else self._default_control()
-        dt = model.scalar(self.dt)
         recording = active_tape() is not None and model.requires_grad
         values, rhs, pin_dv = self._buffers(recording)
         dv = self._output_dv(state_out, recording)
@@ -110,14 +112,20 @@ class Simulator:
         k = self.kernels
 
         clock = _PhaseClock(self.phase_seconds)
-        self.assembler.assemble(state_in, control, t_next, values, rhs, pin_dv, dv)
+        # what the implicit step starts from: state_in, or BDF2's blend of it with the state before it
+        start, assembler = state_in, self.assembler
+        bdf2 = self.options.integrator == "bdf2"
+        if bdf2 and state_in.particle_x_last is not None:
+            start, assembler = self._bdf2_start(state_in, recording), self._bdf2_assembler()
+        dt = model.scalar(assembler.dt)
+        assembler.assemble(start, control, t_next, values, rhs, pin_dv, dv)
         clock.lap("assembly")
         obstacles = self._obstacle_points(control, state_in.time) if self.collision is not None else None
         pairs = None
         if self.proximity is not None:
             pairs = self.proximity.assemble(state_in, *obstacles, pin_dv, dv, values, rhs, recording)
             clock.lap("proximity")
-        self._solve(values, rhs, dv, state_in, state_out, step, pairs)
+        self._solve(values, rhs, dv, start, state_out, step, pairs)
         clock.lap("solve")
 
         max_speed = model.scalar(self.options.max_speed)
@@ -127,7 +135,7 @@ class Simulator:
             self._status.zero_()
         if self.collision is None:
             wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt, max_speed],
+                      inputs=[start.particle_x, start.particle_v, dv, dt, max_speed],
                       outputs=[state_out.particle_x, state_out.particle_v, self._status])
         else:
             candidate = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
@@ -144,6 +152,8 @@ class Simulator:
                       record_tape=False)  # the projection's velocity change too
         state_out.time = t_next
         state_out.step = step
+        state_out.particle_x_last = state_in.particle_x if bdf2 else None
+        state_out.particle_v_last = state_in.particle_v if bdf2 else None
         state_out.particle_x_previous = None
         if model.wind_lagged_normals:
             # ARCSim's face normals lag a step, except after a collision response that moved the cloth: it
@@ -153,6 +163,33 @@ class Simulator:
         self.stats["steps"] += 1
         clock.lap("collision" if self.collision is not None else "integrate")
         self._raise_if_diverged(state_out, t_next, step)
+
+    def _check_integrator(self, options: SolverOptions) -> None:
+        if options.integrator == "bdf2" and (self.collision is not None or self.proximity is not None):
+            raise ValueError("SolverOptions.integrator 'bdf2' does not handle collisions or proximity forces yet "
+                             "(the collision response's velocity update and CCD assume backward Euler); use 'euler' "
+                             "for scenes with obstacles or self-collision")
+
+    def _bdf2_assembler(self) -> SystemAssembler:
+        """The assembler of BDF2's steps: a backward Euler step of 2/3 dt (SolverOptions.integrator)."""
+        if self._assembler_bdf2 is None:
+            self._assembler_bdf2 = SystemAssembler(self.model, 2.0 * self.dt / 3.0)
+        return self._assembler_bdf2
+
+    def _bdf2_start(self, state_in: State, recording: bool) -> State:
+        """BDF2's start point (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3 as a State (taped: gradients reach both
+        states); it hands on state_in's first guess, lagged normals and adjoint first guess, so the step reads it
+        as it would read state_in."""
+        model = self.model
+        x = wp.empty_like(state_in.particle_x, requires_grad=recording)
+        v = wp.empty_like(state_in.particle_v, requires_grad=recording)
+        wp.launch(self.kernels.bdf2_blend, model.particle_count, device=self.device,
+                  inputs=[state_in.particle_x, state_in.particle_v, state_in.particle_x_last,
+                          state_in.particle_v_last], outputs=[x, v])
+        start = State(x, v, state_in.time, step=state_in.step, particle_dv=state_in.particle_dv,
+                      particle_x_previous=state_in.particle_x_previous)
+        start.solve_adjoint = state_in.solve_adjoint
+        return start
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
         """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
@@ -245,7 +282,7 @@ class Simulator:
         model = self.model
         for field in ("particle_x", "particle_v"):
             array = getattr(state, field)
-            if array.shape[0] != model.particle_count or array.dtype != model.types.vec3 \
+            if array.shape[0] != model.particle_count or not wp.types.types_equal(array.dtype, model.types.vec3) \
                     or array.device != model.device:
                 raise ValueError(
                     f"step(): {name}.{field} holds {array.shape[0]} {wp.types.type_repr(array.dtype)} on "
