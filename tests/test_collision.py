@@ -96,10 +96,12 @@ def flat_cloth(res=8, size=0.5, z=0.05, center=(0.0, 0.0), vel=None, self_collis
     return b
 
 
-def test_cloth_dropped_on_a_plane_rests_on_it():
+@pytest.mark.parametrize("integrator", ["euler", "bdf2"])
+def test_cloth_dropped_on_a_plane_rests_on_it(integrator):
     b = flat_cloth(z=0.02)
     b.add_obstacle_plane((2.0, 2.0))
-    model, sim, state = run(b, 30, 0.01, check=no_penetration)
+    model, sim, state = run(b, 30, 0.01, check=no_penetration,
+                            options=wc.SolverOptions(integrator=integrator))
     z = state.particle_x.numpy()[:, 2]
     assert np.all(z > 0) and np.all(z < 2 * DELTA + 1e-6)  # on the plane, not bounced off nor sunk
     assert np.abs(state.particle_v.numpy()[:, 2]).max() < 0.05

@@ -43,9 +43,9 @@ def layers_scene(top=MATERIAL):
     return b
 
 
-def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10):
+def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10, integrator="euler"):
     """Build a simulator and a function (x0, v0, transforms) -> (loss, contact counts) with a random linear loss."""
-    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000,
+    options = wc.SolverOptions(cg_tol=1e-12, cg_max_iters=2000, integrator=integrator,
                                collision=wc.CollisionOptions(adjoint=adjoint, solver=solver, qp_tol=qp_tol))
     sim = wc.Simulator(model, dt, options=options)
     rng = np.random.default_rng(3)
@@ -117,6 +117,22 @@ def test_obstacle_contact_gradients_match_finite_differences(steps):
     for name, eps in (("x0", 1e-7), ("v0", 1e-4), ("transform", 1e-7)):
         fd_check(run, (x0, v0, tf), g, name, eps, rng)
     assert np.abs(g["transform"]).max() > 0  # the obstacle's placement matters
+
+
+@pytest.mark.parametrize("solver", ["numpy", "device"])
+def test_bdf2_contact_gradients_match_finite_differences(solver):
+    # BDF2 (steps 2 and 3 blend two states; the response's velocity change is over 2/3 dt): the same adjoints
+    model = plane_scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+    sim, run = loss_fn(model, 3, 0.005, solver=solver, integrator="bdf2")
+    x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
+    tf = model.obstacle_rest_transform.copy()
+    loss, keys, g = tape_gradients(model, run, x0, v0, tf)
+    assert min(keys) > 0
+    rng = np.random.default_rng(0)
+    for name, eps in (("x0", 1e-7), ("v0", 1e-4), ("transform", 1e-7)):
+        fd_check(run, (x0, v0, tf), g, name, eps, rng)
+    euler_loss = loss_fn(model, 3, 0.005, solver=solver)[1](x0, v0, tf)[0]
+    assert abs(loss - euler_loss) > 1e-9 * abs(loss)  # BDF2 was used
 
 
 def test_cloth_cloth_contact_gradients_match_finite_differences():

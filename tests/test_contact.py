@@ -74,7 +74,8 @@ def test_resting_contact_keeps_the_gap_without_jitter():
     assert np.all(z > 0.8 * thickness) and np.all(z < thickness), z  # inside the repulsion layer, not on the plane
 
 
-def test_cloth_dropped_on_a_sphere_with_friction_stays_on_it():
+@pytest.mark.parametrize("integrator", ["euler", "bdf2"])
+def test_cloth_dropped_on_a_sphere_with_friction_stays_on_it(integrator):
     def drop(mu):
         b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
         b.add_cloth_grid((10, 10), (0.6, 0.6), material=wc.preset("gray-interlock", thicken=2),
@@ -82,7 +83,8 @@ def test_cloth_dropped_on_a_sphere_with_friction_stays_on_it():
         b.add_obstacle_sphere(0.3, subdivisions=3)
         b.set_collision(obstacle_friction=mu)
         model = b.finalize("cpu")
-        traj = wc.rollout(wc.Simulator(model, 0.01), model.state(), steps=150)
+        sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(integrator=integrator))
+        traj = wc.rollout(sim, model.state(), steps=150)
         return traj[-1].particle_x.numpy()
 
     x = drop(0.3)
@@ -196,10 +198,10 @@ def _linear_loss(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), cx: w
     wp.atomic_add(loss, 0, wp.dot(x[i], cx[i]) + wp.dot(v[i], cv[i]))
 
 
-def gradient_check(model, steps, dt, perturbations, *, eps=(1e-6, 1e-7), rtol=1e-4):
+def gradient_check(model, steps, dt, perturbations, *, eps=(1e-6, 1e-7), rtol=1e-4, integrator="euler"):
     """Tape gradient of a random linear loss of the final state against central differences, along each
     perturbation ``(name, array getter, direction)``; the differences at both step sizes must agree."""
-    sim = wc.Simulator(model, dt, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30))
+    sim = wc.Simulator(model, dt, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30, integrator=integrator))
     rng = np.random.default_rng(4)
     n = model.particle_count
     cx = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d)
@@ -264,6 +266,14 @@ def test_cloth_obstacle_gradients_match_central_differences(theta, regime):
     # sheared a little: at zero shear the stretching lookup has a kink (see the cloth-cloth test)
     model, _ = incline(theta, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4)
     results, sim = gradient_check(model, 6, 0.01, directions(model, np.random.default_rng(1)))
+    assert sim.proximity.last_count > 0
+    assert all(abs(r[0]) > 0 for r in results.values())
+
+
+def test_bdf2_repulsion_and_friction_gradients_match_central_differences():
+    # BDF2's pairs: penalty and friction blocks over its 2/3 dt implicit step, found at its blend
+    model, _ = incline(30.0, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4)
+    results, sim = gradient_check(model, 6, 0.01, directions(model, np.random.default_rng(1)), integrator="bdf2")
     assert sim.proximity.last_count > 0
     assert all(abs(r[0]) > 0 for r in results.values())
 

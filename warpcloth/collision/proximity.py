@@ -161,10 +161,13 @@ class ProximityForces:
         return count
 
     def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,
-                 dv: wp.array, values: wp.array, rhs: wp.array, recording: bool) -> ProximityPairs:
+                 dv: wp.array, values: wp.array, rhs: wp.array, recording: bool,
+                 implicit_dt: float | None = None) -> ProximityPairs:
         """Find the step's pairs and add their terms to ``values`` (block diagonal) and ``rhs``; returns the pairs
         for the solver's matrix-free cross blocks. On a tape, records the terms' adjoint. ``obstacle_start`` and
-        ``obstacle_end``: the obstacle vertices at the step's start and end (empty without obstacles)."""
+        ``obstacle_end``: the obstacle vertices at the step's start and end (empty without obstacles).
+        ``implicit_dt``: the implicit step's length where it is not the time step (BDF2's 2/3 dt); the obstacles'
+        velocity is still their motion over the time step."""
         model = self.model
         k = self.kernels
         dev = self.device
@@ -186,7 +189,7 @@ class ProximityForces:
         pairs = ProximityPairs(count, nodes, weights, stiffness)
         if count == 0:
             return pairs
-        inputs = self.pair_inputs(x, velocity, nodes, kind, area)
+        inputs = self.pair_inputs(x, velocity, nodes, kind, area, implicit_dt)
         wp.launch(k.assemble_pairs, count, device=dev, inputs=[inputs, model.particle_diag_slot],
                   outputs=[values, rhs, weights, stiffness], record_tape=False)
         if recording:
@@ -200,8 +203,9 @@ class ProximityForces:
             record_adjoint(adjoint, arrays=[rhs, dv])
         return pairs
 
-    def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array, area: wp.array):
-        """What the pair kernels read (kernels/proximity.py PairInputs)."""
+    def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array, area: wp.array,
+                    implicit_dt: float | None = None):
+        """What the pair kernels read (kernels/proximity.py PairInputs); ``implicit_dt`` as in :meth:`assemble`."""
         model = self.model
         p = self.kernels.PairInputs()
         p.nodes, p.kind, p.x, p.velocity, p.free, p.area = nodes, kind, x, velocity, self._free, area
@@ -209,7 +213,7 @@ class ProximityForces:
         p.cloth_count = self.cloth_count
         p.thickness = model.scalar(self.thickness)
         p.eps = model.scalar(FRICTION_REGULARISATION)
-        p.dt = model.scalar(self.dt)
+        p.dt = model.scalar(self.dt if implicit_dt is None else implicit_dt)
         return p
 
 

@@ -81,17 +81,21 @@ class CollisionStage:
 
     # -- response ------------------------------------------------------------------------------------------------
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                obstacle_end: wp.array, state_out: State, step: int) -> None:
+                obstacle_end: wp.array, state_out: State, step: int, implicit_dt: float | None = None) -> None:
         """Write the collision-free positions and corrected velocities of the step into ``state_out``;
         ``obstacle_start`` and ``obstacle_end`` are the obstacle vertices at the step's start and end (empty without
-        obstacles)."""
+        obstacles). ``implicit_dt``: the length of the implicit step that gave x̂ = start + implicit_dt v̂, where it
+        is not the time step (BDF2: 2/3 dt from its blend); the velocity change is (z − x̂) / implicit_dt, so the
+        result keeps that relation."""
         model = self.model
         k = self.kernels
         recording = active_tape() is not None and model.requires_grad
         n = self.cloth_count
         dev = self.device
+        inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
         if self.options.collision.solver == "device":
-            self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, recording)
+            self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, recording,
+                                    inv_dt)
             return
 
         start = self._gather(state_in.particle_x, obstacle_start, recording)
@@ -131,11 +135,11 @@ class CollisionStage:
         self.last = stats
         if len(contacts):
             self._check_projection_strain(x_hat, z, step)
-        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
+        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, inv_dt],
                   outputs=[state_out.particle_x, state_out.particle_v])
 
     def _resolve_on_device(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                           obstacle_end: wp.array, state_out: State, step: int, recording: bool) -> None:
+                           obstacle_end: wp.array, state_out: State, step: int, recording: bool, inv_dt) -> None:
         """:meth:`resolve` with ``CollisionOptions(solver="device")``: contacts, their geometry, the projection and
         its adjoint stay on the device; each round reads back the contact count and the solver's status."""
         model = self.model
@@ -237,7 +241,7 @@ class CollisionStage:
                       record_tape=False)
             if float(largest.numpy()[0]) > opt.max_projection_strain:
                 self._check_projection_strain(x_hat, z, step)
-        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, model.scalar(1.0 / self.dt)],
+        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, inv_dt],
                   outputs=[state_out.particle_x, state_out.particle_v])
 
     def _gather(self, cloth_x: wp.array, obstacle_x: wp.array, recording: bool) -> wp.array:

@@ -72,10 +72,13 @@ class SystemAssembler:
         return launches
 
     # -- assembly --------------------------------------------------------------------------------------------------
-    def assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv, dv=None) -> None:
+    def assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv, dv=None,
+                 explicit=None) -> None:
         """Fill ``values`` (BSR blocks of A) and ``rhs`` (b) of the implicit system for one step.
 
         ``dv`` is the buffer the solve will write; given while recording, the element kernels' adjoint uses it.
+        ``explicit``: (positions, velocities) the explicit wind force is evaluated at (BDF2's extrapolation);
+        ``state_in``'s when None.
         """
         model = self.model
         dt = model.scalar(self.dt)
@@ -99,12 +102,13 @@ class SystemAssembler:
         if custom:
             self._record_element_adjoint(state_in, pin_dv, rhs, dv)
         if model.wind_velocity is not None:
-            x_normal = x
+            x_wind, v_wind = explicit if explicit is not None else (x, v)
+            x_normal = x_wind
             if model.wind_lagged_normals and state_in.particle_x_previous is not None:
                 x_normal = state_in.particle_x_previous  # continuing a trajectory: the previous step's start
             wp.launch(k.wind, model.tri_count, device=self.device,
                       inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.wind_velocity,
-                              model.wind_density, model.wind_drag, x_normal, v, dt],
+                              model.wind_density, model.wind_drag, x_normal, v_wind, dt],
                       outputs=[rhs])
         if model.handle_count:
             wp.launch(k.handles, model.handle_count, device=self.device,

@@ -100,8 +100,9 @@ class SolverOptions:
     """``"euler"``: ARCSim's linearised backward Euler (first order; reproduces the seed). ``"bdf2"``: the
     second-order backward differentiation formula (Choi and Ko 2002), written as a backward Euler step of 2/3 dt
     from the blend (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3, so it reuses the same assembly, solve and adjoint;
-    a trajectory's first step, which has no previous state, is backward Euler. Not yet with collisions or
-    proximity forces (ValueError)."""
+    a trajectory's first step, which has no previous state, is backward Euler. The explicit wind force is taken
+    at the extrapolation 2 x_n - x_{n-1}; contact detection runs from x_n, and the collision response's velocity
+    change is (z - x^) / (2/3 dt)."""
     collision: CollisionOptions = field(default_factory=CollisionOptions)
     """Options of the collision stage (used only by scenes with collisions)."""
 

@@ -73,7 +73,6 @@ class Simulator:
         self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity)
                           if ProximityForces.needed(model) else None)
         """Proximity repulsion and friction inside the implicit step, or None where the model has neither."""
-        self._check_integrator(self._options)
 
     # -- public ------------------------------------------------------------------------------------------------------
     @property
@@ -85,7 +84,6 @@ class Simulator:
     @options.setter
     def options(self, options: SolverOptions) -> None:
         options.validate()
-        self._check_integrator(options)
         self._options = options
         self.linear_solver.options = options
         if self.collision is not None:
@@ -113,17 +111,19 @@ class Simulator:
 
         clock = _PhaseClock(self.phase_seconds)
         # what the implicit step starts from: state_in, or BDF2's blend of it with the state before it
-        start, assembler = state_in, self.assembler
+        start, assembler, explicit = state_in, self.assembler, None
         bdf2 = self.options.integrator == "bdf2"
         if bdf2 and state_in.particle_x_last is not None:
-            start, assembler = self._bdf2_start(state_in, recording), self._bdf2_assembler()
+            start, explicit = self._bdf2_start(state_in, recording)
+            assembler = self._bdf2_assembler()
         dt = model.scalar(assembler.dt)
-        assembler.assemble(start, control, t_next, values, rhs, pin_dv, dv)
+        assembler.assemble(start, control, t_next, values, rhs, pin_dv, dv, explicit=explicit)
         clock.lap("assembly")
         obstacles = self._obstacle_points(control, state_in.time) if self.collision is not None else None
         pairs = None
         if self.proximity is not None:
-            pairs = self.proximity.assemble(state_in, *obstacles, pin_dv, dv, values, rhs, recording)
+            pairs = self.proximity.assemble(start, *obstacles, pin_dv, dv, values, rhs, recording,
+                                            implicit_dt=assembler.dt)
             clock.lap("proximity")
         self._solve(values, rhs, dv, start, state_out, step, pairs)
         clock.lap("solve")
@@ -141,12 +141,13 @@ class Simulator:
             candidate = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
             x_hat, v_hat = candidate.particle_x, candidate.particle_v
             wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[state_in.particle_x, state_in.particle_v, dv, dt, max_speed],
+                      inputs=[start.particle_x, start.particle_v, dv, dt, max_speed],
                       outputs=[x_hat, v_hat, self._status])
             # no NaN or runaway particle reaches the collision stage
             self._raise_if_diverged(candidate, t_next, step)
             clock.lap("integrate")
-            self.collision.resolve(state_in, x_hat, v_hat, *obstacles, state_out, step)
+            # detection runs from the true start positions (state_in), BDF2's blend being no configuration
+            self.collision.resolve(state_in, x_hat, v_hat, *obstacles, state_out, step, implicit_dt=assembler.dt)
             wp.launch(self.kernels.check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
                       record_tape=False)  # the projection's velocity change too
@@ -154,6 +155,13 @@ class Simulator:
         state_out.step = step
         state_out.particle_x_last = state_in.particle_x if bdf2 else None
         state_out.particle_v_last = state_in.particle_v if bdf2 else None
+        if bdf2 and self.collision is not None and self.collision.last["contacts"] > 0:
+            x_last, v_last = (wp.empty_like(a, requires_grad=recording) for a in (state_in.particle_x,
+                                                                                    state_in.particle_v))
+            wp.launch(k.bdf2_history, model.particle_count, device=self.device,
+                      inputs=[state_in.particle_x, state_in.particle_v, x_hat, state_out.particle_x,
+                              state_out.particle_v, model.scalar(self.dt)], outputs=[x_last, v_last])
+            state_out.particle_x_last, state_out.particle_v_last = x_last, v_last
         state_out.particle_x_previous = None
         if model.wind_lagged_normals:
             # ARCSim's face normals lag a step, except after a collision response that moved the cloth: it
@@ -164,32 +172,27 @@ class Simulator:
         clock.lap("collision" if self.collision is not None else "integrate")
         self._raise_if_diverged(state_out, t_next, step)
 
-    def _check_integrator(self, options: SolverOptions) -> None:
-        if options.integrator == "bdf2" and (self.collision is not None or self.proximity is not None):
-            raise ValueError("SolverOptions.integrator 'bdf2' does not handle collisions or proximity forces yet "
-                             "(the collision response's velocity update and CCD assume backward Euler); use 'euler' "
-                             "for scenes with obstacles or self-collision")
-
     def _bdf2_assembler(self) -> SystemAssembler:
         """The assembler of BDF2's steps: a backward Euler step of 2/3 dt (SolverOptions.integrator)."""
         if self._assembler_bdf2 is None:
             self._assembler_bdf2 = SystemAssembler(self.model, 2.0 * self.dt / 3.0)
         return self._assembler_bdf2
 
-    def _bdf2_start(self, state_in: State, recording: bool) -> State:
-        """BDF2's start point (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3 as a State (taped: gradients reach both
-        states); it hands on state_in's first guess, lagged normals and adjoint first guess, so the step reads it
-        as it would read state_in."""
+    def _bdf2_start(self, state_in: State, recording: bool) -> tuple[State, tuple[wp.array, wp.array]]:
+        """BDF2's start point (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3 as a State, and the extrapolation
+        (2 x_n - x_{n-1}, 2 v_n - v_{n-1}) the explicit forces are taken at (one taped kernel: gradients reach both
+        states). The State hands on state_in's first guess, lagged normals and adjoint first guess, so the step
+        reads it as it would read state_in."""
         model = self.model
-        x = wp.empty_like(state_in.particle_x, requires_grad=recording)
-        v = wp.empty_like(state_in.particle_v, requires_grad=recording)
+        x, v, x_ahead, v_ahead = (wp.empty_like(a, requires_grad=recording) for a in (
+            state_in.particle_x, state_in.particle_v, state_in.particle_x, state_in.particle_v))
         wp.launch(self.kernels.bdf2_blend, model.particle_count, device=self.device,
                   inputs=[state_in.particle_x, state_in.particle_v, state_in.particle_x_last,
-                          state_in.particle_v_last], outputs=[x, v])
+                          state_in.particle_v_last], outputs=[x, v, x_ahead, v_ahead])
         start = State(x, v, state_in.time, step=state_in.step, particle_dv=state_in.particle_dv,
                       particle_x_previous=state_in.particle_x_previous)
         start.solve_adjoint = state_in.solve_adjoint
-        return start
+        return start, (x_ahead, v_ahead)
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
         """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
