@@ -96,18 +96,19 @@ DIFFSIM_TARGET_SPEEDUP = 5.0
 SWEEPS = {
     "warpcloth": (20, 50, 100, 250, 500, 1000),
     "warpcloth-fast": (20, 50, 100, 250, 500, 1000),
+    "warpcloth-bdf2": (20, 50, 100, 250, 500, 1000),
     "vbd": (60, 150, 300, 600),
     "style3d": (60, 120, 240),
     "xpbd": (600, 1200, 2400, 4800),  # its Jacobi-style constraint solve needs small steps once springs are stiff
     "semi_implicit": (960, 1920, 3840, 7680),
 }
 SOLVERS = tuple(SWEEPS)
-DEFAULT_SOLVERS = ("warpcloth", "vbd", "style3d", "xpbd", "semi_implicit")
-WARPCLOTH = ("warpcloth", "warpcloth-fast")
+DEFAULT_SOLVERS = ("warpcloth", "warpcloth-bdf2", "vbd", "style3d", "xpbd", "semi_implicit")
+WARPCLOTH = ("warpcloth", "warpcloth-fast", "warpcloth-bdf2")
 BLOWUP_M = 50.0  # a particle this far from the origin: the run diverged
 
 NEWTON_HINT = ('newton is not installed: pip install -e ".[bench]" (Newton 1.8.0); '
-               "--solvers warpcloth,warpcloth-fast runs the warpcloth side alone")
+               "--solvers warpcloth,warpcloth-fast,warpcloth-bdf2 runs the warpcloth side alone")
 
 
 # -- scene -----------------------------------------------------------------------------------------------------------
@@ -250,8 +251,10 @@ BUILDERS = {"vbd": build_vbd, "style3d": build_style3d, "xpbd": build_xpbd, "sem
 def build(solver: str, res: int):
     if solver == "warpcloth":
         return build_warpcloth(res, wc.SolverOptions())
-    if solver == "warpcloth-fast":  # the library's "fast" preset: cg_tol 1e-3
+    if solver == "warpcloth-fast":  # the library's "fast" preset: BDF2, cg_tol 1e-3
         return build_warpcloth(res, wc.solver_preset("fast").options)
+    if solver == "warpcloth-bdf2":  # the second-order integrator at the default tolerance
+        return build_warpcloth(res, wc.SolverOptions(integrator="bdf2"))
     return BUILDERS[solver](res)
 
 
@@ -608,7 +611,8 @@ def diffsim(iters: int, with_newton: bool, dt_error: bool = True) -> dict:
 def options(p) -> None:
     p.add_argument("--res", default=None, help="comma-separated grid resolutions (default 32,64; --quick: 8)")
     p.add_argument("--solvers", default=",".join(DEFAULT_SOLVERS),
-                   help=f"comma-separated, from {','.join(SOLVERS)} (warpcloth-fast: the 'fast' preset, cg_tol 1e-3)")
+                   help=f"comma-separated, from {','.join(SOLVERS)} (warpcloth-fast: the 'fast' preset, cg_tol 1e-3; "
+                        "warpcloth-bdf2: SolverOptions(integrator='bdf2'))")
     p.add_argument("--t-end", type=float, default=None, help=f"simulated time of every run [s] (default {T_END:g}; "
                    "--quick: 0.1)")
     p.add_argument("--sweep-points", type=int, default=None,

@@ -343,8 +343,9 @@ def components(d: dict) -> str:
     return "\n".join(out)
 
 
-PEER_NAMES = {"warpcloth": "warpcloth", "warpcloth-fast": "warpcloth `fast`", "vbd": "Newton VBD",
-              "style3d": "Newton Style3D", "xpbd": "Newton XPBD", "semi_implicit": "Newton SemiImplicit"}
+PEER_NAMES = {"warpcloth": "warpcloth", "warpcloth-fast": "warpcloth `fast`", "warpcloth-bdf2": "warpcloth BDF2",
+              "vbd": "Newton VBD", "style3d": "Newton Style3D", "xpbd": "Newton XPBD",
+              "semi_implicit": "Newton SemiImplicit"}
 
 
 def peers(d: dict) -> str:
@@ -441,6 +442,21 @@ def tradeoff_findings(d: dict) -> str:
                  + ", ".join(g(r["err_pct"], 3) for r in dts) + " % at dt " + ", ".join(frac(r["dt"]) for r in dts)
                  + f"; the gradient's error follows ({g(dts[0]['grad_err_pct'], 2)} … "
                  f"{g(dts[-1]['grad_err_pct'], 2)} %).")
+    bdf2 = [r for r in fam(hang, "bdf2") if "err_pct" in r]
+    if bdf2:
+        euler = {r["dt"]: r for r in dts}
+        pairs = [(euler[r["dt"]], r) for r in bdf2 if r["dt"] in euler]
+        s_euler = {r["dt"]: r for r in fam(sph, "dt") if "err_pct" in r}
+        s_pairs = [(s_euler[r["dt"]], r) for r in fam(sph, "bdf2") if "err_pct" in r and r["dt"] in s_euler]
+        lines.append("- **BDF2** (`SolverOptions(integrator=\"bdf2\")`) at the same steps: hanging-sheet error "
+                     + ", ".join(g(b["err_pct"], 3) for _, b in pairs) + " % (gradient "
+                     + ", ".join(g(b["grad_err_pct"], 2) for _, b in pairs) + " %) at dt "
+                     + ", ".join(frac(b["dt"]) for _, b in pairs) + ", for "
+                     + "–".join(f"{x:.1f}" for x in sorted({min(b["wall_s"] / e["wall_s"] for e, b in pairs),
+                                                            max(b["wall_s"] / e["wall_s"] for e, b in pairs)}))
+                     + "× backward Euler's forward time. On the sphere, where contact restarts its history, "
+                     + ", ".join(f"{g(b['err_pct'], 3)} % against {g(e['err_pct'], 3)} %" for e, b in s_pairs)
+                     + " at dt " + ", ".join(frac(b["dt"]) for _, b in s_pairs) + ".")
     tols = [r for r in fam(hang, "cg_tol") if "solve_err_pct" in r]
     tight = max(tols, key=lambda r: -r["cg_tol"])
     loose = [r for r in tols if r["cg_tol"] >= 1e-3]

@@ -6,8 +6,9 @@ Scenes (1 m square of gray-interlock, thicken 2, float32 unless a row says other
     sphere    horizontal sheet dropped 0.1 m onto a 0.3 m sphere and draped over it, 16x16, T = 0.3 s
 
 Reference: the same scene in float64 at a finer time step than any in the sweep (hanging 1/2000 s, sphere 1/800 s),
-CG tolerance 1e-10 (resolution rows: the finest mesh at the row's dt, compared on the 9x9 lattice of material points
-every grid shares; thickness rows: a reference with the row's thickness).
+with the second-order integrator (SolverOptions(integrator="bdf2")), CG tolerance 1e-10 (resolution rows: the
+finest mesh at the row's dt and with its integrator, compared on the 9x9 lattice of material points every grid
+shares; thickness rows: a reference with the row's thickness).
 The hanging sheet flaps: trajectories with different time steps drift apart after about half a second (dt 1/50
 against 1/1000 in float64: 4 % at 0.2 s, 9 % at 0.4 s, 17 % at 0.6 s, and beyond 0.6 s no longer smaller for smaller
 dt), so its horizon is 0.4 s; a longer one would measure the flapping's sensitivity, not the solver. Likewise the
@@ -189,6 +190,12 @@ def sweeps(scene: str, quick: bool) -> list[tuple[str, str, dict]]:
         dts = dts[:2]
     for dt in dts:
         rows.append(("dt", f"dt 1/{round(1 / dt)}", {"dt": dt, "options": wc.SolverOptions(cg_tol=1e-8)}))
+    for dt in dts:  # the second-order integrator (SolverOptions.integrator) at the same steps
+        rows.append(("bdf2", f"bdf2 dt 1/{round(1 / dt)}",
+                     {"dt": dt, "options": wc.SolverOptions(cg_tol=1e-8, integrator="bdf2")}))
+    for dt in ([1 / 50, 1 / 100, 1 / 200] if not quick else []):
+        rows.append(("bdf2+cg_tol 1e-3", f"bdf2 dt 1/{round(1 / dt)} tol 1e-3",
+                     {"dt": dt, "options": wc.SolverOptions(cg_tol=1e-3, integrator="bdf2")}))
     for dt in ([1 / 100, 1 / 200, 1 / 400] if not quick else []):  # small steps with a loose solve
         rows.append(("dt+cg_tol 1e-3", f"dt 1/{round(1 / dt)} tol 1e-3", {"dt": dt,
                                                                         "options": wc.SolverOptions(cg_tol=1e-3)}))
@@ -222,9 +229,13 @@ SOLVER_FAMILIES = ("cg_tol", "adjoint_cg_tol", "cg_max_iters", "dtype", "collisi
 """Rows also scored against the tight float64 solve at their own dt (solve_err_pct, solve_grad_err_pct)."""
 
 
-def reference(scene: str, res: int, thickness: float = 5.0e-4, dt: float | None = None) -> dict:
+def reference(scene: str, res: int, thickness: float = 5.0e-4, dt: float | None = None,
+              integrator: str = "euler") -> dict:
+    """A tight float64 run: at the scene's finest step with BDF2 (the accuracy reference), or at a row's own step
+    and integrator (what the row's solver settings or mesh alone cost)."""
     _, _, _, fine_dt, _ = SCENES[scene]
-    opts = wc.SolverOptions(cg_tol=REF_TOL, cg_max_iters=10_000, collision=wc.CollisionOptions(rounds=100))
+    opts = wc.SolverOptions(cg_tol=REF_TOL, cg_max_iters=10_000, integrator=integrator,
+                            collision=wc.CollisionOptions(rounds=100))
     return run(scene, res=res, dt=dt or fine_dt, dtype=wp.float64, thickness=thickness, options=opts)
 
 
@@ -248,9 +259,10 @@ def measure(scene: str, quick: bool, progress) -> list[dict]:
             # resolution: against the finest mesh at the same dt (the discretisation of space alone)
             score(row, ref_for(("res", finest), res=finest, dt=row["dt"]), compare_lattice=True)
         elif family == "thickness":
-            score(row, ref_for(("thickness", kw["thickness"]), res=MODE["base_res"], thickness=kw["thickness"]))
+            score(row, ref_for(("thickness", kw["thickness"]), res=MODE["base_res"], thickness=kw["thickness"],
+                               integrator="bdf2"))
         else:
-            score(row, ref_for(("base",), res=MODE["base_res"]))
+            score(row, ref_for(("base",), res=MODE["base_res"], integrator="bdf2"))
         if family in SOLVER_FAMILIES:
             # the same discrete system solved tightly: what the solver settings alone cost in accuracy
             same = score(dict(row), ref_for(("dt", row["dt"]), res=MODE["base_res"], dt=row["dt"]))
