@@ -257,7 +257,7 @@ def measure(scene: str, quick: bool, progress) -> list[dict]:
         row.update(family=family, label=label)
         if family == "res":
             # resolution: against the finest mesh at the same dt (the discretisation of space alone)
-            score(row, ref_for(("res", finest), res=finest, dt=row["dt"]), compare_lattice=True)
+            score(row, ref_for(("res", finest), res=finest, dt=row["dt"]), compare_lattice=True)  # Euler rows
         elif family == "thickness":
             score(row, ref_for(("thickness", kw["thickness"]), res=MODE["base_res"], thickness=kw["thickness"],
                                integrator="bdf2"))
@@ -265,7 +265,9 @@ def measure(scene: str, quick: bool, progress) -> list[dict]:
             score(row, ref_for(("base",), res=MODE["base_res"], integrator="bdf2"))
         if family in SOLVER_FAMILIES:
             # the same discrete system solved tightly: what the solver settings alone cost in accuracy
-            same = score(dict(row), ref_for(("dt", row["dt"]), res=MODE["base_res"], dt=row["dt"]))
+            integrator = kw.get("options", wc.SolverOptions()).integrator
+            same = score(dict(row), ref_for(("dt", row["dt"], integrator), res=MODE["base_res"], dt=row["dt"],
+                                            integrator=integrator))
             row["solve_err_pct"], row["solve_grad_err_pct"] = same.get("err_pct"), same.get("grad_err_pct")
         rows.append(row)
         progress(row)

@@ -153,7 +153,8 @@ class Scene:
         self.dt = float(dt)
 
     def check_frame_memory(self) -> None:
-        """Raise ValueError if keeping every frame of ``steps`` steps would take more than MAX_FRAME_BYTES."""
+        """Raise ValueError if keeping every frame of ``steps`` steps would take more than MAX_FRAME_BYTES (8 bytes
+        per coordinate: write_usd holds the frames in float64 while it writes them)."""
         need = (self.steps + 1) * self.model_builder.particle_count * 3 * 8
         if need > self.MAX_FRAME_BYTES:
             most = self.MAX_FRAME_BYTES // (self.model_builder.particle_count * 3 * 8) - 1

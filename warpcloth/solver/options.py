@@ -93,7 +93,10 @@ class SolverOptions:
     """What a solve that misses its tolerance does: ``"warn"`` (with the residual) or ``"raise"``."""
     warm_start: bool = True
     """Start each CG solve from the previous solution (forward: the velocity change the input State carries;
-    adjoint: the later step's adjoint): fewer iterations, and results that differ only within the tolerance."""
+    adjoint: the later step's adjoint): fewer iterations, and results that differ only within the tolerance.
+    Extrapolating from the last two steps' velocity changes (2 dv_n - dv_{n-1}) was measured and rejected: 100.6 CG
+    iterations per step against 99.2 at 64x64, 34.2 against 34.5 at 16x16 (hanging sheet in the wind, dt 0.02,
+    steps 10-40; cold starts: 100.8 and 38.0)."""
     max_speed: float = 1.0e3
     """A particle faster than this [m/s], or a NaN/inf, raises SimulationError naming the step."""
     integrator: str = "euler"
