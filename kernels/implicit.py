@@ -401,7 +401,7 @@ def implicit_kernels(scalar):
         # the extrapolation to the step's end, 2 x_n - x_{n-1}, 2 v_n - v_{n-1} (as in IMEX BDF2): at the blend,
         # which lags the end by 2/3 dt, it would make the scheme first order
         i = wp.tid()
-        third = scalar(1.0 / 3.0)
+        third = scalar(1.0) / scalar(3.0)  # in the model's precision: scalar(1.0 / 3.0) rounds 1/3 to float32 first
         x_out[i] = third * (scalar(4.0) * x[i] - x_last[i])
         v_out[i] = third * (scalar(4.0) * v[i] - v_last[i])
         x_ahead[i] = scalar(2.0) * x[i] - x_last[i]
