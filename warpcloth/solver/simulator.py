@@ -57,9 +57,9 @@ class Simulator:
         self.last_solve = SolveInfo(0, 0.0, True)
         """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
-        self._atol_checked = False
-        self._assembler_bdf2: SystemAssembler | None = None
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
+        self._atol_checked = False  # the cg_atol floor is checked at the first skipped solve (_warn_if_below_atol)
+        self._assembler_bdf2: SystemAssembler | None = None  # made at the first BDF2 step
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
         measures launch, not execution, unless the device synchronises)."""
