@@ -404,8 +404,9 @@ def implicit_kernels(scalar):
         third = scalar(1.0) / scalar(3.0)  # in the model's precision: scalar(1.0 / 3.0) rounds 1/3 to float32 first
         x_out[i] = third * (scalar(4.0) * x[i] - x_last[i])
         v_out[i] = third * (scalar(4.0) * v[i] - v_last[i])
-        x_ahead[i] = scalar(2.0) * x[i] - x_last[i]
-        v_ahead[i] = scalar(2.0) * v[i] - v_last[i]
+        if x_ahead.shape[0] > 0:  # empty without explicit forces (no wind): nothing to extrapolate
+            x_ahead[i] = scalar(2.0) * x[i] - x_last[i]
+            v_ahead[i] = scalar(2.0) * v[i] - v_last[i]
 
     @wp.kernel
     def bdf2_history(

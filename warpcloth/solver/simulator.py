@@ -178,21 +178,23 @@ class Simulator:
             self._assembler_bdf2 = SystemAssembler(self.model, 2.0 * self.dt / 3.0)
         return self._assembler_bdf2
 
-    def _bdf2_start(self, state_in: State, recording: bool) -> tuple[State, tuple[wp.array, wp.array]]:
-        """BDF2's start point (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3 as a State, and the extrapolation
-        (2 x_n - x_{n-1}, 2 v_n - v_{n-1}) the explicit forces are taken at (one taped kernel: gradients reach both
-        states). The State hands on state_in's first guess, lagged normals and adjoint first guess, so the step
-        reads it as it would read state_in."""
+    def _bdf2_start(self, state_in: State, recording: bool) -> tuple[State, tuple[wp.array, wp.array] | None]:
+        """BDF2's start point (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3 as a State, and, for a model with wind,
+        the extrapolation (2 x_n - x_{n-1}, 2 v_n - v_{n-1}) the explicit force is taken at (None without wind).
+        One taped kernel: gradients reach both states. The State hands on state_in's first guess, lagged normals and
+        adjoint first guess, so the step reads it as it would read state_in."""
         model = self.model
-        x, v, x_ahead, v_ahead = (wp.empty_like(a, requires_grad=recording) for a in (
-            state_in.particle_x, state_in.particle_v, state_in.particle_x, state_in.particle_v))
+        x, v = (wp.empty_like(a, requires_grad=recording) for a in (state_in.particle_x, state_in.particle_v))
+        ahead = model.particle_count if model.wind_velocity is not None else 0
+        x_ahead, v_ahead = (wp.empty(ahead, dtype=model.types.vec3, device=self.device, requires_grad=recording)
+                            for _ in range(2))
         wp.launch(self.kernels.bdf2_blend, model.particle_count, device=self.device,
                   inputs=[state_in.particle_x, state_in.particle_v, state_in.particle_x_last,
                           state_in.particle_v_last], outputs=[x, v, x_ahead, v_ahead])
         start = State(x, v, state_in.time, step=state_in.step, particle_dv=state_in.particle_dv,
                       particle_x_previous=state_in.particle_x_previous)
         start.solve_adjoint = state_in.solve_adjoint
-        return start, (x_ahead, v_ahead)
+        return start, ((x_ahead, v_ahead) if ahead else None)
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
         """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
