@@ -113,6 +113,183 @@ def linear_kernels(scalar):
             rz += wp.float64(wp.dot(r[i], zi))
         return rz
 
+    @wp.struct
+    class Multigrid:
+        # An aggregation hierarchy (warpcloth/solver/multigrid.py) for the multigrid preconditioner. Nodes of all
+        # levels are numbered in one flat range: level l is [level_start[l], level_start[l + 1]), level 0 the
+        # model's particles. The coarse levels' rows (flat node f >= level_start[1]) are row f - level_start[1] of
+        # offsets/diag_slot, with flat column ids and sorted columns; their blocks are Galerkin sums P^T A P for a
+        # piecewise-constant P, so every fine block just adds into one coarse slot.
+        levels: int
+        level_start: wp.array(dtype=wp.int32)
+        aggregate: wp.array(dtype=wp.int32)  # flat node -> its aggregate on the next level (-1: pinned, none)
+        fine_slot: wp.array(dtype=wp.int32)  # fine block -> level-1 block (-1: a pinned row or column)
+        coarse_slot: wp.array(dtype=wp.int32)  # coarse block -> next level's block (-1 on the coarsest level)
+        offsets: wp.array(dtype=wp.int32)
+        columns: wp.array(dtype=wp.int32)
+        diag_slot: wp.array(dtype=wp.int32)
+        values: wp.array(dtype=mat33)
+        factor: wp.array2d(dtype=wp.float64)  # the coarsest level as a dense matrix, then its Cholesky factor
+        # scratch: the coarse levels' right-hand sides and corrections (flat; the fine part is unused), and the
+        # dense solve's vector
+        b: wp.array(dtype=vec3)
+        x: wp.array(dtype=vec3)
+        work: wp.array(dtype=wp.float64)
+
+    @wp.func
+    def smooth_down(
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        diag_slot: wp.array(dtype=wp.int32),
+        values: wp.array(dtype=mat33),
+        row_base: int,
+        lo: int,
+        hi: int,
+        dinv: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        aggregate: wp.array(dtype=wp.int32),
+        coarse_rhs: wp.array(dtype=vec3),
+    ):
+        """One forward block Gauss-Seidel sweep from x = 0 on rows [lo, hi), then the residual restricted to the
+        next level: with (D + L) x = rhs the residual is -U x, so only the upper blocks are read again."""
+        for i in range(lo, hi):
+            row = i - row_base
+            s = rhs[i]
+            for k in range(offsets[row], diag_slot[row]):
+                s -= values[k] * x[columns[k]]
+            x[i] = dinv[i] * s
+        for i in range(lo, hi):
+            a = aggregate[i]
+            if a >= 0:
+                row = i - row_base
+                s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+                for k in range(diag_slot[row] + 1, offsets[row + 1]):
+                    s -= values[k] * x[columns[k]]
+                coarse_rhs[a] = coarse_rhs[a] + s
+
+    @wp.func
+    def smooth_up(
+        offsets: wp.array(dtype=wp.int32),
+        columns: wp.array(dtype=wp.int32),
+        diag_slot: wp.array(dtype=wp.int32),
+        values: wp.array(dtype=mat33),
+        row_base: int,
+        lo: int,
+        hi: int,
+        dinv: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        aggregate: wp.array(dtype=wp.int32),
+        coarse_x: wp.array(dtype=vec3),
+    ):
+        """Add the next level's correction, then one backward block Gauss-Seidel sweep (the transpose of the
+        forward one, so the V-cycle is symmetric)."""
+        for i in range(lo, hi):
+            a = aggregate[i]
+            if a >= 0:
+                x[i] = x[i] + coarse_x[a]
+        for ii in range(hi - lo):
+            i = hi - 1 - ii
+            row = i - row_base
+            s = rhs[i]
+            for k in range(offsets[row], offsets[row + 1]):
+                s -= values[k] * x[columns[k]]
+            x[i] = x[i] + dinv[i] * s
+
+    @wp.func
+    def multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33)):
+        """The coarse levels' blocks (Galerkin sums), their diagonal inverses, and the Cholesky factor of the
+        coarsest level. Returns False if a pivot is not positive (A is not positive definite)."""
+        n0 = mg.level_start[1]
+        total = mg.level_start[mg.levels]
+        zero = mat33()
+        for k in range(mg.values.shape[0]):
+            mg.values[k] = zero
+        for k in range(A.offsets[n0]):
+            slot = mg.fine_slot[k]
+            if slot >= 0:
+                mg.values[slot] = mg.values[slot] + A.values[k]
+        # a level's blocks all precede the next level's, so one pass in order completes each level before it is read
+        for k in range(mg.values.shape[0]):
+            slot = mg.coarse_slot[k]
+            if slot >= 0:
+                mg.values[slot] = mg.values[slot] + mg.values[k]
+        for f in range(n0, total):
+            dinv[f] = wp.inverse(mg.values[mg.diag_slot[f - n0]])
+        lo = mg.level_start[mg.levels - 1]
+        m = 3 * (total - lo)
+        F = mg.factor
+        for a in range(m):
+            for b in range(m):
+                F[a, b] = wp.float64(0.0)
+        for f in range(lo, total):
+            row = f - n0
+            for k in range(mg.offsets[row], mg.offsets[row + 1]):
+                c = mg.columns[k] - lo
+                block = mg.values[k]
+                for a in range(3):
+                    for b in range(3):
+                        F[3 * (f - lo) + a, 3 * c + b] = wp.float64(block[a, b])
+        ok = bool(True)
+        for j in range(m):
+            d = F[j, j]
+            for k in range(j):
+                d -= F[j, k] * F[j, k]
+            if d <= wp.float64(0.0):
+                ok = False
+                d = wp.float64(1.0)
+            d = wp.sqrt(d)
+            F[j, j] = d
+            for i in range(j + 1, m):
+                e = F[i, j]
+                for k in range(j):
+                    e -= F[i, k] * F[j, k]
+                F[i, j] = e / d
+        return ok
+
+    @wp.func
+    def multigrid_apply(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), r: wp.array(dtype=vec3),
+                        z: wp.array(dtype=vec3)):
+        """z = one symmetric V-cycle on r (forward Gauss-Seidel down, a dense solve on the coarsest level,
+        backward Gauss-Seidel up). Returns r.z (float64)."""
+        n0 = mg.level_start[1]
+        total = mg.level_start[mg.levels]
+        last = mg.levels - 1
+        zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        for f in range(n0, total):
+            mg.b[f] = zero
+        smooth_down(A.offsets, A.columns, A.diag_slot, A.values, 0, 0, n0, dinv, r, z, mg.aggregate, mg.b)
+        for level in range(1, last):
+            smooth_down(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.level_start[level],
+                        mg.level_start[level + 1], dinv, mg.b, mg.x, mg.aggregate, mg.b)
+        lo = mg.level_start[last]
+        m = 3 * (total - lo)
+        F, w = mg.factor, mg.work
+        for i in range(m):
+            s = wp.float64(mg.b[lo + i // 3][i % 3])
+            for k in range(i):
+                s -= F[i, k] * w[k]
+            w[i] = s / F[i, i]
+        for ii in range(m):
+            i = m - 1 - ii
+            s = w[i]
+            for k in range(i + 1, m):
+                s -= F[k, i] * w[k]
+            w[i] = s / F[i, i]
+        for f in range(lo, total):
+            j = 3 * (f - lo)
+            mg.x[f] = vec3(scalar(w[j]), scalar(w[j + 1]), scalar(w[j + 2]))
+        for level_down in range(1, last):
+            level = last - level_down
+            smooth_up(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.level_start[level],
+                      mg.level_start[level + 1], dinv, mg.b, mg.x, mg.aggregate, mg.x)
+        smooth_up(A.offsets, A.columns, A.diag_slot, A.values, 0, 0, n0, dinv, r, z, mg.aggregate, mg.x)
+        rz = wp.float64(0.0)
+        for i in range(n0):
+            rz += wp.float64(wp.dot(r[i], z[i]))
+        return rz
+
     @wp.kernel
     def cg_sequential(
         A: BlockMatrix,
@@ -122,6 +299,7 @@ def linear_kernels(scalar):
         max_iters: int,
         preconditioner: int,
         omega: scalar,
+        mg: Multigrid,
         warm_start: int,
         guess: wp.array(dtype=vec3),
         # scratch:
@@ -136,7 +314,8 @@ def linear_kernels(scalar):
     ):
         # Launched with dim 1: the whole preconditioned CG loop runs on one thread. Dot products accumulate in
         # float64 so float32 systems still reach tight relative tolerances. preconditioner: 0 Jacobi,
-        # 1 block Jacobi, 2 block SSOR (its sequential sweeps suit the one-thread loop; ~3x fewer iterations).
+        # 1 block Jacobi, 2 block SSOR (its sequential sweeps suit the one-thread loop; ~3x fewer iterations),
+        # 3 multigrid (``mg``: a symmetric V-cycle over an aggregation hierarchy).
         # With warm_start, the solve starts from ``guess`` (which may be x itself), else from zero.
         n = b.shape[0]
         offsets, columns, diag_slot, values = A.offsets, A.columns, A.diag_slot, A.values
@@ -144,6 +323,7 @@ def linear_kernels(scalar):
             for i in range(n):
                 x[i] = guess[i]
         ssor = preconditioner == 2
+        multigrid = preconditioner == 3
         bb = wp.float64(0.0)
         rr = wp.float64(0.0)
         rz = wp.float64(0.0)
@@ -161,7 +341,15 @@ def linear_kernels(scalar):
             add_pair_products(A, x, r, scalar(-1.0))
         for i in range(n):
             rr += wp.float64(wp.dot(r[i], r[i]))
-        if ssor:
+        if multigrid:
+            if not multigrid_setup(A, mg, precond):
+                # a coarse pivot <= 0: A is not positive definite; report it as a non-finite residual
+                info[0] = wp.float64(0.0)
+                info[1] = wp.float64(wp.nan)
+                info[2] = wp.float64(0.0)
+                return
+            rz = multigrid_apply(A, mg, precond, r, z)
+        elif ssor:
             rz = ssor_apply(A, precond, omega, r, q, z)
         else:
             for i in range(n):
@@ -196,10 +384,12 @@ def linear_kernels(scalar):
                 x[i] = x[i] + alpha * p[i]
                 r[i] = r[i] - alpha * q[i]
                 rr += wp.float64(wp.dot(r[i], r[i]))
-                if not ssor:
+                if preconditioner < 2:
                     z[i] = precond[i] * r[i]
                     rz_new += wp.float64(wp.dot(r[i], z[i]))
-            if ssor:
+            if multigrid:
+                rz_new = multigrid_apply(A, mg, precond, r, z)
+            elif ssor:
                 rz_new = ssor_apply(A, precond, omega, r, q, z)
             beta = scalar(rz_new / rz)
             rz = rz_new
@@ -234,6 +424,7 @@ def linear_kernels(scalar):
 
     return SimpleNamespace(
         BlockMatrix=BlockMatrix,
+        Multigrid=Multigrid,
         cg_sequential=cg_sequential,
         pair_product=pair_product,
         solve_adjoint_scatter=solve_adjoint_scatter,

@@ -163,10 +163,14 @@ def test_cross_blocks_of_cloth_cloth_pairs_match_a_dense_solve(backend):
 
 
 def test_warp_backend_gradients_equal_the_sequential_ones_with_pairs():
+    # Both with block Jacobi: the third step is near a kink of the contact response. At cg_tol 1e-13 the multigrid's
+    # solution lands on its other side and its gradient differs from block Jacobi's by 2e-9 (by < 1e-10 at cg_tol
+    # 1e-11 and 1e-14), so only the same preconditioner on both backends tests the backends at 1e-8.
     grads = {}
     for backend in ("sequential", "warp"):
         model = two_sheets_on_a_plane()
-        sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30, cg_backend=backend))
+        sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30, cg_backend=backend,
+                                                                 preconditioner="block_jacobi"))
         state = model.state()
         tape = wp.Tape()
         with tape:

@@ -15,6 +15,7 @@ import warp as wp
 from warpcloth.errors import SimulationError
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Model
+from warpcloth.solver.multigrid import Hierarchy
 from warpcloth.solver.options import SolverOptions
 from warpcloth.tape import record_adjoint, untaped
 
@@ -52,16 +53,31 @@ class LinearSolver:
         """``"sequential"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
         preconditioner = options.preconditioner
         if preconditioner == "auto":
-            preconditioner = "block_ssor" if backend == "sequential" else "block_jacobi"
-        if preconditioner == "block_ssor" and backend != "sequential":
-            raise ValueError("SolverOptions.preconditioner 'block_ssor' needs cg_backend 'sequential' (its sweeps are "
-                             "sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
+            if backend != "sequential":
+                preconditioner = "block_jacobi"
+            else:  # a model whose particles are all pinned has nothing to coarsen
+                preconditioner = "multigrid" if (model.particle_pin.numpy() < 0).any() else "block_ssor"
+        if preconditioner in ("block_ssor", "multigrid") and backend != "sequential":
+            raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' (its "
+                             "sweeps are sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
         self.preconditioner = preconditioner
         """The preconditioner ``preconditioner`` resolved to."""
         n = model.particle_count
         vec3, mat33 = model.types.vec3, model.types.mat33
         self._scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
-        self._precond = wp.empty(n, dtype=mat33, device=self.device)
+        if preconditioner == "multigrid":
+            hierarchy = Hierarchy(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
+                                  model.particle_pin.numpy() >= 0)
+            self._multigrid = hierarchy.multigrid(self.kernels, model.scalar, self.device)
+            self.multigrid_levels = tuple(hierarchy.sizes)
+            """Nodes per level of the multigrid hierarchy, the particles first (empty without multigrid)."""
+        else:
+            self._multigrid = self.kernels.Multigrid()  # unused: an empty hierarchy
+            self._multigrid.levels = 0
+            self.multigrid_levels = ()
+        # the block inverses of the diagonal: the particles', then (multigrid) every coarse level's
+        self._precond = wp.empty(self._multigrid.b.shape[0] if self._multigrid.levels else n, dtype=mat33,
+                                 device=self.device)
         self._info = wp.zeros(3, dtype=wp.float64, device=self.device)
         # on the CPU the host view shares memory: reading it costs no copy and no launch
         self._info_host = self._info.numpy() if self.device.is_cpu else None
@@ -87,12 +103,13 @@ class LinearSolver:
         if self.backend == "warp":
             with untaped():  # its adjoint is the one solve_recorded records
                 return self._solve_warp(values, b, x, tol, guess, pairs)
-        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2}[self.preconditioner]
+        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}[self.preconditioner]
         r, z, p, q = self._scratch
         wp.launch(self.kernels.cg_sequential, 1, device=self.device,
                   inputs=[self.block_matrix(values, pairs), b,
                           float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
-                          model.scalar(opt.ssor_omega), int(guess is not None), x if guess is None else guess,
+                          model.scalar(opt.ssor_omega), self._multigrid, int(guess is not None),
+                          x if guess is None else guess,
                           r, z, p, q, self._precond],
                   outputs=[x, self._info], record_tape=False)
         info = self._info_host if self._info_host is not None else self._info.numpy()
@@ -155,6 +172,10 @@ class LinearSolver:
         non-finite residual."""
         iters, residual, converged = info
         opt = self.options
+        if not math.isfinite(residual):
+            raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual after {iters} "
+                                  "iterations; the system is not positive definite or the state is already invalid"
+                                  + self.hint())
         if not converged:
             name, tol = "cg_tol", opt.cg_tol
             if which == "adjoint" and opt.adjoint_cg_tol is not None:
@@ -163,12 +184,9 @@ class LinearSolver:
                    f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
                    "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
                    + self.hint())
-            if not math.isfinite(residual) or opt.on_cg_failure == "raise":
+            if opt.on_cg_failure == "raise":
                 raise SimulationError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=4)
-        elif not math.isfinite(residual):
-            raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual; "
-                                  "the system is not positive definite or the state is already invalid")
 
     def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None, pairs) -> SolveInfo:
         """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path), plus the pairs' cross blocks as a

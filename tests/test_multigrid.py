@@ -1,0 +1,176 @@
+"""The multigrid preconditioner: its aggregation hierarchy (every free particle in one aggregate, Galerkin blocks
+equal to the dense P^T A P), its solves against dense ones, and that it is a stronger preconditioner than block
+SSOR (fewer iterations on the same system)."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+from warpcloth.errors import SimulationError
+from warpcloth.solver.multigrid import MAX_COARSEST, Hierarchy
+
+ROT_XZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def hanging(res, dtype=wp.float64, pins=(0,)):
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((res, res), (0.5, 0.5), material=wc.preset("gray-interlock", thicken=2), rot=ROT_XZ)
+    for p in pins:
+        b.add_pin(p)
+    b.add_handle(res)
+    b.set_wind((0.0, 4.0, 1.0))
+    return b.finalize("cpu", dtype=dtype)
+
+
+def hierarchy_of(model):
+    return Hierarchy(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
+                     model.particle_pin.numpy() >= 0)
+
+
+def prolongations(h):
+    """Dense piecewise-constant prolongations (3 n_l x 3 n_{l+1}) of each level, from the flat aggregate map."""
+    start, agg = h.level_start, h.aggregate
+    out = []
+    for level in range(len(h.sizes) - 1):
+        n, m = h.sizes[level], h.sizes[level + 1]
+        P = np.zeros((n, m))
+        for i in range(n):
+            a = agg[start[level] + i]
+            if a >= 0:
+                P[i, a - start[level + 1]] = 1.0
+        out.append(np.kron(P, np.eye(3)))
+    return out
+
+
+def test_every_free_particle_is_in_one_aggregate_and_pinned_ones_in_none():
+    model = hanging(20, pins=(0, 5, 399))
+    h = hierarchy_of(model)
+    assert h.sizes[0] == model.particle_count and h.sizes[-1] <= MAX_COARSEST
+    assert all(a > b for a, b in zip(h.sizes, h.sizes[1:])), h.sizes
+    assert len(h.sizes) >= 3, "the test should reach a level coarsened from a Galerkin pattern"
+    pinned = model.particle_pin.numpy() >= 0
+    fine = h.aggregate[: h.sizes[0]]
+    np.testing.assert_array_equal(fine < 0, pinned)
+    # every aggregate of every level is used (no empty coarse node)
+    for level in range(len(h.sizes) - 1):
+        agg = h.aggregate[h.level_start[level]: h.level_start[level + 1]]
+        used = np.unique(agg[agg >= 0])
+        np.testing.assert_array_equal(used, np.arange(h.level_start[level + 1], h.level_start[level + 2]))
+
+
+def test_galerkin_slot_maps_equal_the_dense_triple_product():
+    model = hanging(20, pins=(0, 7))
+    h = hierarchy_of(model)
+    n = model.particle_count
+    offsets, columns = model.bsr_offsets.numpy(), model.bsr_columns.numpy()
+    rows = np.repeat(np.arange(n), np.diff(offsets))
+    rng = np.random.default_rng(1)
+    blocks = rng.standard_normal((len(columns), 3, 3))
+    # the pattern of a pinned particle carries no coupling (its row is the identity, its column is eliminated)
+    pinned = model.particle_pin.numpy() >= 0
+    blocks[pinned[rows] | pinned[columns]] = 0.0
+
+    def dense(level_blocks, level_offsets, level_columns, size, base):
+        A = np.zeros((size, 3, size, 3))
+        for i in range(size):
+            for k in range(level_offsets[i], level_offsets[i + 1]):
+                A[i, :, level_columns[k] - base, :] = level_blocks[k]
+        return A.reshape(3 * size, 3 * size)
+
+    coarse = np.zeros((len(h.columns), 3, 3))
+    np.add.at(coarse, h.fine_slot[h.fine_slot >= 0], blocks[h.fine_slot >= 0])
+    assert np.all(h.fine_slot[pinned[rows] | pinned[columns]] == -1)
+    for k in range(len(h.columns)):  # level by level, in order, as the kernel does
+        if h.coarse_slot[k] >= 0:
+            coarse[h.coarse_slot[k]] += coarse[k]
+    A = dense(blocks, offsets, columns, n, 0)
+    n0 = h.sizes[0]
+    for level, P in enumerate(prolongations(h)):
+        A = P.T @ A @ P
+        size, base = h.sizes[level + 1], h.level_start[level + 1]
+        rows_of_level = slice(base - n0, base - n0 + size + 1)
+        np.testing.assert_allclose(dense(coarse, h.offsets[rows_of_level], h.columns, size, base), A,
+                                   atol=1e-12 * np.abs(A).max())
+        diag = h.diag_slot[base - n0: base - n0 + size]
+        np.testing.assert_array_equal(h.columns[diag], base + np.arange(size))
+
+
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64])
+def test_multigrid_solve_matches_dense(dtype):
+    model = hanging(8, dtype=dtype, pins=(0, 3))
+    sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_tol=1e-12 if dtype == wp.float64 else 1e-6,
+                                                             cg_atol=1e-30, preconditioner="multigrid"))
+    assert sim.linear_solver.preconditioner == "multigrid" and len(sim.linear_solver.multigrid_levels) >= 2
+    state = wc.rollout(sim, model.state(), steps=3)[-1]
+    A, b = sim.dense_system(state)
+    values, rhs, _ = sim.assemble(state)
+    dv = wp.zeros_like(rhs)
+    info = sim.linear_solver.solve(values, rhs, dv)
+    assert info.converged
+    expected = np.linalg.solve(A, b)
+    tol = 1e-9 if dtype == wp.float64 else 2e-4
+    np.testing.assert_allclose(dv.numpy().reshape(-1), expected, atol=tol * np.abs(expected).max())
+
+
+def test_separate_pieces_coarsen_and_solve():
+    # 30 separate two-triangle patches: once each is one node, they have no neighbours left to aggregate with
+    b = wc.ModelBuilder()
+    for k in range(30):
+        b.add_cloth_grid((1, 1), (0.1, 0.1), material=wc.preset("gray-interlock"), pos=(0.2 * k, 0.0, 0.0))
+    model = b.finalize("cpu", dtype=wp.float64)
+    h = hierarchy_of(model)
+    assert h.sizes[0] == 120 and h.sizes[-1] <= MAX_COARSEST
+    sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30))
+    assert sim.linear_solver.preconditioner == "multigrid"
+    A, rhs = sim.dense_system(model.state())
+    values, b_arr, _ = sim.assemble(model.state())
+    dv = wp.zeros_like(b_arr)
+    assert sim.linear_solver.solve(values, b_arr, dv).converged
+    np.testing.assert_allclose(dv.numpy().reshape(-1), np.linalg.solve(A, rhs), rtol=1e-9, atol=1e-14)
+
+
+def test_multigrid_takes_fewer_iterations_than_block_ssor():
+    model = hanging(32, dtype=wp.float32)
+    sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(preconditioner="block_ssor"))
+    state = wc.rollout(sim, model.state(), steps=5)[-1]
+    values, rhs, _ = sim.assemble(state)
+    iterations = {}
+    for name in ("block_ssor", "multigrid"):
+        solver = wc.LinearSolver(model, wc.SolverOptions(preconditioner=name, cg_tol=1e-5))
+        dv = wp.zeros_like(rhs)
+        info = solver.solve(values, rhs, dv)
+        assert info.converged, name
+        iterations[name] = info.iterations
+    # measured: 15 against 50 (benchmarks/step_time.py has the 64x64 figures)
+    assert iterations["multigrid"] < 0.5 * iterations["block_ssor"], iterations
+
+
+def test_a_system_that_is_not_positive_definite_raises():
+    model = hanging(6)
+    solver = wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid"))
+    # negative definite: -I on the diagonal, no coupling; the coarse level's first pivot is negative
+    blocks = np.zeros((model.bsr_nnz, 3, 3))
+    blocks[model.particle_diag_slot.numpy()] = -np.eye(3)
+    values = wp.array(blocks, dtype=model.types.mat33)
+    rhs = wp.array(np.ones((model.particle_count, 3)), dtype=model.types.vec3)
+    info = solver.solve(values, rhs, wp.zeros_like(rhs))
+    assert not np.isfinite(info.residual)
+    with pytest.raises(SimulationError, match="non-finite residual"):
+        solver.check(info, "forward", 3)
+
+
+def test_all_pinned_model_falls_back_and_explicit_multigrid_is_refused():
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((1, 1), (0.1, 0.1), material=wc.preset("gray-interlock"))
+    for p in range(4):
+        b.add_pin(p)
+    model = b.finalize("cpu")
+    assert wc.LinearSolver(model, wc.SolverOptions()).preconditioner == "block_ssor"
+    with pytest.raises(ValueError, match="not pinned"):
+        wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid"))
+
+
+def test_multigrid_needs_the_sequential_backend():
+    with pytest.raises(ValueError, match="'multigrid' needs cg_backend 'sequential'"):
+        wc.LinearSolver(hanging(4), wc.SolverOptions(preconditioner="multigrid", cg_backend="warp"))

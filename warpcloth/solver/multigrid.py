@@ -1,0 +1,154 @@
+"""The aggregation hierarchy of the multigrid preconditioner (``SolverOptions(preconditioner="multigrid")``).
+
+Built once per model on the host from the mesh alone (no matrix values), so every step reuses it:
+
+- level 1 aggregates the particles along the cloth's triangle edges (stretching couples them strongly; the
+  longer-range bending couplings of the block pattern are weak, and aggregating along them made coarser, worse
+  levels: 35 against 28 CG iterations on the 64x64 hanging sheet, prototyped in SciPy);
+- each further level aggregates the previous one along its Galerkin pattern, until at most ``MAX_COARSEST``
+  nodes remain, which are solved densely;
+- aggregation is greedy: a node whose neighbours are all free starts an aggregate with them, and the nodes left
+  over join the neighbouring aggregate they touch most (Vanek, Mandel and Brezina 1996, unsmoothed).
+
+The prolongation is piecewise constant (one 3x3 identity per node), so the Galerkin product P^T A P is a sum of
+blocks that the kernel forms each solve through the slot maps built here (kernels/linear.py, Multigrid). Pinned
+particles have identity rows decoupled from the rest and take no part in the hierarchy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+MAX_COARSEST = 12
+"""Most nodes of the coarsest level, solved by a dense Cholesky factorisation (3 unknowns per node)."""
+ISOLATED_GROUP = 4
+
+
+def aggregate(neighbours: list[np.ndarray], active: np.ndarray) -> tuple[np.ndarray, int]:
+    """Greedy aggregation of the ``active`` nodes of a graph. Returns (aggregate of each node, -1 where inactive;
+    the number of aggregates), fewer aggregates than active nodes whenever there are two or more."""
+    n = len(neighbours)
+    agg = np.full(n, -1, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        if not active[i] or agg[i] >= 0:
+            continue
+        nb = neighbours[i][active[neighbours[i]]]
+        if nb.size and np.all(agg[nb] < 0):
+            agg[i] = count
+            agg[nb] = count
+            count += 1
+    isolated = []
+    for i in range(n):
+        if not active[i] or agg[i] >= 0:
+            continue
+        touched = agg[neighbours[i]]
+        touched = touched[touched >= 0]
+        if touched.size:
+            agg[i] = np.bincount(touched).argmax()  # the aggregate it touches most; ties: the lowest id
+        else:
+            isolated.append(i)
+    # Nodes with no active neighbour (separate pieces, once coarsened to a node each) are grouped in fours: a
+    # piecewise-constant P over unconnected nodes is still a valid coarse space, and the levels keep shrinking.
+    for start in range(0, len(isolated), ISOLATED_GROUP):
+        agg[isolated[start:start + ISOLATED_GROUP]] = count
+        count += 1
+    return agg, count
+
+
+def _mesh_neighbours(n: int, triangles: np.ndarray) -> list[np.ndarray]:
+    if len(triangles) == 0:
+        return [np.zeros(0, dtype=np.int64) for _ in range(n)]
+    t = np.asarray(triangles, dtype=np.int64)
+    a = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
+    b = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
+    return _neighbours(n, a, b)
+
+
+def _neighbours(n: int, rows: np.ndarray, cols: np.ndarray) -> list[np.ndarray]:
+    keep = rows != cols
+    rows, cols = rows[keep], cols[keep]
+    order = np.lexsort((cols, rows))
+    rows, cols = rows[order], cols[order]
+    starts = np.searchsorted(rows, np.arange(n + 1))
+    return [np.unique(cols[starts[i]:starts[i + 1]]) for i in range(n)]
+
+
+class Hierarchy:
+    """The levels of the aggregation hierarchy as flat arrays (the layout ``Multigrid`` in kernels/linear.py
+    reads), built from a model's block pattern, triangles and pins."""
+
+    def __init__(self, offsets: np.ndarray, columns: np.ndarray, triangles: np.ndarray, pinned: np.ndarray):
+        n0 = len(offsets) - 1
+        rows = np.repeat(np.arange(n0), np.diff(offsets))
+        cols = np.asarray(columns, dtype=np.int64)
+        active = ~np.asarray(pinned, dtype=bool)
+        neighbours = _mesh_neighbours(n0, triangles)
+        sizes = [n0]
+        aggregates = []  # per level above the coarsest: each node's aggregate (level-local ids, -1 none)
+        slot_maps = []  # per level: each of its blocks' slot in the next level's blocks (level-local, -1 none)
+        patterns = []  # per coarse level: (offsets, columns, diag_slot), level-local
+        while True:
+            agg, count = aggregate(neighbours, active)
+            if count == 0:
+                raise ValueError("the multigrid preconditioner needs at least one particle that is not pinned; "
+                                 "use preconditioner='block_ssor'")
+            ca, cb = agg[rows], agg[cols]
+            keep = (ca >= 0) & (cb >= 0)
+            keys = ca * count + cb
+            unique = np.unique(keys[keep])
+            slots = np.full(len(rows), -1, dtype=np.int64)
+            slots[keep] = np.searchsorted(unique, keys[keep])
+            crow, ccol = unique // count, unique % count
+            coffsets = np.searchsorted(crow, np.arange(count + 1))
+            cdiag = np.searchsorted(unique, np.arange(count) * count + np.arange(count))
+            if not np.array_equal(unique[cdiag], np.arange(count) * (count + 1)):
+                raise AssertionError("a coarse node without a diagonal block")
+            aggregates.append(agg)
+            slot_maps.append(slots)
+            patterns.append((coffsets, ccol, cdiag))
+            sizes.append(count)
+            if count <= MAX_COARSEST:
+                break
+            rows, cols = crow, ccol
+            neighbours = _neighbours(count, crow, ccol)
+            active = np.ones(count, dtype=bool)
+        self.sizes = sizes
+        """Nodes per level, the particles first."""
+        start = np.concatenate([[0], np.cumsum(sizes)])
+        self.level_start = start
+        block_counts = [len(p[1]) for p in patterns]
+        block_start = np.concatenate([[0], np.cumsum(block_counts)])
+        # flat ids: a level-l node i is start[l] + i; a coarse level-l block k is block_start[l - 1] + k
+        self.aggregate = np.concatenate(
+            [np.where(a >= 0, a + start[level + 1], -1) for level, a in enumerate(aggregates)])
+        self.fine_slot = slot_maps[0]
+        coarse_slot = [np.where(s >= 0, s + block_start[level], -1) for level, s in enumerate(slot_maps[1:], 1)]
+        coarse_slot.append(np.full(block_counts[-1], -1))
+        self.coarse_slot = np.concatenate(coarse_slot)
+        self.offsets = np.concatenate(
+            [p[0][:-1] + block_start[level] for level, p in enumerate(patterns)] + [[block_start[-1]]])
+        self.columns = np.concatenate([p[1] + start[level + 1] for level, p in enumerate(patterns)])
+        self.diag_slot = np.concatenate([p[2] + block_start[level] for level, p in enumerate(patterns)])
+
+    def multigrid(self, kernels, scalar, device):
+        """The ``Multigrid`` struct of ``kernels`` (linear_kernels(scalar)) with these arrays and its scratch."""
+        vec3, mat33 = wp.types.vector(3, scalar), wp.types.matrix((3, 3), scalar)
+
+        def ints(a):
+            return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=device)
+
+        mg = kernels.Multigrid()
+        mg.levels = len(self.sizes)
+        mg.level_start = ints(self.level_start)
+        mg.aggregate, mg.fine_slot, mg.coarse_slot = ints(self.aggregate), ints(self.fine_slot), ints(self.coarse_slot)
+        mg.offsets, mg.columns, mg.diag_slot = ints(self.offsets), ints(self.columns), ints(self.diag_slot)
+        mg.values = wp.zeros(len(self.columns), dtype=mat33, device=device)
+        m = 3 * self.sizes[-1]
+        mg.factor = wp.zeros((m, m), dtype=wp.float64, device=device)
+        total = int(self.level_start[-1])
+        mg.b = wp.zeros(total, dtype=vec3, device=device)
+        mg.x = wp.zeros(total, dtype=vec3, device=device)
+        mg.work = wp.zeros(m, dtype=wp.float64, device=device)
+        return mg
