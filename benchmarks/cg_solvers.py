@@ -7,9 +7,9 @@ SolverOptions. Compared, all to cg_tol 1e-6 (|b - A x| <= 1e-6 |b|) from x0 = 0:
   (a) warp.optim.linear.cg with its "diag" preconditioner as the library's warp backend calls it (check_every=1,
       preconditioner rebuilt per solve; SolverOptions(cg_backend="warp", preconditioner="jacobi")), the same with
       the backend's default preconditioner (block Jacobi), and raw with warp's default check_every=10;
-  (b) the one-launch sequential CG (cg_backend="sequential") with jacobi, block_jacobi and block_ssor (omega 1.0,
-      i.e. symmetric Gauss-Seidel, and the default 1.5), and block_ssor warm-started from the previous step's dv
-      (``State.particle_dv``, what SolverOptions.warm_start uses);
+  (b) the one-launch sequential CG (cg_backend="sequential") with jacobi, block_jacobi, block_ssor (omega 1.0,
+      i.e. symmetric Gauss-Seidel, and 1.5) and multigrid (the CPU default), block_ssor and multigrid also
+      warm-started from the previous step's dv (``State.particle_dv``, what SolverOptions.warm_start uses);
   (c) warp.sparse.bsr_mv alone, per call.
 "true res" is |b - A x| / |b| recomputed in float64 after the solve (the systems are float32: at 64^2 it floors near
 3e-5 from float32 rounding in the x updates); "err vs f64" is |x - x64| / |x64| against the same system solved in
@@ -113,6 +113,11 @@ def bench_size(res, reps, quick=False):
 
     record("sequential block_ssor w=1.5 + warm start", lambda: s.solve(values, rhs, x, guess=dv_prev), reps,
            "x0 = previous step's dv")
+    mg = solver(m, cg_tol=TOL, preconditioner="multigrid", cg_backend="sequential")
+    levels = "/".join(map(str, mg.multigrid_levels))
+    record("sequential multigrid", lambda: mg.solve(values, rhs, x), reps, f"levels {levels} nodes")
+    record("sequential multigrid + warm start (CPU default)", lambda: mg.solve(values, rhs, x, guess=dv_prev), reps,
+           "x0 = previous step's dv")
 
     # (a) warp.optim.linear.cg, as the library's warp backend calls it
     sw = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="jacobi")
@@ -196,8 +201,12 @@ def main():
               f"{ex['bsr_mv_ms']:.3f} ms = {ex['bsr_mv_ms'] / s['ms_per_iter']:.1f} sequential iterations; "
               f"whole solve {w['ms_per_solve'] / s['ms_per_solve']:.0f}x faster sequential")
         b = recs["sequential block_ssor w=1.5"]
-        print(f"  preconditioner: block SSOR (the CPU default) takes {b['iters']} iterations against block Jacobi's "
+        print(f"  preconditioner: block SSOR takes {b['iters']} iterations against block Jacobi's "
               f"{s['iters']}: a {s['ms_per_solve'] / b['ms_per_solve']:.1f}x faster solve")
+        g = recs["sequential multigrid"]
+        print(f"  multigrid (the CPU default) takes {g['iters']} iterations against block SSOR's {b['iters']}: a "
+              f"{b['ms_per_solve'] / g['ms_per_solve']:.1f}x faster solve ({g['ms_per_iter'] / b['ms_per_iter']:.1f}x "
+              "the time per iteration)")
     faster = all(
         next(r for r in all_recs if r["res"] == ex["res"] and r["solver"] == "sequential block_jacobi")["ms_per_solve"]
         < next(r for r in all_recs if r["res"] == ex["res"] and r["solver"].startswith("warp cg diag (check"))[

@@ -226,8 +226,11 @@ def collision_ablation(d: dict) -> str:
 
 
 CG_ROWS = (("sequential jacobi", "sequential, Jacobi"), ("sequential block_jacobi", "sequential, block Jacobi"),
-           ("sequential block_ssor w=1.5", "sequential, block SSOR ω=1.5 (CPU default)"),
+           ("sequential block_ssor w=1.5", "sequential, block SSOR ω=1.5"),
            ("sequential block_ssor w=1.5 + warm start", "the same, warm-started from the previous step's dv"),
+           ("sequential multigrid", "sequential, multigrid (aggregation V-cycle)"),
+           ("sequential multigrid + warm start (CPU default)",
+            "the same, warm-started from the previous step's dv (CPU default)"),
            ("warp cg diag (library call)", "`warp.optim.linear.cg`, diag"),
            ("warp cg block_jacobi (library default)", "`warp.optim.linear.cg`, block Jacobi (the CUDA default)"))
 
@@ -246,11 +249,16 @@ def cg_solvers(d: dict) -> str:
             row += [r["iters"] if r else "–", g(r["ms_per_solve"]) if r else "–"]
         rows.append(row)
     out = [table(header, rows), ""]
-    parts, ssor = [], []
+    parts, ssor, mg = [], [], []
     for s in d["sizes"]:
         res = s["res"]
         w, bj = by[(res, "warp cg diag (library call)")], by[(res, "sequential block_jacobi")]
         bs = by[(res, "sequential block_ssor w=1.5")]
+        m = by.get((res, "sequential multigrid"))
+        if m:
+            mg.append(f"{bs['iters']} to {m['iters']} at {res}² (levels of {m['note'].removeprefix('levels ')}; "
+                      f"solves {bs['ms_per_solve'] / m['ms_per_solve']:.1f}× faster, "
+                      f"{m['ms_per_iter'] / bs['ms_per_iter']:.1f}× the time per iteration)")
         parts.append(f"{g(w['ms_per_iter'], 2)} ms per iteration at {s['n']} particles against "
                      f"{g(bj['ms_per_iter'], 2)} ms per block-Jacobi iteration of the sequential CG (its solve "
                      f"{w['ms_per_solve'] / bj['ms_per_solve']:.0f}× faster)")
@@ -258,6 +266,8 @@ def cg_solvers(d: dict) -> str:
                     f"{bj['ms_per_solve'] / bs['ms_per_solve']:.1f}× faster)")
     out.append("`warp.optim.linear.cg` takes " + "; ".join(parts) + ". Block SSOR cuts iterations against block "
                "Jacobi " + ", ".join(ssor) + ".")
+    if mg:
+        out.append("The multigrid preconditioner cuts them against block SSOR from " + ", from ".join(mg) + ".")
     out.append(provenance(d))
     return "\n".join(out)
 

@@ -17,10 +17,11 @@ Every timed rollout starts from the same spun-up positions and velocities with a
 allocations per step.
 
 Usage: python benchmarks/step_time.py [--quick] [--out PATH] [--sizes 16,32,64,128] [--profile-res 16,64]
-       [--before PATH --before-label TEXT]
+       [--before PATH --before-label TEXT] [--preconditioner NAME]
        (--quick: an 8x8 grid, 5 steps, results/quick/step_time.json)
 --before: the JSON of an earlier run (this script's, or a list of its records) to compare with, e.g. the same
-benchmark at an older commit run back to back with this one; the comparison is printed and stored under "before".
+benchmark at an older commit or with another --preconditioner (SolverOptions.preconditioner, default "auto") run
+back to back with this one; the comparison is printed and stored under "before".
 """
 
 from __future__ import annotations
@@ -151,13 +152,14 @@ def compare(path: str, label: str, records: list[dict]) -> dict:
 
 def main():
     args = common.parse_args(__doc__, sizes=",".join(map(str, CASES)), profile_res="16,64", before="",
-                             before_label="before", quick={"sizes": "8", "profile_res": "8"})
+                             before_label="before", preconditioner="auto",
+                             quick={"sizes": "8", "profile_res": "8"})
     info = common.machine_info()
     common.print_machine(info)
     sizes = [int(r) for r in args.sizes.split(",") if r]
     prof_res = {int(r) for r in args.profile_res.split(",") if r}
     spinup = QUICK_SPINUP if args.quick else SPINUP
-    options = wc.SolverOptions()
+    options = wc.SolverOptions(preconditioner=args.preconditioner)
     print(f"scene: hanging 1 m sheet, wind (5,0,0), gray-interlock x2, dt {common.DT}, float32; timed after {spinup} "
           f"spin-up steps\noptions: {options}")
 

@@ -151,22 +151,20 @@ def linear_kernels(scalar):
         aggregate: wp.array(dtype=wp.int32),
         coarse_rhs: wp.array(dtype=vec3),
     ):
-        """One forward block Gauss-Seidel sweep from x = 0 on rows [lo, hi), then the residual restricted to the
-        next level: with (D + L) x = rhs the residual is -U x, so only the upper blocks are read again."""
+        """One forward block Gauss-Seidel sweep from x = 0 on rows [lo, hi), restricting its residual to the next
+        level on the way: with (D + L) x = rhs the residual is -U x, and row j's lower blocks, already loaded for
+        its own sum, give its part -A_ij x_j = -A_ji^T x_j of every earlier row i's residual."""
         for i in range(lo, hi):
             row = i - row_base
             s = rhs[i]
             for k in range(offsets[row], diag_slot[row]):
                 s -= values[k] * x[columns[k]]
-            x[i] = dinv[i] * s
-        for i in range(lo, hi):
-            a = aggregate[i]
-            if a >= 0:
-                row = i - row_base
-                s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-                for k in range(diag_slot[row] + 1, offsets[row + 1]):
-                    s -= values[k] * x[columns[k]]
-                coarse_rhs[a] = coarse_rhs[a] + s
+            xi = dinv[i] * s
+            x[i] = xi
+            for k in range(offsets[row], diag_slot[row]):
+                a = aggregate[columns[k]]
+                if a >= 0:
+                    coarse_rhs[a] = coarse_rhs[a] - wp.transpose(values[k]) * xi
 
     @wp.func
     def smooth_up(

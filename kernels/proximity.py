@@ -37,6 +37,9 @@ import warp as wp
 from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
 from warpcloth.kernels.types import per_precision, types
 
+COINCIDENT = 1.0e-9
+"""A pair whose points are closer than this times the thickness has no direction from its gap; its normal comes
+from its primitives (crossing_normal): a cloth laid exactly on an obstacle, or BDF2's blend crossing one."""
 VERTEX_FACE = 0
 EDGE_EDGE = 1
 EDGE_FADE = 0.1
@@ -232,13 +235,33 @@ def proximity_kernels(scalar):
         return wp.vec4i(i0, i1, i2, i3), w, gap
 
     @wp.func
+    def crossing_normal(p: PairInputs, k: int, idx: wp.vec4i, u: vec3):
+        """The normal of a pair whose two points coincide (the gap has no direction: a vertex on its face, edges
+        crossing): the face's normal (vertex-face) or the edges' common normal (edge-edge), turned against the
+        pair's relative velocity u, the side it came from (kept as it is when u is 0: an obstacle face's own
+        orientation, outward for the built-in obstacles)."""
+        x0 = p.x[idx[0]]
+        x1 = p.x[idx[1]]
+        x2 = p.x[idx[2]]
+        x3 = p.x[idx[3]]
+        g = wp.cross(x2 - x1, x3 - x1)
+        if p.kind[k] == EDGE_EDGE:
+            e = x1 - x0
+            g = wp.cross(e, x3 - x2)
+            if wp.length(g) <= scalar(1.0e-30):  # parallel edges: any normal of the first
+                g = wp.cross(e, vec3(scalar(1.0), scalar(0.0), scalar(0.0)))
+                if wp.length(g) <= scalar(1.0e-30):
+                    g = wp.cross(e, vec3(scalar(0.0), scalar(1.0), scalar(0.0)))
+        n = wp.normalize(g)
+        if wp.dot(n, u) > scalar(0.0):
+            n = -n
+        return n
+
+    @wp.func
     def pair_terms(p: PairInputs, k: int):
         """(nodes, weights with 0 for nodes that are not free, K, R) of pair k (module docstring)."""
         idx, w, gap = pair_weights(p, k)
         zero = scalar(0.0)
-        d = wp.length(gap)
-        n = gap / d
-        c = d - p.thickness
         obstacle = False
         u = vec3()
         for a in range(4):
@@ -246,6 +269,13 @@ def proximity_kernels(scalar):
             if node >= p.cloth_count:
                 obstacle = True
             u += w[a] * p.velocity[node]
+        d = wp.length(gap)
+        n = vec3()
+        if d > scalar(COINCIDENT) * p.thickness:
+            n = gap / d
+        else:
+            n = crossing_normal(p, k, idx, u)
+        c = d - p.thickness
         # the weights of free nodes (built whole: Warp does not differentiate in-place component writes)
         one = scalar(1.0)
         wf = vec4(w[0] * wp.where(p.free[idx[0]] != 0, one, zero), w[1] * wp.where(p.free[idx[1]] != 0, one, zero),

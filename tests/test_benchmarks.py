@@ -37,6 +37,7 @@ BENCHMARKS = {
     "motion_control": (("open_loop",), False, True),
     "contact": (("drape", "incline"), False, False),
     "integrators": (("T", "orders", "energies"), False, False),
+    "newton_corrections": (("rows", "horizon", "library_check_max_dx_m"), False, False),
 }
 
 

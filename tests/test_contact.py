@@ -182,6 +182,32 @@ def test_warp_backend_gradients_equal_the_sequential_ones_with_pairs():
         np.testing.assert_allclose(b, a, rtol=1e-8, atol=1e-12 * np.abs(a).max())
 
 
+@pytest.mark.parametrize("integrator", ["euler", "bdf2"])
+def test_cloth_lying_exactly_on_an_obstacle_is_repelled_not_nan(integrator):
+    # Every cloth vertex on the plane (gap 0) and cloth edges crossing the plane's edges in its plane: the pairs'
+    # gaps have no direction. Before, n = gap / |gap| made the forces NaN (found as BDF2's blend crossed a sphere's
+    # edge in benchmarks/tradeoff.py); now the normal comes from the primitives, against the approach.
+    def build(stiffness):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+        b.add_cloth_grid((4, 4), (0.2, 0.2), material=MATERIAL, pos=(-0.1, -0.1, 0.0), vel=(0.0, 0.0, -0.1))
+        b.add_obstacle_plane((1.0, 1.0))
+        b.set_collision(repulsion_stiffness=stiffness)
+        return b.finalize("cpu", dtype=wp.float64)
+
+    rhs = {}
+    for stiffness in (0.0, 1.0e6):
+        model = build(stiffness)
+        sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(integrator=integrator))
+        _, b, pairs = sim.assemble(model.state())
+        rhs[stiffness] = b.numpy()
+        assert np.all(np.isfinite(rhs[stiffness]))
+    assert pairs.count > 0 and sim.proximity.last_count == pairs.count
+    push = rhs[1.0e6] - rhs[0.0]
+    # every particle is pushed up, out of the plane, with the force of a full thickness of overlap
+    assert np.all(push[:, 2] > 0.0)
+    np.testing.assert_allclose(push[:, :2], 0.0, atol=1e-12 * np.abs(push).max())
+
+
 def test_zero_stiffness_costs_nothing_and_overflow_names_the_capacity():
     model, _ = incline(10.0, 0.3)
     assert wc.Simulator(model, 0.01).proximity is not None

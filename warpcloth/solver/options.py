@@ -83,10 +83,18 @@ class SolverOptions:
     preconditioner: str = "auto"
     """``"multigrid"`` (one symmetric V-cycle of an aggregation hierarchy built from the mesh: block Gauss-Seidel
     smoothing, a dense solve on the coarsest level; sequential backend only; 26 CG iterations per step against
-    block SSOR's 84 on the 64x64 hanging sheet, 2.6x faster per step, benchmarks/step_time.py),
+    block SSOR's 84 on the 64x64 hanging sheet at dt 0.02, 1.8x faster per step, benchmarks/step_time.py),
     ``"block_ssor"`` (symmetric block Gauss-Seidel sweeps; sequential backend only: ~3x fewer iterations than block
     Jacobi at 64x64, benchmarks/cg_solvers.py), ``"block_jacobi"`` (inverse 3x3 diagonal blocks), ``"jacobi"``
-    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential backend, block_jacobi with warp's)."""
+    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential backend, block_jacobi with warp's).
+    Where the mass dominates the system (small dt), block SSOR is the faster one: measured on warm solves of the
+    hanging sheet in the wind and of benchmarks/peers.py's pinned sheet, 16x16 to 128x128, dt 1/50 to 1/4000, the
+    multigrid won every system that block SSOR needed more than 23 iterations for (by up to 2.1x: 128x128 at
+    dt 1/50, 371 against 174 ms) and lost every one it solved in at most 17 (by up to 1.5x: 64x64 at dt 1/4000,
+    2.0 against 3.0 ms, the multigrid's setup outweighing block SSOR's 5 iterations). A rule choosing per system
+    from a stiffness measure (off-diagonal against diagonal blocks) was tried and dropped: the measure does not
+    track the crossover across resolutions (it called the 128x128 sheet at dt 1/50, where the multigrid is 1.9x
+    faster, a light system)."""
     ssor_omega: float = 1.5
     """Relaxation factor of the block SSOR preconditioner, in (0, 2)."""
     cg_backend: str = "auto"
@@ -108,7 +116,13 @@ class SolverOptions:
     from the blend (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3, so it reuses the same assembly, solve and adjoint;
     a trajectory's first step, which has no previous state, is backward Euler. The explicit wind force is taken
     at the extrapolation 2 x_n - x_{n-1}; contact detection runs from x_n, and the collision response's velocity
-    change is (z - x^) / (2/3 dt)."""
+    change is (z - x^) / (2/3 dt). Its observed order on cloth is below 2 because the linearisation uses ARCSim's
+    stiffness, not the exact Jacobian. Newton corrections per step were measured and not adopted
+    (benchmarks/newton_corrections.py, 16x16, error against the same method at dt 1/2000): one more solve per step
+    restores the order on the pinned sheet (1.01 % -> 0.21 % from dt 1/200 to 1/400) but at equal solves per
+    second gains at most 1.4x in error (1.01 % against 1.36 % for two solves at 1/200 against one at 1/400), and
+    on the hanging sheet in the wind it loses (2.20 % against 1.78 %); fully converged (three corrections),
+    BDF2 itself is still at 1.42 % at dt 1/100 there."""
     collision: CollisionOptions = field(default_factory=CollisionOptions)
     """Options of the collision stage (used only by scenes with collisions)."""
 
