@@ -91,10 +91,14 @@ class SolverOptions:
     hanging sheet in the wind and of benchmarks/peers.py's pinned sheet, 16x16 to 128x128, dt 1/50 to 1/4000, the
     multigrid won every system that block SSOR needed more than 23 iterations for (by up to 2.1x: 128x128 at
     dt 1/50, 371 against 174 ms) and lost every one it solved in at most 17 (by up to 1.5x: 64x64 at dt 1/4000,
-    2.0 against 3.0 ms, the multigrid's setup outweighing block SSOR's 5 iterations). A rule choosing per system
-    from a stiffness measure (off-diagonal against diagonal blocks) was tried and dropped: the measure does not
-    track the crossover across resolutions (it called the 128x128 sheet at dt 1/50, where the multigrid is 1.9x
-    faster, a light system)."""
+    2.0 against 3.0 ms, the multigrid's setup outweighing block SSOR's 5 iterations). With k_s and k_m the two
+    iteration counts, the multigrid was the faster where k_s > 1.6 k_m + 1.75 (39 of the 40 systems; the 40th a
+    0.4 % tie). Two ways of choosing automatically were tried and dropped: a per-system stiffness measure
+    (off-diagonal against diagonal blocks) does not track the crossover across resolutions (it called the 128x128
+    sheet at dt 1/50, where the multigrid is 1.9x faster, light); and applying the iteration rule once, to the
+    model's first step, sees a cloth at rest without tension, lighter than it soon is: it took block SSOR for the
+    16x16 and 32x32 hanging sheets at dt 0.02, whose steps the multigrid makes 1.15x and 1.35x faster, and for
+    the 64x64 pinned sheet at dt 1/100, whose solves it makes 1.6x faster."""
     ssor_omega: float = 1.5
     """Relaxation factor of the block SSOR preconditioner, in (0, 2)."""
     cg_backend: str = "auto"
