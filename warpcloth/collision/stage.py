@@ -122,7 +122,8 @@ class CollisionStage:
             if len(found) == 0:
                 break
             if round_index == opt.collision.rounds:
-                raise _rounds_error(step, opt.collision.rounds, len(found), len(keys), found.nodes[0])
+                raise _rounds_error(step, opt.collision.rounds, len(found), len(keys), found.nodes[0],
+                                    int(found.mode[0]), start, self.thickness)
             t0 = time.perf_counter()
             geometry.append(self._geometry(start, end, found, recording, step))
             t1 = time.perf_counter()
@@ -167,7 +168,8 @@ class CollisionStage:
             if found == 0:
                 break
             if round_index == opt.rounds:
-                raise _rounds_error(step, opt.rounds, found, total + found, self.detector.nodes.numpy()[0])
+                raise _rounds_error(step, opt.rounds, found, total + found, self.detector.nodes.numpy()[0],
+                                    int(self.detector.mode.numpy()[0]), start, self.thickness)
             t0 = time.perf_counter()
             if total == 0:  # the step's constants, once it has contacts: x^ and the obstacle in float64, masses
                 positions = wp.empty(N, dtype=wp.vec3d, device=dev)
@@ -407,11 +409,46 @@ class CollisionStage:
         _accumulate(density, grad * model.material_thicken.numpy())
 
 
-def _rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarray) -> CollisionError:
+def _rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarray, mode: int, start: wp.array,
+                  thickness: float) -> CollisionError:
+    """The round limit's error, naming an unresolved contact; and, where that contact's primitives started the step
+    inside the thickness (a cloth laid on an obstacle or on itself), saying so: from there the projection can have
+    no consistent side to push them to."""
+    gap = _start_gap(start.numpy().astype(np.float64)[nodes], mode)
+    inside = ""
+    if gap < thickness:
+        inside = (f"; these nodes started the step {gap:.3g} m apart, inside the collision thickness {thickness:g} m, "
+                  "where the contact has no consistent side: start the cloth at least the thickness away from "
+                  "obstacles and from itself")
     return CollisionError(
         f"step {step}: the collision response did not converge in {rounds} rounds: {found} new contacts (of "
-        f"{total}) still found, e.g. nodes {nodes.tolist()}; raise CollisionOptions.rounds, lower dt, or check for "
-        "cloth trapped between obstacles")
+        f"{total}) still found, e.g. nodes {nodes.tolist()}{inside}; raise CollisionOptions.rounds, lower dt, or "
+        "check for cloth trapped between obstacles")
+
+
+def _start_gap(p: np.ndarray, mode: int) -> float:
+    """Distance between a contact's primitives (positions p of its 4 nodes): vertex p[0] and triangle p[1:4]
+    (mode VF_PLANE), or segments p[0:2] and p[2:4] (the edge-edge modes). Sampled closest points (host, error path
+    only), exact to 1e-6 of the primitives' size."""
+    s = np.linspace(0.0, 1.0, 1001)
+    if mode == 0:  # VF_PLANE
+        a, b, c = p[1], p[2], p[3]
+        u, v = np.meshgrid(s[::10], s[::10], indexing="ij")
+        keep = u + v <= 1.0
+        points = a + u[keep, None] * (b - a) + v[keep, None] * (c - a)
+        normal = np.cross(b - a, c - a)
+        length = np.linalg.norm(normal)
+        if length > 0.0:  # the exact distance where the projection falls inside the triangle
+            n = normal / length
+            q = p[0] - np.dot(p[0] - a, n) * n
+            m = np.array([b - a, c - a]).T
+            coeff = np.linalg.lstsq(m, q - a, rcond=None)[0]
+            if coeff.min() >= 0.0 and coeff.sum() <= 1.0:
+                return float(abs(np.dot(p[0] - a, n)))
+        return float(np.linalg.norm(points - p[0], axis=1).min())
+    e = p[0] + s[:, None] * (p[1] - p[0])
+    f = p[2] + s[:, None] * (p[3] - p[2])
+    return float(np.linalg.norm(e[:, None] - f[None], axis=2).min())
 
 
 def _accumulate(array: wp.array, grad: np.ndarray) -> None:
