@@ -30,6 +30,7 @@ from warpcloth.collision.detection import ContactDetector, Contacts
 from warpcloth.collision.device_projection import DeviceProjection
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.contact import contact_kernels
+from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
 from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import active_tape, record_adjoint
@@ -414,7 +415,7 @@ def _rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndar
     """The round limit's error, naming an unresolved contact; and, where that contact's primitives started the step
     inside the thickness (a cloth laid on an obstacle or on itself), saying so: from there the projection can have
     no consistent side to push them to."""
-    gap = _start_gap(start.numpy().astype(np.float64)[nodes], mode)
+    gap = round(_start_gap(start.numpy().astype(np.float64)[nodes], mode), 12)  # below a picometre: rounding
     inside = ""
     if gap < thickness:
         inside = (f"; these nodes started the step {gap:.3g} m apart, inside the collision thickness {thickness:g} m, "
@@ -428,27 +429,14 @@ def _rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndar
 
 def _start_gap(p: np.ndarray, mode: int) -> float:
     """Distance between a contact's primitives (positions p of its 4 nodes): vertex p[0] and triangle p[1:4]
-    (mode VF_PLANE), or segments p[0:2] and p[2:4] (the edge-edge modes). Sampled closest points (host, error path
-    only), exact to 1e-6 of the primitives' size."""
-    s = np.linspace(0.0, 1.0, 1001)
+    (mode VF_PLANE), or segments p[0:2] and p[2:4] (the edge-edge modes); the detection's own closest-point
+    functions, evaluated on the host (error path only)."""
+    a, b, c, d = (wp.vec3d(*row) for row in p)
     if mode == 0:  # VF_PLANE
-        a, b, c = p[1], p[2], p[3]
-        u, v = np.meshgrid(s[::10], s[::10], indexing="ij")
-        keep = u + v <= 1.0
-        points = a + u[keep, None] * (b - a) + v[keep, None] * (c - a)
-        normal = np.cross(b - a, c - a)
-        length = np.linalg.norm(normal)
-        if length > 0.0:  # the exact distance where the projection falls inside the triangle
-            n = normal / length
-            q = p[0] - np.dot(p[0] - a, n) * n
-            m = np.array([b - a, c - a]).T
-            coeff = np.linalg.lstsq(m, q - a, rcond=None)[0]
-            if coeff.min() >= 0.0 and coeff.sum() <= 1.0:
-                return float(abs(np.dot(p[0] - a, n)))
-        return float(np.linalg.norm(points - p[0], axis=1).min())
-    e = p[0] + s[:, None] * (p[1] - p[0])
-    f = p[2] + s[:, None] * (p[3] - p[2])
-    return float(np.linalg.norm(e[:, None] - f[None], axis=2).min())
+        u, v, w = triangle_barycentric(a, b, c, d)
+        return float(wp.length(a - (u * b + v * c + w * d)))
+    s, u = segment_parameters(a, b, c, d, wp.float64(1.0e-12))
+    return float(wp.length((a + s * (b - a)) - (c + u * (d - c))))
 
 
 def _accumulate(array: wp.array, grad: np.ndarray) -> None:

@@ -60,6 +60,7 @@ class Simulator:
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
         self._atol_checked = False  # the cg_atol floor is checked at the first skipped solve (_warn_if_below_atol)
         self._assembler_bdf2: SystemAssembler | None = None  # made at the first BDF2 step
+        self._bdf2_buffers = None  # the blend and extrapolation of untaped BDF2 steps (_bdf2_start)
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
         measures launch, not execution, unless the device synchronises)."""
@@ -184,10 +185,16 @@ class Simulator:
         One taped kernel: gradients reach both states. The State hands on state_in's first guess, lagged normals and
         adjoint first guess, so the step reads it as it would read state_in."""
         model = self.model
-        x, v = (wp.empty_like(a, requires_grad=recording) for a in (state_in.particle_x, state_in.particle_v))
         ahead = model.particle_count if model.wind_velocity is not None else 0
-        x_ahead, v_ahead = (wp.empty(ahead, dtype=model.types.vec3, device=self.device, requires_grad=recording)
-                            for _ in range(2))
+        if recording or self._bdf2_buffers is None:  # a taped step keeps its own; otherwise scratch, as _buffers
+            n, vec3 = model.particle_count, model.types.vec3
+            buffers = tuple(wp.empty(size, dtype=vec3, device=self.device, requires_grad=recording)
+                            for size in (n, n, ahead, ahead))
+            if not recording:
+                self._bdf2_buffers = buffers
+        else:
+            buffers = self._bdf2_buffers
+        x, v, x_ahead, v_ahead = buffers
         wp.launch(self.kernels.bdf2_blend, model.particle_count, device=self.device,
                   inputs=[state_in.particle_x, state_in.particle_v, state_in.particle_x_last,
                           state_in.particle_v_last], outputs=[x, v, x_ahead, v_ahead])
