@@ -32,6 +32,14 @@ CONVERGED = 0
 NOT_CONVERGED = 1
 UNBOUNDED = 2
 """The dual decreases without bound along a direction: no positions satisfy the contacts."""
+DEPENDENT_SHIFT = 1.0e-10
+"""The adjoint solves (H_AA + DEPENDENT_SHIFT diag(H_AA)) d_lam = rhs: a contact that is dependent on others to
+within this (its squared distance from their span, relative to its own squared norm: the NumPy adjoint's
+DEPENDENT_PIVOT, warpcloth/collision/linalg.py) is damped out of d_lam as the QR adjoint drops it. Without it a
+nearly dependent active set (a cloth edge lying across an obstacle's edge, its vertices on the faces) made d_lam,
+and the gradients on the contacts' weights and normals, 1e10 times too large."""
+REFINEMENTS = 2
+"""Passes of iterative refinement after the shifted adjoint solve (``adjoint``)."""
 DIVERGED = 1.0e4
 """A KKT residual this many times the first one means the multipliers are running away (UNBOUNDED)."""
 
@@ -132,11 +140,22 @@ def dual_product(r: Rows, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.f
 
 
 @wp.func
+def shifted_product(r: Rows, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
+                    scratch: wp.array(dtype=wp.vec3d), shift: wp.float64, out: wp.array(dtype=wp.float64)):
+    # out = (H_MM + shift diag(H)_MM) v
+    dual_product(r, mask, v, scratch, out)
+    for j in range(r.count):
+        if mask[j] != 0:
+            out[j] = out[j] + shift * r.diag[j] * v[j]
+
+
+@wp.func
 def masked_cg(r: Rows, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64),
               res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
-              scratch: wp.array(dtype=wp.vec3d), rtol: wp.float64, max_iters: int):
-    """CG on H_MM x = rhs_M from x (masked entries only; Jacobi preconditioned). Returns the iterations."""
-    dual_product(r, mask, x, scratch, q)
+              scratch: wp.array(dtype=wp.vec3d), rtol: wp.float64, max_iters: int, shift: wp.float64):
+    """CG on (H_MM + shift diag(H)_MM) x = rhs_M from x (masked entries only; Jacobi preconditioned). Returns the
+    iterations."""
+    shifted_product(r, mask, x, scratch, shift, q)
     rz = wp.float64(0.0)
     bnorm = wp.float64(0.0)
     for j in range(r.count):
@@ -155,7 +174,7 @@ def masked_cg(r: Rows, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.fl
             rr += res[j] * res[j]
         if rr <= limit or rz <= wp.float64(0.0):
             break
-        dual_product(r, mask, p, scratch, q)
+        shifted_product(r, mask, p, scratch, shift, q)
         pq = wp.float64(0.0)
         for j in range(r.count):
             pq += p[j] * q[j]
@@ -337,12 +356,24 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
 def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64, max_iters: int,
             d_lam: wp.array(dtype=wp.float64), d_z: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.float64),
             res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
+            correction: wp.array(dtype=wp.float64), remainder: wp.array(dtype=wp.float64),
             scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
     # d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0 elsewhere; on return W^-1 (g - G_A^T d_lam)
+    shift = wp.float64(DEPENDENT_SHIFT)
     for j in range(r.count):
         rhs[j] = wp.where(active[j] != 0, row_dot(r, d_z, j), wp.float64(0.0))
         d_lam[j] = wp.float64(0.0)
-    iters = masked_cg(r, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters)
+    iters = masked_cg(r, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters, shift)
+    # iterative refinement against the unshifted H_AA: it takes the shift's error off independent contacts (a
+    # factor shift * cond(H_AA) a pass) and leaves dependent ones damped
+    for _refine in range(REFINEMENTS):
+        dual_product(r, active, d_lam, scratch, q)
+        for j in range(r.count):
+            remainder[j] = rhs[j] - q[j]
+            correction[j] = wp.float64(0.0)
+        iters += masked_cg(r, active, remainder, correction, res, p, q, scratch, rtol, max_iters, shift)
+        for j in range(r.count):
+            d_lam[j] = d_lam[j] + correction[j]
     for j in range(r.count):
         if active[j] != 0:
             push(r, d_z, j, -d_lam[j])
@@ -352,7 +383,7 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64, max_ite
         rr += res[j] * res[j]
         bb += rhs[j] * rhs[j]
     info[0] = wp.float64(iters)
-    info[1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # relative residual
+    info[1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # the last solve's residual, relative to the rhs
 
 
 @wp.kernel(enable_backward=False)

@@ -8,7 +8,7 @@ import warp.autograd
 from conftest import seed_data
 
 import warpcloth as wc
-from warpcloth.geometry.primitives import unique_edges
+from warpcloth.geometry.primitives import contact_edges, unique_edges
 from warpcloth.geometry.transforms import quat_from_matrix, quat_to_matrix
 from warpcloth.kernels.obstacle import obstacle_kernels
 from warpcloth.mesh_io import load_obj
@@ -63,11 +63,21 @@ def test_box_and_plane_meshes():
     n = _normals(v, f)
     assert np.all(np.einsum("ij,ij->i", n, v[f].mean(axis=1)) > 0.0)
     assert len(unique_edges(f)) == 18
+    # the edges contacts use: the box's 12 (each along one axis), not its face diagonals; every edge of a sphere
+    edges = unique_edges(f)
+    along_one_axis = np.count_nonzero(v[edges[:, 0]] != v[edges[:, 1]], axis=1) == 1
+    np.testing.assert_array_equal(contact_edges(v, f), edges[along_one_axis])
+    sv, sf = wc.sphere_mesh(0.3, 2)
+    np.testing.assert_array_equal(contact_edges(sv, sf), unique_edges(sf))
 
     v, f = wc.plane_mesh((2.0, 1.0), (4, 3))
     assert v.shape == (20, 3) and f.shape == (24, 3)
     np.testing.assert_allclose(v.min(axis=0), [-1.0, -0.5, 0.0])
     np.testing.assert_allclose(v.max(axis=0), [1.0, 0.5, 0.0])
+    boundary = contact_edges(v, f)  # a flat plane: only its outline, 2 (4 + 3) edges
+    ends = v[boundary]  # (edges, 2, 3)
+    on_side = np.isclose(np.abs(ends[:, :, 0]), 1.0).all(axis=1) | np.isclose(np.abs(ends[:, :, 1]), 0.5).all(axis=1)
+    assert len(boundary) == 14 and on_side.all()
     n = _normals(v, f)
     assert np.all(n[:, 2] > 0.0) and np.allclose(n[:, :2], 0.0)
 
@@ -205,7 +215,7 @@ def test_world_points_kernel_matches_numpy(dtype):
     np.testing.assert_array_equal(m.obstacle_tri_start, [0, 12, 12 + len(sph_f)])
     np.testing.assert_array_equal(m.obstacle_vertex_body.numpy(), [0] * 8 + [1] * len(sph_v))
     np.testing.assert_array_equal(m.obstacle_tri_indices.numpy(), np.concatenate([box_f, sph_f + 8]))
-    assert m.obstacle_edge_count == 18 + len(unique_edges(sph_f))
+    assert m.obstacle_edge_count == 12 + len(unique_edges(sph_f))  # the box's face diagonals are flat: no contacts
 
 
 def test_obstacle_points_gradient_matches_finite_differences():

@@ -695,6 +695,32 @@ def test_device_solver_and_adjoint_match_the_zone_solver_and_the_kkt_adjoint(pro
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * max(np.abs(b).max(), 1e-300), err_msg=name)
 
 
+@pytest.mark.parametrize("tilt", [1e-7, 1e-9, 0.0])
+def test_device_adjoint_of_nearly_dependent_contacts_drops_them_as_the_qr_adjoint_does(tilt):
+    # One particle pressed onto an obstacle triangle by two contacts whose normals are ``tilt`` rad apart: their
+    # rows of H = G W^-1 G^T are dependent to within tilt^2. Both are active at the solution, but any perturbation
+    # leaves one of them alone binding, and either one fixes only the particle's height: dz/dx^ keeps x and y (what
+    # the QR adjoint, which drops the dependent column, gives). A plain CG on the nearly singular H_AA gave a d_lam
+    # of 1/tilt^2 and a dL/dx^ without its x component; the shifted solve (kernels/projection.py DEPENDENT_SHIFT)
+    # damps the dependent direction, by a factor that fades from 1 to 0 around tilt^2 = 1e-10 where the QR's rank
+    # test switches at once (at tilt 1e-7 the x component is 1.5e-4 short).
+    normals = np.array([[0.0, 0.0, 1.0], [np.sin(tilt), 0.0, np.cos(tilt)]])
+    prob = dict(x_hat=np.array([[0.0, 0.0, -1e-3]]), mass=np.array([0.01]), fixed=np.zeros(1, bool),
+                obstacle_x=np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]]),
+                nodes=np.array([[0, 1, 2, 3]] * 2), weights=np.array([[1.0, -0.25, -0.25, -0.5]] * 2),
+                normals=normals, thickness=1e-3)
+    res = solve(prob, tol=1e-13)
+    solver, solution = _device_solve(prob, tol=1e-13)
+    assert solution.converged
+    g = np.array([[0.3, -0.7, 1.1]])
+    qr = backward(res, g, mode="qr")[0]
+    np.testing.assert_allclose(qr, [[0.3, -0.7, 0.0]], atol=1e-6)
+    dev = solver.backward(solution, g, x_hat=prob["x_hat"], mass=prob["mass"], fixed=prob["fixed"],
+                          obstacle_x=prob["obstacle_x"], nodes=prob["nodes"], weights=prob["weights"],
+                          normals=prob["normals"])[0]
+    np.testing.assert_allclose(dev, qr, atol=1e-4)
+
+
 def test_device_solver_reports_contacts_no_positions_satisfy():
     # a particle pressed between two obstacle planes 0.5 delta apart: infeasible
     prob = dict(x_hat=np.zeros((1, 3)), mass=np.ones(1), fixed=np.zeros(1, bool),

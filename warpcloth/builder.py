@@ -9,7 +9,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth import mesh_io
-from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh, unique_edges
+from warpcloth.geometry.primitives import box_mesh, contact_edges, funnel_mesh, plane_mesh, sphere_mesh, unique_edges
 from warpcloth.geometry.transforms import placement
 from warpcloth.lookup import fold_direction, stretching_lut
 from warpcloth.materials import Material
@@ -596,7 +596,7 @@ class ModelBuilder:
         if v_start[-1] > np.iinfo(np.int32).max:
             raise ValueError(f"the obstacles have {v_start[-1]} vertices in all; at most 2**31 - 1 fit int32 indices")
         tris = tris.astype(np.int32)
-        edges = unique_edges(tris)
+        edges = contact_edges(local, tris)  # in the body frames: rigid motion keeps flat edges flat
         return dict(
             obstacle_count=len(obs),
             obstacle_names=[o.name for o in obs],

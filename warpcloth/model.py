@@ -284,10 +284,11 @@ class Model:
     obstacle_tri_start: np.ndarray | None = field(repr=False, default=None)
     """First triangle of each obstacle, and the total [-], (obstacle_count + 1,) int64 (host)."""
     obstacle_edge_count: int = 0
-    """Number of unique obstacle edges, all obstacles together [-], scalar (host)."""
+    """Number of obstacle contact edges, all obstacles together [-], scalar (host)."""
     obstacle_edge_indices: wp.array | None = None
-    """Unique undirected obstacle edges (lo, hi), lo < hi, into the concatenated vertex list (an edge never joins
-    two obstacles) [-], (obstacle_edge_count, 2) int32."""
+    """Obstacle edges that contacts use (lo, hi), lo < hi, into the concatenated vertex list (an edge never joins
+    two obstacles): every edge but the flat ones between coplanar faces (geometry.primitives.contact_edges)
+    [-], (obstacle_edge_count, 2) int32."""
     obstacle_rest_transform: np.ndarray | None = None
     """Base placement of each obstacle (px, py, pz [m], qx, qy, qz, qw), (obstacle_count, 7) float64 (host);
     ``control()`` copies it into ``Control.obstacle_transform``."""

@@ -140,10 +140,10 @@ class DeviceProjection:
                       inputs=[r, solution.z, solution.lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
         d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
-        rhs, res, p, q = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(4))
+        rhs, res, p, q, correction, remainder = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(6))
         info = wp.zeros(2, dtype=wp.float64, device=dev)
         wp.launch(kp.adjoint, 1, device=dev, inputs=[r, active, wp.float64(rtol), 10 * r.count + 100],
-                  outputs=[d_lam, d_z, rhs, res, p, q, self._scratch, info], record_tape=False)
+                  outputs=[d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info], record_tape=False)
         iterations, residual = info.numpy()
         if not residual <= ADJOINT_WARN:
             warnings.warn(f"the device projection's adjoint CG stopped at relative residual {residual:.2e} after "
