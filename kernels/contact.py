@@ -16,6 +16,8 @@ from warpcloth.kernels.types import per_precision, types
 VF_PLANE = 0
 EE_PLANE = 1
 EE_DIRECTION = 2  # the modes of kernels/collision.py
+GRAZING = 1.0e-6
+"""|f'(t)| below this times |b - a| |c - a| |d - a| at the root: a grazing impact, whose t stays frozen."""
 
 
 @per_precision
@@ -39,6 +41,31 @@ def contact_kernels(scalar):
         else:
             nodes[i] = obstacle_x[i - cloth_count]
 
+    @wp.func
+    def frozen(value: scalar):
+        """``value``, seen as a constant by the adjoint."""
+        return value
+
+    @wp.func_grad(frozen)
+    def adj_frozen(value: scalar, adj_ret: scalar):
+        pass
+
+    @wp.func
+    def impact_time(a0: vec3, b0: vec3, c0: vec3, d0: vec3, a1: vec3, b1: vec3, c1: vec3, d1: vec3, t: scalar):
+        """The coplanarity root t moved by one Newton step: its value, with dt/dx (module docstring)."""
+        B = (b0 - a0) + t * ((b1 - a1) - (b0 - a0))
+        C = (c0 - a0) + t * ((c1 - a1) - (c0 - a0))
+        D = (d0 - a0) + t * ((d1 - a1) - (d0 - a0))
+        dB = (b1 - a1) - (b0 - a0)
+        dC = (c1 - a1) - (c0 - a0)
+        dD = (d1 - a1) - (d0 - a0)
+        f = wp.dot(B, wp.cross(C, D))
+        slope = wp.dot(dB, wp.cross(C, D)) + wp.dot(B, wp.cross(dC, D)) + wp.dot(B, wp.cross(C, dD))
+        scale = wp.length(B) * wp.length(C) * wp.length(D)
+        if wp.abs(slope) > scalar(GRAZING) * scale:
+            return t - (f - frozen(f)) / slope  # exactly t, with dt/dx = -(df/dx) / f'(t)
+        return t
+
     @wp.kernel
     def geometry(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), contact_nodes: wp.array2d(dtype=wp.int32),
                  contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
@@ -47,12 +74,18 @@ def contact_kernels(scalar):
                  normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4)):
         j = wp.tid()
         tj = scalar(contact_t[j])
+        mode = contact_mode[j]
+        if mode != EE_DIRECTION and contact_t[j] < wp.float64(1.0):
+            i0 = contact_nodes[j, 0]
+            i1 = contact_nodes[j, 1]
+            i2 = contact_nodes[j, 2]
+            i3 = contact_nodes[j, 3]
+            tj = impact_time(x0[i0], x0[i1], x0[i2], x0[i3], x1[i0], x1[i1], x1[i2], x1[i3], tj)
         sign = scalar(contact_sign[j])
         a = x0[contact_nodes[j, 0]] + tj * (x1[contact_nodes[j, 0]] - x0[contact_nodes[j, 0]])
         b = x0[contact_nodes[j, 1]] + tj * (x1[contact_nodes[j, 1]] - x0[contact_nodes[j, 1]])
         c = x0[contact_nodes[j, 2]] + tj * (x1[contact_nodes[j, 2]] - x0[contact_nodes[j, 2]])
         d = x0[contact_nodes[j, 3]] + tj * (x1[contact_nodes[j, 3]] - x0[contact_nodes[j, 3]])
-        mode = contact_mode[j]
         if mode == VF_PLANE:
             # vertex a over face (b, c, d): barycentric coordinates (1 - u - v, u, v) of a's projection on the face
             e1 = c - b

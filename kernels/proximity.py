@@ -15,19 +15,28 @@ d = n . sum_i w_i x_i.
 With c = d - delta, the pair's energy is E(c) = k max(-c, 0)^3 / (6 delta) (k = repulsion stiffness [N/m^3] times
 the smaller rest area of the pair's two primitives [m^2], as ARCSim: a vertex's is a third of its triangles', an edge's
 a third of its one or two triangles'; against an obstacle, the cloth primitive's): normal force
-f_n = k max(-c, 0)^2 / (2 delta) along w_i n, stiffness h = k max(-c, 0) / delta. Friction opposes the relative
-tangential velocity u_t = T sum_i w_i V_i (T = I - n n^T; V: the start velocity of free nodes, the known end
-velocity of pinned and obstacle nodes) with magnitude mu f_n min(|u_t| / eps, 1): Coulomb's law regularised below
-eps [m/s] (a stiff damper, so a cloth at rest on a slope creeps at most eps (slope force / (mu f_n)) instead of
-ARCSim's dt g sin(theta)).
+f_n = k max(-c, 0)^2 / (2 delta) along w_i n, stiffness h = k max(-c, 0) / delta.
 
 One linearised backward-Euler step (Baraff and Witkin) adds, for free nodes i, j of a pair,
-    A_ij += w_i w_j K,  b_i += w_i R,
-    K = dt^2 h n n^T + dt mu f_n J,   J = T / eps (|u_t| < eps) or (T - t t^T) / |u_t| (t = u_t / |u_t|),
-    R = dt (f_n - h dt (n . u)) n - dt mu f_n min(|u_t| / eps, 1) t,
-the exact Newton linearisation of both forces in the step's velocity change (the friction's direction turns,
-its magnitude does not lag). The solver keeps each free node's own block w_i^2 K on the block diagonal and applies
-the cross blocks matrix-free (they couple cloth nodes that may share no element).
+    A_ij += w_i w_j K,  b_i += w_i R,   K = dt^2 h n n^T,   R = dt (f_n - h dt (n . u)) n
+(u = sum_i w_i V_i: V the start velocity of free nodes, the known end velocity of pinned and obstacle nodes), the
+exact Newton linearisation of the normal force in the step's velocity change. The solver keeps each free node's own
+block w_i^2 K on the block diagonal and applies the cross blocks matrix-free (they couple cloth nodes that may share
+no element). The pair's normal impulse over the step is then j_n = dt max(f_n - h dt (n . u_end), 0), u_end the
+pair's relative velocity at the solution.
+
+Friction is Coulomb's law applied to the solved velocities as impulses (after Bridson, Fedkiw and Anderson 2002),
+bounded by mu times each pair's normal impulse j_n. It sticks exactly where the bound allows: the relative
+tangential velocity goes to 0, so a sticking particle moves with its contact point, and so do its gradients (not
+the derivative of a stiff regulariser); where it slides it takes exactly mu j_n off the slip, which can slow it
+but never reverse it. No creep, no overshoot.
+- Against obstacles, per particle (one pass, exact): its pairs' loads add up, L = sum_k |w_k| j_n,k, their normal
+  impulses give the tangent plane (n along sum_k w_k j_n,k n_k), and the obstacle's velocity there is the
+  load-weighted mean of its contact points'. The particle's slip s against it is removed if |s| <= mu L / m,
+  else shortened by mu L / m.
+- Between cloth pieces, per pair (both sides move): FRICTION_SWEEPS projected Jacobi sweeps, each adding to the
+  pair's impulse P the one that stops its slip (effective mass 1 / sum_i w_i^2 c_i / m_i, each particle's mass
+  split among the c_i pairs it is in) and clipping P to the disk |P| <= mu j_n; node i receives -w_i P / m_i.
 """
 
 from types import SimpleNamespace
@@ -44,6 +53,8 @@ VERTEX_FACE = 0
 EDGE_EDGE = 1
 EDGE_FADE = 0.1
 """Fraction of an edge at each end over which an edge-edge pair's stiffness fades to 0 (kernels edge_fade)."""
+FRICTION_SWEEPS = 16
+"""Projected Jacobi sweeps of the cloth-cloth friction impulses a step (module docstring)."""
 NEIGHBOUR_EDGE_SINE2 = 0.25
 """Edges of neighbouring elements make a pair only when they cross at more than asin(sqrt(this)) = 30 degrees."""
 
@@ -209,7 +220,6 @@ def proximity_kernels(scalar):
         friction: wp.array(dtype=scalar)
         cloth_count: int
         thickness: scalar
-        eps: scalar
         dt: scalar
 
     @wp.func
@@ -258,8 +268,9 @@ def proximity_kernels(scalar):
         return n
 
     @wp.func
-    def pair_terms(p: PairInputs, k: int):
-        """(nodes, weights with 0 for nodes that are not free, K, R) of pair k (module docstring)."""
+    def pair_normal(p: PairInputs, k: int):
+        """(nodes, weights with 0 for nodes that are not free, unit normal, f_n, h, whether an obstacle node is in
+        it) of pair k (module docstring)."""
         idx, w, gap = pair_weights(p, k)
         zero = scalar(0.0)
         obstacle = False
@@ -286,22 +297,142 @@ def proximity_kernels(scalar):
         depth = wp.max(-c, zero)
         f_n = k_rep * depth * depth / (scalar(2.0) * p.thickness)
         h = k_rep * depth / p.thickness
-        mu = wp.where(obstacle, p.friction[1], p.friction[0])
-        eye = wp.identity(n=3, dtype=scalar)
-        T = eye - wp.outer(n, n)
-        ut = T * u
-        speed = wp.length(ut)
+        return idx, w, wf, n, f_n, h, u, obstacle
+
+    @wp.func
+    def pair_terms(p: PairInputs, k: int):
+        """(nodes, weights with 0 for nodes that are not free, K, R) of pair k (module docstring)."""
+        idx, w, wf, n, f_n, h, u, obstacle = pair_normal(p, k)
         dt = p.dt
         K = (dt * dt * h) * wp.outer(n, n)
         R = (dt * (f_n - h * dt * wp.dot(n, u))) * n
-        if speed < p.eps:
-            K += (dt * mu * f_n / p.eps) * T
-            R -= (dt * mu * f_n / p.eps) * ut
-        else:
-            tangent = ut / speed
-            K += (dt * mu * f_n / speed) * (T - wp.outer(tangent, tangent))
-            R -= (dt * mu * f_n) * tangent
         return idx, wf, K, R
+
+    @wp.func
+    def normal_impulse(p: PairInputs, idx: wp.vec4i, wf: vec4, n: vec3, f_n: scalar, h: scalar, u: vec3,
+                       dv: wp.array(dtype=vec3)):
+        """The pair's normal impulse over the step at the solved velocities, dt max(f_n - h dt n . u_end, 0)."""
+        u_end = u
+        for a in range(4):
+            if wf[a] != scalar(0.0):
+                u_end += wf[a] * dv[idx[a]]
+        return p.dt * wp.max(f_n - h * p.dt * wp.dot(n, u_end), scalar(0.0))
+
+    @wp.kernel
+    def obstacle_friction_loads(
+        p: PairInputs,
+        dv: wp.array(dtype=vec3),
+        # out:
+        load: wp.array(dtype=scalar),
+        push: wp.array(dtype=vec3),
+        motion: wp.array(dtype=vec3),
+    ):
+        # per free cloth particle, what its cloth-obstacle pairs press on it: the normal impulse's size (load) and
+        # vector (push), and the load-weighted velocity of the obstacle points it touches (motion)
+        k = wp.tid()
+        idx, w, wf, n, f_n, h, u, obstacle = pair_normal(p, k)
+        if obstacle:
+            j_n = normal_impulse(p, idx, wf, n, f_n, h, u, dv)
+            zero = scalar(0.0)
+            surface = vec3()  # the obstacle point: its nodes' velocities by their share of the weights
+            total = zero
+            for a in range(4):
+                if idx[a] >= p.cloth_count:
+                    surface += w[a] * p.velocity[idx[a]]
+                    total += w[a]
+            surface = surface / total
+            for a in range(4):
+                if wf[a] != zero:
+                    share = wp.abs(wf[a]) * j_n
+                    wp.atomic_add(load, idx[a], share)
+                    wp.atomic_add(push, idx[a], (wf[a] * j_n) * n)
+                    wp.atomic_add(motion, idx[a], share * surface)
+
+    @wp.kernel
+    def obstacle_friction(
+        p: PairInputs,
+        dv: wp.array(dtype=vec3),
+        load: wp.array(dtype=scalar),
+        push: wp.array(dtype=vec3),
+        motion: wp.array(dtype=vec3),
+        inv_mass: wp.array(dtype=scalar),
+        # out:
+        change: wp.array(dtype=vec3),
+    ):
+        # Coulomb's law per particle against the obstacle (module docstring): stop its slip if mu load / m allows,
+        # else take mu load / m off it
+        i = wp.tid()
+        zero = scalar(0.0)
+        c = vec3()
+        size = wp.length(push[i])
+        if load[i] > zero and size > zero:
+            n = push[i] / size
+            u = p.velocity[i] + dv[i] - motion[i] / load[i]
+            slip = u - wp.dot(n, u) * n
+            speed = wp.length(slip)
+            bound = p.friction[1] * load[i] * inv_mass[i]
+            if speed <= bound:
+                c = -slip  # sticks: moves with the obstacle
+            else:
+                c = -(bound / speed) * slip  # slides
+        change[i] = c
+
+    @wp.kernel(enable_backward=False)
+    def cloth_pair_counts(p: PairInputs, count: int, per_node: wp.array(dtype=wp.int32)):
+        # how many cloth-cloth pairs each free particle is in (the sweeps' mass splitting)
+        k = wp.tid()
+        if k < count:
+            idx, w, gap = pair_weights(p, k)
+            cloth = True
+            for a in range(4):
+                if idx[a] >= p.cloth_count:
+                    cloth = False
+            if cloth:
+                for a in range(4):
+                    if p.free[idx[a]] != 0 and w[a] != scalar(0.0):
+                        wp.atomic_add(per_node, idx[a], 1)
+
+    @wp.kernel
+    def friction_sweep(
+        p: PairInputs,
+        dv: wp.array(dtype=vec3),
+        base: wp.array(dtype=vec3),
+        change_in: wp.array(dtype=vec3),
+        impulse_in: wp.array(dtype=vec3),
+        inv_mass: wp.array(dtype=scalar),
+        per_node: wp.array(dtype=wp.int32),
+        # out:
+        impulse_out: wp.array(dtype=vec3),
+        change_out: wp.array(dtype=vec3),
+    ):
+        # One projected Jacobi sweep over the cloth-cloth pairs (module docstring): each adds the impulse that stops
+        # its slip at the velocities so far (dv + base + change_in), with each particle's mass split among its
+        # pairs, keeps its total within Coulomb's disk mu j_n, and scatters it onto its nodes (change_out, zeroed)
+        k = wp.tid()
+        idx, w, wf, n, f_n, h, u, obstacle = pair_normal(p, k)
+        impulse = vec3()
+        zero = scalar(0.0)
+        if not obstacle:
+            j_n = normal_impulse(p, idx, wf, n, f_n, h, u, dv)
+            current = u
+            compliance = zero  # sum_i w_i^2 c_i / m_i
+            for a in range(4):
+                if wf[a] != zero:
+                    node = idx[a]
+                    current += wf[a] * (dv[node] + base[node] + change_in[node])
+                    compliance += wf[a] * wf[a] * inv_mass[node] * scalar(per_node[node])
+            if compliance > zero:
+                slip = current - wp.dot(n, current) * n
+                impulse = impulse_in[k] + slip / compliance
+                impulse = impulse - wp.dot(n, impulse) * n
+                size = wp.length(impulse)
+                bound = p.friction[0] * j_n
+                if size > bound:  # it slides: Coulomb's bound
+                    impulse = (bound / size) * impulse
+                for a in range(4):
+                    if wf[a] != zero:
+                        wp.atomic_add(change_out, idx[a], -(wf[a] * inv_mass[idx[a]]) * impulse)
+        impulse_out[k] = impulse
 
     @wp.kernel
     def assemble_pairs(
@@ -370,8 +501,44 @@ def proximity_kernels(scalar):
             x[i] = obstacle_start[o]
             velocity[i] = (obstacle_end[o] - obstacle_start[o]) * inv_dt
 
+    @wp.kernel
+    def lumped_mass(
+        triangles: wp.array2d(dtype=wp.int32),
+        area: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        density: wp.array(dtype=scalar),
+        thicken: wp.array(dtype=scalar),
+        # out:
+        mass: wp.array(dtype=scalar),
+    ):
+        # a third of each triangle's mass to each corner (Model.particle_mass), differentiated to the densities
+        f = wp.tid()
+        third = area[f] * density[material[f]] * thicken[material[f]] / scalar(3.0)
+        for c in range(3):
+            wp.atomic_add(mass, triangles[f, c], third)
+
+    @wp.kernel
+    def inverse_mass(mass: wp.array(dtype=scalar), free: wp.array(dtype=wp.int32), cloth_count: int,
+                     inv_mass: wp.array(dtype=scalar)):
+        # 1 / m for free cloth particles, 0 for pinned particles and obstacle vertices
+        i = wp.tid()
+        inv = scalar(0.0)
+        if i < cloth_count:
+            if free[i] != 0:
+                inv = scalar(1.0) / mass[i]
+        inv_mass[i] = inv
+
+    @wp.kernel
+    def add_friction(dv: wp.array(dtype=vec3), obstacle: wp.array(dtype=vec3), cloth: wp.array(dtype=vec3),
+                     out: wp.array(dtype=vec3)):
+        i = wp.tid()
+        out[i] = dv[i] + obstacle[i] + cloth[i]
+
     return SimpleNamespace(
         PairSearch=PairSearch, primitive_boxes=primitive_boxes, vertex_face_pairs=vertex_face_pairs,
         edge_edge_pairs=edge_edge_pairs, PairInputs=PairInputs, assemble_pairs=assemble_pairs,
-        pairs_potential=pairs_potential, node_state=node_state,
+        pairs_potential=pairs_potential, node_state=node_state, cloth_pair_counts=cloth_pair_counts,
+        friction_sweep=friction_sweep, obstacle_friction_loads=obstacle_friction_loads,
+        obstacle_friction=obstacle_friction, lumped_mass=lumped_mass, inverse_mass=inverse_mass,
+        add_friction=add_friction,
     )

@@ -53,6 +53,46 @@ def test_patch_below_the_friction_angle_stays_put():
     assert downhill_travel(10.0, 0.0)[0][-1] > 0.1
 
 
+@pytest.mark.parametrize("fabric", wc.PRESET_NAMES)
+def test_static_friction_holds_every_fabric_at_every_size_and_time_step(fabric):
+    # 12 degrees, mu 0.3 (friction angle 16.7 degrees): the friction impulse stops every pair exactly, so nothing
+    # creeps. Before it was a damper regularised below 1e-4 m/s, and a 0.2 m denim patch slid 4.7 mm in 1 s at 9
+    # degrees (dt 0.005).
+    theta = math.radians(12.0)
+    R = rotation_y(theta)
+    for size in (0.1, 0.3):
+        for dt in (1.0 / 1000.0, 1.0 / 200.0, 1.0 / 50.0):
+            b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+            b.add_obstacle_plane((4.0, 4.0), rot=R)
+            mesh = wc.grid_mesh(4, 4, size, size)
+            mesh.positions = (mesh.positions + [0.5 - size / 2, 1.2 - size / 2, 0.0049]) @ R.T
+            b.add_cloth_mesh(mesh, material=wc.preset(fabric, thicken=2))
+            b.set_collision(friction=0.3, obstacle_friction=0.3)
+            model = b.finalize("cpu")
+            sim = wc.Simulator(model, dt)
+            start = model.state()
+            end = wc.rollout(sim, start, steps=round(1.0 / dt))[-1]
+            assert sim.proximity.last_count >= model.particle_count
+            moved = (end.particle_x.numpy() - start.particle_x.numpy()) @ (R @ np.array([-1.0, 0.0, 0.0]))
+            assert np.abs(moved).max() < 1.0e-3, f"{size} m patch at dt {dt:g}: slid {moved.max() * 1e3:.3f} mm in 1 s"
+
+
+def test_a_pair_that_friction_stops_stays_stopped():
+    # a patch resting in the repulsion layer of a level plane, launched at 0.3 m/s: friction decelerates it at
+    # mu g, it stops after 0.3 / (mu g) = 0.10 s, and then stays put (no reversal, no jitter)
+    mu, v0, dt = 0.3, 0.3, 0.005
+    model, _ = incline(0.0, mu, vel=(v0, 0.0, 0.0))
+    traj = wc.rollout(wc.Simulator(model, dt), model.state(), steps=60)
+    vx = np.array([s.particle_v.numpy()[:, 0] for s in traj])
+    t_stop = v0 / (mu * G)
+    stopped = np.arange(len(traj)) * dt > t_stop + dt
+    assert vx.min() >= -1e-12, "friction reversed the motion"
+    assert np.abs(vx[stopped]).max() < 1e-12  # stopped to rounding
+    # it decelerated at mu g until then: the distance is v0^2 / (2 mu g) up to the first-order step
+    travel = traj[-1].particle_x.numpy()[:, 0].mean() - traj[0].particle_x.numpy()[:, 0].mean()
+    assert travel == pytest.approx(v0 ** 2 / (2 * mu * G), rel=0.05)
+
+
 @pytest.mark.parametrize("theta", [25.0, 40.0])
 def test_patch_above_the_friction_angle_slides_with_the_closed_form_acceleration(theta):
     mu, dt = 0.3, 0.01
@@ -95,9 +135,12 @@ def test_cloth_dropped_on_a_sphere_with_friction_stays_on_it(integrator):
     assert np.linalg.norm(y.mean(axis=0)[:2]) > np.linalg.norm(x.mean(axis=0)[:2]) + 0.05  # frictionless slides
 
 
-def test_sheet_dragged_over_a_sheet_feels_mu_times_its_load():
-    # a patch on a pinned sheet, pushed along x with m (mu g + 0.5 m/s^2): friction mu m g leaves 0.5 m/s^2
-    mu, push = 0.6, 0.5
+@pytest.mark.parametrize("push", [0.5, 2.0])
+def test_sheet_dragged_over_a_sheet_feels_mu_times_its_load(push):
+    # a patch on a pinned sheet, pushed along x with m (mu g + push): friction mu m g leaves push. At 2 m/s^2 it
+    # slides at up to 1.2 m/s, edge crossings appear and vanish within a step (the damper-regularised friction felt
+    # 1.10 mu load there)
+    mu = 0.6
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
     b.add_cloth_grid((8, 8), (1.0, 0.4), material=MATERIAL, pos=(-0.5, -0.2, 0.0))
     for p in range(81):
@@ -114,7 +157,7 @@ def test_sheet_dragged_over_a_sheet_feels_mu_times_its_load():
     t = np.arange(len(x)) * 0.01
     a = 2.0 * np.polyfit(t[10:], x[10:], 2)[0]
     friction = mu * G + push - a
-    assert friction == pytest.approx(mu * G, rel=0.05)
+    assert friction == pytest.approx(mu * G, rel=0.02)
 
 
 def test_system_with_pairs_matches_a_dense_solve():
@@ -273,9 +316,11 @@ def gradient_check(model, steps, dt, perturbations, *, eps=(1e-6, 1e-7), rtol=1e
                 values.append(float(run(st, ctl).numpy()[0]))
                 target.assign(base)
             fds.append((values[0] - values[1]) / (2.0 * h))
+        # the loss's rounding (~1e-15) over 2h = 2e-7 puts a floor of about 5e-9 under the smaller step's difference
+        noise = 1e-8
         scale = max(abs(fds[0]), 1e-12)
-        assert abs(fds[0] - fds[1]) <= rtol * scale, f"{name}: central differences do not converge {fds}"
-        assert abs(analytic - fds[1]) <= rtol * scale, f"{name}: tape {analytic:.9e} vs differences {fds}"
+        assert abs(fds[0] - fds[1]) <= rtol * scale + noise, f"{name}: central differences do not converge {fds}"
+        assert abs(analytic - fds[0]) <= rtol * scale, f"{name}: tape {analytic:.9e} vs differences {fds}"
         results[name] = (analytic, fds)
     return results, sim
 
@@ -385,3 +430,49 @@ obstacle_friction = 0.2
     np.testing.assert_allclose(model.contact_friction.numpy(), [0.4, 0.2], rtol=1e-6)
     with pytest.raises(ValueError, match="collision.friction"):
         scene_from_toml(text.replace("friction = 0.4", "friction = -1.0"))
+
+
+def _cloth_on_a_box(scale, dtype, self_collision):
+    """A 0.6 m camel-ponte-roma sheet (8x8) dropped from 5 cm onto a 0.4 m box with friction 0.4: it lands, drapes
+    over the edges and comes to rest."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
+    b.add_cloth_grid((8, 8), (0.6, 0.6), material=wc.preset("camel-ponte-roma", thicken=2), pos=(-0.3, -0.3, 0.25))
+    b.add_obstacle_box((0.2, 0.2, 0.2))
+    b.set_collision(obstacle_friction=0.4, self_collision=self_collision)
+    model = b.finalize("cpu", dtype=dtype, requires_grad=True)
+    model.material_density.assign(model.material_density.numpy() * scale)
+    return model
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype, self_collision", [(wp.float64, False), (wp.float32, False), (wp.float32, True)])
+def test_gradients_through_long_resting_contact_stay_bounded(dtype, self_collision):
+    # d(mean height)/d(log density) of the resting sheet. With friction a stiff damper (regularised below 1e-4
+    # m/s) the tape gave 3.3e3, 1.1e3 and 1.4e12 after 100, 200 and 400 steps of the 16x16 sheet (central
+    # differences 0.08 to 6.6), and the float32 backward with self-collision raised at step 16; sticking friction
+    # is exact and its derivative moves the particle with its contact point. Central differences at large relative
+    # steps (1e-2, 1e-3): the resting state's small contact events make smaller steps meaningless.
+    def height(steps, scale, grad=False):
+        model = _cloth_on_a_box(scale, dtype, self_collision)
+        sim = wc.Simulator(model, 0.01)
+        tape = wp.Tape()
+        with tape:
+            final = wc.rollout(sim, model.state(), steps=steps)[-1]
+        z = float(final.particle_x.numpy()[:, 2].astype(np.float64).mean())
+        if not grad:
+            return z
+        seed = np.zeros((model.particle_count, 3))
+        seed[:, 2] = 1.0 / model.particle_count
+        tape.backward(grads={final.particle_x: wp.array(seed, dtype=final.particle_x.dtype)})
+        speed = max(np.abs(final.particle_v.numpy()).max(), 0.0)
+        return z, float(model.material_density.grad.numpy()[0] * model.material_density.numpy()[0]), speed
+
+    for steps in (100, 300, 700):
+        _, tape_value, speed = height(steps, 1.0, grad=True)
+        fds = [(height(steps, math.exp(h)) - height(steps, math.exp(-h))) / (2 * h) for h in (1e-2, 1e-3)]
+        assert math.isfinite(tape_value)
+        # bounded by the differences, and not vanishing against them (they scatter over a factor 10 between the
+        # two steps: the resting sheet's contacts switch)
+        assert 0.1 * min(map(abs, fds)) <= abs(tape_value) <= 10.0 * max(map(abs, fds)), \
+            f"{steps} steps: tape {tape_value:.3g}, central differences {fds}"
+    assert speed < 0.05  # at rest by then (m/s)

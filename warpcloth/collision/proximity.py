@@ -23,13 +23,9 @@ import warp as wp
 
 from warpcloth.collision.detection import PrimitiveSet
 from warpcloth.errors import CollisionError
-from warpcloth.kernels.proximity import proximity_kernels
+from warpcloth.kernels.proximity import FRICTION_SWEEPS, proximity_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import record_adjoint
-
-FRICTION_REGULARISATION = 1.0e-4
-"""Relative tangential speed [m/s] below which friction is a linear damper reaching the Coulomb bound at it: a
-cloth held by static friction creeps at most about this fast (kernels/proximity.py)."""
 
 
 @dataclass
@@ -43,7 +39,10 @@ class ProximityPairs:
     weights: wp.array
     """Weight of each node, 0 where it is not a free cloth particle [-], (>= count,) vec4."""
     stiffness: wp.array
-    """The pair's 3x3 block K (dt^2 h n n^T + dt mu f_n J) [kg], (>= count,) mat33."""
+    """The pair's 3x3 block K (dt^2 h n n^T) [kg], (>= count,) mat33."""
+    inputs: object = None
+    """What the pair kernels read (kernels/proximity.py PairInputs): the friction impulses read it after the
+    solve; None without pairs."""
 
 
 class ProximityForces:
@@ -112,6 +111,10 @@ class ProximityForces:
         self._free = wp.array(free, dtype=wp.int32, device=dev)
         self.last_count = 0
         """Pairs found in the last step (diagnostics only)."""
+        self.friction = model.requires_grad or bool(np.any(model.contact_friction.numpy() > 0.0))
+        """Whether steps apply friction impulses: where a coefficient is > 0, or on any differentiable model (its
+        gradient on a coefficient of 0 is not 0)."""
+        self._per_node = wp.zeros(n + V, dtype=wp.int32, device=dev)
 
     @staticmethod
     def needed(model: Model) -> bool:
@@ -190,6 +193,7 @@ class ProximityForces:
         if count == 0:
             return pairs
         inputs = self.pair_inputs(x, velocity, nodes, kind, area, implicit_dt)
+        pairs.inputs = inputs
         wp.launch(k.assemble_pairs, count, device=dev, inputs=[inputs, model.particle_diag_slot],
                   outputs=[values, rhs, weights, stiffness], record_tape=False)
         if recording:
@@ -203,6 +207,46 @@ class ProximityForces:
             record_adjoint(adjoint, arrays=[rhs, dv])
         return pairs
 
+    def apply_friction(self, pairs: ProximityPairs, dv: wp.array, recording: bool) -> wp.array:
+        """The solve's velocity change ``dv`` plus the pairs' friction (kernels/proximity.py), as a new array
+        (``dv`` itself is the next step's first guess). Taped: gradients reach dv, the pairs' positions and
+        velocities, the masses (densities), the friction coefficients and the repulsion stiffness."""
+        model = self.model
+        k = self.kernels
+        dev = self.device
+        n, N = self.cloth_count, self.node_count
+        scalar, vec3 = model.scalar, model.types.vec3
+        count, p = pairs.count, pairs.inputs
+        mass = wp.zeros(n, dtype=scalar, device=dev, requires_grad=recording)
+        wp.launch(k.lumped_mass, model.tri_count, device=dev,
+                  inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
+                          model.material_thicken], outputs=[mass])
+        inv_mass = wp.empty(N, dtype=scalar, device=dev, requires_grad=recording)
+        wp.launch(k.inverse_mass, N, device=dev, inputs=[mass, self._free, n], outputs=[inv_mass])
+        against_obstacles = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
+        if self.node_count > n:
+            load = wp.zeros(n, dtype=scalar, device=dev, requires_grad=recording)
+            push, motion = (wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording) for _ in range(2))
+            wp.launch(k.obstacle_friction_loads, count, device=dev, inputs=[p, dv], outputs=[load, push, motion])
+            wp.launch(k.obstacle_friction, n, device=dev, inputs=[p, dv, load, push, motion, inv_mass],
+                      outputs=[against_obstacles])
+        between_cloth = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
+        if self.model.collision.self_collision:
+            self._per_node.zero_()
+            wp.launch(k.cloth_pair_counts, count, device=dev, inputs=[p, count, self._per_node], record_tape=False)
+            per_node = wp.clone(self._per_node) if recording else self._per_node
+            impulse = wp.zeros(count, dtype=vec3, device=dev, requires_grad=recording)
+            for _ in range(FRICTION_SWEEPS):  # each sweep in new arrays: the tape keeps every one
+                change = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
+                swept = wp.empty(count, dtype=vec3, device=dev, requires_grad=recording)
+                wp.launch(k.friction_sweep, count, device=dev,
+                          inputs=[p, dv, against_obstacles, between_cloth, impulse, inv_mass, per_node],
+                          outputs=[swept, change])
+                between_cloth, impulse = change, swept
+        out = wp.empty(n, dtype=vec3, device=dev, requires_grad=recording)
+        wp.launch(k.add_friction, n, device=dev, inputs=[dv, against_obstacles, between_cloth], outputs=[out])
+        return out
+
     def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array, area: wp.array,
                     implicit_dt: float | None = None):
         """What the pair kernels read (kernels/proximity.py PairInputs); ``implicit_dt`` as in :meth:`assemble`."""
@@ -212,7 +256,6 @@ class ProximityForces:
         p.stiffness, p.friction = model.contact_repulsion_stiffness, model.contact_friction
         p.cloth_count = self.cloth_count
         p.thickness = model.scalar(self.thickness)
-        p.eps = model.scalar(FRICTION_REGULARISATION)
         p.dt = model.scalar(self.dt if implicit_dt is None else implicit_dt)
         return p
 

@@ -128,6 +128,10 @@ class Simulator:
             clock.lap("proximity")
         self._solve(values, rhs, dv, start, state_out, step, pairs)
         clock.lap("solve")
+        velocity_change = dv
+        if pairs is not None and pairs.count and self.proximity.friction:
+            velocity_change = self.proximity.apply_friction(pairs, dv, recording)
+            clock.lap("proximity")
 
         max_speed = model.scalar(self.options.max_speed)
         if self._status_host is not None:
@@ -136,13 +140,13 @@ class Simulator:
             self._status.zero_()
         if self.collision is None:
             wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[start.particle_x, start.particle_v, dv, dt, max_speed],
+                      inputs=[start.particle_x, start.particle_v, velocity_change, dt, max_speed],
                       outputs=[state_out.particle_x, state_out.particle_v, self._status])
         else:
             candidate = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
             x_hat, v_hat = candidate.particle_x, candidate.particle_v
             wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[start.particle_x, start.particle_v, dv, dt, max_speed],
+                      inputs=[start.particle_x, start.particle_v, velocity_change, dt, max_speed],
                       outputs=[x_hat, v_hat, self._status])
             # no NaN or runaway particle reaches the collision stage
             self._raise_if_diverged(candidate, t_next, step)
