@@ -445,11 +445,28 @@ def implicit_kernels(scalar):
         i = wp.tid()
         flag_divergence(i, x[i], v[i], max_speed, status)
 
+    @wp.kernel
+    def lumped_mass(
+        triangles: wp.array2d(dtype=wp.int32),
+        area: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        density: wp.array(dtype=scalar),
+        thicken: wp.array(dtype=scalar),
+        # out:
+        mass: wp.array(dtype=scalar),
+    ):
+        # a third of each triangle's mass to each corner (Model.particle_mass), differentiated to the densities: the
+        # masses of the contact stages (friction, the projection), whose adjoints add to mass.grad
+        f = wp.tid()
+        third = area[f] * density[material[f]] * thicken[material[f]] / scalar(3.0)
+        for c in range(3):
+            wp.atomic_add(mass, triangles[f, c], third)
+
     return SimpleNamespace(
         FaceData=FaceData, HingeData=HingeData, ElementState=ElementState,
         pin_rows=pin_rows, handles=handles, external_forces=external_forces, wind=wind,
         faces=faces, hinges=hinges, faces_potential=faces_potential, hinges_potential=hinges_potential,
         face_energy=face_energy, hinge_energy=hinge_energy, integrate=integrate, check_state=check_state,
-        bdf2_blend=bdf2_blend, bdf2_history=bdf2_history,
+        bdf2_blend=bdf2_blend, bdf2_history=bdf2_history, lumped_mass=lumped_mass,
     )
 

@@ -412,23 +412,13 @@ def device_round_kernels(scalar):
             out[i] = wp.vec3d(obstacle[i - cloth_count])
 
     @wp.kernel(enable_backward=False)
-    def particle_mass(triangles: wp.array2d(dtype=wp.int32), area: wp.array(dtype=scalar),
-                      material: wp.array(dtype=wp.int32), density: wp.array(dtype=scalar),
-                      thicken: wp.array(dtype=scalar), mass: wp.array(dtype=wp.float64)):
-        # lumped masses, a third of each face's (Model.particle_mass)
-        f = wp.tid()
-        m = material[f]
-        third = wp.float64(area[f] * density[m] * thicken[m]) / wp.float64(3.0)
-        for c in range(3):
-            wp.atomic_add(mass, triangles[f, c], third)
-
-    @wp.kernel(enable_backward=False)
-    def inverse_mass(mass: wp.array(dtype=wp.float64), pin: wp.array(dtype=wp.int32), cloth_count: int,
+    def inverse_mass(mass: wp.array(dtype=scalar), pin: wp.array(dtype=wp.int32), cloth_count: int,
                      free: wp.array(dtype=wp.int32), inv_mass: wp.array(dtype=wp.float64)):
         i = wp.tid()
         movable = i < cloth_count and pin[wp.min(i, cloth_count - 1)] < 0
         free[i] = wp.where(movable, 1, 0)
-        inv_mass[i] = wp.where(movable, wp.float64(1.0) / mass[wp.min(i, cloth_count - 1)], wp.float64(0.0))
+        inv_mass[i] = wp.where(movable, wp.float64(1.0) / wp.float64(mass[wp.min(i, cloth_count - 1)]),
+                               wp.float64(0.0))
 
     @wp.kernel(enable_backward=False)
     def append_geometry(normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4), offset: int,
@@ -486,7 +476,7 @@ def device_round_kernels(scalar):
                            inv_mass: wp.array(dtype=wp.float64), grad_const: wp.array(dtype=wp.vec3d),
                            z: wp.array(dtype=wp.vec3d), x_hat: wp.array(dtype=wp.vec3d), cloth_count: int,
                            x_hat_grad: wp.array(dtype=vec3), obstacle_grad: wp.array(dtype=vec3),
-                           mass_grad: wp.array(dtype=wp.float64)):
+                           mass_grad: wp.array(dtype=scalar)):
         # dL/dx^ (free: W d_z; pinned: dL/dz plus the push), dL/dobstacle, and dL/dm_i = -dL/dx^_i . (z_i - x^_i) / m_i
         i = wp.tid()
         if i < cloth_count:
@@ -496,19 +486,10 @@ def device_round_kernels(scalar):
                 g = d_z[i] / inv_mass[i]
                 m = -wp.dot(g, z[i] - x_hat[i]) * inv_mass[i]
             x_hat_grad[i] = x_hat_grad[i] + vec3(g)
-            mass_grad[i] = m
+            mass_grad[i] = mass_grad[i] + scalar(m)
         else:
             o = i - cloth_count
             obstacle_grad[o] = obstacle_grad[o] + vec3(grad_const[i])
-
-    @wp.kernel(enable_backward=False)
-    def density_gradient(triangles: wp.array2d(dtype=wp.int32), area: wp.array(dtype=scalar),
-                         material: wp.array(dtype=wp.int32), thicken: wp.array(dtype=scalar),
-                         mass_grad: wp.array(dtype=wp.float64), density_grad: wp.array(dtype=scalar)):
-        f = wp.tid()
-        s = mass_grad[triangles[f, 0]] + mass_grad[triangles[f, 1]] + mass_grad[triangles[f, 2]]
-        m = material[f]
-        wp.atomic_add(density_grad, m, scalar(s * wp.float64(area[f] * thicken[m]) / wp.float64(3.0)))
 
     @wp.kernel(enable_backward=False)
     def geometry_gradients(grad_n: wp.array(dtype=wp.vec3d), grad_w: wp.array(dtype=wp.vec4d), offset: int,
@@ -527,9 +508,8 @@ def device_round_kernels(scalar):
         grown = wp.float64(wp.length(z[a] - z[b])) - wp.float64(wp.length(x_hat[a] - x_hat[b]))
         wp.atomic_max(largest, 0, grown / rest[e])
 
-    return SimpleNamespace(largest_strain=largest_strain, positions64=positions64, particle_mass=particle_mass,
-                           inverse_mass=inverse_mass,
+    return SimpleNamespace(largest_strain=largest_strain, positions64=positions64, inverse_mass=inverse_mass,
                            append_geometry=append_geometry, cloth_positions=cloth_positions,
                            scaled_gradient=scaled_gradient, push_contacts=push_contacts,
-                           position_gradients=position_gradients, density_gradient=density_gradient,
+                           position_gradients=position_gradients,
                            geometry_gradients=geometry_gradients)

@@ -502,22 +502,6 @@ def proximity_kernels(scalar):
             velocity[i] = (obstacle_end[o] - obstacle_start[o]) * inv_dt
 
     @wp.kernel
-    def lumped_mass(
-        triangles: wp.array2d(dtype=wp.int32),
-        area: wp.array(dtype=scalar),
-        material: wp.array(dtype=wp.int32),
-        density: wp.array(dtype=scalar),
-        thicken: wp.array(dtype=scalar),
-        # out:
-        mass: wp.array(dtype=scalar),
-    ):
-        # a third of each triangle's mass to each corner (Model.particle_mass), differentiated to the densities
-        f = wp.tid()
-        third = area[f] * density[material[f]] * thicken[material[f]] / scalar(3.0)
-        for c in range(3):
-            wp.atomic_add(mass, triangles[f, c], third)
-
-    @wp.kernel
     def inverse_mass(mass: wp.array(dtype=scalar), free: wp.array(dtype=wp.int32), cloth_count: int,
                      inv_mass: wp.array(dtype=scalar)):
         # 1 / m for free cloth particles, 0 for pinned particles and obstacle vertices
@@ -539,6 +523,6 @@ def proximity_kernels(scalar):
         edge_edge_pairs=edge_edge_pairs, PairInputs=PairInputs, assemble_pairs=assemble_pairs,
         pairs_potential=pairs_potential, node_state=node_state, cloth_pair_counts=cloth_pair_counts,
         friction_sweep=friction_sweep, obstacle_friction_loads=obstacle_friction_loads,
-        obstacle_friction=obstacle_friction, lumped_mass=lumped_mass, inverse_mass=inverse_mass,
+        obstacle_friction=obstacle_friction, inverse_mass=inverse_mass,
         add_friction=add_friction,
     )

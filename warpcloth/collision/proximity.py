@@ -207,20 +207,17 @@ class ProximityForces:
             record_adjoint(adjoint, arrays=[rhs, dv])
         return pairs
 
-    def apply_friction(self, pairs: ProximityPairs, dv: wp.array, recording: bool) -> wp.array:
+    def apply_friction(self, pairs: ProximityPairs, dv: wp.array, mass: wp.array, recording: bool) -> wp.array:
         """The solve's velocity change ``dv`` plus the pairs' friction (kernels/proximity.py), as a new array
-        (``dv`` itself is the next step's first guess). Taped: gradients reach dv, the pairs' positions and
-        velocities, the masses (densities), the friction coefficients and the repulsion stiffness."""
+        (``dv`` itself is the next step's first guess); ``mass``: the particles' lumped masses. Taped: gradients
+        reach dv, the pairs' positions and velocities, the masses, the friction coefficients and the repulsion
+        stiffness."""
         model = self.model
         k = self.kernels
         dev = self.device
         n, N = self.cloth_count, self.node_count
         scalar, vec3 = model.scalar, model.types.vec3
         count, p = pairs.count, pairs.inputs
-        mass = wp.zeros(n, dtype=scalar, device=dev, requires_grad=recording)
-        wp.launch(k.lumped_mass, model.tri_count, device=dev,
-                  inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
-                          model.material_thicken], outputs=[mass])
         inv_mass = wp.empty(N, dtype=scalar, device=dev, requires_grad=recording)
         wp.launch(k.inverse_mass, N, device=dev, inputs=[mass, self._free, n], outputs=[inv_mass])
         against_obstacles = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)

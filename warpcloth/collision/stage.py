@@ -14,7 +14,8 @@ After the implicit step has moved the cloth from x0 to x̂, each round
 Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
 
 Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
-transforms of the Control) through n and w, and the densities through the masses in W. Deliberately dropped: the
+transforms of the Control) through n and w, and the masses in W (the Simulator's taped lumped masses, on to the
+densities). Deliberately dropped: the
 time of impact and the set of contacts (piecewise constant).
 """
 
@@ -82,12 +83,13 @@ class CollisionStage:
 
     # -- response ------------------------------------------------------------------------------------------------
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                obstacle_end: wp.array, state_out: State, step: int, implicit_dt: float | None = None) -> None:
+                obstacle_end: wp.array, state_out: State, step: int, mass: wp.array,
+                implicit_dt: float | None = None) -> None:
         """Write the collision-free positions and corrected velocities of the step into ``state_out``;
         ``obstacle_start`` and ``obstacle_end`` are the obstacle vertices at the step's start and end (empty without
-        obstacles). ``implicit_dt``: the length of the implicit step that gave x̂ = start + implicit_dt v̂, where it
-        is not the time step (BDF2: 2/3 dt from its blend); the velocity change is (z − x̂) / implicit_dt, so the
-        result keeps that relation."""
+        obstacles); ``mass``: the particles' lumped masses (the adjoint adds to ``mass.grad``). ``implicit_dt``: the
+        length of the implicit step that gave x̂ = start + implicit_dt v̂, where it is not the time step (BDF2: 2/3 dt
+        from its blend); the velocity change is (z − x̂) / implicit_dt, so the result keeps that relation."""
         model = self.model
         k = self.kernels
         recording = active_tape() is not None and model.requires_grad
@@ -95,8 +97,8 @@ class CollisionStage:
         dev = self.device
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
         if self.options.collision.solver == "device":
-            self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, recording,
-                                    inv_dt)
+            self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, mass,
+                                    recording, inv_dt)
             return
 
         start = self._gather(state_in.particle_x, obstacle_start, recording)
@@ -130,7 +132,7 @@ class CollisionStage:
             t1 = time.perf_counter()
             phases["geometry"] += t1 - t0
             contacts = Contacts.concatenate([contacts, found])
-            z, lam = self._project(x_hat, obstacle_end, contacts, geometry, lam, recording, stats, step)
+            z, lam = self._project(x_hat, obstacle_end, mass, contacts, geometry, lam, recording, stats, step)
             phases["projection"] += time.perf_counter() - t1
             stats["rounds"] = round_index + 1
         stats["contacts"] = len(contacts)
@@ -141,7 +143,8 @@ class CollisionStage:
                   outputs=[state_out.particle_x, state_out.particle_v])
 
     def _resolve_on_device(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                           obstacle_end: wp.array, state_out: State, step: int, recording: bool, inv_dt) -> None:
+                           obstacle_end: wp.array, state_out: State, step: int, mass: wp.array, recording: bool,
+                           inv_dt) -> None:
         """:meth:`resolve` with ``CollisionOptions(solver="device")``: contacts, their geometry, the projection and
         its adjoint stay on the device; each round reads back the contact count and the solver's status."""
         model = self.model
@@ -176,10 +179,6 @@ class CollisionStage:
                 positions = wp.empty(N, dtype=wp.vec3d, device=dev)
                 wp.launch(kr.positions64, N, device=dev, inputs=[x_hat, obstacle_end, n], outputs=[positions],
                           record_tape=False)
-                mass = wp.zeros(n, dtype=wp.float64, device=dev)
-                wp.launch(kr.particle_mass, model.tri_count, device=dev,
-                          inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
-                                  model.material_thicken], outputs=[mass], record_tape=False)
                 free = wp.empty(N, dtype=wp.int32, device=dev)
                 inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
                 wp.launch(kr.inverse_mass, N, device=dev, inputs=[mass, model.particle_pin, n],
@@ -226,8 +225,8 @@ class CollisionStage:
             z = wp.empty(n, dtype=vec3, device=dev, requires_grad=recording)
             wp.launch(kr.cloth_positions, n, device=dev, inputs=[solution.z], outputs=[z], record_tape=False)
             if recording:
-                self._record_device_adjoint(solution, x_hat, obstacle_end, positions, free, inv_mass, list(rounds),
-                                            z)
+                self._record_device_adjoint(solution, x_hat, obstacle_end, mass, positions, free, inv_mass,
+                                            list(rounds), z)
             phases["projection"] += time.perf_counter() - t1
             stats["rounds"] = round_index + 1
             stats["device"] = {"iterations": solution.iterations, "violation": solution.violation}
@@ -270,9 +269,10 @@ class CollisionStage:
             wp.copy(weights, self._contact_weights)
         self._contact_nodes, self._contact_normals, self._contact_weights = nodes, normals, weights
 
-    def _record_device_adjoint(self, solution, x_hat, obstacle_end, positions, free, inv_mass, rounds, z) -> None:
+    def _record_device_adjoint(self, solution, x_hat, obstacle_end, mass, positions, free, inv_mass, rounds,
+                               z) -> None:
         """Record the adjoint of one device projection (kernels only): dL/dz -> x^, the contacts' normals and
-        weights, the obstacle vertices and the densities."""
+        weights, the obstacle vertices and the masses."""
         model = self.model
         kr = device_round_kernels(model.scalar)
         n, N = self.cloth_count, self.node_count
@@ -293,16 +293,12 @@ class CollisionStage:
             wp.launch(kr.push_contacts, count, device=dev,
                       inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
                       outputs=[grad_w, grad_n, grad_const])
-            mass_grad = wp.zeros(n, dtype=wp.float64, device=dev)
             obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else wp.zeros(
                 max(N - n, 1), dtype=model.types.vec3, device=dev)
+            mass_grad = mass.grad if mass.grad is not None else wp.zeros(n, dtype=model.scalar, device=dev)
             wp.launch(kr.position_gradients, N, device=dev,
                       inputs=[z.grad, d_z, inv_mass, grad_const, solution.z, positions, n],
                       outputs=[x_hat.grad, obstacle_grad, mass_grad])
-            if model.material_density.grad is not None:
-                wp.launch(kr.density_gradient, model.tri_count, device=dev,
-                          inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_thicken,
-                                  mass_grad], outputs=[model.material_density.grad])
             for offset, found, normal, weight in rounds:
                 if normal.grad is not None:
                     wp.launch(kr.geometry_gradients, found, device=dev, inputs=[grad_n, grad_w, offset],
@@ -360,7 +356,7 @@ class CollisionStage:
                                  "degenerate normal; a triangle or edge of the cloth or of an obstacle collapsed")
         return normal, weight
 
-    def _project(self, x_hat, obstacle_end, contacts: Contacts, geometry, lam, recording, stats, step):
+    def _project(self, x_hat, obstacle_end, mass, contacts: Contacts, geometry, lam, recording, stats, step):
         """Project x̂ onto all contacts found so far; on a tape, record the projection's adjoint.
 
         ``lam`` are the previous round's multipliers (its contacts come first). Returns z and the multipliers."""
@@ -369,7 +365,7 @@ class CollisionStage:
         weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
         try:
             result = projection.project(
-                x_hat.numpy().astype(np.float64), model.particle_mass(), self.fixed,
+                x_hat.numpy().astype(np.float64), mass.numpy().astype(np.float64), self.fixed,
                 obstacle_end.numpy().astype(np.float64).reshape(-1, 3), contacts.nodes.astype(np.int64),
                 weights, normals, self.thickness, tol=self.options.collision.qp_tol,
                 lam_init=np.concatenate([lam, np.zeros(len(normals) - len(lam))]))
@@ -388,7 +384,7 @@ class CollisionStage:
                 self.backward_seconds += time.perf_counter() - t0
                 self.phase_seconds["adjoint"] += time.perf_counter() - t0
                 _accumulate(x_hat, gx)
-                self._accumulate_density(projection.mass_gradient(result, gx))
+                _accumulate(mass, projection.mass_gradient(result, gx))
                 for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
                     _accumulate(normal, gn[lo:hi])
                     _accumulate(weight, gw[lo:hi])
@@ -397,17 +393,6 @@ class CollisionStage:
 
             record_adjoint(adjoint, arrays=[z])
         return z, result.lam
-
-
-    def _accumulate_density(self, grad_mass: np.ndarray) -> None:
-        """material_density.grad += the chain of ∂L/∂m through m_i = Σ_faces of i density thicken area / 3."""
-        model = self.model
-        density = model.material_density
-        if density.grad is None or not np.any(grad_mass):
-            return
-        per_face = grad_mass[model.triangles_np].sum(axis=1) * model.tri_area.numpy() / 3.0
-        grad = np.bincount(model.tri_material.numpy(), weights=per_face, minlength=density.shape[0])
-        _accumulate(density, grad * model.material_thicken.numpy())
 
 
 def _rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarray, mode: int, start: wp.array,

@@ -68,6 +68,7 @@ class Simulator:
         # host view of the divergence flag read every step (on the CPU it shares memory: no copy, no launch)
         self._status_host = self._status.numpy() if self.device.is_cpu else None
         self._step_buffers = None
+        self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
         self._elongated: tuple[int, float, int] | None = None  # (triangle, aspect ratio, count): _mesh_hint
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
@@ -128,9 +129,11 @@ class Simulator:
             clock.lap("proximity")
         self._solve(values, rhs, dv, start, state_out, step, pairs)
         clock.lap("solve")
+        friction = pairs is not None and pairs.count and self.proximity.friction
+        mass = self._lumped_mass(recording) if friction or self.collision is not None else None
         velocity_change = dv
-        if pairs is not None and pairs.count and self.proximity.friction:
-            velocity_change = self.proximity.apply_friction(pairs, dv, recording)
+        if friction:
+            velocity_change = self.proximity.apply_friction(pairs, dv, mass, recording)
             clock.lap("proximity")
 
         max_speed = model.scalar(self.options.max_speed)
@@ -152,7 +155,8 @@ class Simulator:
             self._raise_if_diverged(candidate, t_next, step)
             clock.lap("integrate")
             # detection runs from the true start positions (state_in), BDF2's blend being no configuration
-            self.collision.resolve(state_in, x_hat, v_hat, *obstacles, state_out, step, implicit_dt=assembler.dt)
+            self.collision.resolve(state_in, x_hat, v_hat, *obstacles, state_out, step, mass,
+                                   implicit_dt=assembler.dt)
             wp.launch(self.kernels.check_state, model.particle_count, device=self.device,
                       inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
                       record_tape=False)  # the projection's velocity change too
@@ -176,6 +180,23 @@ class Simulator:
         self.stats["steps"] += 1
         clock.lap("collision" if self.collision is not None else "integrate")
         self._raise_if_diverged(state_out, t_next, step)
+
+    def _lumped_mass(self, recording: bool) -> wp.array:
+        """The particles' lumped masses from the model's densities (one taped launch a step: the contact stages'
+        adjoints add to its gradient, which Warp carries to the densities). Read at every step, so densities
+        changed between rollouts are the ones used."""
+        model = self.model
+        if recording or self._mass is None:
+            mass = wp.zeros(model.particle_count, dtype=model.scalar, device=self.device, requires_grad=recording)
+            if not recording:
+                self._mass = mass
+        else:
+            mass = self._mass
+            mass.zero_()
+        wp.launch(self.kernels.lumped_mass, model.tri_count, device=self.device,
+                  inputs=[model.tri_indices, model.tri_area, model.tri_material, model.material_density,
+                          model.material_thicken], outputs=[mass])
+        return mass
 
     def _bdf2_assembler(self) -> SystemAssembler:
         """The assembler of BDF2's steps: a backward Euler step of 2/3 dt (SolverOptions.integrator)."""
