@@ -3,7 +3,13 @@
 Detection (kernels/collision.py) freezes each contact's nodes, mode, time of impact t and side sign. Here the
 positions at t, x(t) = x0 + t (x1 - x0), give the constraint's unit normal n and weights w; Warp's autodiff carries
 dL/dn and dL/dw (from the projection's adjoint) back to the start and end positions of cloth and obstacles.
-The frozen t and sign get no gradient (a change of the active set or of the time of impact is not differentiable).
+
+The time of impact of a continuous contact (t < 1: the four points coplanar, f(t) = (b - a) . (c - a) x (d - a) = 0)
+moves with the positions: dt/dx = -(df/dx) / f'(t) (implicit function theorem). It enters as
+t - (f(t) - f(t)|const) / f'(t) (``frozen``: a copy with a zero adjoint), exactly the detected t, whose derivative
+is that one. Leaving it out put the gradients of a cloth landing across a box's edge 2-70 % off. Not differentiated,
+by design: which contacts exist (the active set: the trajectory's piece), the side sign, and a grazing impact's t
+(f'(t) near 0, where dt/dx is unbounded).
 """
 
 from types import SimpleNamespace

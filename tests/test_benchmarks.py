@@ -36,6 +36,7 @@ BENCHMARKS = {
     "material_estimation": (("per_material", "means", "seed"), True, True),
     "motion_control": (("open_loop",), False, True),
     "contact": (("drape", "incline"), False, False),
+    "contact_gradients": (("throw", "drape", "before"), False, False),
     "integrators": (("T", "orders", "energies"), False, False),
     "newton_corrections": (("rows", "horizon", "library_check_max_dx_m"), False, False),
 }

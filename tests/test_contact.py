@@ -84,13 +84,13 @@ def test_a_pair_that_friction_stops_stays_stopped():
     model, _ = incline(0.0, mu, vel=(v0, 0.0, 0.0))
     traj = wc.rollout(wc.Simulator(model, dt), model.state(), steps=60)
     vx = np.array([s.particle_v.numpy()[:, 0] for s in traj])
+    assert vx.min() >= -1e-12, "friction reversed the motion"
+    sliding = vx.mean(axis=1) > mu * G * dt  # steps whose end the patch still slides into
+    deceleration = -np.diff(vx.mean(axis=1))[sliding[1:]][2:] / dt  # after two steps settling in the layer
+    np.testing.assert_allclose(deceleration, mu * G, rtol=0.01)
     t_stop = v0 / (mu * G)
     stopped = np.arange(len(traj)) * dt > t_stop + dt
-    assert vx.min() >= -1e-12, "friction reversed the motion"
-    assert np.abs(vx[stopped]).max() < 1e-12  # stopped to rounding
-    # it decelerated at mu g until then: the distance is v0^2 / (2 mu g) up to the first-order step
-    travel = traj[-1].particle_x.numpy()[:, 0].mean() - traj[0].particle_x.numpy()[:, 0].mean()
-    assert travel == pytest.approx(v0 ** 2 / (2 * mu * G), rel=0.05)
+    assert np.abs(vx[stopped]).max() < 1e-12  # stopped, to rounding
 
 
 @pytest.mark.parametrize("theta", [25.0, 40.0])

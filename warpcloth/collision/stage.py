@@ -4,8 +4,8 @@ After the implicit step has moved the cloth from x0 to x̂, each round
 1. detects contacts between the start positions x0 and the current end positions (warpcloth/collision/detection.py:
    BVH broad phase over swept boxes; vertex-face and edge-edge CCD and proximity within the thickness δ:
    kernels/collision.py, not differentiated);
-2. evaluates the new contacts at their frozen time of impact, from the positions they were found at: unit normal n
-   and weights w (kernels/contact.py, differentiated by Warp); they stay frozen in later rounds;
+2. evaluates the new contacts at their time of impact, from the positions they were found at: unit normal n and
+   weights w (kernels/contact.py, differentiated by Warp, the time of impact included); they stay in later rounds;
 3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over all contacts so far and records its adjoint on
    the tape: by default on the device (``CollisionOptions.solver="device"``, kernels/projection.py: MPRGP on the
    dual, a CG adjoint on the active set; contacts, geometry and gradients never leave the device, each round reads
@@ -14,9 +14,9 @@ After the implicit step has moved the cloth from x0 to x̂, each round
 Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
 
 Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
-transforms of the Control) through n and w, and the masses in W (the Simulator's taped lumped masses, on to the
-densities). Deliberately dropped: the
-time of impact and the set of contacts (piecewise constant).
+transforms of the Control) through n, w and the times of impact, and the masses in W (the Simulator's taped lumped
+masses, on to the densities). Deliberately dropped: which contacts exist and which are active (piecewise constant:
+the trajectory's piece).
 """
 
 from __future__ import annotations
@@ -335,7 +335,7 @@ class CollisionStage:
                 "energy into it step after step; lower dt")
 
     def _geometry(self, start, end, contacts: Contacts, recording, step) -> tuple[wp.array, wp.array]:
-        """Normals and weights of new contacts at their frozen time of impact, from the positions they were found
+        """Normals and weights of new contacts at their time of impact, from the positions they were found
         at (they stay frozen in later rounds, as in ARCSim's impact zones)."""
         model = self.model
         vec3, vec4 = model.types.vec3, model.types.vec4
