@@ -476,3 +476,13 @@ def test_gradients_through_long_resting_contact_stay_bounded(dtype, self_collisi
         assert 0.1 * min(map(abs, fds)) <= abs(tape_value) <= 10.0 * max(map(abs, fds)), \
             f"{steps} steps: tape {tape_value:.3g}, central differences {fds}"
     assert speed < 0.05  # at rest by then (m/s)
+
+
+def test_friction_set_after_the_simulator_is_built_is_used():
+    # a frictionless model's Simulator launches nothing for friction; a coefficient set afterwards is seen
+    model, R = incline(10.0, 0.0)
+    sim = wc.Simulator(model, 0.01)
+    model.contact_friction.assign(np.array([0.3, 0.3]))
+    traj = wc.rollout(sim, model.state(), steps=50)
+    travel = (traj[-1].particle_x.numpy() - traj[0].particle_x.numpy()).mean(axis=0) @ (R @ [-1.0, 0.0, 0.0])
+    assert abs(travel) < 1e-6  # held (frictionless, it slides about 2 cm in 0.5 s)

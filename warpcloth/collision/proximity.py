@@ -111,10 +111,14 @@ class ProximityForces:
         self._free = wp.array(free, dtype=wp.int32, device=dev)
         self.last_count = 0
         """Pairs found in the last step (diagnostics only)."""
-        self.friction = model.requires_grad or bool(np.any(model.contact_friction.numpy() > 0.0))
-        """Whether steps apply friction impulses: where a coefficient is > 0, or on any differentiable model (its
-        gradient on a coefficient of 0 is not 0)."""
         self._per_node = wp.zeros(n + V, dtype=wp.int32, device=dev)
+
+    @property
+    def friction(self) -> bool:
+        """Whether steps apply friction impulses: on any differentiable model (its gradient on a coefficient of 0 is
+        not 0), else where a coefficient is > 0 now (read at every step: a coefficient set after the Simulator was
+        built is seen)."""
+        return self.model.requires_grad or bool(np.any(self.model.contact_friction.numpy() > 0.0))
 
     @staticmethod
     def needed(model: Model) -> bool:
