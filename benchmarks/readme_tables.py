@@ -247,6 +247,13 @@ def collision_ablation(d: dict) -> str:
         line += f" {r['mesh'].replace('x', '×')}: not met, the step raised: “{r['error']}”."
     rounds = sorted({r["rounds"] for r in d["records"] if "error" not in r})
     out.append(line + f" Projection rounds per step: {', '.join(map(str, rounds))}.")
+    for r in d["records"]:
+        for solver, rec in (("zone", r), ("device", r.get("device") or {})):
+            fs = rec.get("fail_safe")
+            if fs:
+                out.append(f"The {r['mesh'].replace('x', '×')} step with the {solver} solver fell back on rigid impact "
+                           f"zones: {fs['zones']} zones of {fs['particles']} particles in all, after {fs['passes']} "
+                           f"detection passes (the projection: “{fs['reason'][:120]}”).")
     out.append(provenance(d))
     return "\n".join(out)
 

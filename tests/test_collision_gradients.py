@@ -252,3 +252,44 @@ def test_density_gradient_is_zero_where_density_cannot_change_the_motion(solver)
     model.material_density.assign(density * np.exp(1e-4))
     moved = run(x0, v0, None)[0]
     assert abs(moved - loss) < 1e-11  # the premise: central differences see nothing
+
+
+@pytest.mark.parametrize("solver", ["numpy", "device"])
+def test_gradients_through_the_rigid_impact_zone_fail_safe_match_finite_differences(solver):
+    # A patch (of HEAVY) thrown onto a free sheet; the projection is refused (a strain limit of 1e-9 that any
+    # projection passes) so the fail-safe moves the particles in contact as one rigid zone: its gradient
+    # (kernels/failsafe.py, Warp's autodiff) reaches positions, velocities and both densities.
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    stretched_grid(b, 2, 0.2, pos=(-0.1, -0.1, 0.0))
+    stretched_grid(b, 1, 0.06, pos=(-0.03, -0.05, 0.0008), vel=(0.01, 0.02, -0.3), material=HEAVY)
+    b.set_collision(self_collision=True, repulsion_stiffness=0.0)
+    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    sim, run = loss_fn(model, 2, 0.005, solver=solver)
+    sim.options = wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30, cg_max_iters=2000,
+                                   collision=wc.CollisionOptions(solver=solver, max_projection_strain=1e-9))
+    x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
+    tape = wp.Tape()
+    with tape:
+        _, keys, traj, _, (cx, cv) = run(x0, v0, None, tape=True)
+    tape.backward(grads={traj[-1].particle_x: cx, traj[-1].particle_v: cv})
+    g = {"x0": traj[0].particle_x.grad.numpy().copy(), "v0": traj[0].particle_v.grad.numpy().copy()}
+    density_grad = model.material_density.grad.numpy().copy()
+    tape.zero()
+    steps_before = sim.collision.fail_safe_steps
+    run(x0, v0, None)
+    assert sim.collision.fail_safe_steps == steps_before + 1  # the first step's projection was given up
+    assert keys[0] > 0
+    rng = np.random.default_rng(1)
+    for name, eps in (("x0", 1e-7), ("v0", 1e-5)):
+        fd_check(run, (x0, v0, None), g, name, eps, rng)
+    base = model.material_density.numpy().copy()
+    for i in range(2):
+        vals = []
+        for sign in (1.0, -1.0):
+            d = base.copy()
+            d[i] *= 1.0 + sign * 1e-6
+            model.material_density.assign(d)
+            vals.append(run(x0, v0, None)[0])
+        model.material_density.assign(base)
+        fd = (vals[0] - vals[1]) / (2e-6 * base[i])
+        assert density_grad[i] == pytest.approx(fd, rel=1e-5, abs=1e-9), f"material {i}: {density_grad[i]} vs {fd}"

@@ -19,7 +19,6 @@ import warp as wp
 from conftest import VERTICAL, hanging_builder, top_corners
 
 import warpcloth as wc
-from warpcloth.errors import CollisionError
 from warpcloth.geometry.primitives import sphere_mesh
 from warpcloth.mesh_io import grid_mesh
 from warpcloth.solver.checkpoint import checkpointed_backward
@@ -365,13 +364,18 @@ def test_impact_at_20_m_per_s_onto_a_sphere():
     assert min(closest[-10:]) <= 0.27  # and it lies on the sphere, not beside or below it
 
 
-def test_impact_at_20_m_per_s_onto_a_sphere_at_10_ms_raises_and_names_dt():
+def test_impact_at_20_m_per_s_onto_a_sphere_at_10_ms_falls_back_on_rigid_impact_zones():
     # At 10 ms the 20 m/s cloth moves 1.6 elements per step: the projection lands neighbours on different sides of
     # the sphere's curvature and, unguarded, grew the stretching energy from 66 J to 2600 J in 12 steps with no
-    # error. The projection-strain guard (CollisionOptions.max_projection_strain) stops it and says to lower dt.
-    # (The projection alone: with repulsion the forces fling the cloth differently.)
-    with pytest.raises(CollisionError, match=r"step 3: the collision response stretched the edge .*lower dt"):
-        Run(sphere_impact(0.01, repulsion=False), 0.01, 5)
+    # error. The projection-strain guard (CollisionOptions.max_projection_strain) now hands those steps to the
+    # fail-safe, whose rigid impact zones hold the cloth on the sphere. Known gap: the steps the guard lets through
+    # still add energy (at most 1.8x the start's, here). (The projection alone: with repulsion the forces fling the
+    # cloth differently.)
+    run = Run(sphere_impact(0.01, repulsion=False), 0.01, 30)
+    assert run.sim.collision.fail_safe_steps > 0
+    totals = [e["total"] for e in run.energies]
+    assert max(totals) < 2.0 * totals[0]
+    assert totals[-1] < totals[0]
 
 
 # -- size and length ---------------------------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """warpcloth: differentiable implicit cloth simulation in NVIDIA Warp (Liang, Lin and Koltun, NeurIPS 2019)."""
 
 from warpcloth.builder import ModelBuilder
-from warpcloth.errors import CollisionError, SimulationError
+from warpcloth.errors import CollisionError, ContactCapacityError, SimulationError
 from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh
 from warpcloth.materials import PRESET_NAMES, Material, load_material_json, mean_material, preset
 from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_usd_mesh
@@ -32,6 +32,7 @@ __all__ = [
     "CollisionError",
     "CollisionOptions",
     "CollisionSettings",
+    "ContactCapacityError",
     "Control",
     "LinearSolver",
     "Material",

@@ -7,3 +7,7 @@ class SimulationError(RuntimeError):
 
 class CollisionError(SimulationError):
     """The collision response could not make a step collision-free, or a contact buffer overflowed."""
+
+
+class ContactCapacityError(CollisionError):
+    """A contact buffer overflowed (raise ``CollisionOptions.contact_capacity``): no fail-safe can work around it."""

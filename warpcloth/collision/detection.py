@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warpcloth.errors import CollisionError
+from warpcloth.errors import ContactCapacityError
 from warpcloth.kernels.collision import collision_kernels
 from warpcloth.model import Model
 
@@ -102,7 +102,7 @@ class ContactDetector:
         start_side); the collision stage passes the step's unprojected end in every round, so a pair keeps its side.
 
         Raises:
-            CollisionError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
+            ContactCapacityError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
                 and the count needed).
         """
         count = self.detect_on_device(x0, x1, reference)
@@ -158,7 +158,7 @@ class ContactDetector:
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
         count = int(self._count.numpy()[0])
         if count > self.capacity:
-            raise CollisionError(
+            raise ContactCapacityError(
                 f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
                 f"raise CollisionOptions.contact_capacity to at least {count}")
         return count

@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision.detection import PrimitiveSet
-from warpcloth.errors import CollisionError
+from warpcloth.errors import ContactCapacityError
 from warpcloth.kernels.proximity import FRICTION_SWEEPS, proximity_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import record_adjoint
@@ -161,7 +161,7 @@ class ProximityForces:
                           record_tape=False)
         count = int((self._count_host if self._count_host is not None else self._count.numpy())[0])
         if count > self.capacity:
-            raise CollisionError(
+            raise ContactCapacityError(
                 f"proximity pair buffer overflow: {count} pairs found but the capacity is {self.capacity}; raise "
                 f"CollisionOptions.contact_capacity to at least {count}")
         self.last_count = count

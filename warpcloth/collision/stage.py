@@ -29,7 +29,8 @@ import warp as wp
 from warpcloth.collision import projection
 from warpcloth.collision.detection import ContactDetector, Contacts
 from warpcloth.collision.device_projection import DeviceProjection
-from warpcloth.errors import CollisionError
+from warpcloth.collision.failsafe import RigidImpactZones
+from warpcloth.errors import CollisionError, ContactCapacityError
 from warpcloth.kernels.contact import contact_kernels
 from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
 from warpcloth.kernels.projection import device_round_kernels
@@ -74,6 +75,10 @@ class CollisionStage:
         """Statistics of the last step: rounds, contacts, and the projection's per-zone records."""
         self.last_projections: list[tuple[projection.ProjectionResult, wp.array]] = []
         """(result, z) of each round of the last step (z.grad holds dL/dz after a backward pass): for benchmarks."""
+        self.fail_safe = RigidImpactZones(model, self.fixed)
+        """The fail-safe of steps the projection cannot resolve (rigid impact zones)."""
+        self.fail_safe_steps = 0
+        """Steps resolved by the fail-safe over this stage's life (each also reported in ``last["fail_safe"]``)."""
         self.backward_seconds = 0.0
         """Wall time spent in the projection's adjoint (accumulates over backward passes)."""
         self.phase_seconds = dict.fromkeys(("detection", "geometry", "projection", "adjoint"), 0.0)
@@ -91,16 +96,29 @@ class CollisionStage:
         length of the implicit step that gave x̂ = start + implicit_dt v̂, where it is not the time step (BDF2: 2/3 dt
         from its blend); the velocity change is (z − x̂) / implicit_dt, so the result keeps that relation."""
         model = self.model
-        k = self.kernels
         recording = active_tape() is not None and model.requires_grad
-        n = self.cloth_count
-        dev = self.device
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
-        if self.options.collision.solver == "device":
-            self._resolve_on_device(state_in, x_hat, v_hat, obstacle_start, obstacle_end, state_out, step, mass,
-                                    recording, inv_dt)
-            return
+        self._rows = []  # the step's contacts so far, host arrays (the fail-safe's zones), or a reader of them
+        try:
+            if self.options.collision.solver == "device":
+                z = self._resolve_on_device(state_in, x_hat, obstacle_start, obstacle_end, step, mass, recording)
+            else:
+                z = self._resolve_zones(state_in, x_hat, obstacle_start, obstacle_end, step, mass, recording)
+        except ContactCapacityError:
+            raise
+        except CollisionError as err:
+            rows = np.concatenate([r() if callable(r) else r for r in self._rows] or [np.zeros((0, 4), np.int32)])
+            z, report = self.fail_safe.resolve(self, state_in.particle_x, x_hat, obstacle_start, obstacle_end, mass,
+                                               rows, recording, str(err), step)
+            self.last = {"rounds": self.last.get("rounds", 0), "contacts": len(rows), "zones": [],
+                         "fail_safe": report}
+            self.fail_safe_steps += 1
+        wp.launch(self.kernels.apply_projection, self.cloth_count, device=self.device,
+                  inputs=[x_hat, v_hat, z, inv_dt], outputs=[state_out.particle_x, state_out.particle_v])
 
+    def _resolve_zones(self, state_in: State, x_hat: wp.array, obstacle_start: wp.array, obstacle_end: wp.array,
+                       step: int, mass: wp.array, recording: bool) -> wp.array:
+        """The projected positions z by the NumPy zone solver (``CollisionOptions.solver="numpy"``)."""
         start = self._gather(state_in.particle_x, obstacle_start, recording)
         z = x_hat
         contacts = Contacts.empty()
@@ -117,6 +135,7 @@ class CollisionStage:
             if round_index == 0:
                 reference = end  # the unprojected end: the side of pairs touching at the start
             found = self.detector.detect(start, end, reference)
+            self._rows.append(found.nodes)
             phases["detection"] += time.perf_counter() - t0
             # Every contact found is new: a pair found again is violated again (the projection leaves resolved
             # pairs exactly at the thickness, which proximity detection does not count), and its new
@@ -139,14 +158,13 @@ class CollisionStage:
         self.last = stats
         if len(contacts):
             self._check_projection_strain(x_hat, z, step)
-        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, inv_dt],
-                  outputs=[state_out.particle_x, state_out.particle_v])
+        return z
 
-    def _resolve_on_device(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                           obstacle_end: wp.array, state_out: State, step: int, mass: wp.array, recording: bool,
-                           inv_dt) -> None:
-        """:meth:`resolve` with ``CollisionOptions(solver="device")``: contacts, their geometry, the projection and
-        its adjoint stay on the device; each round reads back the contact count and the solver's status."""
+    def _resolve_on_device(self, state_in: State, x_hat: wp.array, obstacle_start: wp.array, obstacle_end: wp.array,
+                           step: int, mass: wp.array, recording: bool) -> wp.array:
+        """The projected positions z with ``CollisionOptions(solver="device")``: contacts, their geometry, the
+        projection and its adjoint stay on the device; each round reads back the contact count and the solver's
+        status."""
         model = self.model
         k = self.kernels
         kr = device_round_kernels(model.scalar)
@@ -168,6 +186,9 @@ class CollisionStage:
             if round_index == 0:
                 reference = end  # the unprojected end: the side of pairs touching at the start
             found = self.detector.detect_on_device(start, end, reference)
+            self._rows = [lambda known=total, new=found: np.concatenate([
+                self._contact_nodes.numpy()[:known] if known else np.zeros((0, 4), np.int32),
+                self.detector.nodes.numpy()[:new]])]
             phases["detection"] += time.perf_counter() - t0
             if found == 0:
                 break
@@ -243,8 +264,7 @@ class CollisionStage:
                       record_tape=False)
             if float(largest.numpy()[0]) > opt.max_projection_strain:
                 self._check_projection_strain(x_hat, z, step)
-        wp.launch(k.apply_projection, n, device=dev, inputs=[x_hat, v_hat, z, inv_dt],
-                  outputs=[state_out.particle_x, state_out.particle_v])
+        return z
 
     def _gather(self, cloth_x: wp.array, obstacle_x: wp.array, recording: bool) -> wp.array:
         """One array of every node's position: cloth particles first, then obstacle vertices."""

@@ -1,0 +1,170 @@
+"""The collision stage's fail-safe: rigid impact zones (Provot 1997; Bridson, Fedkiw and Anderson 2002).
+
+When the projection cannot make a step collision-free (its rounds run out, its QP is infeasible or stalls, or it
+would stretch the cloth past CollisionOptions.max_projection_strain), the particles of the step's contacts are
+grouped into zones (connected through contacts) and each zone moves as a rigid body from its start positions
+(kernels/failsafe.py): a rigid motion cannot make a zone intersect itself more than it did at the start. Contacts
+that the rigid motion leaves with particles outside a zone, or between zones, merge them, until detection finds no
+contact that is not inside one zone. A zone moves freely first; one that then still meets an obstacle or a pinned
+particle moves with them (a cloth laid on a floor that its repulsion lifts is not held down). The motion is
+taped kernels, so gradients reach the start positions, the unprojected end positions, the masses and the obstacles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warpcloth.errors import CollisionError
+from warpcloth.kernels.failsafe import failsafe_kernels
+
+MERGES = 100
+"""Most detection passes that merge zones before the fail-safe gives up."""
+
+
+@dataclass
+class FailSafeReport:
+    """What the fail-safe did in a step."""
+
+    reason: str
+    """Why the projection was given up (its error message)."""
+    zones: int
+    """Rigid zones in the end."""
+    particles: int
+    """Particles in them."""
+    passes: int
+    """Detection passes (each merging zones) until no contact was left outside a zone."""
+
+
+class RigidImpactZones:
+    """Rigid impact zones over a model's cloth particles (``fixed``: pinned particles, constant)."""
+
+    def __init__(self, model, fixed: np.ndarray):
+        self.model = model
+        self.cloth_count = model.particle_count
+        self.free = ~np.asarray(fixed, dtype=bool)
+        self.kernels = failsafe_kernels(model.scalar)
+
+    def zones(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(zone of each cloth particle, -1 for none; anchor zones; anchor nodes) of contacts ``rows`` (m, 4): free
+        particles that share a contact share a zone; the contacts' other nodes (obstacle vertices, pinned
+        particles) anchor it."""
+        n = self.cloth_count
+        parent = np.arange(n)
+
+        def root(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        free_rows = []
+        for row in rows:
+            free = [int(a) for a in row if a < n and self.free[a]]
+            if not free:
+                continue
+            first = root(free[0])
+            for a in free[1:]:
+                parent[root(a)] = first
+            free_rows.append((free[0], [int(a) for a in row if a >= n or not self.free[a]]))
+        members = sorted({a for row in rows for a in row if a < n and self.free[a]})
+        label = {}
+        zone = np.full(n, -1, dtype=np.int32)
+        for a in members:
+            zone[a] = label.setdefault(root(a), len(label))
+        anchors = {(int(zone[f]), a) for f, constants in free_rows for a in constants}
+        anchor_zone = np.array([z for z, _ in sorted(anchors)], dtype=np.int32)
+        anchor_node = np.array([a for _, a in sorted(anchors)], dtype=np.int32)
+        return zone, anchor_zone, anchor_node
+
+    def positions(self, x0: wp.array, x_hat: wp.array, mass: wp.array, start: wp.array, end: wp.array,
+                  zone: np.ndarray, anchor_zone: np.ndarray, anchor_node: np.ndarray, recording: bool) -> wp.array:
+        """The zones' rigid positions (x^ outside them), by taped kernels. ``start``/``end``: every node's
+        position at the step's start and end (the anchors' displacements)."""
+        model = self.model
+        dev = model.device
+        scalar, vec3, mat33 = model.scalar, model.types.vec3, model.types.mat33
+        k = self.kernels
+        n = self.cloth_count
+        count_zones = max(int(zone.max()) + 1, 1)
+        zone_wp = wp.array(zone, dtype=wp.int32, device=dev)
+
+        def zeros(dtype):
+            return wp.zeros(count_zones, dtype=dtype, device=dev, requires_grad=recording)
+
+        total, count = zeros(scalar), zeros(scalar)
+        first, moved, turn, shift = zeros(vec3), zeros(vec3), zeros(vec3), zeros(vec3)
+        inertia = zeros(mat33)
+        wp.launch(k.zone_sums, n, device=dev, inputs=[x0, x_hat, mass, zone_wp], outputs=[total, first, moved])
+        wp.launch(k.zone_rotation_sums, n, device=dev, inputs=[x0, x_hat, mass, zone_wp, total, first],
+                  outputs=[turn, inertia])
+        if len(anchor_zone):
+            wp.launch(k.anchor_sums, len(anchor_zone), device=dev,
+                      inputs=[start, end, wp.array(anchor_zone, dtype=wp.int32, device=dev),
+                              wp.array(anchor_node, dtype=wp.int32, device=dev)], outputs=[shift, count])
+        z = wp.empty(n, dtype=vec3, device=dev, requires_grad=recording)
+        wp.launch(k.rigid_positions, n, device=dev,
+                  inputs=[x0, x_hat, zone_wp, total, first, moved, turn, inertia, shift, count], outputs=[z])
+        return z
+
+    def resolve(self, stage, x0: wp.array, x_hat: wp.array, obstacle_start: wp.array, obstacle_end: wp.array,
+                mass: wp.array, rows: np.ndarray, recording: bool, reason: str, step: int
+                ) -> tuple[wp.array, FailSafeReport]:
+        """Positions that leave no contact outside a rigid zone, from the contacts ``rows`` the projection gave up
+        on; ``stage``: the CollisionStage (its detector and node gathering)."""
+        start = stage._gather(x0, obstacle_start, recording)
+        end_anchors = stage._gather(x_hat, obstacle_end, recording)
+        rows = np.asarray(rows, dtype=np.int32).reshape(-1, 4)
+        held = np.zeros(self.cloth_count, dtype=bool)  # particles whose zone must move with its anchors
+        for passes in range(1, MERGES + 1):
+            zone, anchor_zone, anchor_node = self.zones(rows)
+            anchored = np.zeros(max(int(zone.max()) + 1, 1), dtype=bool)
+            anchored[zone[held & (zone >= 0)]] = True
+            keep = anchored[anchor_zone] if len(anchor_zone) else np.zeros(0, dtype=bool)
+            z = self.positions(x0, x_hat, mass, start, end_anchors, zone, anchor_zone[keep], anchor_node[keep],
+                               recording)
+            found = self._violated(stage, start, stage._gather(z, obstacle_end, False), step)
+            outside, hold = [], []
+            for row in found:
+                where = self._place(row, zone, anchored)
+                if where == "outside":
+                    outside.append(row)
+                elif where == "hold":
+                    hold.append(row)
+            if not outside and not hold:
+                members = int(np.count_nonzero(zone >= 0))
+                return z, FailSafeReport(reason, int(zone.max()) + 1 if members else 0, members, passes)
+            for row in hold:  # a free zone that meets an obstacle or a pin: it moves with them from now on
+                held[[a for a in row if a < self.cloth_count]] = True
+            if outside:
+                rows = np.concatenate([rows, np.asarray(outside, dtype=np.int32)])
+        raise CollisionError(f"step {step}: the rigid impact zones did not settle in {MERGES} passes after the "
+                             f"projection failed ({reason})")
+
+    @staticmethod
+    def _violated(stage, start: wp.array, end: wp.array, step: int) -> np.ndarray:
+        """The nodes of the contacts detected between ``start`` and ``end`` whose constraint the end positions
+        violate (detection also reports pairs that touched at the start and have since moved apart)."""
+        found = stage.detector.detect(start, end)
+        if len(found) == 0:
+            return found.nodes
+        normal, weight = stage._geometry(start, end, found, False, step)
+        x = end.numpy().astype(np.float64)[found.nodes]  # (m, 4, 3)
+        gap = np.einsum("ma,mak,mk->m", weight.numpy().astype(np.float64), x, normal.numpy().astype(np.float64))
+        return found.nodes[gap < stage.thickness * (1.0 - 1.0e-6)]
+
+    def _place(self, row: np.ndarray, zone: np.ndarray, anchored: np.ndarray) -> str:
+        """Where a contact found after the rigid motion lies: "inside" one zone (its free particles in one zone,
+        any obstacle vertex or pinned particle only where that zone moves with them), "hold" (one free zone
+        against an obstacle or a pin: the zone must move with them), or "outside" (particles in no zone or in two
+        zones: they merge)."""
+        n = self.cloth_count
+        free = [int(a) for a in row if a < n and self.free[a]]
+        if not free:  # only constant nodes: nothing to move
+            return "inside"
+        if zone[free[0]] < 0 or any(zone[a] != zone[free[0]] for a in free):
+            return "outside"
+        constants = any(a >= n or not self.free[a] for a in row)
+        return "hold" if constants and not anchored[zone[free[0]]] else "inside"
