@@ -186,6 +186,13 @@ def step_time(d: dict) -> str:
     return "\n".join(out)
 
 
+def _zone_size(r: dict, key: str) -> str:
+    """Mean ± std (max) of a record's zone sizes; none where the fail-safe replaced the projection."""
+    if r[key] is None:
+        return "fail-safe (below)"
+    return f"{r[key]:.0f} ± {r[key + '_std']:.0f} ({r[key + '_max']:.0f})"
+
+
 def collision_ablation(d: dict) -> str:
     seed = d["seed"]
     rows, phase_rows = [], []
@@ -199,9 +206,7 @@ def collision_ablation(d: dict) -> str:
                          "", "", "", seed_cell])
             continue
         rows.append([
-            r["mesh"].replace("x", "×"),
-            f"{r['kkt_size']:.0f} ± {r['kkt_size_std']:.0f} ({r['kkt_size_max']})",
-            f"{r['qr_size']:.0f} ± {r['qr_size_std']:.0f} ({r['qr_size_max']})",
+            r["mesh"].replace("x", "×"), _zone_size(r, "kkt_size"), _zone_size(r, "qr_size"),
             g(r["kkt_backward_s"]), g(r["qr_backward_s"]), g(r["speedup"]),
             f"{g(r['kkt_backward_zone_s'], 2)} / {g(r['qr_backward_zone_s'], 2)}", g(r["forward_s"], 2), seed_cell])
         if "phases_s" in r:

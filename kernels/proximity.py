@@ -322,7 +322,6 @@ def proximity_kernels(scalar):
     @wp.kernel
     def obstacle_friction_loads(
         p: PairInputs,
-        dv: wp.array(dtype=vec3),
         # out:
         load: wp.array(dtype=scalar),
         push: wp.array(dtype=vec3),

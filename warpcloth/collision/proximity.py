@@ -228,7 +228,7 @@ class ProximityForces:
         if self.node_count > n:
             load = wp.zeros(n, dtype=scalar, device=dev, requires_grad=recording)
             push, motion = (wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording) for _ in range(2))
-            wp.launch(k.obstacle_friction_loads, count, device=dev, inputs=[p, dv], outputs=[load, push, motion])
+            wp.launch(k.obstacle_friction_loads, count, device=dev, inputs=[p], outputs=[load, push, motion])
             wp.launch(k.obstacle_friction, n, device=dev, inputs=[p, dv, load, push, motion, inv_mass],
                       outputs=[against_obstacles])
         between_cloth = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)

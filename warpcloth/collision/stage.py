@@ -99,6 +99,7 @@ class CollisionStage:
         recording = active_tape() is not None and model.requires_grad
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
         self._rows = []  # the step's contacts so far, host arrays (the fail-safe's zones), or a reader of them
+        self._round = 0  # the detection rounds run so far
         try:
             if self.options.collision.solver == "device":
                 z = self._resolve_on_device(state_in, x_hat, obstacle_start, obstacle_end, step, mass, recording)
@@ -110,8 +111,7 @@ class CollisionStage:
             rows = np.concatenate([r() if callable(r) else r for r in self._rows] or [np.zeros((0, 4), np.int32)])
             z, report = self.fail_safe.resolve(self, state_in.particle_x, x_hat, obstacle_start, obstacle_end, mass,
                                                rows, recording, str(err), step)
-            self.last = {"rounds": self.last.get("rounds", 0), "contacts": len(rows), "zones": [],
-                         "fail_safe": report}
+            self.last = {"rounds": self._round, "contacts": len(rows), "zones": [], "fail_safe": report}
             self.fail_safe_steps += 1
         wp.launch(self.kernels.apply_projection, self.cloth_count, device=self.device,
                   inputs=[x_hat, v_hat, z, inv_dt], outputs=[state_out.particle_x, state_out.particle_v])
@@ -136,6 +136,7 @@ class CollisionStage:
                 reference = end  # the unprojected end: the side of pairs touching at the start
             found = self.detector.detect(start, end, reference)
             self._rows.append(found.nodes)
+            self._round = round_index + 1
             phases["detection"] += time.perf_counter() - t0
             # Every contact found is new: a pair found again is violated again (the projection leaves resolved
             # pairs exactly at the thickness, which proximity detection does not count), and its new
@@ -186,6 +187,7 @@ class CollisionStage:
             if round_index == 0:
                 reference = end  # the unprojected end: the side of pairs touching at the start
             found = self.detector.detect_on_device(start, end, reference)
+            self._round = round_index + 1
             self._rows = [lambda known=total, new=found: np.concatenate([
                 self._contact_nodes.numpy()[:known] if known else np.zeros((0, 4), np.int32),
                 self.detector.nodes.numpy()[:new]])]
@@ -399,8 +401,11 @@ class CollisionStage:
             sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
 
             def adjoint():
+                grad_z = z.grad.numpy().astype(np.float64)
+                if not np.any(grad_z):  # a round whose z a later round or the fail-safe replaced
+                    return
                 t0 = time.perf_counter()
-                gx, gw, gn, gob = projection.backward(result, z.grad.numpy().astype(np.float64), mode=mode)
+                gx, gw, gn, gob = projection.backward(result, grad_z, mode=mode)
                 self.backward_seconds += time.perf_counter() - t0
                 self.phase_seconds["adjoint"] += time.perf_counter() - t0
                 _accumulate(x_hat, gx)
