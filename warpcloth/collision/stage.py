@@ -98,7 +98,8 @@ class CollisionStage:
         model = self.model
         recording = active_tape() is not None and model.requires_grad
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
-        self._rows = []  # the step's contacts so far, host arrays (the fail-safe's zones), or a reader of them
+        self._rows = []  # the NumPy path's contacts of each round so far (the fail-safe's zones)
+        self._device_counts = (0, 0)  # the device path's: contacts in its lists, contacts just found
         self._round = 0  # the detection rounds run so far
         try:
             if self.options.collision.solver == "device":
@@ -108,13 +109,24 @@ class CollisionStage:
         except ContactCapacityError:
             raise
         except CollisionError as err:
-            rows = np.concatenate([r() if callable(r) else r for r in self._rows] or [np.zeros((0, 4), np.int32)])
+            rows = self._contacts_so_far()
             z, report = self.fail_safe.resolve(self, state_in.particle_x, x_hat, obstacle_start, obstacle_end, mass,
                                                rows, recording, str(err), step)
             self.last = {"rounds": self._round, "contacts": len(rows), "zones": [], "fail_safe": report}
             self.fail_safe_steps += 1
         wp.launch(self.kernels.apply_projection, self.cloth_count, device=self.device,
                   inputs=[x_hat, v_hat, z, inv_dt], outputs=[state_out.particle_x, state_out.particle_v])
+
+    def _contacts_so_far(self) -> np.ndarray:
+        """The nodes of every contact the step's rounds found so far (m, 4), on the host: what the fail-safe
+        groups into zones (a contact found twice is harmless)."""
+        parts = list(self._rows)
+        if self.options.collision.solver == "device":
+            known, new = self._device_counts
+            if known:
+                parts.append(self._contact_nodes.numpy()[:known])
+            parts.append(self.detector.nodes.numpy()[:new])
+        return np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int32)
 
     def _resolve_zones(self, state_in: State, x_hat: wp.array, obstacle_start: wp.array, obstacle_end: wp.array,
                        step: int, mass: wp.array, recording: bool) -> wp.array:
@@ -188,9 +200,7 @@ class CollisionStage:
                 reference = end  # the unprojected end: the side of pairs touching at the start
             found = self.detector.detect_on_device(start, end, reference)
             self._round = round_index + 1
-            self._rows = [lambda known=total, new=found: np.concatenate([
-                self._contact_nodes.numpy()[:known] if known else np.zeros((0, 4), np.int32),
-                self.detector.nodes.numpy()[:new]])]
+            self._device_counts = (total, found)
             phases["detection"] += time.perf_counter() - t0
             if found == 0:
                 break
