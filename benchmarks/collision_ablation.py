@@ -10,8 +10,9 @@ runs; ``qr_backward_s`` and ``kkt_backward_s`` are the time the collision respon
 (``sim.collision.backward_seconds``: every projection round of the step, the QR factorisation included), and
 ``*_tape_backward_s`` the whole backward pass. The per-zone means (zones with more than one contact) compare with the
 seed's per-zone log line. Matrix sizes are per impact zone with more than one contact, over all rounds and
-repetitions (``sim.collision.last_projections``): ``kkt_size`` = nvar + ncon (the dense KKT system), ``qr_size`` =
-independent active constraints (the columns of the QR). Seed numbers are the slides' (authors' machine).
+repetitions (``CollisionReport.projections`` of ``sim.collision.last``): ``kkt_size`` = nvar + ncon (the dense KKT
+system), ``qr_size`` = independent active constraints (the columns of the QR). Seed numbers are the slides'
+(authors' machine).
 
 Usage: python benchmarks/collision_ablation.py [--quick] [--out PATH] [--meshes 16x16,32x32,64x64] [--reps 3]
 
@@ -81,15 +82,15 @@ def one_step(model, sim) -> dict:
     t0 = time.perf_counter()
     tape.backward(grads={out.particle_x: wp.array(grad, dtype=wp.vec3d)})
     tape_backward = time.perf_counter() - t0
-    zones = [rec for result, _ in stage.last_projections for rec in result.zones_stats()]
+    report = stage.last
+    zones = [rec for result, _ in report.projections for rec in result.zones_stats()]
     tape.zero()
     tape.reset()
     phases = {k: v - start_phases[k] for k, v in stage.phase_seconds.items()}
     return {"forward_s": forward, "backward_s": stage.backward_seconds - before, "tape_backward_s": tape_backward,
             "phases": phases,
-            "zones": [z for z in zones if z["ncon"] > 1], "rounds": stage.last["rounds"],
-            "contacts": stage.last["contacts"],
-            "fail_safe": vars(stage.last["fail_safe"]) if "fail_safe" in stage.last else None}
+            "zones": [z for z in zones if z["ncon"] > 1], "rounds": report.rounds, "contacts": report.contacts,
+            "fail_safe": vars(report.fail_safe) if report.fail_safe is not None else None}
 
 
 def run_device(mesh: str, reps: int) -> dict:

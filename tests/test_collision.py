@@ -113,7 +113,7 @@ def test_cloth_draped_on_a_sphere():
     model, sim, state = run(b, 40, 0.01, check=no_penetration)
     x = state.particle_x.numpy()
     assert x[:, 2].min() < 0.1  # the corners fell past the sphere's equator
-    assert sim.collision.last["contacts"] > 0
+    assert sim.collision.last.contacts > 0
 
 
 def test_cloth_falls_into_the_funnel():
@@ -220,7 +220,7 @@ def test_cloth_trapped_between_two_obstacles_closer_than_twice_the_thickness_is_
     b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, -0.4 * DELTA))
     b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, 0.4 * DELTA), rot=(1.0, 0.0, 0.0, 0.0))  # facing down
     model, sim, state = run(b, 1, 0.01, options=wc.SolverOptions(collision=wc.CollisionOptions(solver=solver)))
-    report = sim.collision.last["fail_safe"]
+    report = sim.collision.last.fail_safe
     assert message in report.reason and report.particles == model.particle_count
     np.testing.assert_allclose(state.particle_x.numpy(), model.particle_x0.numpy(), atol=1e-12)
 

@@ -66,7 +66,7 @@ def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10, integr
             nxt = model.empty_state()
             sim.step(traj[-1], nxt, control)
             traj.append(nxt)
-            keys.append(sim.collision.last["contacts"])
+            keys.append(sim.collision.last.contacts)
         x, v = traj[-1].particle_x.numpy(), traj[-1].particle_v.numpy()
         loss = float(np.sum(cx * x) + np.sum(cv * v))
         if tape is not None:

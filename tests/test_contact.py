@@ -253,7 +253,7 @@ def test_cloth_lying_exactly_on_an_obstacle_is_repelled_not_nan(integrator):
     # impact zones, lets the repulsion lift it: after one such step it rests in the repulsion layer
     first = model.empty_state()
     sim.step(model.state(), first)
-    report = sim.collision.last["fail_safe"]
+    report = sim.collision.last.fail_safe
     assert "started the step 0 m apart, inside the collision thickness" in report.reason
     assert report.particles == model.particle_count
     traj = wc.rollout(sim, first, steps=50)

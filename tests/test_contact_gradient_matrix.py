@@ -40,7 +40,7 @@ def _patch(b, res, size, origin, R, *, vel=(0.0, 0.0, 0.0), material="gray-inter
 
 def _gap(contact):
     # inside the repulsion layer (where a gray-interlock patch rests), or just above the collision thickness
-    return 0.00486 if contact != "projection only" else 0.0008
+    return 0.0008 if contact in PROJECTION_ONLY else 0.00486
 
 
 def sliding(contact):
@@ -83,15 +83,20 @@ CONTACT = {
     "repulsion and friction": dict(friction=0.4, obstacle_friction=0.4),
     "repulsion, frictionless": dict(friction=0.0, obstacle_friction=0.0),
     "projection only": dict(repulsion_stiffness=0.0),
+    "fail-safe only": dict(repulsion_stiffness=0.0),
 }
+PROJECTION_ONLY = ("projection only", "fail-safe only")
+"""Contact models without repulsion. "fail-safe only" refuses every projection (a strain limit of 1e-9 that any
+projection passes), so the collision stage's fail-safe, rigid impact zones, resolves every step with contacts."""
 
 
 def build(scene, contact, solver):
     b, steps = scene(contact)
     b.set_collision(self_collision=scene is cloth_on_cloth, **CONTACT[contact])
     model = b.finalize("cpu", dtype=wp.float64, requires_grad=True)
+    rounds = 0 if contact == "fail-safe only" else wc.CollisionOptions().rounds
     options = wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30, cg_max_iters=2000,
-                               collision=wc.CollisionOptions(solver=solver, qp_tol=1e-12))
+                               collision=wc.CollisionOptions(solver=solver, qp_tol=1e-12, rounds=rounds))
     return model, wc.Simulator(model, 0.005, options=options), steps
 
 
@@ -122,7 +127,7 @@ def parameters(model, control, state, contact):
             np.concatenate([1e-2 * rng.standard_normal((model.obstacle_count, 3)),
                             1e-2 * rng.standard_normal((model.obstacle_count, 3)),
                             np.zeros((model.obstacle_count, 1))], axis=1))]
-    if contact != "projection only":
+    if contact not in PROJECTION_ONLY:
         # at a stiffness or coefficient of 0 the term is absent and a derivative one-sided: not perturbed there
         out.append(("stiffness", model.contact_repulsion_stiffness, rel(model.contact_repulsion_stiffness)))
         if contact == "repulsion and friction":
@@ -152,7 +157,8 @@ def check(scene, contact, solver):
 
     tape = wp.Tape()
     out = loss(tape)
-    assert sim.proximity is None or sim.proximity.last_count > 0 or sim.collision.last["contacts"] > 0
+    assert sim.proximity is None or sim.proximity.last_count > 0 or sim.collision.last.contacts > 0
+    assert (sim.collision.fail_safe_steps > 0) == (contact == "fail-safe only")
     tape.backward(out)
     params = parameters(model, control, state, contact)
     grads = {name: array.grad.numpy().copy() for name, array, _ in params}

@@ -52,7 +52,7 @@ def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solve
             nxt = model.empty_state(requires_grad=False)
             sim.step(state, nxt, control)
             state = nxt
-            moved.append(sim.collision.last["contacts"] > 0)
+            moved.append(sim.collision.last.contacts > 0)
         assert any(moved) and not all(moved), moved
     rng = np.random.default_rng(1)
     weights = [wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d) for _ in range(steps + 1)]

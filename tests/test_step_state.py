@@ -133,3 +133,65 @@ def test_errors_number_steps_from_the_start_of_the_rollout():
     state.particle_v.fill_(wp.vec3(0.0, 0.0, 1.0e4))  # beyond max_speed from the start
     with pytest.raises(wc.SimulationError, match=r"diverged at step 1 "):
         wc.rollout(sim, state, steps=2)
+
+
+def pinned_model(pins, *, density=None, self_collision=False, res=4):
+    material = wc.preset("gray-interlock", thicken=2)
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((res, res), (0.4, 0.4), material=material, rot=ROT_XZ)
+    for p in pins:
+        b.add_pin(p)
+    if self_collision:
+        b.set_collision(self_collision=True)
+    model = b.finalize("cpu", dtype=wp.float64)
+    if density is not None:
+        model.material_density.assign(np.full(model.material_density.shape, density))
+    return model
+
+
+@pytest.mark.parametrize("self_collision", [False, True])
+def test_rebinding_a_model_array_after_the_simulator_is_built_is_used(self_collision):
+    corners = (4 * 5, 5 * 5 - 1)
+    model = pinned_model(corners, self_collision=self_collision)
+    sim = wc.Simulator(model, 0.01)
+    before = wc.rollout(sim, model.state(), steps=6)[-1].particle_x.numpy()
+    heavier = 3.0 * model.material_density.numpy()
+    model.material_density = wp.array(heavier, dtype=wp.float64, device="cpu")  # rebound, not assigned
+    after = wc.rollout(sim, model.state(), steps=6)[-1].particle_x.numpy()
+    fresh = pinned_model(corners, density=heavier[0], self_collision=self_collision)
+    expected = wc.rollout(wc.Simulator(fresh, 0.01), fresh.state(), steps=6)[-1].particle_x.numpy()
+    assert np.abs(after - before).max() > 1.0e-4  # the density matters here: the test can fail
+    np.testing.assert_allclose(after, expected, rtol=0.0, atol=1.0e-12)
+
+
+def test_a_default_pin_target_edited_in_place_is_used():
+    corners = (4 * 5, 5 * 5 - 1)
+    model = pinned_model(corners)
+    sim = wc.Simulator(model, 0.01)
+    wc.rollout(sim, model.state(), steps=2)  # the default control is made here
+    model.pin_rest_target[0] += (0.0, 0.0, 0.05)  # a host array of the model, edited in place
+    after = wc.rollout(sim, model.state(), steps=6)[-1].particle_x.numpy()
+    control = model.control()
+    expected = wc.rollout(wc.Simulator(model, 0.01), model.state(), steps=6, control=control)[-1].particle_x.numpy()
+    np.testing.assert_array_equal(after, expected)
+    assert after[corners[0], 2] > model.particle_x0.numpy()[corners[0], 2] + 0.04  # the pin moved
+
+
+def test_repulsion_switched_on_in_place_is_used_after_notify_model_changed():
+    def build(stiffness):
+        b = wc.ModelBuilder()
+        b.add_cloth_grid((3, 3), (0.2, 0.2), material=wc.preset("gray-interlock", thicken=2), pos=(-0.1, -0.1, 2e-3))
+        b.add_obstacle_plane((1.0, 1.0))
+        b.set_collision(repulsion_stiffness=stiffness)
+        return b.finalize("cpu", dtype=wp.float64)
+
+    model = build(0.0)
+    sim = wc.Simulator(model, 0.01)
+    off = wc.rollout(sim, model.state(), steps=5)[-1].particle_x.numpy()
+    model.contact_repulsion_stiffness.fill_(1.0e6)
+    sim.notify_model_changed()
+    on = wc.rollout(sim, model.state(), steps=5)[-1].particle_x.numpy()
+    fresh = build(1.0e6)
+    expected = wc.rollout(wc.Simulator(fresh, 0.01), fresh.state(), steps=5)[-1].particle_x.numpy()
+    np.testing.assert_array_equal(on, expected)
+    assert np.abs(on - off).max() > 1.0e-4  # repulsion lifts the sheet: the test can fail

@@ -1,5 +1,5 @@
 """Adjoint of the projection (SPEC.md §4.2; the paper's §3): :func:`backward` by the QR formula or the dense KKT
-system, and the per-zone QR factorisation it uses (:func:`factorise`).
+system, and the per-zone QR factorisation it uses (:func:`factorise`, kept per result by :func:`factorisation`).
 
 On the active set A = {j : |c_j(z*)| ≤ active_tol} ∪ {j : λ_j > 0} the KKT conditions W(z − x̂) + G_Aᵀλ = 0,
 G_A z + h_A = 0 define z*(x̂, G, h). With ḡ = ∂L/∂z, solve K [d_z; d_λ] = [ḡ; 0], K = [[W, G_Aᵀ], [G_A, 0]]; then,
@@ -36,17 +36,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from warpcloth.collision.checks import float_array
 from warpcloth.collision.linalg import gram_cholesky, tri_solve
-from warpcloth.collision.zones import Zone, components, gram
-
-if TYPE_CHECKING:
-    from warpcloth.collision.qp import ProjectionResult
-
+from warpcloth.collision.zones import ProjectionResult, Zone, components, gram
 
 ONE_BLOCK = 64
 """Zones with at most this many active constraints are factorised whole, not split into groups linked by shared
@@ -112,12 +107,20 @@ class ZoneQR:
         return sum(int(b.drop.size) for b in self.blocks)
 
 
+def factorisation(result: ProjectionResult, zone: Zone) -> ZoneQR:
+    """The zone's factorisation, computed on first use and kept in ``result.factorisations``; records
+    ``independent``, ``qr_size`` and ``qr_s`` in ``zone.stats``."""
+    qr = result.factorisations.get(zone.index)
+    if qr is None:
+        qr = result.factorisations[zone.index] = factorise(zone)
+        zone.stats.update(independent=qr.independent, qr_size=qr.independent, qr_s=qr.seconds)
+    return qr
+
+
 def factorise(zone: Zone) -> ZoneQR:
     """The adjoint's factorisation on the active set, per group of active constraints linked by shared particles:
     the Cholesky factor of ÃᵀÃ = G_A W⁻¹ G_Aᵀ (its Lᵀ is the R of Ã = QR), the dependent columns dropped and their
     multipliers folded into the kept ones (λ_keep += Cλ_drop, C = (Ã_keepᵀÃ_keep)⁻¹ Ã_keepᵀ Ã_drop).
-
-    Stores it as ``zone.qr`` and records ``independent``, ``qr_size`` and ``qr_s`` in ``zone.stats``.
     """
     t0 = time.perf_counter()
     act = zone.active
@@ -148,16 +151,11 @@ def factorise(zone: Zone) -> ZoneQR:
             if drop.size and keep.size:
                 blk.lam += blk.solve_kept(M[np.ix_(keep, drop)] @ lam[drop])
             blocks.append(blk)
-    zone.qr = ZoneQR(blocks=blocks, seconds=time.perf_counter() - t0)
-    zone.stats["independent"] = zone.qr.independent
-    zone.stats["qr_size"] = zone.qr.independent
-    zone.stats["qr_s"] = zone.qr.seconds
-    return zone.qr
+    return ZoneQR(blocks=blocks, seconds=time.perf_counter() - t0)
 
 
-def _zone_adjoint_qr(zone: Zone, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _zone_adjoint_qr(zone: Zone, qr: ZoneQR, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(d_z (nz, 3), d_λ (k,), λ used with ∂L/∂G (k,)) of one zone by the QR formula."""
-    qr = zone.qr if zone.qr is not None else factorise(zone)
     sq = np.sqrt(zone.mass)
     gp = g / sq[:, None]  # W^{-1/2} ḡ
     u = gp.copy()
@@ -177,7 +175,7 @@ def _zone_adjoint_qr(zone: Zone, g: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return u / sq[:, None], d_lam, lam
 
 
-def _zone_adjoint_kkt(zone: Zone, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _zone_adjoint_kkt(zone: Zone, qr: ZoneQR, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Same as _zone_adjoint_qr by the dense (nvar + ncon) KKT system over all zone contacts."""
     nz, k = zone.mass.size, zone.lam.size
     nvar = 3 * nz
@@ -192,7 +190,7 @@ def _zone_adjoint_kkt(zone: Zone, g: np.ndarray) -> tuple[np.ndarray, np.ndarray
     K[nvar:, :nvar] = G * s[:, None]
     K[np.arange(nvar, nvar + k), np.arange(nvar, nvar + k)] = 1.0 - s
     rhs = np.concatenate([g.ravel(), np.zeros(k)])
-    qr = zone.qr if zone.qr is not None else factorise(zone)  # its rank test picks solve or lstsq
+    # the factorisation's rank test picks solve or lstsq
     dependent = qr.dependent > 0
     sol = None
     if not dependent:
@@ -255,12 +253,13 @@ def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
         if zone.single:
             continue
         t0 = time.perf_counter()
-        lazy[zone.index] = zone.qr is None
+        lazy[zone.index] = zone.index not in result.factorisations
+        qr = factorisation(result, zone)
         g = grad_z[zone.nodes]
         if mode == "qr":
-            d_z, dl, lz = _zone_adjoint_qr(zone, g)
+            d_z, dl, lz = _zone_adjoint_qr(zone, qr, g)
         else:
-            d_z, dl, lz = _zone_adjoint_kkt(zone, g)
+            d_z, dl, lz = _zone_adjoint_kkt(zone, qr, g)
         grad_x[zone.nodes] = zone.mass[:, None] * d_z
         d_ext[zone.nodes] = d_z
         d_lam[zone.contacts] = dl

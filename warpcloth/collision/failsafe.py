@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warpcloth.collision.backends import contact_geometry, gather_nodes
+from warpcloth.collision.detection import ContactDetector
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.failsafe import failsafe_kernels
 
@@ -39,12 +41,15 @@ class FailSafeReport:
 
 
 class RigidImpactZones:
-    """Rigid impact zones over a model's cloth particles (``fixed``: pinned particles, constant)."""
+    """Rigid impact zones over a model's cloth particles; ``detector``: the collision stage's (it finds the contacts
+    the rigid motion leaves)."""
 
-    def __init__(self, model, fixed: np.ndarray):
+    def __init__(self, model, detector: ContactDetector):
         self.model = model
+        self.detector = detector
         self.cloth_count = model.particle_count
-        self.free = ~np.asarray(fixed, dtype=bool)
+        self.thickness = float(model.collision.thickness)
+        self.free = model.particle_pin.numpy() < 0
         self.kernels = failsafe_kernels(model.scalar)
 
     def zones(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -109,13 +114,15 @@ class RigidImpactZones:
                   inputs=[x0, x_hat, zone_wp, total, first, moved, turn, inertia, shift, count], outputs=[z])
         return z
 
-    def resolve(self, stage, x0: wp.array, x_hat: wp.array, obstacle_start: wp.array, obstacle_end: wp.array,
+    def resolve(self, x0: wp.array, x_hat: wp.array, obstacle_start: wp.array, obstacle_end: wp.array,
                 mass: wp.array, rows: np.ndarray, recording: bool, reason: str, step: int
                 ) -> tuple[wp.array, FailSafeReport]:
         """Positions that leave no contact outside a rigid zone, from the contacts ``rows`` the projection gave up
-        on; ``stage``: the CollisionStage (its detector and node gathering)."""
-        start = stage._gather(x0, obstacle_start, recording)
-        end_anchors = stage._gather(x_hat, obstacle_end, recording)
+        on (``reason``: why)."""
+        model = self.model
+        self.free = model.particle_pin.numpy() < 0  # the model's pins as they are now
+        start = gather_nodes(model, x0, obstacle_start, recording)
+        end_anchors = gather_nodes(model, x_hat, obstacle_end, recording)
         rows = np.asarray(rows, dtype=np.int32).reshape(-1, 4)
         held = np.zeros(self.cloth_count, dtype=bool)  # particles whose zone must move with its anchors
         for passes in range(1, MERGES + 1):
@@ -125,7 +132,7 @@ class RigidImpactZones:
             keep = anchored[anchor_zone] if len(anchor_zone) else np.zeros(0, dtype=bool)
             z = self.positions(x0, x_hat, mass, start, end_anchors, zone, anchor_zone[keep], anchor_node[keep],
                                recording)
-            found = self._violated(stage, start, stage._gather(z, obstacle_end, False), step)
+            found = self._violated(start, gather_nodes(model, z, obstacle_end, False), step)
             outside, hold = [], []
             for row in found:
                 where = self._place(row, zone, anchored)
@@ -143,17 +150,16 @@ class RigidImpactZones:
         raise CollisionError(f"step {step}: the rigid impact zones did not settle in {MERGES} passes after the "
                              f"projection failed ({reason})")
 
-    @staticmethod
-    def _violated(stage, start: wp.array, end: wp.array, step: int) -> np.ndarray:
+    def _violated(self, start: wp.array, end: wp.array, step: int) -> np.ndarray:
         """The nodes of the contacts detected between ``start`` and ``end`` whose constraint the end positions
         violate (detection also reports pairs that touched at the start and have since moved apart)."""
-        found = stage.detector.detect(start, end)
+        found = self.detector.detect(start, end)
         if len(found) == 0:
             return found.nodes
-        normal, weight = stage._geometry(start, end, found, False, step)
+        normal, weight = contact_geometry(self.model, start, end, found, False, step)
         x = end.numpy().astype(np.float64)[found.nodes]  # (m, 4, 3)
         gap = np.einsum("ma,mak,mk->m", weight.numpy().astype(np.float64), x, normal.numpy().astype(np.float64))
-        return found.nodes[gap < stage.thickness * (1.0 - 1.0e-6)]
+        return found.nodes[gap < self.thickness * (1.0 - 1.0e-6)]
 
     def _place(self, row: np.ndarray, zone: np.ndarray, anchored: np.ndarray) -> str:
         """Where a contact found after the rigid motion lies: "inside" one zone (its free particles in one zone,

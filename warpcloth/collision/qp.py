@@ -48,14 +48,13 @@ Termination: the solution is accepted when λ ≥ 0, max_j c_j(z) ≤ tol and |c
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from warpcloth.collision import adjoint
 from warpcloth.collision.checks import check_inputs, check_options, float_array
 from warpcloth.collision.dual import ZoneInfeasible, ZoneNotConverged, ZoneSolver, warm_start
-from warpcloth.collision.zones import Zone, colour_classes, gram, group, impact_zones
+from warpcloth.collision.zones import ProjectionResult, Zone, colour_classes, gram, group, impact_zones
 
 __all__ = ["ProjectionError", "ProjectionResult", "project"]
 
@@ -75,47 +74,6 @@ _WARM_MIN = 8
 """Zones with at least this many contacts get the Gauss–Seidel warm start."""
 _PDAS_LIMIT = 20
 """Most primal–dual active-set solves before the monotone method takes over."""
-
-
-@dataclass
-class ProjectionResult:
-    """What :func:`project` returns: positions, multipliers, zones and the inputs the adjoint needs."""
-
-    z: np.ndarray
-    """Projected positions (n, 3); x̂ for particles in no zone and for pinned particles."""
-    lam: np.ndarray
-    """Multiplier of every contact (m,); 0 for contacts in no zone."""
-    zones: list[Zone]
-    x_hat: np.ndarray
-    mass: np.ndarray
-    obstacle_x: np.ndarray
-    fixed: np.ndarray
-    nodes: np.ndarray
-    weights: np.ndarray
-    normals: np.ndarray
-    thickness: float
-    tol: float
-    active_tol: float
-    singles: dict = field(default_factory=dict)
-    """Batched data of the single-contact zones (closed-form solve and adjoint)."""
-    backward_stats: list[dict] = field(default_factory=list)
-    """Per-zone records of the last :func:`~warpcloth.collision.adjoint.backward` call."""
-
-    @property
-    def stats(self) -> list[dict]:
-        """Per-zone forward records (see :func:`project`)."""
-        return [zone.stats for zone in self.zones]
-
-    def zones_stats(self) -> list[dict]:
-        """Per-zone forward records merged with those of the last backward pass, if any."""
-        out = [dict(zone.stats) for zone in self.zones]
-        for rec, back in zip(out, self.backward_stats):
-            rec.update(back)
-        return out
-
-    def backward(self, grad_z: np.ndarray, *, mode: str = "qr"):
-        """Same as :func:`warpcloth.collision.adjoint.backward` (result, grad_z, mode=mode)."""
-        return adjoint.backward(self, grad_z, mode=mode)
 
 
 def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, *, tol: float = 1.0e-10,
@@ -250,13 +208,15 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
             "complementarity": float(np.max(np.abs(lam * c), initial=0.0)), "iterations": solver.iterations,
             "sweeps": sweeps, "solve_s": solve_s, "qr_s": 0.0, "forward_s": solve_s,
         }
-        if precompute_qr:
-            adjoint.factorise(zone)
-            zone.stats["forward_s"] += zone.qr.seconds
         zones[zi] = zone
-    return ProjectionResult(z=z, lam=lam_all, zones=zones, x_hat=x_hat, mass=mass, obstacle_x=obstacle_x, fixed=fixed,
-                            nodes=nodes, weights=weights, normals=normals, thickness=thickness, tol=float(tol),
-                            active_tol=float(active_tol), singles=singles)
+    result = ProjectionResult(z=z, lam=lam_all, zones=zones, x_hat=x_hat, mass=mass, obstacle_x=obstacle_x,
+                              fixed=fixed, nodes=nodes, weights=weights, normals=normals, thickness=thickness,
+                              tol=float(tol), active_tol=float(active_tol), singles=singles)
+    if precompute_qr:
+        for zone in zones:
+            if not zone.single:
+                zone.stats["forward_s"] += adjoint.factorisation(result, zone).seconds
+    return result
 
 
 def _infeasible(zi, nodes, k, residual, tol) -> ProjectionError:

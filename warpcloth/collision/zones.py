@@ -1,21 +1,19 @@
 """Impact zones of the projection: the merged (contact, particle) couplings, the connected components of free
-particles linked by contacts, the :class:`Zone` record, and the per-zone dual matrix H = G W⁻¹ Gᵀ and contact
-colouring that the zone solver uses (see :mod:`warpcloth.collision.qp`)."""
+particles linked by contacts, the :class:`Zone` and :class:`ProjectionResult` records, and the per-zone dual matrix
+H = G W⁻¹ Gᵀ and contact colouring that the zone solver uses (see :mod:`warpcloth.collision.qp`). Data only: the
+solver (qp) and the adjoint (adjoint) both import from here, never from each other's records."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from warpcloth.collision.adjoint import ZoneQR
 
 
 @dataclass
 class Zone:
-    """One impact zone: its particles and contacts, the solution, and what the adjoint needs."""
+    """One impact zone: its particles and contacts and the solution (the adjoint's factorisation of it is kept by the
+    :class:`ProjectionResult`, not here)."""
 
     index: int
     nodes: np.ndarray
@@ -40,9 +38,48 @@ class Zone:
     """Local indices of the active set used by the adjoint."""
     single: bool = False
     """A zone of one contact, solved (and differentiated) in closed form together with all such zones."""
-    qr: ZoneQR | None = None
-    """The adjoint's QR factorisation, once computed (:func:`warpcloth.collision.adjoint.factorise`)."""
     stats: dict = field(default_factory=dict)
+    """Diagnostics (sizes, iterations, timings; see :func:`~warpcloth.collision.qp.project`)."""
+
+
+@dataclass
+class ProjectionResult:
+    """What :func:`~warpcloth.collision.qp.project` returns: positions, multipliers, zones and the inputs the adjoint
+    (:func:`~warpcloth.collision.adjoint.backward`) needs."""
+
+    z: np.ndarray
+    """Projected positions (n, 3); x̂ for particles in no zone and for pinned particles."""
+    lam: np.ndarray
+    """Multiplier of every contact (m,); 0 for contacts in no zone."""
+    zones: list[Zone]
+    x_hat: np.ndarray
+    mass: np.ndarray
+    obstacle_x: np.ndarray
+    fixed: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    normals: np.ndarray
+    thickness: float
+    tol: float
+    active_tol: float
+    singles: dict = field(default_factory=dict)
+    """Batched data of the single-contact zones (closed-form solve and adjoint)."""
+    factorisations: dict = field(default_factory=dict)
+    """The adjoint's factorisation of each zone, by zone index, once computed (``adjoint.ZoneQR``)."""
+    backward_stats: list[dict] = field(default_factory=list)
+    """Per-zone records of the last :func:`~warpcloth.collision.adjoint.backward` call."""
+
+    @property
+    def stats(self) -> list[dict]:
+        """Per-zone forward records (see :func:`~warpcloth.collision.qp.project`)."""
+        return [zone.stats for zone in self.zones]
+
+    def zones_stats(self) -> list[dict]:
+        """Per-zone forward records merged with those of the last backward pass, if any."""
+        out = [dict(zone.stats) for zone in self.zones]
+        for rec, back in zip(out, self.backward_stats):
+            rec.update(back)
+        return out
 
 
 @dataclass

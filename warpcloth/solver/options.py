@@ -34,7 +34,9 @@ class CollisionOptions:
     """Options of the collision stage (detect -> project rounds, warpcloth/collision)."""
 
     rounds: int = 20
-    """Most detect -> project rounds per step; a step still finding new contacts after them raises CollisionError."""
+    """Most detect -> project rounds per step; a step still finding new contacts after them goes to the fail-safe
+    (rigid impact zones, warpcloth/collision/failsafe.py). 0: no projection at all, every step with contacts is
+    resolved by rigid impact zones alone (Provot 1997)."""
     contact_capacity: int = 0
     """Contacts one detection may find, and proximity pairs one step may have (0: 16 contacts and 8 pairs per cloth
     particle and obstacle vertex); more raises CollisionError with the capacity needed."""
@@ -42,9 +44,9 @@ class CollisionOptions:
     """Adjoint of the NumPy solver's projection (``solver="numpy"``): ``"qr"`` (QR of the active constraints,
     SPEC §4.2) or ``"kkt"`` (the dense KKT system of the whole zone: the seed's baseline, for comparison)."""
     max_projection_strain: float = 0.5
-    """Most an edge may lengthen in the collision projection of one step, in rest lengths; more raises
-    CollisionError saying to lower dt: contact resolved that coarsely pumps energy into the cloth
-    (warpcloth/collision/stage.py, check_projection_strain)."""
+    """Most an edge may lengthen in the collision projection of one step, in rest lengths; beyond it the step goes to
+    the fail-safe (rigid impact zones): contact resolved that coarsely pumps energy into the cloth
+    (warpcloth/collision/diagnostics.py, strain_error)."""
     qp_tol: float = 1.0e-10
     """Tolerance [m] of the projection's KKT conditions (constraint violation and complementarity)."""
     solver: str = "device"
@@ -59,7 +61,7 @@ class CollisionOptions:
     def validate(self) -> None:
         """Raise ValueError naming the first option out of range."""
         _check_positive("CollisionOptions", self, ("max_projection_strain", "qp_tol"))
-        _check_int("CollisionOptions", self, {"rounds": 1, "contact_capacity": 0})
+        _check_int("CollisionOptions", self, {"rounds": 0, "contact_capacity": 0})
         _check_choice("CollisionOptions", self, {"adjoint": ("qr", "kkt"), "solver": ("numpy", "device")})
         if self.adjoint == "kkt" and self.solver != "numpy":
             raise ValueError("CollisionOptions.adjoint 'kkt' is the NumPy solver's; set solver='numpy' with it "

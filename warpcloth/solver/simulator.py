@@ -5,31 +5,32 @@ preconditioned conjugate gradients, then x <- x + dt (v + dv). The CG iterations
 custom adjoint (one adjoint CG solve with the same matrix, SPEC §4.1), and Warp's autodiff of the assembly kernels
 carries the gradient on to positions, velocities, materials, gravity, wind, forces and handle targets.
 Scenes with obstacles or self-collision then run the collision stage (warpcloth/collision, SPEC §3).
+
+A step is a list of stages, built for the model (a scene without contact runs no contact stage); each reads and
+writes one ``_Step`` record. The failure messages live in warpcloth/solver/diagnostics.py.
 """
 
 from __future__ import annotations
 
 import math
 import time
-import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from warpcloth.collision import CollisionStage
-from warpcloth.collision.proximity import ProximityForces
+from warpcloth.collision.proximity import ProximityForces, ProximityPairs
+from warpcloth.collision.stage import CollisionReport
 from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.model import Control, Model, State
 from warpcloth.obstacles import obstacle_points
 from warpcloth.solver.assembly import SystemAssembler
+from warpcloth.solver.diagnostics import StepDiagnostics
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import SolverOptions
 from warpcloth.tape import active_tape
-
-ELONGATED_ASPECT_RATIO = 100.0
-"""Rest aspect ratio (longest edge^2 / (2 area)) from which a failed solve or a divergence names the most elongated
-triangle: its stiffness relative to its mass, and with it the condition of the system, grows with the ratio."""
 
 
 class Simulator:
@@ -39,6 +40,12 @@ class Simulator:
         model: the Model to simulate.
         dt: time step [s], > 0.
         options: SolverOptions (tolerances, preconditioner, CG backend, divergence guard).
+
+    The Simulator reads the model's arrays at every step, so values changed in place (``assign``, ``copy``) are
+    used from the next step on, and so are arrays rebound to new ones (``model.material_density = ...``: the next
+    step notices and rebuilds what depends on the model). What it derives once from the model (the pins' effect on
+    the preconditioner and the contact stages, whether the scene needs proximity forces, the collision settings) is
+    rebuilt by :meth:`notify_model_changed`: call it after editing those in place.
     """
 
     def __init__(self, model: Model, dt: float, *, options: SolverOptions | None = None):
@@ -50,33 +57,56 @@ class Simulator:
         self._options.validate()
         self.device = model.device
         self.kernels = implicit_kernels(model.scalar)
-        self.assembler = SystemAssembler(model, self.dt)
-        """Launches the step's force and Hessian kernels into the system."""
-        self.linear_solver = LinearSolver(model, self.options, hint=self._mesh_hint)
-        """The CG solver of the implicit system (and of its adjoint)."""
         self.last_solve = SolveInfo(0, 0.0, True)
         """The forward CG solve of the last step (diagnostics only: no step reads it)."""
         self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
         """Counters over this simulator's life (diagnostics only: no step reads them)."""
-        self._atol_checked = False  # the cg_atol floor is checked at the first skipped solve (_warn_if_below_atol)
-        self._assembler_bdf2: SystemAssembler | None = None  # made at the first BDF2 step
-        self._bdf2_buffers = None  # the blend and extrapolation of untaped BDF2 steps (_bdf2_start)
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
         measures launch, not execution, unless the device synchronises)."""
         self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
         # host view of the divergence flag read every step (on the CPU it shares memory: no copy, no launch)
         self._status_host = self._status.numpy() if self.device.is_cpu else None
-        self._step_buffers = None
-        self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
-        self._elongated: tuple[int, float, int] | None = None  # (triangle, aspect ratio, count): _mesh_hint
+        self.notify_model_changed()
+
+    # -- public ------------------------------------------------------------------------------------------------------
+    def notify_model_changed(self) -> None:
+        """Rebuild everything this Simulator derived from the model (assembly arguments, the linear solver and its
+        preconditioner, the proximity forces, the collision stage and its detector), after a change to the model:
+        a rebound array (noticed by the next step anyway), pins, handles or collision settings edited in place, a
+        material that gains or loses contact repulsion. Counters and timings carry on."""
+        model = self.model
+        self.diagnostics = StepDiagnostics(model, self.dt)
+        """The failure messages of the steps (warpcloth/solver/diagnostics.py)."""
+        self.assembler = SystemAssembler(model, self.dt)
+        """Launches the step's force and Hessian kernels into the system."""
+        self._assembler_bdf2: SystemAssembler | None = None  # made at the first BDF2 step
+        self.linear_solver = LinearSolver(model, self.options, hint=self.diagnostics.mesh_hint)
+        """The CG solver of the implicit system (and of its adjoint)."""
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
         self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity)
                           if ProximityForces.needed(model) else None)
         """Proximity repulsion and friction inside the implicit step, or None where the model has neither."""
+        self._atol_checked = False  # the cg_atol floor is checked at the first skipped solve
+        self._bdf2_buffers = None  # the blend and extrapolation of untaped BDF2 steps (_bdf2_start)
+        self._step_buffers = None
+        self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
+        self._control_default = None
+        # The step, as the stages this model needs, each with the phase it is timed under.
+        stages = [("assembly", self._assemble)]
+        if self.proximity is not None:
+            stages.append(("proximity", self._proximity_forces))
+        stages.append(("solve", self._solve))
+        if self.proximity is not None:
+            stages.append(("proximity", self._friction))
+        stages.append(("integrate", self._integrate))
+        if self.collision is not None:
+            stages.append(("collision", self._collide))
+        stages.append(("integrate", self._hand_on))
+        self._stages = stages
+        self._model_arrays = _array_identities(model)
 
-    # -- public ------------------------------------------------------------------------------------------------------
     @property
     def options(self) -> SolverOptions:
         """The SolverOptions in force; assigning new ones applies them from the next solve on (the backend and the
@@ -100,86 +130,129 @@ class Simulator:
         """
         if state_out is state_in:
             raise ValueError("step() needs distinct state_in and state_out (a tape cannot record in-place updates)")
-        model = self.model
         self._check_state("state_in", state_in)
         self._check_state("state_out", state_out)
-        control = control if control is not None else self._default_control()
-        recording = active_tape() is not None and model.requires_grad
-        values, rhs, pin_dv = self._buffers(recording)
-        dv = self._output_dv(state_out, recording)
-        t_next = state_in.time + self.dt
-        step = state_in.step + 1  # the step being taken, counted from the start of the trajectory
-        k = self.kernels
-
+        if _array_identities(self.model) != self._model_arrays:  # an array of the model was rebound
+            self.notify_model_changed()
+        recording = active_tape() is not None and self.model.requires_grad
+        s = _Step(state_in=state_in, state_out=state_out,
+                  control=control if control is not None else self._default_control(), recording=recording,
+                  number=state_in.step + 1, t_next=state_in.time + self.dt)
         clock = _PhaseClock(self.phase_seconds)
-        # what the implicit step starts from: state_in, or BDF2's blend of it with the state before it
-        start, assembler, explicit = state_in, self.assembler, None
-        bdf2 = self.options.integrator == "bdf2"
-        if bdf2 and state_in.particle_x_last is not None:
-            start, explicit = self._bdf2_start(state_in, recording)
-            assembler = self._bdf2_assembler()
-        dt = model.scalar(assembler.dt)
-        assembler.assemble(start, control, t_next, values, rhs, pin_dv, dv, explicit=explicit)
-        clock.lap("assembly")
-        obstacles = self._obstacle_points(control, state_in.time) if self.collision is not None else None
-        pairs = None
-        if self.proximity is not None:
-            pairs = self.proximity.assemble(start, *obstacles, pin_dv, dv, values, rhs, recording,
-                                            implicit_dt=assembler.dt)
-            clock.lap("proximity")
-        self._solve(values, rhs, dv, start, state_out, step, pairs)
-        clock.lap("solve")
-        friction = pairs is not None and pairs.count and self.proximity.friction
-        mass = self._lumped_mass(recording) if friction or self.collision is not None else None
-        velocity_change = dv
-        if friction:
-            velocity_change = self.proximity.apply_friction(pairs, dv, mass, recording)
-            clock.lap("proximity")
+        for phase, stage in self._stages:
+            stage(s)
+            clock.lap(phase)
 
-        max_speed = model.scalar(self.options.max_speed)
+    # -- the stages of a step ----------------------------------------------------------------------------------------
+    def _assemble(self, s: _Step) -> None:
+        """A dv = b at the implicit step's start: ``state_in``, or BDF2's blend of it with the state before it."""
+        s.values, s.rhs, s.pin_dv = self._buffers(s.recording)
+        s.dv = self._output_dv(s.state_out, s.recording)
+        s.start, s.assembler, explicit = s.state_in, self.assembler, None
+        if self.options.integrator == "bdf2" and s.state_in.particle_x_last is not None:
+            s.start, explicit = self._bdf2_start(s.state_in, s.recording)
+            s.assembler = self._bdf2_assembler()
+        s.assembler.assemble(s.start, s.control, s.t_next, s.values, s.rhs, s.pin_dv, s.dv, explicit=explicit)
+        if self.collision is not None:
+            s.obstacles = self._obstacle_points(s.control, s.state_in.time)
+
+    def _proximity_forces(self, s: _Step) -> None:
+        """Proximity repulsion: the pairs within the thickness add their forces and Jacobians to the system."""
+        obstacles = s.obstacles if s.obstacles is not None else self._obstacle_points(s.control, s.state_in.time)
+        s.pairs = self.proximity.assemble(s.start, *obstacles, s.pin_dv, s.dv, s.values, s.rhs, s.recording,
+                                          implicit_dt=s.assembler.dt)
+
+    def _solve(self, s: _Step) -> None:
+        """Solve A dv = b from ``state_in.particle_dv``; on a tape, the implicit adjoint is recorded. Adjoint solves
+        run from the last step to the first, each handing its solution to the one before through the State between
+        them (``State.solve_adjoint``)."""
+        state_in, state_out, dv = s.start, s.state_out, s.dv
+        guess = state_in.particle_dv
+        warm = self.options.warm_start and guess is not None and guess.shape == dv.shape and guess.dtype == dv.dtype
+        recording = s.recording and s.values.requires_grad
+        if recording:
+            state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
+
+        def count_adjoint(info: SolveInfo) -> None:
+            self.stats["adjoint_cg_iterations"] += info.iterations
+
+        try:
+            info = self.linear_solver.solve_recorded(
+                s.values, s.rhs, dv, step=s.number, guess=guess if warm else None,
+                adjoint_guess=state_out.solve_adjoint if recording else None,
+                adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint, pairs=s.pairs)
+        except SimulationError as exc:
+            cause = self.diagnostics.non_finite_cause(state_in, s.values, s.rhs)
+            if cause is None:
+                raise
+            raise SimulationError(f"step {s.number}: {cause} ({exc})") from None
+        if info.iterations == 0 and not self._atol_checked:
+            self._atol_checked = True  # once per Simulator, at its first skipped solve
+            self.diagnostics.warn_if_below_atol(s.number, self.options.cg_atol)
+        self.last_solve = info
+        self.stats["cg_iterations"] += info.iterations
+        s.velocity_change = dv
+
+    def _friction(self, s: _Step) -> None:
+        """Coulomb friction impulses on the solved velocity change (ProximityForces.apply_friction)."""
+        if s.pairs is not None and s.pairs.count and self.proximity.friction:
+            s.mass = self._lumped_mass(s.recording)
+            s.velocity_change = self.proximity.apply_friction(s.pairs, s.dv, s.mass, s.recording)
+
+    def _integrate(self, s: _Step) -> None:
+        """x = start + dt (v + dv): the step's result, or, with a collision stage, its candidate x̂, v̂."""
+        model = self.model
         if self._status_host is not None:
             self._status_host[0] = 0
         else:
             self._status.zero_()
         if self.collision is None:
-            wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[start.particle_x, start.particle_v, velocity_change, dt, max_speed],
-                      outputs=[state_out.particle_x, state_out.particle_v, self._status])
+            out = s.state_out
         else:
-            candidate = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
-            x_hat, v_hat = candidate.particle_x, candidate.particle_v
-            wp.launch(k.integrate, model.particle_count, device=self.device,
-                      inputs=[start.particle_x, start.particle_v, velocity_change, dt, max_speed],
-                      outputs=[x_hat, v_hat, self._status])
-            # no NaN or runaway particle reaches the collision stage
-            self._raise_if_diverged(candidate, t_next, step)
-            clock.lap("integrate")
-            # detection runs from the true start positions (state_in), BDF2's blend being no configuration
-            self.collision.resolve(state_in, x_hat, v_hat, *obstacles, state_out, step, mass,
-                                   implicit_dt=assembler.dt)
-            wp.launch(self.kernels.check_state, model.particle_count, device=self.device,
-                      inputs=[state_out.particle_x, state_out.particle_v, max_speed], outputs=[self._status],
-                      record_tape=False)  # the projection's velocity change too
-        state_out.time = t_next
-        state_out.step = step
+            out = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
+        wp.launch(self.kernels.integrate, model.particle_count, device=self.device,
+                  inputs=[s.start.particle_x, s.start.particle_v, s.velocity_change, model.scalar(s.assembler.dt),
+                          model.scalar(self.options.max_speed)],
+                  outputs=[out.particle_x, out.particle_v, self._status])
+        if self.collision is not None:
+            self._raise_if_diverged(out, s.t_next, s.number)  # no NaN or runaway particle reaches the stage
+            s.x_hat, s.v_hat = out.particle_x, out.particle_v
+
+    def _collide(self, s: _Step) -> None:
+        """The collision stage from x̂, v̂ into ``state_out`` (detection from the true start positions: BDF2's blend
+        is no configuration)."""
+        if s.mass is None:
+            s.mass = self._lumped_mass(s.recording)
+        s.report = self.collision.resolve(s.state_in, s.x_hat, s.v_hat, *s.obstacles, s.state_out, s.number, s.mass,
+                                          implicit_dt=s.assembler.dt)
+        wp.launch(self.kernels.check_state, self.model.particle_count, device=self.device,
+                  inputs=[s.state_out.particle_x, s.state_out.particle_v, self.model.scalar(self.options.max_speed)],
+                  outputs=[self._status], record_tape=False)  # the projection's velocity change too
+
+    def _hand_on(self, s: _Step) -> None:
+        """What the next step reads from ``state_out`` (time, step number, BDF2's history, the wind's lagged
+        normals); then the divergence guard."""
+        model, state_in, state_out = self.model, s.state_in, s.state_out
+        bdf2 = self.options.integrator == "bdf2"
+        moved = s.report is not None and s.report.contacts > 0
+        state_out.time = s.t_next
+        state_out.step = s.number
         state_out.particle_x_last = state_in.particle_x if bdf2 else None
         state_out.particle_v_last = state_in.particle_v if bdf2 else None
-        if bdf2 and self.collision is not None and self.collision.last["contacts"] > 0:
-            x_last, v_last = (wp.empty_like(a, requires_grad=recording) for a in (state_in.particle_x,
-                                                                                    state_in.particle_v))
-            wp.launch(k.bdf2_history, model.particle_count, device=self.device,
-                      inputs=[state_in.particle_x, state_in.particle_v, x_hat, state_out.particle_x,
+        if bdf2 and moved:
+            x_last, v_last = (wp.empty_like(a, requires_grad=s.recording) for a in (state_in.particle_x,
+                                                                                      state_in.particle_v))
+            wp.launch(self.kernels.bdf2_history, model.particle_count, device=self.device,
+                      inputs=[state_in.particle_x, state_in.particle_v, s.x_hat, state_out.particle_x,
                               state_out.particle_v, model.scalar(self.dt)], outputs=[x_last, v_last])
             state_out.particle_x_last, state_out.particle_v_last = x_last, v_last
         state_out.particle_x_previous = None
         if model.wind_lagged_normals:
             # ARCSim's face normals lag a step, except after a collision response that moved the cloth: it
             # recomputes them then (SPEC §2), so the next step's wind sees the current positions
-            moved = self.collision is not None and self.collision.last["contacts"] > 0
             state_out.particle_x_previous = state_out.particle_x if moved else state_in.particle_x
         self.stats["steps"] += 1
-        clock.lap("collision" if self.collision is not None else "integrate")
-        self._raise_if_diverged(state_out, t_next, step)
+        self._raise_if_diverged(state_out, s.t_next, s.number)
 
     def _lumped_mass(self, recording: bool) -> wp.array:
         """The particles' lumped masses from the model's densities (one taped launch a step: the contact stages'
@@ -292,9 +365,15 @@ class Simulator:
         return obstacle_points(model, control, t_start), obstacle_points(model, control, t_start + self.dt)
 
     def _default_control(self) -> Control:
-        if not hasattr(self, "_control_default"):
-            self._control_default = self.model.control(requires_grad=False)
-        return self._control_default
+        """``model.control()``, made again when the model's default targets or placements changed (host arrays a
+        user may edit in place; comparing them costs microseconds)."""
+        model = self.model
+        defaults = [np.asarray(a) for a in (model.handle_rest_target, model.pin_rest_target,
+                                            model.obstacle_rest_transform) if a is not None]
+        if self._control_default is None or not all(
+                np.array_equal(a, b) for a, b in zip(defaults, self._control_default[0])):
+            self._control_default = ([a.copy() for a in defaults], model.control(requires_grad=False))
+        return self._control_default[1]
 
     def _buffers(self, recording: bool):
         """System buffers of one step (A's blocks, b, the pins' velocity change). While a tape records, each step
@@ -340,138 +419,46 @@ class Simulator:
             state_out.particle_dv = dv
         return dv
 
-    def _solve(self, values: wp.array, rhs: wp.array, dv: wp.array, state_in: State, state_out: State,
-               step: int, pairs=None) -> None:
-        """Solve A dv = b from ``state_in.particle_dv``; on a tape, the implicit adjoint is recorded. Adjoint solves
-        run from the last step to the first, each handing its solution to the one before through the State between
-        them (``State.solve_adjoint``)."""
-        guess = state_in.particle_dv
-        warm = self.options.warm_start and guess is not None and guess.shape == dv.shape and guess.dtype == dv.dtype
-        recording = active_tape() is not None and values.requires_grad
-        if recording:
-            state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
-
-        def count_adjoint(info: SolveInfo) -> None:
-            self.stats["adjoint_cg_iterations"] += info.iterations
-
-        try:
-            info = self.linear_solver.solve_recorded(
-                values, rhs, dv, step=step, guess=guess if warm else None,
-                adjoint_guess=state_out.solve_adjoint if recording else None,
-                adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint, pairs=pairs)
-        except SimulationError as exc:
-            cause = self._non_finite_cause(state_in, values, rhs)
-            if cause is None:
-                raise
-            raise SimulationError(f"step {step}: {cause} ({exc})") from None
-        if info.iterations == 0 and not self._atol_checked:
-            self._atol_checked = True  # once per Simulator, at its first skipped solve
-            self._warn_if_below_atol(step)
-        self.last_solve = info
-        self.stats["cg_iterations"] += info.iterations
-
-    def _warn_if_below_atol(self, step: int) -> None:
-        """Warn when the model is so light that its weight's impulse over a step, dt |g| |m|, is within ten times
-        SolverOptions.cg_atol: every solve then stops at once on that absolute floor and the cloth never moves (a
-        cloth at rest also skips its solves, rightly: its forces balance, so the test is on the model's scale)."""
-        g = max(float(np.linalg.norm(self.model.gravity.numpy())), 1.0)
-        impulse = self.dt * g * float(np.linalg.norm(self.model.particle_mass()))
-        if impulse <= 10.0 * self.options.cg_atol:
-            warnings.warn(
-                f"step {step}: the solve stopped after 0 iterations on SolverOptions.cg_atol = "
-                f"{self.options.cg_atol:g}, and this model is too light for that floor (its weight's impulse over a "
-                f"step is {impulse:.3g} N*s): its solves are skipped and the cloth does not move; lower cg_atol",
-                RuntimeWarning, stacklevel=4)
-
-    def _non_finite_cause(self, state_in: State, values: wp.array, rhs: wp.array) -> str | None:
-        """What made a solve's residual non-finite, naming the particle: a non-finite or overflowing input state,
-        or non-finite forces or stiffness blocks (a material too stiff for the precision); None if none of those."""
-        for field, what in (("particle_x", "position"), ("particle_v", "velocity")):
-            a = getattr(state_in, field).numpy()
-            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1))
-            if bad.size:
-                p = int(bad[0])
-                return f"particle {p} enters the step with a non-finite {what} {a[p].tolist()}"
-        b = rhs.numpy().reshape(self.model.particle_count, -1)
-        blocks = values.numpy().reshape(len(values), -1)
-        largest = float(np.abs(blocks).max()) if np.all(np.isfinite(blocks)) else math.inf
-        overflow = math.sqrt(np.finfo(blocks.dtype).max)  # the CG's products p.Ap overflow above about this
-        if np.all(np.isfinite(b)) and largest < overflow:
-            return None
-        x = state_in.particle_x.numpy()
-        far = np.flatnonzero(np.abs(x).max(axis=1) > 1.0e6)
-        if far.size:
-            p = int(far[0])
-            return (f"particle {p} is at {x[p].tolist()}, more than 1e6 m from the origin: its edge vectors lose "
-                    f"their precision or overflow in {self.model.scalar.__name__}")
-        bad = np.flatnonzero(~np.all(np.isfinite(b), axis=1))
-        stiffest = float(np.abs(self.model.material_stretching.numpy()).max())
-        which = (f"the forces on particle {int(bad[0])} are not finite" if bad.size else
-                 f"the implicit system's largest entry is {largest:.3g}")
-        return (f"{which}: the material's stiffness (largest stretching entry {stiffest:.3g}) or the forces "
-                f"overflow {self.model.scalar.__name__}")
-
     def _raise_if_diverged(self, state: State, t: float, step: int) -> None:
         """Raise SimulationError if the divergence guard (``self._status``) flagged a particle of ``state``, the
         result of step number ``step`` at time ``t``."""
         bad = int((self._status_host if self._status_host is not None else self._status.numpy())[0])
         if bad:
-            p = bad - 1
-            x = state.particle_x.numpy()[p]
-            v = state.particle_v.numpy()[p]
-            speed = float(np.linalg.norm(v))
-            if np.all(np.isfinite(x)) and np.all(np.isfinite(v)):
-                raise SimulationError(
-                    f"simulation diverged at step {step} (t = {t:.4g} s): particle {p} moves at {speed:.4g} m/s, over "
-                    f"SolverOptions.max_speed = {self.options.max_speed:g} m/s (x = {x.tolist()}); lower dt, raise "
-                    "damping, or check the material and forces; if the motion really is this fast (a long free fall), "
-                    "raise max_speed" + self._wind_hint() + self._mesh_hint())
-            raise SimulationError(
-                f"simulation diverged at step {step} (t = {t:.4g} s): particle {p} has "
-                f"x = {x.tolist()}, v = {v.tolist()}; "
-                "lower dt, raise damping, or check the material and forces" + self._wind_hint() + self._mesh_hint())
+            raise self.diagnostics.divergence_error(state, bad - 1, t, step, self.options.max_speed)
 
-    def _wind_hint(self) -> str:
-        """Why the explicit wind force may have diverged: dt beyond its stability limit (else "").
 
-        The wind force has no Jacobian in the system, so per unit area a face's relative normal velocity u changes by
-        -dt (wind density) |u| u / (area density) in a step: it overshoots and grows once dt exceeds
-        2 (area density) / ((wind density) |u|); the tangential drag likewise beyond 2 (area density) / drag.
-        """
-        model = self.model
-        if model.wind_velocity is None:
-            return ""
-        speed = float(np.linalg.norm(model.wind_velocity.numpy()[0]))
-        air, drag = float(model.wind_density.numpy()[0]), float(model.wind_drag.numpy()[0])
-        cloth = float(np.min(model.material_density.numpy() * model.material_thicken.numpy()))
-        limits = {}
-        if air * speed > 0.0:
-            limits["2*(cloth density)/(wind density*|wind|)"] = 2.0 * cloth / (air * speed)
-        if drag > 0.0:
-            limits["2*(cloth density)/(wind drag)"] = 2.0 * cloth / drag
-        if not limits or self.dt <= min(limits.values()):
-            return ""
-        formula, limit = min(limits.items(), key=lambda item: item[1])
-        return (f"; the wind force is explicit: a {speed:.3g} m/s wind (density {air:g}, drag {drag:g}) on cloth of "
-                f"{cloth:.3g} kg/m^2 is stable only for dt < {formula} = {limit:.3g} s: lower dt below that, or the "
-                "wind speed")
+@dataclass
+class _Step:
+    """What the stages of one step read and write."""
 
-    def _mesh_hint(self) -> str:
-        """Name the most elongated rest triangle when it reaches ELONGATED_ASPECT_RATIO (else "")."""
-        model = self.model
-        if self._elongated is None:  # computed on the first failure only
-            dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: material-space edges
-            e1, e2 = dm[:, :, 0], dm[:, :, 1]
-            longest = np.max([np.sum(e * e, axis=1) for e in (e1, e2, e2 - e1)], axis=0)
-            aspect = longest / np.abs(np.linalg.det(dm))  # longest^2 / (2 area): 2 for half a square
-            t = int(np.argmax(aspect))
-            self._elongated = (t, float(aspect[t]), int(np.count_nonzero(aspect >= ELONGATED_ASPECT_RATIO)))
-        t, ratio, count = self._elongated
-        if ratio < ELONGATED_ASPECT_RATIO:
-            return ""
-        return (f"; triangle {t} {model.triangles_np[t].tolist()} is elongated (rest aspect ratio {ratio:.3g}; "
-                f"{count} triangle(s) at or above {ELONGATED_ASPECT_RATIO:g}), which makes the system ill-conditioned: "
-                "remesh it, or use dtype=wp.float64")
+    state_in: State
+    state_out: State
+    control: Control
+    recording: bool
+    number: int
+    """The step being taken, counted from the start of the trajectory."""
+    t_next: float
+    start: State | None = None
+    """What the implicit step starts from: state_in, or BDF2's blend."""
+    assembler: SystemAssembler | None = None
+    values: wp.array | None = None
+    rhs: wp.array | None = None
+    pin_dv: wp.array | None = None
+    dv: wp.array | None = None
+    obstacles: tuple[wp.array, wp.array] | None = None
+    """Obstacle vertices at the step's start and end (with a collision stage)."""
+    pairs: ProximityPairs | None = None
+    mass: wp.array | None = None
+    """The taped lumped masses (friction and the collision stage)."""
+    velocity_change: wp.array | None = None
+    x_hat: wp.array | None = None
+    v_hat: wp.array | None = None
+    report: CollisionReport | None = None
+
+
+def _array_identities(model: Model) -> tuple:
+    """The identity of every array the model holds (a rebound array changes it)."""
+    return tuple(id(value) for value in vars(model).values() if isinstance(value, wp.array))
 
 
 class _PhaseClock:

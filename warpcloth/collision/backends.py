@@ -1,0 +1,347 @@
+"""The collision stage's two projection backends (``CollisionOptions.solver``), one round at a time.
+
+The stage (warpcloth/collision/stage.py) runs the rounds: gather the nodes, ``detect``, ``add_found``, ``project``.
+A backend owns its buffers and records its own adjoint on the tape:
+
+* :class:`DeviceBackend` (``"device"``, the default): contacts, their geometry, the projection (MPRGP on the dual,
+  kernels/projection.py) and its adjoint (CG on the active set) stay on the device; each round reads back the
+  contact count and the solver's status.
+* :class:`ZoneBackend` (``"numpy"``): the contacts come to the host and the zone solver of
+  :mod:`warpcloth.collision.projection` projects them, with the QR or dense KKT adjoint
+  (``CollisionOptions.adjoint``); each round's result is kept for benchmarks (``CollisionReport.projections``).
+
+Both solve the same problem to the same tolerance (the NumPy solver is the device kernels' test oracle).
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+
+import numpy as np
+import warp as wp
+
+from warpcloth.collision import projection
+from warpcloth.collision.detection import ContactDetector, Contacts
+from warpcloth.collision.device_projection import DeviceProjection
+from warpcloth.errors import CollisionError
+from warpcloth.kernels.contact import contact_kernels
+from warpcloth.kernels.projection import device_round_kernels
+from warpcloth.model import Model
+from warpcloth.tape import record_adjoint
+
+
+@contextmanager
+def timed(totals: dict, phase: str):
+    """Add the wall time of the ``with`` block to ``totals[phase]``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        totals[phase] += time.perf_counter() - t0
+
+
+def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recording: bool) -> wp.array:
+    """One array of every node's position: cloth particles first, then obstacle vertices (taped)."""
+    n = model.particle_count
+    out = wp.empty(n + obstacle_x.shape[0], dtype=model.types.vec3, device=model.device, requires_grad=recording)
+    wp.launch(contact_kernels(model.scalar).gather_nodes, out.shape[0], device=model.device,
+              inputs=[cloth_x, obstacle_x, n], outputs=[out])
+    return out
+
+
+def contact_geometry(model: Model, start: wp.array, end: wp.array, contacts: Contacts, recording: bool,
+                     step: int) -> tuple[wp.array, wp.array]:
+    """Normals and weights of host ``contacts`` at their time of impact, from the node positions they were found
+    at (taped); raises CollisionError naming a contact whose normal is degenerate."""
+    vec3, vec4 = model.types.vec3, model.types.vec4
+    dev = model.device
+    m = len(contacts)
+    normal = wp.empty(m, dtype=vec3, device=dev, requires_grad=recording)
+    weight = wp.empty(m, dtype=vec4, device=dev, requires_grad=recording)
+    wp.launch(contact_kernels(model.scalar).geometry, m, device=dev,
+              inputs=[start, end, wp.array(contacts.nodes, dtype=wp.int32, device=dev),
+                      wp.array(contacts.mode, dtype=wp.int32, device=dev),
+                      wp.array(contacts.t, dtype=wp.float64, device=dev),
+                      wp.array(contacts.sign, dtype=wp.float64, device=dev)],
+              outputs=[normal, weight])
+    ok = np.all(np.isfinite(normal.numpy()), axis=1) & np.all(np.isfinite(weight.numpy()), axis=1)
+    if not ok.all():
+        raise _degenerate(step, contacts.nodes[int(np.flatnonzero(~ok)[0])])
+    return normal, weight
+
+
+def _degenerate(step: int, nodes: np.ndarray) -> CollisionError:
+    return CollisionError(f"step {step}: a contact between nodes {nodes.tolist()} has a degenerate normal; a triangle "
+                          "or edge of the cloth or of an obstacle collapsed")
+
+
+class ZoneBackend:
+    """The NumPy zone solver, round by round (``CollisionOptions.solver="numpy"``).
+
+    Args:
+        model: the Model.
+        detector: the stage's contact detector.
+        timings: the stage's phase totals; the adjoint adds to ``"adjoint"``.
+    """
+
+    def __init__(self, model: Model, detector: ContactDetector, timings: dict):
+        self.model = model
+        self.detector = detector
+        self.timings = timings
+        self.thickness = float(model.collision.thickness)
+        self.begin(None, None, None, False)
+
+    def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
+              recording: bool) -> None:
+        """Start a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped ``mass``)."""
+        self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
+        self._contacts = Contacts.empty()  # every contact of the step so far
+        self._geometry = []  # (normal, weight) of each round's new contacts, evaluated where they were found
+        self._lam = np.zeros(0)  # the last round's multipliers: the next round starts from them
+        self._found = Contacts.empty()
+        self._fixed = self.model.particle_pin.numpy() >= 0  # read at each step: pins are the model's
+        self.projections: list[tuple[projection.ProjectionResult, wp.array]] = []
+        self.zones: list[dict] = []
+
+    @property
+    def count(self) -> int:
+        """Contacts in the step's projection so far."""
+        return len(self._contacts)
+
+    def detect(self, start: wp.array, end: wp.array, reference: wp.array) -> int:
+        """Detect the contacts between node positions ``start`` and ``end``; returns how many."""
+        # Every contact found is new: a pair found again is violated again (the projection leaves resolved pairs
+        # exactly at the thickness, which proximity detection does not count), and its new linearisation joins
+        # the old one.
+        self._found = self.detector.detect(start, end, reference)
+        return len(self._found)
+
+    def first_found(self) -> tuple[np.ndarray, int]:
+        """(nodes, mode) of the first contact the last detection found (error messages)."""
+        return self._found.nodes[0], int(self._found.mode[0])
+
+    def contact_nodes(self) -> np.ndarray:
+        """The nodes (m, 4) of every contact the step found so far, the last detection's included."""
+        return np.concatenate([self._contacts.nodes, self._found.nodes])
+
+    def add_found(self, start: wp.array, end: wp.array, step: int) -> None:
+        """Evaluate the geometry of the contacts just found and add them to the step's projection."""
+        self._geometry.append(contact_geometry(self.model, start, end, self._found, self._recording, step))
+        self._contacts = Contacts.concatenate([self._contacts, self._found])
+        self._found = Contacts.empty()
+
+    def project(self, step: int, opt) -> wp.array:
+        """Project x̂ onto every contact so far (the previous round's multipliers first) with the CollisionOptions
+        ``opt``; record its adjoint."""
+        x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass, self._geometry
+        normals = np.concatenate([g[0].numpy() for g in geometry]).astype(np.float64)
+        weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
+        try:
+            result = projection.project(
+                x_hat.numpy().astype(np.float64), mass.numpy().astype(np.float64), self._fixed,
+                obstacle_end.numpy().astype(np.float64).reshape(-1, 3), self._contacts.nodes.astype(np.int64),
+                weights, normals, self.thickness, tol=opt.qp_tol,
+                lam_init=np.concatenate([self._lam, np.zeros(len(normals) - len(self._lam))]))
+        except projection.ProjectionError as err:
+            raise CollisionError(f"step {step}: {err}") from err
+        self._lam = result.lam
+        self.zones = result.zones_stats()
+        z = wp.array(result.z, dtype=self.model.types.vec3, device=self.model.device,
+                     requires_grad=self._recording)
+        self.projections.append((result, z))
+        if self._recording:
+            self._record_adjoint(result, z, list(geometry), opt.adjoint)
+        return z
+
+    def _record_adjoint(self, result, z, geometry, mode) -> None:
+        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
+        sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
+
+        def adjoint():
+            grad_z = z.grad.numpy().astype(np.float64)
+            if not np.any(grad_z):  # a round whose z a later round or the fail-safe replaced
+                return
+            with timed(self.timings, "adjoint"):
+                gx, gw, gn, gob = projection.backward(result, grad_z, mode=mode)
+            _accumulate(x_hat, gx)
+            _accumulate(mass, projection.mass_gradient(result, gx))
+            for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
+                _accumulate(normal, gn[lo:hi])
+                _accumulate(weight, gw[lo:hi])
+            if obstacle_end.shape[0]:
+                _accumulate(obstacle_end, gob)
+
+        record_adjoint(adjoint, arrays=[z])
+
+
+class DeviceBackend:
+    """The device projection, round by round (``CollisionOptions.solver="device"``): the step's contacts in float64
+    lists on the device (kept across steps, grown as needed), one MPRGP solve per round warm-started from the last.
+
+    Args: as :class:`ZoneBackend`, and ``node_count``: cloth particles plus the obstacle vertices that collide.
+    """
+
+    def __init__(self, model: Model, detector: ContactDetector, timings: dict, node_count: int):
+        self.model = model
+        self.detector = detector
+        self.timings = timings
+        self.thickness = float(model.collision.thickness)
+        self.cloth_count = model.particle_count
+        self.node_count = node_count
+        self._solver: DeviceProjection | None = None  # made on first use, grown as needed
+        self._nodes = self._normals = self._weights = None  # the step's contact lists (_grow)
+        self.begin(None, None, None, False)
+
+    def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
+              recording: bool) -> None:
+        """Start a step (as :meth:`ZoneBackend.begin`)."""
+        self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
+        self._total = 0  # contacts in the lists
+        self._found = 0  # contacts the last detection found (in the detector's buffers)
+        self._rounds = []  # (offset, count, normal, weight) of each round's contacts
+        self._solution = None
+        self._constants = None  # (positions, free, inverse masses) of the step, once it has contacts
+        self.solver_stats: dict | None = None
+
+    @property
+    def count(self) -> int:
+        return self._total
+
+    def detect(self, start: wp.array, end: wp.array, reference: wp.array) -> int:
+        self._found = self.detector.detect_on_device(start, end, reference)
+        return self._found
+
+    def first_found(self) -> tuple[np.ndarray, int]:
+        return self.detector.nodes.numpy()[0], int(self.detector.mode.numpy()[0])
+
+    def contact_nodes(self) -> np.ndarray:
+        parts = [self._nodes.numpy()[:self._total]] if self._total else []
+        parts.append(self.detector.nodes.numpy()[:self._found])
+        return np.concatenate(parts)
+
+    def add_found(self, start: wp.array, end: wp.array, step: int) -> None:
+        model, dev = self.model, self.model.device
+        kr = device_round_kernels(model.scalar)
+        found, total, N = self._found, self._total, self.node_count
+        if self._constants is None:  # x^ and the obstacle in float64, the masses: the step's constants
+            positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+            wp.launch(kr.positions64, N, device=dev, inputs=[self._x_hat, self._obstacle_end, self.cloth_count],
+                      outputs=[positions], record_tape=False)
+            free = wp.empty(N, dtype=wp.int32, device=dev)
+            inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
+            wp.launch(kr.inverse_mass, N, device=dev, inputs=[self._mass, model.particle_pin, self.cloth_count],
+                      outputs=[free, inv_mass], record_tape=False)
+            self._constants = (positions, free, inv_mass)
+        self._grow(total + found)
+        normal = wp.empty(found, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
+        weight = wp.empty(found, dtype=model.types.vec4, device=dev, requires_grad=self._recording)
+        det = self.detector
+        found_arrays = [det.nodes[:found], det.mode[:found], det.t[:found], det.sign[:found]]
+        if self._recording:  # the tape replays this launch after later detections reuse the buffers
+            found_arrays = [wp.clone(a) for a in found_arrays]
+        wp.launch(contact_kernels(model.scalar).geometry, found, device=dev, inputs=[start, end, *found_arrays],
+                  outputs=[normal, weight])
+        wp.copy(self._nodes, det.nodes, dest_offset=4 * total, count=4 * found)
+        bad = wp.full(1, found + 1, dtype=wp.int32, device=dev)
+        wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, total],
+                  outputs=[self._normals, self._weights, bad], record_tape=False)
+        j = int(bad.numpy()[0]) - 1
+        if j < found:
+            raise _degenerate(step, det.nodes.numpy()[j])
+        self._rounds.append((total, found, normal, weight))
+        self._total += found
+        self._found = 0
+
+    def project(self, step: int, opt) -> wp.array:
+        model, dev = self.model, self.model.device
+        total = self._total
+        warm = self._rounds[-1][0]  # the contacts of earlier rounds, whose multipliers start the solve
+        if self._solver is None or self._solver.capacity < total:
+            self._solver = DeviceProjection(dev, self.node_count, max(2 * total, 1024))
+            warm = 0  # a new buffer: the previous multipliers are gone
+        positions, free, inv_mass = self._constants
+        solution = self._solver.project(
+            positions, free, inv_mass, self._nodes, self._weights, self._normals, total, self.thickness,
+            lam_init=None if self._solution is None or warm == 0 else self._solver.lam, warm=warm, tol=opt.qp_tol,
+            keep=self._recording)
+        self._solution = solution
+        self.solver_stats = {"iterations": solution.iterations, "violation": solution.violation}
+        if solution.unbounded:
+            raise CollisionError(
+                f"step {step}: no positions satisfy the {total} contacts of the device projection (its dual is "
+                "unbounded): cloth squeezed between obstacles closer than twice the thickness, or contacts that "
+                "contradict each other")
+        if not solution.converged:
+            raise CollisionError(
+                f"step {step}: the device projection of {total} contacts did not converge in "
+                f"{solution.iterations} iterations: a contact violated or an active one off by "
+                f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)")
+        z = wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
+        wp.launch(device_round_kernels(model.scalar).cloth_positions, self.cloth_count, device=dev,
+                  inputs=[solution.z], outputs=[z], record_tape=False)
+        if self._recording:
+            self._record_adjoint(solution, z)
+        return z
+
+    def _grow(self, count: int) -> None:
+        """The float64 contact lists, at least ``count`` long (this step's earlier rounds kept)."""
+        have = 0 if self._nodes is None else self._nodes.shape[0]
+        if have >= count:
+            return
+        size = max(2 * count, 1024)
+        dev = self.model.device
+        nodes = wp.zeros((size, 4), dtype=wp.int32, device=dev)
+        normals = wp.zeros(size, dtype=wp.vec3d, device=dev)
+        weights = wp.zeros(size, dtype=wp.vec4d, device=dev)
+        if have:
+            wp.copy(nodes, self._nodes)
+            wp.copy(normals, self._normals)
+            wp.copy(weights, self._weights)
+        self._nodes, self._normals, self._weights = nodes, normals, weights
+
+    def _record_adjoint(self, solution, z) -> None:
+        """Record the projection's adjoint (kernels only): dL/dz -> x^, the contacts' normals and weights, the
+        obstacle vertices and the masses."""
+        model, dev = self.model, self.model.device
+        kr = device_round_kernels(model.scalar)
+        n, N = self.cloth_count, self.node_count
+        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
+        positions, free, inv_mass = self._constants
+        rounds = list(self._rounds)
+        count = solution.rows.count
+        nodes, normals = solution.rows.nodes, solution.rows.normal  # the solution's own copies
+        weights = wp.clone(self._weights[:count])
+        solver = self._solver
+
+        def adjoint():
+            with timed(self.timings, "adjoint"):
+                d_z = wp.empty(N, dtype=wp.vec3d, device=dev)
+                wp.launch(kr.scaled_gradient, N, device=dev, inputs=[z.grad, inv_mass, n], outputs=[d_z])
+                d_lam = solver.adjoint_on_device(solution, d_z)
+                grad_w = wp.empty(max(count, 1), dtype=wp.vec4d, device=dev)
+                grad_n = wp.empty(max(count, 1), dtype=wp.vec3d, device=dev)
+                grad_const = wp.zeros(N, dtype=wp.vec3d, device=dev)
+                wp.launch(kr.push_contacts, count, device=dev,
+                          inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
+                          outputs=[grad_w, grad_n, grad_const])
+                obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else wp.zeros(
+                    max(N - n, 1), dtype=model.types.vec3, device=dev)
+                mass_grad = mass.grad if mass.grad is not None else wp.zeros(n, dtype=model.scalar, device=dev)
+                wp.launch(kr.position_gradients, N, device=dev,
+                          inputs=[z.grad, d_z, inv_mass, grad_const, solution.z, positions, n],
+                          outputs=[x_hat.grad, obstacle_grad, mass_grad])
+                for offset, found, normal, weight in rounds:
+                    if normal.grad is not None:
+                        wp.launch(kr.geometry_gradients, found, device=dev, inputs=[grad_n, grad_w, offset],
+                                  outputs=[normal.grad, weight.grad])
+
+        record_adjoint(adjoint, arrays=[z])
+
+
+def _accumulate(array: wp.array, grad: np.ndarray) -> None:
+    """array.grad += grad (a host array of the same shape)."""
+    if array.grad is None:
+        return
+    g = array.grad.numpy()
+    array.grad.assign((g + grad.reshape(g.shape)).astype(g.dtype))
