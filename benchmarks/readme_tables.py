@@ -211,9 +211,8 @@ def collision_ablation(d: dict) -> str:
             f"{g(r['kkt_backward_zone_s'], 2)} / {g(r['qr_backward_zone_s'], 2)}", g(r["forward_s"], 2), seed_cell])
         if "phases_s" in r:
             p = r["phases_s"]
-            phase_rows.append([r["mesh"].replace("x", "×"), *(g(p[k], 2) for k in ("detection", "geometry",
-                                                                                  "projection", "adjoint")),
-                               g(r["forward_s"], 2)])
+            phase_rows.append([r["mesh"].replace("x", "×"), *(g(p.get(k, 0.0), 2) for k in (
+                "detection", "geometry", "projection", "adjoint", "fail_safe")), g(r["forward_s"], 2)])
     for mesh, s in seed.items():
         if mesh not in done:
             rows.append([mesh.replace("x", "×"), "not run", "", "", "", "", "", "",
@@ -222,8 +221,8 @@ def collision_ablation(d: dict) -> str:
                   "per zone: KKT / QR s", "forward s", "seed: KKT / QR s, speedup"], rows), ""]
     if phase_rows:
         out += ["Seconds per step by phase (QR runs):", "",
-                table(["mesh", "detection", "normals and weights", "projection (zones, QP)", "adjoint", "whole step"],
-                      phase_rows), ""]
+                table(["mesh", "detection", "normals and weights", "projection (zones, QP)", "adjoint",
+                       "fail-safe (rigid zones)", "whole step"], phase_rows), ""]
     device_rows = []
     for r in d["records"]:
         dv = r.get("device")

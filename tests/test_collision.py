@@ -241,3 +241,4 @@ def test_scene_without_collisions_builds_no_collision_stage():
     model = flat_cloth().finalize("cpu")
     assert model.collision is None
     assert wc.Simulator(model, 0.01).collision is None
+
