@@ -93,7 +93,8 @@ def one_step(model, sim) -> dict:
     return {"forward_s": forward, "backward_s": stage.backward_seconds - before, "tape_backward_s": tape_backward,
             "phases": phases,
             "zones": [z for z in zones if z["ncon"] > 1], "rounds": report.rounds, "contacts": report.contacts,
-            "fail_safe": vars(report.fail_safe) if report.fail_safe is not None else None}
+            "fail_safe": vars(report.fail_safe) if report.fail_safe is not None else None,
+            "kept_start_gaps": report.kept_start_gaps}
 
 
 def run_device(mesh: str, reps: int) -> dict:
@@ -110,7 +111,8 @@ def run_device(mesh: str, reps: int) -> dict:
             "backward_s": float(np.median([r["backward_s"] for r in runs])),
             "phases_s": {k: float(np.median([r["phases"][k] for r in runs])) for k in runs[0]["phases"]},
             "rounds": int(np.median([r["rounds"] for r in runs])),
-            "contacts": int(np.median([r["contacts"] for r in runs])), "fail_safe": runs[0]["fail_safe"]}
+            "contacts": int(np.median([r["contacts"] for r in runs])), "fail_safe": runs[0]["fail_safe"],
+            "kept_start_gaps": runs[0]["kept_start_gaps"]}
 
 
 def run_mesh(mesh: str, reps: int) -> dict:
@@ -160,7 +162,7 @@ def run_mesh(mesh: str, reps: int) -> dict:
         "phases_s": {k: float(np.median([r["phases"][k] for r in qr])) for k in qr[0]["phases"]},
         "forward_s_all": [r["forward_s"] for r in qr],
         "rounds": int(np.median([r["rounds"] for r in qr])), "contacts": int(np.median([r["contacts"] for r in qr])),
-        "fail_safe": qr[0]["fail_safe"],
+        "fail_safe": qr[0]["fail_safe"], "kept_start_gaps": qr[0]["kept_start_gaps"],
     }
 
 

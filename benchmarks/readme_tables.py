@@ -255,6 +255,10 @@ def collision_ablation(d: dict) -> str:
     for r in d["records"]:
         for solver, rec in (("zone", r), ("device", r.get("device") or {})):
             fs = rec.get("fail_safe")
+            if rec.get("kept_start_gaps"):
+                out.append(f"The {r['mesh'].replace('x', '×')} step with the {solver} solver was resolved by the "
+                           "projection's second try, which keeps the start gaps of pairs that start inside the "
+                           f"thickness (the first: “{rec['kept_start_gaps'][:120]}”).")
             if fs:
                 out.append(f"The {r['mesh'].replace('x', '×')} step with the {solver} solver fell back on rigid impact "
                            f"zones: {fs['zones']} zones of {fs['particles']} particles in all, after {fs['passes']} "

@@ -52,6 +52,13 @@ absorbs the float32 rounding of the projected positions (~1e-7 m at 1 m from the
 frozen normals' linearisation; with 1e-6 a cloth resting on a tessellated sphere kept re-finding the same pairs
 for 100 rounds (16x16 on a 0.3 m sphere, dt 0.01)."""
 
+START_SLACK = wp.constant(wp.float64(1.0e-2))
+"""With ``keep_start_gaps`` (the collision stage's second try at a step whose projection failed), a pair that starts
+the step closer than the thickness keeps its start gap as its target (kernels/contact.py): it is a proximity contact
+only where it comes closer than that gap by more than this fraction of the thickness (the same slack as
+PROXIMITY_MARGIN's), and a crossing of its linear path that ends on its start side no closer than it started (a
+double crossing) is no contact."""
+
 
 @wp.func
 def cubic(c0: wp.float64, c1: wp.float64, c2: wp.float64, c3: wp.float64, t: wp.float64):
@@ -252,7 +259,8 @@ def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int, side0: wp.
 @wp.func
 def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
                      p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d,
-                     pr: wp.vec3d, ar: wp.vec3d, br: wp.vec3d, cr: wp.vec3d, thickness: wp.float64):
+                     pr: wp.vec3d, ar: wp.vec3d, br: wp.vec3d, cr: wp.vec3d, thickness: wp.float64,
+                     keep_start_gaps: int):
     """(hit, mode, t, sign, rank) of a vertex against a triangle moving linearly over the step.
 
     First the earliest coplanarity time t in [0, 1] at which the vertex is inside the face (CCD, signed towards the
@@ -263,19 +271,31 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     side0, touching = start_side(True, p0, a0, b0, c0, pr, ar, br, cr, thickness)
     roots, count = coplanarity_roots(b0 - a0, c0 - a0, p0 - a0, b1 - a1, c1 - a1, p1 - a1)
     crossed, t, sign = earliest_crossing(True, roots, count, side0, touching, p0, a0, b0, c0, p1, a1, b1, c1)
-    if crossed:
-        return True, VF_PLANE, t, sign, t - wp.float64(1.0)
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     n1 = wp.cross(b1 - a1, c1 - a1)
     nl = wp.length(n1)
+    n0 = wp.cross(b0 - a0, c0 - a0)
+    start = thickness
+    if keep_start_gaps != 0 and wp.length(n0) > zero:
+        start = wp.abs(wp.dot(n0, p0 - a0)) / wp.length(n0)
+    if crossed and start < thickness and nl > zero:
+        # A vertex that started inside the thickness and ends on its start side no closer than it started: its
+        # linear path dips through the face's plane and back (a double crossing), which no constraint on the end
+        # positions can exclude; taking it for a crossing re-finds it in every round.
+        if sign * wp.dot(n1, p1 - a1) / nl >= start - START_SLACK * thickness:
+            crossed = False
+    if crossed:
+        return True, VF_PLANE, t, sign, t - wp.float64(1.0)
     if nl <= zero:
         return False, VF_PLANE, one, one, wp.float64(2.0)
     w1 = face_barycentric(p1, a1, b1, c1)
     if w1[0] < -BARY_EPS or w1[1] < -BARY_EPS or w1[2] < -BARY_EPS:
         return False, VF_PLANE, one, one, wp.float64(2.0)
     dist = wp.dot(n1, p1 - a1) / nl
-    if wp.abs(dist) >= thickness * PROXIMITY_MARGIN:
+    # a vertex that started inside the thickness: a contact where it comes closer than its start gap
+    limit = wp.min(thickness * PROXIMITY_MARGIN, start - START_SLACK * thickness)
+    if wp.abs(dist) >= limit:
         return False, VF_PLANE, one, one, wp.float64(2.0)
     # the side the vertex started on: a vertex that crossed the face's plane outside the face (through a
     # neighbour, whose CCD test catches it) must come back to that side here too, not be pushed on through
@@ -285,7 +305,8 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
 @wp.func
 def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
                    P0: wp.vec3d, P1: wp.vec3d, Q0: wp.vec3d, Q1: wp.vec3d,
-                   pr0: wp.vec3d, pr1: wp.vec3d, qr0: wp.vec3d, qr1: wp.vec3d, thickness: wp.float64):
+                   pr0: wp.vec3d, pr1: wp.vec3d, qr0: wp.vec3d, qr1: wp.vec3d, thickness: wp.float64,
+                   keep_start_gaps: int):
     """(hit, mode, t, sign, rank) of edge (p0, p1) against edge (q0, q1); lower case at the start, upper at the end,
     r at the reference positions (start_side).
 
@@ -296,16 +317,27 @@ def edge_edge_test(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
     side0, touching = start_side(False, p0, p1, q0, q1, pr0, pr1, qr0, qr1, thickness)
     roots, count = coplanarity_roots(p1 - p0, q1 - q0, q0 - p0, P1 - P0, Q1 - Q0, Q0 - P0)
     crossed, t, sign = earliest_crossing(False, roots, count, side0, touching, p0, p1, q0, q1, P0, P1, Q0, Q1)
-    if crossed:
-        return True, EE_PLANE, t, sign, t - wp.float64(1.0)
     s, u = segment_parameters(P0, P1, Q0, Q1, PARALLEL_SINE2)
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     gap = ((one - s) * P0 + s * P1) - ((one - u) * Q0 + u * Q1)
     dist = wp.length(gap)
-    if dist >= thickness * PROXIMITY_MARGIN:
-        return False, EE_DIRECTION, one, one, wp.float64(2.0)
+    start = thickness
+    if keep_start_gaps != 0:
+        s0, u0 = segment_parameters(p0, p1, q0, q1, PARALLEL_SINE2)
+        start = wp.length(((one - s0) * p0 + s0 * p1) - ((one - u0) * q0 + u0 * q1))
+    n1 = wp.cross(P1 - P0, Q1 - Q0)
+    if crossed and start < thickness and wp.length(n1) > zero:
+        # edges that started inside the thickness and end on their start side no closer than they started: a
+        # double crossing of their linear paths (as in vertex_face_test)
+        if sign * wp.dot(n1, gap) / wp.length(n1) >= start - START_SLACK * thickness:
+            crossed = False
+    if crossed:
+        return True, EE_PLANE, t, sign, t - wp.float64(1.0)
     gap0 = ((one - s) * p0 + s * p1) - ((one - u) * q0 + u * q1)
+    # edges that started inside the thickness: a contact where they come closer than their start gap
+    if dist >= wp.min(thickness * PROXIMITY_MARGIN, start - START_SLACK * thickness):
+        return False, EE_DIRECTION, one, one, wp.float64(2.0)
     if wp.length(gap0) <= TOUCHING * thickness:  # touching at the start: the reference side decides
         gap0 = ((one - s) * pr0 + s * pr1) - ((one - u) * qr0 + u * qr1)
     if dist > wp.float64(1.0e-3) * thickness:
@@ -391,7 +423,7 @@ def collision_kernels(scalar):
         def query_contacts(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
                            x_ref: wp.array(dtype=vec3), queries: query_array, targets: wp.array2d(dtype=wp.int32),
                            query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
-                           same_cloth: int, thickness: wp.float64, capacity: int,
+                           same_cloth: int, thickness: wp.float64, keep_start_gaps: int, capacity: int,
                            # out:
                            count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
                            contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
@@ -422,7 +454,8 @@ def collision_kernels(scalar):
                     hit, mode, t, sign, rank = vertex_face_test(
                         wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
                         wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]),
-                        wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]), wp.vec3d(x_ref[c]), thickness)
+                        wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]), wp.vec3d(x_ref[c]), thickness,
+                        keep_start_gaps)
                 else:
                     if same_cloth != 0 and (j <= i or q0 == a or q0 == b or q1 == a or q1 == b):
                         continue  # each pair once; edges sharing a vertex do not collide
@@ -430,7 +463,7 @@ def collision_kernels(scalar):
                         wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
                         wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]),
                         wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[q1]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]),
-                        thickness)
+                        thickness, keep_start_gaps)
                 best, best_target, best_t, best_mode = keep_most_urgent(hit, rank, sign, t, mode, j, best,
                                                                         best_target, best_t, best_mode)
             for side in range(2):

@@ -72,12 +72,27 @@ def contact_kernels(scalar):
             return t - (f - frozen(f)) / slope  # exactly t, with dt/dx = -(df/dx) / f'(t)
         return t
 
+    @wp.func
+    def start_distance(mode: int, a: vec3, b: vec3, c: vec3, d: vec3):
+        """The distance detection measures a pair's start gap by (kernels/collision.py): vertex a to the plane of
+        face (b, c, d), or between the segments (a, b) and (c, d)."""
+        if mode == VF_PLANE:
+            n = wp.cross(c - b, d - b)
+            if wp.length(n) > scalar(0.0):
+                return wp.abs(wp.dot(n, a - b)) / wp.length(n)
+            return scalar(1.0e30)
+        s, u = segment_parameters(a, b, c, d, parallel_sine2)
+        return wp.length((a + s * (b - a)) - (c + u * (d - c)))
+
     @wp.kernel
     def geometry(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), contact_nodes: wp.array2d(dtype=wp.int32),
                  contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
-                 contact_sign: wp.array(dtype=wp.float64),
+                 contact_sign: wp.array(dtype=wp.float64), thickness: scalar, keep_start_gaps: int,
                  # out:
-                 normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4)):
+                 normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4), target: wp.array(dtype=scalar)):
+        # target: the gap the projection keeps, sum_a w_a n . p_a >= target: the thickness; with keep_start_gaps,
+        # the gap the pair had at the start where that is less (a pair that starts inside the thickness may not come
+        # closer; pushed a full thickness apart, such pairs contradict each other in a crumpled cloth)
         j = wp.tid()
         tj = scalar(contact_t[j])
         mode = contact_mode[j]
@@ -92,27 +107,35 @@ def contact_kernels(scalar):
         b = x0[contact_nodes[j, 1]] + tj * (x1[contact_nodes[j, 1]] - x0[contact_nodes[j, 1]])
         c = x0[contact_nodes[j, 2]] + tj * (x1[contact_nodes[j, 2]] - x0[contact_nodes[j, 2]])
         d = x0[contact_nodes[j, 3]] + tj * (x1[contact_nodes[j, 3]] - x0[contact_nodes[j, 3]])
+        n = vec3()
+        w = vec4()
         if mode == VF_PLANE:
             # vertex a over face (b, c, d): barycentric coordinates (1 - u - v, u, v) of a's projection on the face
             e1 = c - b
             e2 = d - b
             u, v, _det, _scale = span_coordinates(e1, e2, a - b)
-            normal[j] = sign * wp.normalize(wp.cross(e1, e2))
-            weight[j] = vec4(one, -(one - u - v), -u, -v)
+            n = sign * wp.normalize(wp.cross(e1, e2))
+            w = vec4(one, -(one - u - v), -u, -v)
         elif mode == EE_PLANE:
             # crossing edges (a, b) and (c, d): the normal of the plane they span, the lines' closest points
             # a + s d1 and c + u d2
             d1 = b - a
             d2 = d - c
             s, u, _det, _scale = span_coordinates(d1, c - d, c - a)
-            normal[j] = sign * wp.normalize(wp.cross(d1, d2))
-            weight[j] = vec4(one - s, s, -(one - u), -u)
+            n = sign * wp.normalize(wp.cross(d1, d2))
+            w = vec4(one - s, s, -(one - u), -u)
         else:
             # closest points of the two segments; the normal points from the second to the first
             s, u = segment_parameters(a, b, c, d, parallel_sine2)
             gap = (a + s * (b - a)) - (c + u * (d - c))
-            normal[j] = wp.normalize(gap)
-            weight[j] = vec4(one - s, s, -(one - u), -u)
+            n = wp.normalize(gap)
+            w = vec4(one - s, s, -(one - u), -u)
+        normal[j] = n
+        weight[j] = w
+        target[j] = thickness
+        if keep_start_gaps != 0:
+            target[j] = wp.min(thickness, start_distance(mode, x0[contact_nodes[j, 0]], x0[contact_nodes[j, 1]],
+                                                         x0[contact_nodes[j, 2]], x0[contact_nodes[j, 3]]))
 
     @wp.kernel
     def apply_projection(x_hat: wp.array(dtype=vec3), v_hat: wp.array(dtype=vec3), z: wp.array(dtype=vec3),

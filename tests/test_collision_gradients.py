@@ -293,3 +293,29 @@ def test_gradients_through_the_rigid_impact_zone_fail_safe_match_finite_differen
         model.material_density.assign(base)
         fd = (vals[0] - vals[1]) / (2e-6 * base[i])
         assert density_grad[i] == pytest.approx(fd, rel=1e-5, abs=1e-9), f"material {i}: {density_grad[i]} vs {fd}"
+
+
+@pytest.mark.parametrize("solver", ["numpy", "device"])
+def test_gradients_of_the_second_try_keeping_start_gaps_match_finite_differences(solver):
+    # A stretched sheet starting between two planes 0.8 thickness apart, every vertex inside the thickness of both:
+    # the first try (targets of a full thickness) is infeasible, the second keeps each pair's start gap as its
+    # target (kernels/contact.py start_distance, differentiated): gradients reach the start positions through the
+    # targets, and the planes' placement.
+    delta = 5e-4
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    stretched_grid(b, 3, 0.2, pos=(-0.1, -0.1, 0.0))
+    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, -0.4 * delta))
+    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, 0.4 * delta), rot=(1.0, 0.0, 0.0, 0.0))  # facing down
+    b.set_collision(thickness=delta, repulsion_stiffness=0.0)
+    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    sim, run = loss_fn(model, 2, 0.005, solver=solver)
+    rng = np.random.default_rng(5)
+    x0 = model.particle_x0.numpy() + [0.0, 0.0, 1.0] * rng.uniform(-0.15 * delta, 0.15 * delta, (model.particle_count,
+                                                                                                     1))
+    v0 = model.particle_v0.numpy()
+    tf = model.obstacle_rest_transform.copy()
+    loss, keys, g = tape_gradients(model, run, x0, v0, tf)
+    assert sim.collision.start_gap_steps >= 1 and sim.collision.fail_safe_steps == 0
+    assert sim.collision.last.kept_start_gaps is not None
+    for name, eps in (("x0", 1e-8), ("v0", 1e-5), ("transform", 1e-8)):
+        fd_check(run, (x0, v0, tf), g, name, eps, rng)

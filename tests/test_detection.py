@@ -10,7 +10,8 @@ from warpcloth.kernels.contact import EE_DIRECTION, EE_PLANE, VF_PLANE, contact_
 DELTA = 5e-4
 
 
-def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.float64, reference=None):
+def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.float64, reference=None,
+            keep_start_gaps=0):
     """Run one detection kernel on node positions x0 -> x1 (``reference``: the positions that side a pair touching
     at the start, default x1); returns (count, nodes, mode, t, sign)."""
     k = collision_kernels(dtype)
@@ -36,24 +37,28 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
     kernel = k.vertex_face if kind == "vf" else k.edge_edge
     query_index = q.flatten() if kind == "vf" else q
     wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, XR, query_index, tg, bounds[0][0], bounds[0][1], flag,
-                                          wp.float64(DELTA), capacity],
+                                          wp.float64(DELTA), keep_start_gaps, capacity],
               outputs=[count, nodes, mode, t, sign])
     c = int(count.numpy()[0])
     m = min(c, capacity)
     return c, nodes.numpy()[:m], mode.numpy()[:m], t.numpy()[:m], sign.numpy()[:m]
 
 
-def _geometry(x0, x1, nodes, mode, t, sign, dtype=wp.float64):
+def _geometry(x0, x1, nodes, mode, t, sign, dtype=wp.float64, keep_start_gaps=0, targets=False):
     k = contact_kernels(dtype)
     vec3 = wp.types.vector(3, dtype)
     vec4 = wp.types.vector(4, dtype)
     m = len(mode)
     n_out = wp.zeros(m, dtype=vec3)
     w_out = wp.zeros(m, dtype=vec4)
+    target = wp.zeros(m, dtype=dtype)
     wp.launch(k.geometry, m, inputs=[wp.array(x0, dtype=vec3), wp.array(x1, dtype=vec3),
                                      wp.array(nodes, dtype=wp.int32), wp.array(mode, dtype=wp.int32),
-                                     wp.array(t, dtype=dtype), wp.array(sign, dtype=dtype)],
-              outputs=[n_out, w_out])
+                                     wp.array(t, dtype=dtype), wp.array(sign, dtype=dtype), dtype(DELTA),
+                                     keep_start_gaps],
+              outputs=[n_out, w_out, target])
+    if targets:
+        return n_out.numpy(), w_out.numpy(), target.numpy()
     return n_out.numpy(), w_out.numpy()
 
 
@@ -174,3 +179,21 @@ def test_overflow_is_counted_beyond_the_capacity():
     x = np.vstack([TRI, pts])
     c, nodes, *_ = _detect(x, x, list(range(3, 23)), [[0, 1, 2]], "vf", capacity=5)
     assert c == 20 and len(nodes) == 5
+
+
+@pytest.mark.parametrize("end_gap, found", [(0.3, False), (0.1, True)])
+def test_keeping_start_gaps_a_vertex_inside_the_thickness_is_a_contact_only_where_it_comes_closer(end_gap, found):
+    # The collision stage's second try (keep_start_gaps): a vertex that starts 0.2 thickness above a face is a
+    # contact only where it ends closer than that (by more than START_SLACK), and then its target is its start gap;
+    # the first try takes any vertex within the thickness and targets the thickness.
+    tri = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    x0 = np.vstack([[0.0, 0.0, 0.2 * DELTA], tri])
+    x1 = np.vstack([[0.0, 0.0, end_gap * DELTA], tri])
+    count, nodes, mode, t, sign = _detect(x0, x1, [0], [[1, 2, 3]], "vf", keep_start_gaps=1)
+    assert (count == 1) == found
+    assert _detect(x0, x1, [0], [[1, 2, 3]], "vf")[0] == 1  # the first try's proximity contact
+    if found:
+        _, _, target = _geometry(x0, x1, nodes, mode, t, sign, keep_start_gaps=1, targets=True)
+        np.testing.assert_allclose(target, [0.2 * DELTA], rtol=1e-12)
+        _, _, target = _geometry(x0, x1, nodes, mode, t, sign, targets=True)
+        np.testing.assert_allclose(target, [DELTA], rtol=1e-12)

@@ -488,7 +488,7 @@ def test_no_contacts():
                   np.zeros((0, 3)), DELTA)
     np.testing.assert_array_equal(res.z, prob["x_hat"])
     g = np.random.default_rng(0).normal(size=res.z.shape)
-    gx, gw, gn, gob = backward(res, g)
+    gx, gw, gn, gob, _ = backward(res, g)
     np.testing.assert_array_equal(gx, g)
     assert gw.shape == (0, 4) and gn.shape == (0, 3) and gob.shape == (0, 3)
 
@@ -546,10 +546,11 @@ def _finite_differences(prob, R, group, eps):
 @pytest.mark.parametrize("mode", ["qr", "kkt"])
 def test_finite_differences(mode):
     prob = clean_problems(1, start=20, groups=2)[0]
+    prob["thickness"] = np.full(prob["nodes"].shape[0], prob["thickness"])  # one target gap per contact
     res = solve(prob)
     R = np.random.default_rng(3).normal(size=res.z.shape)
-    grads = dict(zip(("x_hat", "weights", "normals", "obstacle_x"), backward(res, R, mode=mode)))
-    assert np.any(prob["fixed"]) and np.any(grads["obstacle_x"] != 0)
+    grads = dict(zip(("x_hat", "weights", "normals", "obstacle_x", "thickness"), backward(res, R, mode=mode)))
+    assert np.any(prob["fixed"]) and np.any(grads["obstacle_x"] != 0) and np.any(grads["thickness"] != 0)
     for group, g in grads.items():
         fd = _finite_differences(prob, R, group, 1e-7)
         np.testing.assert_allclose(g, fd, rtol=0, atol=1e-6 * max(1.0, np.max(np.abs(fd))), err_msg=group)
@@ -578,7 +579,7 @@ def test_finite_differences_layered():
     fdx = _finite_differences(prob, R, "x_hat", 1e-7)
     fdo = _finite_differences(prob, R, "obstacle_x", 1e-7)
     for mode in ("qr", "kkt"):
-        gx, _, _, gob = backward(res, R, mode=mode)
+        gx, _, _, gob, _ = backward(res, R, mode=mode)
         np.testing.assert_allclose(gx, fdx, rtol=0, atol=1e-6)
         np.testing.assert_allclose(gob, fdo, rtol=0, atol=1e-6)
 
@@ -610,7 +611,7 @@ def test_finite_differences_dependent():
                     vals.append(np.sum(R * solve(dict(prob, **{group: arr})).z))
                 fd_pairs.append((group, i, j, col, (vals[0] - vals[1]) / 2e-7))
     for mode in ("qr", "kkt"):
-        gx, gw, gn, gob = backward(res, R, mode=mode)
+        gx, gw, gn, gob, _ = backward(res, R, mode=mode)
         np.testing.assert_allclose(gx, fdx, rtol=0, atol=1e-6)
         np.testing.assert_allclose(gob, fdo, rtol=0, atol=1e-6)
         grads = {"weights": gw, "normals": gn}
@@ -688,10 +689,10 @@ def test_device_solver_and_adjoint_match_the_zone_solver_and_the_kkt_adjoint(pro
         dev = solver.backward(solution, g, x_hat=prob["x_hat"], mass=prob["mass"], fixed=prob["fixed"],
                               obstacle_x=prob["obstacle_x"], nodes=prob["nodes"], weights=prob["weights"],
                               normals=prob["normals"])
-        names = ("x_hat", "weights", "normals", "obstacle_x")
+        names = ("x_hat", "weights", "normals", "obstacle_x", "thickness")
         # dependent contacts share their multipliers differently (minimum norm here, folded in the QR): z* and
         # dL/dx_hat are unique, the split of the contacts' own gradients is not
-        for name, a, b in list(zip(names, dev, kkt))[:1 if problem == "dependent" else 4]:
+        for name, a, b in list(zip(names, dev, kkt))[:1 if problem == "dependent" else 5]:
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * max(np.abs(b).max(), 1e-300), err_msg=name)
 
 

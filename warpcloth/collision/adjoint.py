@@ -214,8 +214,9 @@ def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
         mode: ``"qr"`` (the paper's formula) or ``"kkt"`` (the dense KKT system).
 
     Returns:
-        (∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3)). ∂L/∂x̂ passes ∂L/∂z
-        through for particles in no zone, and for pinned particles adds their contributions as constant nodes.
+        (∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3), ∂L/∂thickness (m,), the
+        target gap of each contact: ∂L/∂h = −d_λ). ∂L/∂x̂ passes ∂L/∂z through for particles in no zone, and for
+        pinned particles adds their contributions as constant nodes.
         ``result.backward_stats`` gets one record per zone: ``mode``, ``backward_s`` (the zone's solve, the QR when
         it was not precomputed (``qr_in_backward``), and its share of pushing the result onto the contacts),
         ``kkt_size``, ``qr_size``. Single-contact zones use the closed form (1×1 R) in both modes, all at once;
@@ -277,7 +278,7 @@ def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
         {"mode": mode, "backward_s": float(seconds[zone.index]), "qr_in_backward": bool(lazy[zone.index]),
          "kkt_size": zone.stats["kkt_size"], "qr_size": zone.stats["qr_size"]} for zone in result.zones]
     grad_x += grad_ext[:n]  # only pinned particles (constant cloth nodes) receive anything here
-    return grad_x, grad_w, grad_n, grad_ext[n:].copy()
+    return grad_x, grad_w, grad_n, grad_ext[n:].copy(), -d_lam
 
 
 def mass_gradient(result: ProjectionResult, grad_x: np.ndarray) -> np.ndarray:

@@ -51,24 +51,31 @@ def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recordin
 
 
 def contact_geometry(model: Model, start: wp.array, end: wp.array, contacts: Contacts, recording: bool,
-                     step: int) -> tuple[wp.array, wp.array]:
-    """Normals and weights of host ``contacts`` at their time of impact, from the node positions they were found
-    at (taped); raises CollisionError naming a contact whose normal is degenerate."""
-    vec3, vec4 = model.types.vec3, model.types.vec4
+                     step: int, keep_start_gaps: bool = False) -> tuple[wp.array, wp.array, wp.array]:
+    """Normals, weights and target gaps of host ``contacts`` at their time of impact, from the node positions they
+    were found at (taped; kernels/contact.py geometry); raises CollisionError naming a contact whose normal is
+    degenerate."""
+    normal, weight, target = _geometry_arrays(model, len(contacts), recording)
     dev = model.device
-    m = len(contacts)
-    normal = wp.empty(m, dtype=vec3, device=dev, requires_grad=recording)
-    weight = wp.empty(m, dtype=vec4, device=dev, requires_grad=recording)
-    wp.launch(contact_kernels(model.scalar).geometry, m, device=dev,
+    wp.launch(contact_kernels(model.scalar).geometry, len(contacts), device=dev,
               inputs=[start, end, wp.array(contacts.nodes, dtype=wp.int32, device=dev),
                       wp.array(contacts.mode, dtype=wp.int32, device=dev),
                       wp.array(contacts.t, dtype=wp.float64, device=dev),
-                      wp.array(contacts.sign, dtype=wp.float64, device=dev)],
-              outputs=[normal, weight])
+                      wp.array(contacts.sign, dtype=wp.float64, device=dev), model.scalar(model.collision.thickness),
+                      int(keep_start_gaps)],
+              outputs=[normal, weight, target])
     ok = np.all(np.isfinite(normal.numpy()), axis=1) & np.all(np.isfinite(weight.numpy()), axis=1)
     if not ok.all():
         raise _degenerate(step, contacts.nodes[int(np.flatnonzero(~ok)[0])])
-    return normal, weight
+    return normal, weight, target
+
+
+def _geometry_arrays(model: Model, count: int, recording: bool) -> tuple[wp.array, wp.array, wp.array]:
+    """Empty (normal, weight, target) arrays for ``count`` contacts."""
+    dev = model.device
+    return (wp.empty(count, dtype=model.types.vec3, device=dev, requires_grad=recording),
+            wp.empty(count, dtype=model.types.vec4, device=dev, requires_grad=recording),
+            wp.empty(count, dtype=model.scalar, device=dev, requires_grad=recording))
 
 
 def _degenerate(step: int, nodes: np.ndarray) -> CollisionError:
@@ -93,11 +100,14 @@ class ZoneBackend:
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
-              recording: bool) -> None:
-        """Start a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped ``mass``)."""
+              recording: bool, keep_start_gaps: bool = False) -> None:
+        """Start a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped ``mass``).
+        ``keep_start_gaps``: pairs that start inside the thickness keep their start gap as their target instead of
+        the thickness (kernels/contact.py; the stage's second try at a step)."""
         self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
+        self.keep_start_gaps = keep_start_gaps
         self._contacts = Contacts.empty()  # every contact of the step so far
-        self._geometry = []  # (normal, weight) of each round's new contacts, evaluated where they were found
+        self._geometry = []  # (normal, weight, target) of each round's new contacts, evaluated where found
         self._lam = np.zeros(0)  # the last round's multipliers: the next round starts from them
         self._found = Contacts.empty()
         self._fixed = self.model.particle_pin.numpy() >= 0  # read at each step: pins are the model's
@@ -114,7 +124,7 @@ class ZoneBackend:
         # Every contact found is new: a pair found again is violated again (the projection leaves resolved pairs
         # exactly at the thickness, which proximity detection does not count), and its new linearisation joins
         # the old one.
-        self._found = self.detector.detect(start, end, reference)
+        self._found = self.detector.detect(start, end, reference, keep_start_gaps=self.keep_start_gaps)
         return len(self._found)
 
     def first_found(self) -> tuple[np.ndarray, int]:
@@ -127,7 +137,8 @@ class ZoneBackend:
 
     def add_found(self, start: wp.array, end: wp.array, step: int) -> None:
         """Evaluate the geometry of the contacts just found and add them to the step's projection."""
-        self._geometry.append(contact_geometry(self.model, start, end, self._found, self._recording, step))
+        self._geometry.append(contact_geometry(self.model, start, end, self._found, self._recording, step,
+                                               self.keep_start_gaps))
         self._contacts = Contacts.concatenate([self._contacts, self._found])
         self._found = Contacts.empty()
 
@@ -135,13 +146,13 @@ class ZoneBackend:
         """Project x̂ onto every contact so far (the previous round's multipliers first) with the CollisionOptions
         ``opt``; record its adjoint."""
         x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass, self._geometry
-        normals = np.concatenate([g[0].numpy() for g in geometry]).astype(np.float64)
-        weights = np.concatenate([g[1].numpy() for g in geometry]).astype(np.float64)
+        normals, weights, targets = (np.concatenate([g[k].numpy() for g in geometry]).astype(np.float64)
+                                     for k in range(3))
         try:
             result = projection.project(
                 x_hat.numpy().astype(np.float64), mass.numpy().astype(np.float64), self._fixed,
                 obstacle_end.numpy().astype(np.float64).reshape(-1, 3), self._contacts.nodes.astype(np.int64),
-                weights, normals, self.thickness, tol=opt.qp_tol,
+                weights, normals, targets, tol=opt.qp_tol,
                 lam_init=np.concatenate([self._lam, np.zeros(len(normals) - len(self._lam))]))
         except projection.ProjectionError as err:
             raise CollisionError(f"step {step}: {err}") from err
@@ -163,12 +174,13 @@ class ZoneBackend:
             if not np.any(grad_z):  # a round whose z a later round or the fail-safe replaced
                 return
             with timed(self.timings, "adjoint"):
-                gx, gw, gn, gob = projection.backward(result, grad_z, mode=mode)
+                gx, gw, gn, gob, gt = projection.backward(result, grad_z, mode=mode)
             _accumulate(x_hat, gx)
             _accumulate(mass, projection.mass_gradient(result, gx))
-            for (normal, weight), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
+            for (normal, weight, target), lo, hi in zip(geometry, sizes[:-1], sizes[1:]):
                 _accumulate(normal, gn[lo:hi])
                 _accumulate(weight, gw[lo:hi])
+                _accumulate(target, gt[lo:hi])
             if obstacle_end.shape[0]:
                 _accumulate(obstacle_end, gob)
 
@@ -190,16 +202,17 @@ class DeviceBackend:
         self.cloth_count = model.particle_count
         self.node_count = node_count
         self._solver: DeviceProjection | None = None  # made on first use, grown as needed
-        self._nodes = self._normals = self._weights = None  # the step's contact lists (_grow)
+        self._nodes = self._normals = self._weights = self._targets = None  # the step's contact lists (_grow)
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
-              recording: bool) -> None:
+              recording: bool, keep_start_gaps: bool = False) -> None:
         """Start a step (as :meth:`ZoneBackend.begin`)."""
         self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
+        self.keep_start_gaps = keep_start_gaps
         self._total = 0  # contacts in the lists
         self._found = 0  # contacts the last detection found (in the detector's buffers)
-        self._rounds = []  # (offset, count, normal, weight) of each round's contacts
+        self._rounds = []  # (offset, count, normal, weight, target) of each round's contacts
         self._solution = None
         self._constants = None  # (positions, free, inverse masses) of the step, once it has contacts
         self.solver_stats: dict | None = None
@@ -209,7 +222,7 @@ class DeviceBackend:
         return self._total
 
     def detect(self, start: wp.array, end: wp.array, reference: wp.array) -> int:
-        self._found = self.detector.detect_on_device(start, end, reference)
+        self._found = self.detector.detect_on_device(start, end, reference, keep_start_gaps=self.keep_start_gaps)
         return self._found
 
     def first_found(self) -> tuple[np.ndarray, int]:
@@ -234,22 +247,22 @@ class DeviceBackend:
                       outputs=[free, inv_mass], record_tape=False)
             self._constants = (positions, free, inv_mass)
         self._grow(total + found)
-        normal = wp.empty(found, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
-        weight = wp.empty(found, dtype=model.types.vec4, device=dev, requires_grad=self._recording)
+        normal, weight, target = _geometry_arrays(model, found, self._recording)
         det = self.detector
         found_arrays = [det.nodes[:found], det.mode[:found], det.t[:found], det.sign[:found]]
         if self._recording:  # the tape replays this launch after later detections reuse the buffers
             found_arrays = [wp.clone(a) for a in found_arrays]
-        wp.launch(contact_kernels(model.scalar).geometry, found, device=dev, inputs=[start, end, *found_arrays],
-                  outputs=[normal, weight])
+        wp.launch(contact_kernels(model.scalar).geometry, found, device=dev,
+                  inputs=[start, end, *found_arrays, model.scalar(self.thickness), int(self.keep_start_gaps)],
+                  outputs=[normal, weight, target])
         wp.copy(self._nodes, det.nodes, dest_offset=4 * total, count=4 * found)
         bad = wp.full(1, found + 1, dtype=wp.int32, device=dev)
-        wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, total],
-                  outputs=[self._normals, self._weights, bad], record_tape=False)
+        wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, target, total],
+                  outputs=[self._normals, self._weights, self._targets, bad], record_tape=False)
         j = int(bad.numpy()[0]) - 1
         if j < found:
             raise _degenerate(step, det.nodes.numpy()[j])
-        self._rounds.append((total, found, normal, weight))
+        self._rounds.append((total, found, normal, weight, target))
         self._total += found
         self._found = 0
 
@@ -262,7 +275,7 @@ class DeviceBackend:
             warm = 0  # a new buffer: the previous multipliers are gone
         positions, free, inv_mass = self._constants
         solution = self._solver.project(
-            positions, free, inv_mass, self._nodes, self._weights, self._normals, total, self.thickness,
+            positions, free, inv_mass, self._nodes, self._weights, self._normals, total, self._targets,
             lam_init=None if self._solution is None or warm == 0 else self._solver.lam, warm=warm, tol=opt.qp_tol,
             keep=self._recording)
         self._solution = solution
@@ -291,14 +304,12 @@ class DeviceBackend:
             return
         size = max(2 * count, 1024)
         dev = self.model.device
-        nodes = wp.zeros((size, 4), dtype=wp.int32, device=dev)
-        normals = wp.zeros(size, dtype=wp.vec3d, device=dev)
-        weights = wp.zeros(size, dtype=wp.vec4d, device=dev)
+        lists = (wp.zeros((size, 4), dtype=wp.int32, device=dev), wp.zeros(size, dtype=wp.vec3d, device=dev),
+                 wp.zeros(size, dtype=wp.vec4d, device=dev), wp.zeros(size, dtype=wp.float64, device=dev))
         if have:
-            wp.copy(nodes, self._nodes)
-            wp.copy(normals, self._normals)
-            wp.copy(weights, self._weights)
-        self._nodes, self._normals, self._weights = nodes, normals, weights
+            for new, old in zip(lists, (self._nodes, self._normals, self._weights, self._targets)):
+                wp.copy(new, old)
+        self._nodes, self._normals, self._weights, self._targets = lists
 
     def _record_adjoint(self, solution, z) -> None:
         """Record the projection's adjoint (kernels only): dL/dz -> x^, the contacts' normals and weights, the
@@ -321,20 +332,22 @@ class DeviceBackend:
                 d_lam = solver.adjoint_on_device(solution, d_z)
                 grad_w = wp.empty(max(count, 1), dtype=wp.vec4d, device=dev)
                 grad_n = wp.empty(max(count, 1), dtype=wp.vec3d, device=dev)
+                grad_target = wp.empty(max(count, 1), dtype=wp.float64, device=dev)
                 grad_const = wp.zeros(N, dtype=wp.vec3d, device=dev)
                 wp.launch(kr.push_contacts, count, device=dev,
                           inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
-                          outputs=[grad_w, grad_n, grad_const])
+                          outputs=[grad_w, grad_n, grad_const, grad_target])
                 obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else wp.zeros(
                     max(N - n, 1), dtype=model.types.vec3, device=dev)
                 mass_grad = mass.grad if mass.grad is not None else wp.zeros(n, dtype=model.scalar, device=dev)
                 wp.launch(kr.position_gradients, N, device=dev,
                           inputs=[z.grad, d_z, inv_mass, grad_const, solution.z, positions, n],
                           outputs=[x_hat.grad, obstacle_grad, mass_grad])
-                for offset, found, normal, weight in rounds:
+                for offset, found, normal, weight, target in rounds:
                     if normal.grad is not None:
-                        wp.launch(kr.geometry_gradients, found, device=dev, inputs=[grad_n, grad_w, offset],
-                                  outputs=[normal.grad, weight.grad])
+                        wp.launch(kr.geometry_gradients, found, device=dev,
+                                  inputs=[grad_n, grad_w, grad_target, offset],
+                                  outputs=[normal.grad, weight.grad, target.grad])
 
         record_adjoint(adjoint, arrays=[z])
 

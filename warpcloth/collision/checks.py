@@ -64,12 +64,17 @@ def check_inputs(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickn
                          f"({n} particles + {V} obstacle vertices)")
     weights = float_array("weights", weights, (m, 4))
     normals = float_array("normals", normals, (m, 3))
-    try:
-        thickness = float(thickness)
-    except (TypeError, ValueError):
-        raise ValueError(f"thickness must be a number, got {thickness!r}") from None
-    if not math.isfinite(thickness) or thickness <= 0.0:
-        raise ValueError(f"thickness must be finite and > 0, got {thickness}")
+    if np.ndim(thickness) == 0:
+        try:
+            thickness = float(thickness)
+        except (TypeError, ValueError):
+            raise ValueError(f"thickness must be a number or an array of one gap per contact, got {thickness!r}") \
+                from None
+        if not math.isfinite(thickness) or thickness <= 0.0:
+            raise ValueError(f"thickness must be finite and > 0, got {thickness}")
+        thickness = np.full(m, thickness)
+    else:  # one target gap per contact (the stage's: no more than the pair's gap at the start)
+        thickness = float_array("thickness", thickness, (m,))
     return x_hat, mass, fixed, obstacle_x, nodes_arr, weights, normals, thickness
 
 

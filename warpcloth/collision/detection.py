@@ -96,16 +96,19 @@ class ContactDetector:
         self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
         self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
 
-    def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> Contacts:
+    def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
+               keep_start_gaps: bool = False) -> Contacts:
         """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host. ``reference``
         (default ``x1``): positions that give the side of a pair touching at the start (kernels/collision.py
         start_side); the collision stage passes the step's unprojected end in every round, so a pair keeps its side.
+        ``keep_start_gaps``: pairs that start inside the thickness are contacts only where they come closer than
+        they started (kernels/collision.py START_SLACK).
 
         Raises:
             ContactCapacityError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
                 and the count needed).
         """
-        count = self.detect_on_device(x0, x1, reference)
+        count = self.detect_on_device(x0, x1, reference, keep_start_gaps=keep_start_gaps)
         return Contacts(nodes=self.nodes.numpy()[:count].copy(), mode=self.mode.numpy()[:count].copy(),
                         t=self.t.numpy()[:count].copy(), sign=self.sign.numpy()[:count].copy())
 
@@ -129,7 +132,8 @@ class ContactDetector:
         """... their normals' sides, (capacity,) float64."""
         return self._sign
 
-    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> int:
+    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
+                         keep_start_gaps: bool = False) -> int:
         """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
         :attr:`sign`); returns their count (the one value read back)."""
         k = self.kernels
@@ -154,7 +158,7 @@ class ContactDetector:
             query_index = query.indices if kind == "ee" else query.indices.flatten()
             wp.launch(kernel, query.count, device=self.device,
                       inputs=[target.bvh.id, x0, x1, reference, query_index, target.indices, query.lowers,
-                              query.uppers, flag, wp.float64(self.thickness), self.capacity],
+                              query.uppers, flag, wp.float64(self.thickness), int(keep_start_gaps), self.capacity],
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
         count = int(self._count.numpy()[0])
         if count > self.capacity:

@@ -68,7 +68,7 @@ class DeviceProjection:
         self._rows = None
 
     def project(self, positions: wp.array, free: wp.array, inv_mass: wp.array, nodes: wp.array, weights: wp.array,
-                normals: wp.array, count: int, thickness: float, *, lam_init: wp.array | None = None,
+                normals: wp.array, count: int, thickness: float | wp.array, *, lam_init: wp.array | None = None,
                 warm: int | None = None, tol: float = 1.0e-10, max_iters: int = 100000, stall: int = 5000,
                 keep: bool = False) -> DeviceSolution:
         """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts.
@@ -79,7 +79,7 @@ class DeviceProjection:
             inv_mass: (node_count,) float64, 1/m for free particles (0 elsewhere).
             nodes, weights, normals: the contacts, (>= count, 4) int32, vec4d, vec3d.
             count: number of contacts.
-            thickness: δ [m].
+            thickness: δ [m], or each contact's target gap (>= count, float64).
             lam_init: warm start, or None (zeros); it may be this object's last solution's ``lam``.
             warm: how many leading entries of ``lam_init`` to use (default ``count``); the rest start at 0.
             tol: KKT tolerance [m] (violation, and |c_j| where λ_j > 0).
@@ -94,9 +94,11 @@ class DeviceProjection:
         r.count, r.nodes, r.fw, r.normal, r.h, r.diag, r.inv_mass = (count, nodes, self._fw, normals, self._h,
                                                                       self._diag, inv_mass)
         self._rows = r
+        if not isinstance(thickness, wp.array):
+            thickness = wp.full(max(count, 1), float(thickness), dtype=wp.float64, device=dev)
         if count:
             wp.launch(kp.prepare_rows, count, device=dev,
-                      inputs=[nodes, weights, normals, positions, free, inv_mass, wp.float64(thickness)],
+                      inputs=[nodes, weights, normals, positions, free, inv_mass, thickness],
                       outputs=[self._fw, self._h, self._diag], record_tape=False)
         k = 0 if lam_init is None else min(count if warm is None else int(warm), count)
         if k and lam_init is not self._lam:
@@ -162,10 +164,10 @@ class DeviceProjection:
 
     def backward(self, solution: DeviceSolution, grad_z: np.ndarray, *, x_hat: np.ndarray, mass: np.ndarray,
                  fixed: np.ndarray, obstacle_x: np.ndarray, nodes: np.ndarray, weights: np.ndarray,
-                 normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3)) for ∂L/∂z (n, 3) of the
-        cloth particles, as :func:`warpcloth.collision.adjoint.backward` returns them (the arguments: the problem
-        :meth:`project` solved, on the host)."""
+                 normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3), ∂L/∂thickness (m,)) for
+        ∂L/∂z (n, 3) of the cloth particles, as :func:`warpcloth.collision.adjoint.backward` returns them (the
+        arguments: the problem :meth:`project` solved, on the host)."""
         n = x_hat.shape[0]
         V = obstacle_x.shape[0]
         grad_z = np.asarray(grad_z, dtype=np.float64)
@@ -179,4 +181,4 @@ class DeviceProjection:
         lam = solution.lam.numpy()[:solution.rows.count]
         grad_w, grad_n, grad_ext = push_onto_contacts(nodes, weights, normals, fixed, z, obstacle_x, d_ext, d_lam, lam)
         grad_x += grad_ext[:n]
-        return grad_x, grad_w, grad_n, grad_ext[n:].copy()
+        return grad_x, grad_w, grad_n, grad_ext[n:].copy(), -d_lam

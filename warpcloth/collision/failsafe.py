@@ -156,10 +156,10 @@ class RigidImpactZones:
         found = self.detector.detect(start, end)
         if len(found) == 0:
             return found.nodes
-        normal, weight = contact_geometry(self.model, start, end, found, False, step)
+        normal, weight, target = contact_geometry(self.model, start, end, found, False, step)
         x = end.numpy().astype(np.float64)[found.nodes]  # (m, 4, 3)
         gap = np.einsum("ma,mak,mk->m", weight.numpy().astype(np.float64), x, normal.numpy().astype(np.float64))
-        return found.nodes[gap < self.thickness * (1.0 - 1.0e-6)]
+        return found.nodes[gap < target.numpy() - 1.0e-6 * self.thickness]
 
     def _place(self, row: np.ndarray, zone: np.ndarray, anchored: np.ndarray) -> str:
         """Where a contact found after the rigid motion lies: "inside" one zone (its free particles in one zone,

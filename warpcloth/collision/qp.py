@@ -89,7 +89,8 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
         nodes: (m, 4) integer node ids: k < n is particle k, k ≥ n is obstacle vertex k − n.
         weights: (m, 4) contact weights w_ja.
         normals: (m, 3) contact normals n_j (unit).
-        thickness: δ > 0 [m].
+        thickness: δ > 0 [m], or the target gap of each contact (m,) (any finite values: the collision stage's
+            are δ, or less for a pair that started closer than δ).
         tol: KKT tolerance [m] on constraint violation and on |c_j| of contacts with λ_j > 0.
         max_iterations: most active-set solves per zone.
         active_tol: |c_j(z*)| ≤ active_tol [m] makes contact j active in the adjoint (as does λ_j > 0).

@@ -11,8 +11,12 @@ After the implicit step has moved the cloth from x0 to x̂, each round
    (the default) or zone by zone in NumPy.
 Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
 Where the projection gives up (rounds run out, an infeasible or stalled QP, a response that would stretch the cloth
-past ``CollisionOptions.max_projection_strain``), the fail-safe (warpcloth/collision/failsafe.py: rigid impact zones)
-resolves the step. ``resolve`` returns a :class:`CollisionReport` of what happened.
+past ``CollisionOptions.max_projection_strain``), the stage tries the step once more keeping start gaps: a pair that
+starts the step inside the thickness (a cloth crumpled or laid on itself or an obstacle) is only kept from coming
+closer than it started, where the first try pushed it a full thickness apart, which contradicts its neighbours'
+contacts when layers are stacked closer than the thickness. Where that fails too, the fail-safe
+(warpcloth/collision/failsafe.py: rigid impact zones) resolves the step. ``resolve`` returns a
+:class:`CollisionReport` of what happened.
 
 Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
 transforms of the Control) through n, w and the times of impact, and the masses in W (the Simulator's taped lumped
@@ -48,6 +52,9 @@ class CollisionReport:
     """Projections run (one per detection round that found contacts)."""
     contacts: int = 0
     """Contacts of the step (those the fail-safe was handed, where it ran)."""
+    kept_start_gaps: str | None = None
+    """Why the projection with the full thickness failed, where the step was resolved by its second try, which keeps
+    the start gaps of pairs that start inside the thickness; else None."""
     zones: list[dict] = field(default_factory=list)
     """The NumPy backend's per-zone records of its last round (sizes, iterations, timings; after a backward pass
     also the adjoint's)."""
@@ -99,6 +106,8 @@ class CollisionStage:
         """The fail-safe of steps the projection cannot resolve (rigid impact zones)."""
         self.fail_safe_steps = 0
         """Steps resolved by the fail-safe over this stage's life (each also reported in its CollisionReport)."""
+        self.start_gap_steps = 0
+        """Steps resolved by the second try, which keeps start gaps, over this stage's life."""
         self.last: CollisionReport | None = None
         """The report of the last step (diagnostics: no step reads it)."""
         # every triangle's three edges and their rest lengths (material space): the projection-strain guard
@@ -128,21 +137,34 @@ class CollisionStage:
         recording = active_tape() is not None and model.requires_grad
         opt = self.options.collision
         backend = self.backends[opt.solver]
-        backend.begin(x_hat, obstacle_end, mass, recording)
         report = CollisionReport(solver=opt.solver, x_hat=x_hat)
         start = gather_nodes(model, state_in.particle_x, obstacle_start, recording)
-        try:
-            z = self._rounds(backend, start, x_hat, obstacle_end, step, report, recording)
-            report.contacts = backend.count
-        except ContactCapacityError:
-            raise
-        except CollisionError as err:  # the projection gave up: rigid impact zones
+        reasons = []
+        z = None
+        for keep_start_gaps in (False, True):  # the second try only where the first fails
+            backend.begin(x_hat, obstacle_end, mass, recording, keep_start_gaps)
+            report.rounds = 0
+            try:
+                z = self._rounds(backend, start, x_hat, obstacle_end, step, report, recording)
+                report.contacts = backend.count
+                break
+            except ContactCapacityError:
+                raise
+            except CollisionError as err:
+                reasons.append(str(err))
+                if opt.rounds == 0:  # no projection at all: straight to the fail-safe
+                    break
+        if z is None:  # the projection gave up twice: rigid impact zones
             rows = backend.contact_nodes()
+            reason = "; keeping start gaps: ".join(reasons)
             with timed(self.phase_seconds, "fail_safe"):
                 z, report.fail_safe = self.fail_safe.resolve(state_in.particle_x, x_hat, obstacle_start, obstacle_end,
-                                                             mass, rows, recording, str(err), step)
+                                                             mass, rows, recording, reason, step)
             report.contacts = len(rows)
             self.fail_safe_steps += 1
+        elif reasons:
+            report.kept_start_gaps = reasons[0]
+            self.start_gap_steps += 1
         if isinstance(backend, ZoneBackend):
             report.zones, report.projections = backend.zones, backend.projections
         else:

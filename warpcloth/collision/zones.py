@@ -59,7 +59,8 @@ class ProjectionResult:
     nodes: np.ndarray
     weights: np.ndarray
     normals: np.ndarray
-    thickness: float
+    thickness: np.ndarray
+    """Target gap of each contact (m,) [m]."""
     tol: float
     active_tol: float
     singles: dict = field(default_factory=dict)
