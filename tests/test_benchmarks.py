@@ -39,6 +39,7 @@ BENCHMARKS = {
     "contact_gradients": (("throw", "drape", "before"), False, False),
     "integrators": (("T", "orders", "energies"), False, False),
     "newton_corrections": (("rows", "horizon", "library_check_max_dx_m"), False, False),
+    "memory": (("records", "target_ratio"), False, False),
 }
 
 

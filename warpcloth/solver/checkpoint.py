@@ -5,8 +5,8 @@ contacts): memory grows linearly with T. Here the forward pass runs untaped and 
 boundaries; the backward pass re-simulates one segment at a time on its own tape, seeded with the adjoint of the
 segment's end state, and hands the adjoint of its start state to the segment before it. A State carries everything
 its next step reads (the solve's first guess, the lagged wind normals' positions), so the re-simulation repeats the
-forward pass bitwise and the gradients equal the full tape's up to the adjoint solves' tolerance (their warm starts
-restart at segment boundaries).
+forward pass bitwise, and each segment hands the adjoint solve of its first step to the segment before it as the
+first guess of that segment's last adjoint solve, as one tape would: the gradients equal the full tape's.
 """
 
 from __future__ import annotations
@@ -92,13 +92,19 @@ def checkpointed_backward(
     adj_x = wp.zeros_like(final.particle_x)
     adj_v = wp.zeros_like(final.particle_v)
     adj_x_previous = adj_x_last = adj_v_last = None
+    handed_on = None  # the adjoint solve of the first step of the segment after this one
     for k in reversed(range(len(starts))):
         first = starts[k]
         start = checkpoints.pop().clone(requires_grad=True)
+        start.solve_adjoint = wp.zeros_like(start.particle_x, requires_grad=False)  # receives its first step's
         out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
         tape = wp.Tape()
         with tape:
             end = advance(start, first, min(first + seg, steps), requires_grad=True)
+        if handed_on is not None and end.solve_adjoint is not None:
+            # the first guess of this segment's last adjoint solve, as on one tape over the whole rollout: the
+            # gradients then equal the full tape's bitwise
+            wp.copy(end.solve_adjoint, handed_on)
         seeds = {out: wp.ones_like(out), end.particle_x: adj_x, end.particle_v: adj_v}
         if adj_x_previous is not None:
             if end.particle_x_previous is end.particle_x:  # after a collision response: the current positions
@@ -109,6 +115,7 @@ def checkpointed_backward(
             seeds[end.particle_x_last] = adj_x_last
             seeds[end.particle_v_last] = adj_v_last
         tape.backward(grads=seeds)
+        handed_on = start.solve_adjoint
         adj_x, adj_v = start.particle_x.grad, start.particle_v.grad
         adj_x_previous = adj_x_last = adj_v_last = None
         if start.particle_x_last is not None:  # it holds the lagged normals' adjoint too where they are the same
