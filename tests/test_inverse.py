@@ -248,6 +248,28 @@ def test_mlp_controller_trains():
     assert result.errors_pct[-1] < result.errors_pct[0]
 
 
+# a divergence guard that the zero throw passes (it falls past the basket, reaching 29.4 m/s in 3 s) and big pushes
+# trip: trials that raise
+FRAGILE = wc.SolverOptions(cg_tol=1e-6, max_speed=35.0, collision=wc.CollisionOptions(rounds=50))
+
+
+def test_open_loop_optimisation_goes_on_past_trials_that_raise():
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=300, options=FRAGILE)
+    start = np.random.default_rng(2).normal(scale=40.0, size=C.N_PARAMS)  # a random start that throws too hard
+    result = C.optimize_open_loop(task, iters=8, start=start)
+    assert result.failed_trials and "SimulationError" in result.failed_trials[0]
+    assert len(result.errors_pct) == 8 and np.isfinite(result.error_pct)
+
+
+def test_mlp_training_goes_on_past_trials_that_raise():
+    pytest.importorskip("torch")
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=300, options=FRAGILE)
+    result = C.train_mlp(task, iters=4, lr=1.0)  # a learning rate that throws the cloth far too hard
+    assert result.failed_trials and "SimulationError" in result.failed_trials[0]
+    assert len(result.errors_pct) == 4 and np.isfinite(result.errors_pct[0])
+    assert task.simulations == 4
+
+
 def test_mlp_controller_takes_the_models_dtype_and_device(monkeypatch):
     torch = pytest.importorskip("torch", reason="train_mlp needs PyTorch (the torch extra)")
     import warpcloth.torch as wct

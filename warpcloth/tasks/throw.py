@@ -13,6 +13,7 @@ puts the parameters on the scale of gravity. The loss is ``1/2 |com_T - (0, 0, -
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -152,7 +153,8 @@ class ControlResult:
     error_pct: float = math.nan
     seconds: float = 0.0
     failed_trials: list[str] = field(default_factory=list)
-    """Messages of trial steps whose simulation raised a CollisionError (rejected, counted as simulations)."""
+    """Messages of trial steps whose simulation raised (a CollisionError or a SimulationError): each is rejected as a
+    bad step, counted as a simulation, and the run goes on."""
 
     def trajectory(self, task: ThrowTask) -> list[np.ndarray]:
         """Positions of every step with the best pushes (forward only; the MLP's pushes replayed open-loop)."""
@@ -160,9 +162,10 @@ class ControlResult:
 
 
 def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
-                       progress: bool = False, callback=None) -> ControlResult:
-    """Damped Gauss-Newton on the 36 corner pushes, from zero. ``iters`` bounds the simulations (forward + backward)
-    spent; returns the best iterate and the simulations spent to reach it.
+                       start: np.ndarray | None = None, progress: bool = False, callback=None) -> ControlResult:
+    """Damped Gauss-Newton on the 36 corner pushes, from zero (the seed's start) or ``start`` (36 pushes [m/s^2]).
+    ``iters`` bounds the simulations (forward + backward) spent; returns the best iterate and the simulations spent
+    to reach it. A start whose simulation raises is halved towards zero until one runs.
 
     The loss is 1/2 |r|^2 with r = com_T - target (3 numbers). Without contact the mass-weighted centre moves
     affinely with the pushes (they are external forces) and the vertex mean (the seed's com) nearly so, so a
@@ -183,7 +186,7 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
         result.losses.append(loss)
         result.errors_pct.append(err)
         k = len(result.losses)
-        if k == 1 or err < result.error_pct:
+        if not err >= result.error_pct:  # the first recorded point (error_pct is NaN until then) or a better one
             result.params = params.reshape(SECONDS_CONTROLLED, len(CORNERS), 3).copy()
             result.simulations, result.error_pct = k, err
         if bar is not None:
@@ -195,7 +198,8 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
 
     def evaluate(params: np.ndarray) -> tuple[float, np.ndarray | None, np.ndarray | None]:
         """Loss, com_T and the Jacobian at params: three simulations (one reverse pass per coordinate); stops early
-        at a worse loss. A CollisionError counts as an infinite loss (the step is rejected)."""
+        at a worse loss. A simulation that raises (CollisionError, SimulationError) counts as an infinite loss: the
+        step is rejected and halved."""
         jac = np.zeros((3, N_PARAMS))
         com = None
         for k in range(3):
@@ -203,8 +207,8 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
                 return math.inf, None, None
             try:
                 _, jac[k], com_k = task.loss_and_grad(params, component=k)
-            except wc.CollisionError as exc:
-                result.failed_trials.append(str(exc))
+            except (wc.CollisionError, wc.SimulationError) as exc:
+                result.failed_trials.append(f"{type(exc).__name__}: {exc}")
                 result.losses.append(math.inf)
                 result.errors_pct.append(math.inf)
                 return math.inf, None, None
@@ -220,9 +224,12 @@ def optimize_open_loop(task: ThrowTask, *, iters: int = 50, max_step: float = 20
                     bar.update()
         return trial_loss, com, jac
 
-    params = np.zeros(N_PARAMS)
+    params = np.zeros(N_PARAMS) if start is None else np.array(start, dtype=np.float64).reshape(N_PARAMS)
     best_loss = math.inf
     best_loss, com, jac = evaluate(params)
+    while com is None and result.failed_trials and len(result.losses) < iters:  # the start raised: pull it in
+        params = 0.5 * params
+        best_loss, com, jac = evaluate(params)
     step = None
     while com is not None and len(result.losses) < iters:
         if step is None:
@@ -261,7 +268,9 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
     """Train a PyTorch MLP controller through the simulator (warpcloth.torch): every second of the first three, the
     MLP maps the cloth's state (positions relative to the target and velocities of all particles) to the 4 corner
     pushes, applied for that second (the seed's "Ours + FC": Linear -> ReLU -> Linear). Adam on the weights; each
-    iteration is one forward + backward simulation of the whole throw.
+    iteration is one forward + backward simulation of the whole throw. A simulation that raises (CollisionError,
+    SimulationError) is a rejected step: the weights go back to the last ones that simulated and the learning rate
+    halves (``ControlResult.failed_trials``); the run goes on.
 
     The network and every tensor take the model's torch device and dtype (``warpcloth.torch.torch_device`` and
     ``torch_dtype``); the initial weights are drawn on the CPU in float32 whatever they are, so a seed gives the same
@@ -308,23 +317,38 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
     best = math.inf
     bar = progress_bar(iters, "control (mlp)", "sim") if progress else None
     t0 = time.perf_counter()
+    last_good = copy.deepcopy(net.state_dict())  # the weights of the last simulation that ran through
     for k in range(1, iters + 1):
         x, v = x0, v0
         pushes = []
-        for s in range(SECONDS_CONTROLLED):
-            push = policy(x, v)
-            pushes.append(push)
-            xs, vs = simulate(task.sim, x, v, steps=STEPS_PER_SECOND, time=s * STEPS_PER_SECOND * DT,
-                              particle_force=_push_to_force(push, task.quarter_mass, n))
-            x, v = xs[-1], vs[-1]
-        rest = task.steps - SECONDS_CONTROLLED * STEPS_PER_SECOND
-        if rest > 0:
-            xs, vs = simulate(task.sim, x, v, steps=rest, time=SECONDS_CONTROLLED * STEPS_PER_SECOND * DT)
-            x = xs[-1]
-        com = x.mean(dim=0)
-        loss = 0.5 * ((com - target) ** 2).sum()
-        opt.zero_grad()
-        loss.backward()
+        try:
+            for s in range(SECONDS_CONTROLLED):
+                push = policy(x, v)
+                pushes.append(push)
+                xs, vs = simulate(task.sim, x, v, steps=STEPS_PER_SECOND, time=s * STEPS_PER_SECOND * DT,
+                                  particle_force=_push_to_force(push, task.quarter_mass, n))
+                x, v = xs[-1], vs[-1]
+            rest = task.steps - SECONDS_CONTROLLED * STEPS_PER_SECOND
+            if rest > 0:
+                xs, vs = simulate(task.sim, x, v, steps=rest, time=SECONDS_CONTROLLED * STEPS_PER_SECOND * DT)
+                x = xs[-1]
+            com = x.mean(dim=0)
+            loss = 0.5 * ((com - target) ** 2).sum()
+            opt.zero_grad()
+            loss.backward()
+        except (wc.CollisionError, wc.SimulationError) as exc:
+            # a rejected step: back to the last weights that simulated, with half the learning rate
+            task.simulations += 1
+            result.failed_trials.append(f"{type(exc).__name__}: {exc}")
+            result.losses.append(math.inf)
+            result.errors_pct.append(math.inf)
+            net.load_state_dict(last_good)
+            for group in opt.param_groups:
+                group["lr"] *= 0.5
+            if bar is not None:
+                bar.update()
+            continue
+        last_good = copy.deepcopy(net.state_dict())
         opt.step()
         task.simulations += 1
         err = error_pct(com.detach().cpu().numpy().astype(np.float64), task.com_initial)
