@@ -633,16 +633,14 @@ def motion_control(d: dict) -> str:
     for key, seed_key, label in (("open_loop", "open-loop", "Open loop (Gauss–Newton)"),
                                  ("mlp", "mlp", "MLP controller")):
         r = d.get(key)
-        failed = d.get(f"{key}_failed")
-        if failed:
-            out.append(f"- {label}: **training stopped** after {failed['simulations']} simulations: "
-                       f"{failed['error']}.")
-            continue
         if not r:
             out.append(f"- {label}: not run (torch not installed)." if key == "mlp" else f"- {label}: not run.")
             continue
-        line = (f"- {label}: **{g(r['error_pct'], 3)} %** after {r['simulations']} simulations (to the best point), "
-                f"{g(r['seconds'] / max(r['iters'], 1), 2)} s per simulation")
+        runs = "; ".join(f"{run['start']}: {g(run['error_pct'], 3)} % after {run['simulations']}"
+                         + (f" ({len(run['failed_trials'])} trials rejected)" if run["failed_trials"] else "")
+                         for run in r["runs"])
+        line = (f"- {label}: median **{g(r['error_pct'], 3)} %** after {r['simulations']:g} simulations (to the "
+                f"best point; {runs}), {g(r['seconds_per_simulation'], 2)} s per simulation")
         s = seed.get(seed_key)
         if s:
             ok = r["error_pct"] <= s["target_error_pct"] and r["simulations"] <= s["target_simulations"]

@@ -264,7 +264,7 @@ def _push_to_force(push, quarter_mass: float, n: int):
 
 
 def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: int = 200, seed: int = 0,
-              progress: bool = False) -> ControlResult:
+              zero_start: bool = True, progress: bool = False) -> ControlResult:
     """Train a PyTorch MLP controller through the simulator (warpcloth.torch): every second of the first three, the
     MLP maps the cloth's state (positions relative to the target and velocities of all particles) to the 4 corner
     pushes, applied for that second (the seed's "Ours + FC": Linear -> ReLU -> Linear). Adam on the weights; each
@@ -282,6 +282,8 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
         lr: Adam's learning rate.
         hidden: Width of the hidden layer.
         seed: Seed of torch's generator for the initial weights.
+        zero_start: Zero the output layer, so training starts from no pushes (as the open loop does); else it keeps
+            PyTorch's random initialisation (a random start).
         progress: Show a progress bar (tqdm).
 
     Returns:
@@ -299,9 +301,10 @@ def train_mlp(task: ThrowTask, *, iters: int = 100, lr: float = 1e-3, hidden: in
     device, dtype = torch_device(model), torch_dtype(model)
     n = model.particle_count
     net = torch.nn.Sequential(torch.nn.Linear(6 * n, hidden), torch.nn.ReLU(), torch.nn.Linear(hidden, 12))
-    with torch.no_grad():  # start from "no push", as the open-loop optimisation does
-        net[2].weight.zero_()
-        net[2].bias.zero_()
+    if zero_start:
+        with torch.no_grad():  # start from "no push", as the open-loop optimisation does
+            net[2].weight.zero_()
+            net[2].bias.zero_()
     net = net.to(device=device, dtype=dtype)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     x0 = torch.tensor(model.particle_x0.numpy(), dtype=dtype, device=device)
