@@ -37,10 +37,17 @@ def fit_one(truth_name: str, optimizer: str, iters: int, steps: int = E.STEPS) -
     result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
     record = {"material": truth_name, "optimizer": optimizer, "iters": iters,
               "runtime_s_per_step_iter": result.seconds_per_step_iter, **E.parameter_errors(result.material, truth),
-              "sim_err_pct": result.simulation_error_pct, "final_loss": min(result.losses)}
+              "sim_err_pct": result.simulation_error_pct, "final_loss": min(result.losses),
+              "fitted": material_record(result.material)}
     baseline = {"material": truth_name, "optimizer": "baseline (start)", "runtime_s_per_step_iter": float("nan"),
                 **E.parameter_errors(result.initial, truth), "sim_err_pct": result.initial_simulation_error_pct}
     return record, baseline
+
+
+def material_record(m: wc.Material) -> dict:
+    """A fitted material as JSON (benchmarks/prediction.py rebuilds it)."""
+    return {"density": float(m.density), "stretching": m.stretching.tolist(), "bending": m.bending.tolist(),
+            "thicken": float(m.thicken)}
 
 
 def summarise(records: list[dict], label: str) -> dict:

@@ -666,6 +666,19 @@ def memory(d: dict) -> str:
         f"gradient to 1e-6: {met(ok)}.", "", provenance(d)])
 
 
+def prediction(d: dict) -> str:
+    motions = d["motions"]
+    rows = [[r["material"], pct(r["fit_sim_err_pct"]),
+             *(f"{pct(r['motions'][m]['fitted'])} ({pct(r['motions'][m]['start'])})" for m in motions)]
+            for r in d["records"]]
+    mean = d["means"]
+    rows.append(["**mean**", pct(mean["fit"]), *(f"{pct(mean[m]['fitted'])} ({pct(mean[m]['start'])})"
+                                                for m in motions)])
+    return "\n".join([table(["fabric", "fitted motion (wind 5 m/s)", *motions], rows), "",
+                      "Simulation error of the fitted material against the true fabric; in brackets, the fit's start "
+                      "(the mean fabric) on the same motion.", "", provenance(d)])
+
+
 BLOCKS = {
     "presets": presets,
     "tradeoff_findings": tradeoff_findings,
@@ -679,6 +692,7 @@ BLOCKS = {
     "material_estimation": material_estimation,
     "motion_control": motion_control,
     "memory": memory,
+    "prediction": prediction,
     "contact": contact,
     "contact_gradients": contact_gradients,
 }

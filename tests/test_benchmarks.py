@@ -40,6 +40,7 @@ BENCHMARKS = {
     "integrators": (("T", "orders", "energies"), False, False),
     "newton_corrections": (("rows", "horizon", "library_check_max_dx_m"), False, False),
     "memory": (("records", "target_ratio"), False, False),
+    "prediction": (("records", "means", "motions"), True, False),
 }
 
 

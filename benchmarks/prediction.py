@@ -1,0 +1,106 @@
+"""Fits that predict: each fabric's material as estimated by benchmarks/material_estimation.py (the hanging cloth in a
+5 m/s wind, 50 steps), simulated on motions it was not fitted on, against the true fabric.
+
+Motions (16x16 cells, 1 m, float32, frames every 2 steps compared as in the fit):
+- wind 10 m/s: the fit's scene (the seed's demo_wind.obj, handles on its top corners) in twice the wind, dt 0.01,
+  100 steps;
+- drop on a sphere: the flat cloth dropped from 10 cm onto a 0.3 m sphere (repulsion and friction), dt 0.01,
+  100 steps;
+- shake: the cloth hanging from its two top corners (no wind), the handles shaken 15 cm back and forth across the
+  sheet twice a second, dt 0.01, 100 steps.
+Simulation error: RMS vertex distance to the true fabric's trajectory over the compared frames, per metre of cloth
+(the fit's own measure, ``TrajectoryFit.simulation_error``), for the fitted material and for the fit's start (the
+mean fabric).
+
+Reads benchmarks/results/material_estimation.json (``--fits PATH``), which must hold the fitted materials.
+
+Usage: python benchmarks/prediction.py [--quick] [--out PATH] [--fits PATH] [--steps 100]
+       (--quick: 2 fabrics, 10 steps)
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+import common
+import numpy as np
+from common import wc
+
+from warpcloth.tasks import estimation as E
+from warpcloth.tasks.scenes import GRAVITY, GRID_TO_YZ, THICKEN, hanging_cloth
+
+DT = 0.01
+MOTIONS = ("wind 10 m/s", "drop on a sphere", "shake")
+
+
+def motion_model(motion: str, material: wc.Material) -> wc.Model:
+    """The motion's scene with ``material`` (the fit then sets each material it is asked about)."""
+    if motion == "wind 10 m/s":
+        model = hanging_cloth(material, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj", requires_grad=False)
+        model.wind_velocity.assign(np.array([[10.0, 0.0, 0.0]]))
+        return model
+    b = wc.ModelBuilder(gravity=GRAVITY)
+    if motion == "drop on a sphere":
+        b.add_cloth_grid((16, 16), (1.0, 1.0), material=material, pos=(-0.5, -0.5, 0.4))
+        b.add_obstacle_sphere(0.3)
+        b.set_collision()
+    else:  # shake: two handles moved across the sheet (along x, its normal) and back, twice a second
+        b.add_cloth_grid((16, 16), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
+        shake = [(0.0, (0.0, 0.0, 0.0)), (0.125, (0.15, 0.0, 0.0)), (0.375, (-0.15, 0.0, 0.0)),
+                 (0.625, (0.15, 0.0, 0.0)), (0.875, (-0.15, 0.0, 0.0)), (1.0, (0.0, 0.0, 0.0))]
+        top = 16 * 17
+        for p in (top, top + 16):
+            b.add_handle(p, motion=shake)
+    return b.finalize(requires_grad=False)
+
+
+def fitted_material(name: str, record: dict) -> wc.Material:
+    return wc.Material(name=f"{name} (fitted)", density=record["density"],
+                       stretching=np.array(record["stretching"]), bending=np.array(record["bending"]),
+                       thicken=record["thicken"])
+
+
+def predict(name: str, fitted: wc.Material, steps: int) -> dict:
+    truth = wc.preset(name, thicken=THICKEN)
+    start = E.initial_guess()
+    out = {}
+    for motion in MOTIONS:
+        model = motion_model(motion, truth)
+        targets = E.TrajectoryFit.simulate_targets(model, truth, steps=steps, dt=DT)
+        fit = E.TrajectoryFit(model, targets, steps=steps, dt=DT)
+        out[motion] = {"fitted": fit.simulation_error(fitted), "start": fit.simulation_error(start)}
+    return out
+
+
+def main():
+    args = common.parse_args(__doc__, fits=str(common.RESULTS_DIR / "material_estimation.json"), steps=100,
+                             fabrics=0, quick={"steps": 10, "fabrics": 2})
+    fits = json.loads(Path(args.fits).read_text())
+    rows = [r for r in fits["per_material"] if "fitted" in r]
+    if not rows:
+        raise SystemExit(f"{args.fits} holds no fitted materials: rerun benchmarks/material_estimation.py")
+    if args.fabrics:
+        rows = rows[: args.fabrics]
+    records = []
+    for r in rows:
+        motions = predict(r["material"], fitted_material(r["material"], r["fitted"]), args.steps)
+        records.append({"material": r["material"], "fit_sim_err_pct": r["sim_err_pct"], "motions": motions})
+        print(f"{r['material']:20s} fit {r['sim_err_pct']:.3g} %  " + "  ".join(
+            f"{m}: {v['fitted']:.3g} % (start {v['start']:.3g} %)" for m, v in motions.items()), flush=True)
+    means = {m: {k: statistics.fmean(rec["motions"][m][k] for rec in records) for k in ("fitted", "start")}
+             for m in MOTIONS}
+    means["fit"] = statistics.fmean(rec["fit_sim_err_pct"] for rec in records)
+    table = [[rec["material"], rec["fit_sim_err_pct"], *(rec["motions"][m][k] for m in MOTIONS
+                                                         for k in ("fitted", "start"))] for rec in records]
+    table.append(["mean", means["fit"], *(means[m][k] for m in MOTIONS for k in ("fitted", "start"))])
+    common.print_table(["fabric", "fit %", *(f"{m}: {k} %" for m in MOTIONS for k in ("fitted", "start"))], table,
+                       ["", ".3g", *[".3g"] * (2 * len(MOTIONS))],
+                       title="simulation error against the true fabric on motions not fitted on")
+    common.write_result(args, {"steps": args.steps, "dt": DT, "motions": list(MOTIONS), "records": records,
+                               "means": means, "fits": fits["meta"]["command"]})
+
+
+if __name__ == "__main__":
+    main()
