@@ -8,9 +8,14 @@ runtime = wall time of the forward + backward evaluations / (evaluations x steps
 Cross-simulator check (``--cross``): fit to the seed's own target sequences (../shared/.../targets, made by the
 seed's C++ code with self-collision, repulsion and lagged wind normals) and report the simulation error.
 
+Several motions (``--multi``, issue 24): each fabric also fitted to three recorded motions at once
+(``estimation.MultiMotionFit``): the wind scene above, a shake by the handles and a drop onto a sphere
+(``scenes.shaken_cloth``, ``scenes.cloth_dropped_on_sphere``; dt 0.01, 100 steps each); its row's simulation error
+is on the wind scene alone, as the single fit's.
+
 Usage: python benchmarks/material_estimation.py [--quick] [--out PATH] [--optimizers lbfgs,adam,seed-sgd]
-       [--iters 150] [--materials all|name,...] [--cross 1] [--steps 50]
-       (--quick: gray-interlock, 4 steps, 2 evaluations, no cross-check)
+       [--iters 150] [--materials all|name,...] [--cross 1] [--steps 50] [--multi 1]
+       (--quick: gray-interlock, 4 steps, 2 evaluations, no cross-check, no multi-motion fit)
 """
 
 from __future__ import annotations
@@ -42,6 +47,30 @@ def fit_one(truth_name: str, optimizer: str, iters: int, steps: int = E.STEPS) -
     baseline = {"material": truth_name, "optimizer": "baseline (start)", "runtime_s_per_step_iter": float("nan"),
                 **E.parameter_errors(result.initial, truth), "sim_err_pct": result.initial_simulation_error_pct}
     return record, baseline
+
+
+def fit_multi(truth_name: str, iters: int, steps: int = E.STEPS) -> dict:
+    """The fabric fitted to three motions at once (E.MultiMotionFit): the seed's wind scene, a shake by the handles
+    and a drop onto a sphere (16x16, dt 0.01, 100 steps each); its simulation error on the wind scene alone, for
+    the table's column, and over the three."""
+    truth = wc.preset(truth_name, thicken=S.THICKEN)
+    wind = hanging_cloth(truth, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj")
+    fits = [E.TrajectoryFit(wind, E.TrajectoryFit.simulate_targets(wind, truth, steps=steps), steps=steps)]
+    for build in (S.shaken_cloth, S.cloth_dropped_on_sphere):
+        model = build(truth)
+        fits.append(E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=100, dt=0.01),
+                                    steps=100, dt=0.01))
+    multi = E.MultiMotionFit(fits)
+    result = E.estimate_material(multi, optimizer="lbfgs", iters=iters)
+    evaluations = len(result.losses)
+    return {"material": truth_name, "optimizer": MULTI, "iters": iters,
+            "runtime_s_per_step_iter": result.seconds / max(evaluations * multi.steps, 1),
+            **E.parameter_errors(result.material, truth), "sim_err_pct": fits[0].simulation_error(result.material),
+            "sim_err_pct_all_motions": result.simulation_error_pct, "fitted": material_record(result.material)}
+
+
+MULTI = "lbfgs, 3 motions"
+"""The label of the fits to three motions at once (wind, shake, sphere)."""
 
 
 def material_record(m: wc.Material) -> dict:
@@ -76,8 +105,8 @@ def cross_check(optimizer: str, iters: int) -> list[dict]:
 
 
 def main():
-    args = common.parse_args(__doc__, optimizers="lbfgs", iters=150, materials="all", cross=1, steps=E.STEPS,
-                             quick={"iters": 2, "materials": "gray-interlock", "cross": 0, "steps": 4})
+    args = common.parse_args(__doc__, optimizers="lbfgs", iters=150, materials="all", cross=1, steps=E.STEPS, multi=1,
+                             quick={"iters": 2, "materials": "gray-interlock", "cross": 0, "steps": 4, "multi": 0})
     names = list(wc.PRESET_NAMES) if args.materials == "all" else args.materials.split(",")
     optimizers = args.optimizers.split(",")
     per_material, means = [], []
@@ -94,6 +123,14 @@ def main():
                   flush=True)
         per_material += records
         means.append(summarise(records, opt))
+    per_material_multi = []
+    if args.multi:
+        for name in names:
+            record = fit_multi(name, args.iters, args.steps)
+            per_material_multi.append(record)
+            print(f"{MULTI} {name:20s} " + "  ".join(f"{k.replace('_pct', '')} {record[k]:.3g}" for k in KEYS)
+                  + f"  sim_err_all_motions {record['sim_err_pct_all_motions']:.3g}", flush=True)
+        means.append(summarise(per_material_multi, MULTI))
     base = summarise([dict(b, runtime_s_per_step_iter=0.0) for b in baselines], "baseline (start)")
 
     header = ["method", "s/step/iter", "density %", "linear str %", "non-linear str %", "bending %", "sim err %"]
@@ -126,7 +163,8 @@ def main():
                             "sim_err_pct_true_material", "density_err_pct", "stretch_linear_err_pct",
                             "stretch_nonlinear_err_pct", "bending_err_pct")] for r in cross])
     mean = dict(best)
-    common.write_result(args, {"steps": args.steps, "per_material": per_material, "baseline": baselines,
+    common.write_result(args, {"steps": args.steps, "per_material": per_material,
+                               "per_material_multi": per_material_multi, "baseline": baselines,
                                "seed_baseline": E.SEED_BASELINE, "mean": mean,
                                   "means": means, "seed": seed, "cross_simulator": cross})
 

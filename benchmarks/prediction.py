@@ -12,7 +12,9 @@ Simulation error: RMS vertex distance to the true fabric's trajectory over the c
 (the fit's own measure, ``TrajectoryFit.simulation_error``), for the fitted material and for the fit's start (the
 mean fabric).
 
-Reads benchmarks/results/material_estimation.json (``--fits PATH``), which must hold the fitted materials.
+Reads benchmarks/results/material_estimation.json (``--fits PATH``), which must hold the fitted materials; where it
+also holds the fits to three motions at once (its ``--multi``: the wind, the shake and the drop), their error in the
+10 m/s wind, the one motion here they were not fitted on.
 
 Usage: python benchmarks/prediction.py [--quick] [--out PATH] [--fits PATH] [--steps 100]
        (--quick: 2 fabrics, 10 steps)
@@ -29,7 +31,7 @@ import numpy as np
 from common import wc
 
 from warpcloth.tasks import estimation as E
-from warpcloth.tasks.scenes import GRAVITY, GRID_TO_YZ, THICKEN, hanging_cloth
+from warpcloth.tasks.scenes import THICKEN, cloth_dropped_on_sphere, hanging_cloth, shaken_cloth
 
 DT = 0.01
 MOTIONS = ("wind 10 m/s", "drop on a sphere", "shake")
@@ -41,19 +43,9 @@ def motion_model(motion: str, material: wc.Material) -> wc.Model:
         model = hanging_cloth(material, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj", requires_grad=False)
         model.wind_velocity.assign(np.array([[10.0, 0.0, 0.0]]))
         return model
-    b = wc.ModelBuilder(gravity=GRAVITY)
     if motion == "drop on a sphere":
-        b.add_cloth_grid((16, 16), (1.0, 1.0), material=material, pos=(-0.5, -0.5, 0.4))
-        b.add_obstacle_sphere(0.3)
-        b.set_collision()
-    else:  # shake: two handles moved across the sheet (along x, its normal) and back, twice a second
-        b.add_cloth_grid((16, 16), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
-        shake = [(0.0, (0.0, 0.0, 0.0)), (0.125, (0.15, 0.0, 0.0)), (0.375, (-0.15, 0.0, 0.0)),
-                 (0.625, (0.15, 0.0, 0.0)), (0.875, (-0.15, 0.0, 0.0)), (1.0, (0.0, 0.0, 0.0))]
-        top = 16 * 17
-        for p in (top, top + 16):
-            b.add_handle(p, motion=shake)
-    return b.finalize(requires_grad=False)
+        return cloth_dropped_on_sphere(material, requires_grad=False)
+    return shaken_cloth(material, requires_grad=False)
 
 
 def fitted_material(name: str, record: dict) -> wc.Material:
@@ -62,7 +54,9 @@ def fitted_material(name: str, record: dict) -> wc.Material:
                        thicken=record["thicken"])
 
 
-def predict(name: str, fitted: wc.Material, steps: int) -> dict:
+def predict(name: str, fitted: wc.Material, steps: int, multi: wc.Material | None = None) -> dict:
+    """Each motion's simulation error of ``fitted`` and of the start; with ``multi`` (the fabric fitted to the wind,
+    a shake and a drop on a sphere at once) also its error in the 10 m/s wind, the one motion it was not fitted on."""
     truth = wc.preset(name, thicken=THICKEN)
     start = E.initial_guess()
     out = {}
@@ -71,6 +65,8 @@ def predict(name: str, fitted: wc.Material, steps: int) -> dict:
         targets = E.TrajectoryFit.simulate_targets(model, truth, steps=steps, dt=DT)
         fit = E.TrajectoryFit(model, targets, steps=steps, dt=DT)
         out[motion] = {"fitted": fit.simulation_error(fitted), "start": fit.simulation_error(start)}
+        if multi is not None and motion == MOTIONS[0]:
+            out[motion]["fitted_to_3_motions"] = fit.simulation_error(multi)
     return out
 
 
@@ -83,13 +79,17 @@ def main():
         raise SystemExit(f"{args.fits} holds no fitted materials: rerun benchmarks/material_estimation.py")
     if args.fabrics:
         rows = rows[: args.fabrics]
+    multi = {r["material"]: r for r in fits.get("per_material_multi") or []}
     records = []
     for r in rows:
-        motions = predict(r["material"], fitted_material(r["material"], r["fitted"]), args.steps)
+        m = multi.get(r["material"])
+        motions = predict(r["material"], fitted_material(r["material"], r["fitted"]), args.steps,
+                          None if m is None else fitted_material(r["material"], m["fitted"]))
         records.append({"material": r["material"], "fit_sim_err_pct": r["sim_err_pct"], "motions": motions})
         print(f"{r['material']:20s} fit {r['sim_err_pct']:.3g} %  " + "  ".join(
             f"{m}: {v['fitted']:.3g} % (start {v['start']:.3g} %)" for m, v in motions.items()), flush=True)
-    means = {m: {k: statistics.fmean(rec["motions"][m][k] for rec in records) for k in ("fitted", "start")}
+    means = {m: {k: statistics.fmean(rec["motions"][m][k] for rec in records)
+                 for k in ("fitted", "start", "fitted_to_3_motions") if k in records[0]["motions"][m]}
              for m in MOTIONS}
     means["fit"] = statistics.fmean(rec["fit_sim_err_pct"] for rec in records)
     table = [[rec["material"], rec["fit_sim_err_pct"], *(rec["motions"][m][k] for m in MOTIONS

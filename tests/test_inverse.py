@@ -318,3 +318,26 @@ def test_cli_estimate_and_control_usage_errors(capsys):
         main(["estimate", "--material", "silk"])
     with pytest.raises(SystemExit):
         main(["control", "--controller", "ppo"])
+
+
+def test_multi_motion_fit_is_the_mean_of_its_motions_and_its_gradient_matches_central_differences():
+    truth = wc.preset("gray-interlock", thicken=2)
+    start = E.initial_guess()
+    fits = []
+    for build, dt in ((S.shaken_cloth, 0.01), (S.cloth_dropped_on_sphere, 0.01)):
+        model = build(truth, res=4, dtype=wp.float64)
+        targets = E.TrajectoryFit.simulate_targets(model, truth, steps=10, dt=dt)
+        fits.append(E.TrajectoryFit(model, targets, steps=10, dt=dt, options=EXACT))
+    multi = E.MultiMotionFit(fits)
+    loss, gd, gs, gb = multi.loss_and_grad(start)
+    parts = [f.loss_and_grad(start) for f in fits]
+    assert loss == pytest.approx(np.mean([p[0] for p in parts]), rel=1e-12)
+    np.testing.assert_allclose(gs, np.mean([p[2] for p in parts], axis=0), rtol=1e-12)
+    h = 1e-6 * start.density
+    plus, minus = start.copy(), start.copy()
+    plus.density += h
+    minus.density -= h
+    assert gd == pytest.approx((multi.loss(plus) - multi.loss(minus)) / (2 * h), rel=1e-5)
+    assert multi.simulation_error(truth) < 1e-6 < multi.simulation_error(start)
+    with pytest.raises(ValueError, match="seed-sgd"):
+        E.estimate_material(multi, optimizer="seed-sgd", iters=1)

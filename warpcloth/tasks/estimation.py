@@ -243,6 +243,37 @@ class TrajectoryFit:
         return [s.particle_x.numpy() for s in wc.rollout(self.sim, self.model.state(), steps=steps or self.steps)]
 
 
+class MultiMotionFit:
+    """Several recorded motions fitted at once, each with its own scene and targets (a list of TrajectoryFit): one
+    material for all, the loss the mean of the motions' losses. Takes a TrajectoryFit's place in
+    :func:`estimate_material` (not with the ``seed-sgd`` optimiser, whose curriculum grows one horizon)."""
+
+    def __init__(self, fits: Sequence[TrajectoryFit]):
+        if not fits:
+            raise ValueError("MultiMotionFit needs at least one TrajectoryFit")
+        self.fits = list(fits)
+        self.steps = sum(f.steps for f in self.fits)
+        """Steps of all the motions together (one evaluation simulates each motion once)."""
+
+    @property
+    def seconds(self) -> float:
+        return sum(f.seconds for f in self.fits)
+
+    def loss(self, m: wc.Material, steps: int | None = None) -> float:
+        return sum(f.loss(m) for f in self.fits) / len(self.fits)
+
+    def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """As :meth:`TrajectoryFit.loss_and_grad`, of the mean loss over the motions (each over its own horizon)."""
+        parts = [f.loss_and_grad(m) for f in self.fits]
+        k = len(parts)
+        return (sum(p[0] for p in parts) / k, sum(p[1] for p in parts) / k, sum(p[2] for p in parts) / k,
+                sum(p[3] for p in parts) / k)
+
+    def simulation_error(self, m: wc.Material) -> float:
+        """RMS vertex distance over every motion's compared frames (each motion weighted equally), in %."""
+        return 100.0 * math.sqrt(self.loss(m))
+
+
 # -- one estimation --------------------------------------------------------------------------------------------------
 OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
 
@@ -267,8 +298,8 @@ class EstimationResult:
         return self.seconds / max(sum(self.horizons), 1)
 
 
-def estimate_material(fit: TrajectoryFit, *, initial: wc.Material | None = None, optimizer: str = "lbfgs",
-                      iters: int = 60, progress: bool = False) -> EstimationResult:
+def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
+                      optimizer: str = "lbfgs", iters: int = 60, progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
     Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
@@ -278,6 +309,8 @@ def estimate_material(fit: TrajectoryFit, *, initial: wc.Material | None = None,
     """
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    if optimizer == "seed-sgd" and isinstance(fit, MultiMotionFit):
+        raise ValueError("the seed-sgd optimiser grows one motion's horizon; use lbfgs or adam with a MultiMotionFit")
     if int(iters) != iters or iters < 1:
         raise ValueError(f"iters must be a positive integer, got {iters!r}")
     initial = initial or initial_guess()

@@ -32,7 +32,9 @@ __all__ = [
     "WIND",
     "basket_scene",
     "basket_vertices_triangles",
+    "cloth_dropped_on_sphere",
     "hanging_cloth",
+    "shaken_cloth",
     "wall_vertices_triangles",
 ]
 
@@ -95,6 +97,33 @@ def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str 
     b.set_wind(WIND, density=1.0, drag=0.0, lagged_normals=lagged_normals)
     if self_collision:
         b.set_collision(self_collision=True)
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+
+
+# -- other motions of a fabric (material estimation: what one motion leaves undetermined) ---------------------------
+def cloth_dropped_on_sphere(material: wc.Material, *, res: int = GRID_RES, device=None, dtype=wp.float32,
+                            requires_grad: bool = True) -> wc.Model:
+    """A flat 1 m square of ``material`` dropped from 10 cm onto a 0.3 m sphere (repulsion and friction on)."""
+    b = wc.ModelBuilder(gravity=GRAVITY)
+    b.add_cloth_grid((res, res), (1.0, 1.0), material=material, pos=(-0.5, -0.5, 0.4))
+    b.add_obstacle_sphere(0.3)
+    b.set_collision()
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+
+
+SHAKE = ((0.0, (0.0, 0.0, 0.0)), (0.125, (0.15, 0.0, 0.0)), (0.375, (-0.15, 0.0, 0.0)), (0.625, (0.15, 0.0, 0.0)),
+         (0.875, (-0.15, 0.0, 0.0)), (1.0, (0.0, 0.0, 0.0)))
+"""The handles' offsets of :func:`shaken_cloth` [(s, m)]: 15 cm across the sheet and back, twice a second."""
+
+
+def shaken_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, dtype=wp.float32,
+                 requires_grad: bool = True) -> wc.Model:
+    """The hanging cloth of :func:`hanging_cloth` without wind, its two handles shaken across the sheet (``SHAKE``)."""
+    b = wc.ModelBuilder(gravity=GRAVITY)
+    b.add_cloth_grid((res, res), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
+    top = res * (res + 1)
+    for p in (top, top + res):
+        b.add_handle(p, stiffness=DEFAULT_HANDLE_STIFFNESS, motion=list(SHAKE))
     return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
 
 
