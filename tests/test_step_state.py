@@ -74,10 +74,14 @@ def _x_dot_w(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.
     wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
 
 
+@pytest.mark.parametrize("cg_tol", [1e-12, 1e-4])
 @pytest.mark.parametrize("segment_steps", [1, 3])
-def test_checkpointed_backward_with_lagged_normals_equals_the_full_tape(segment_steps):
+def test_checkpointed_backward_with_lagged_normals_equals_the_full_tape(segment_steps, cg_tol):
+    # at a loose CG tolerance the adjoint solves' warm starts shape the gradient: each segment hands the adjoint
+    # solve of its first step to the segment before it, as one tape does, so the gradients agree to rounding
+    # (before: to the CG tolerance, 1e-4 relative on the 700-step throw)
     model = windy_model(requires_grad=True, dtype=wp.float64)
-    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30))
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=cg_tol, cg_atol=1e-30))
     w = wp.array(np.random.default_rng(2).standard_normal((model.particle_count, 3)), dtype=wp.vec3d)
     steps = 7
 
@@ -106,35 +110,6 @@ def test_checkpointed_backward_with_lagged_normals_equals_the_full_tape(segment_
            model.wind_velocity.grad.numpy()]
     for g, f in zip(got, full):
         assert np.abs(f).max() > 0.0
-        np.testing.assert_allclose(g, f, rtol=1e-8, atol=1e-9 * np.abs(f).max())
-
-
-@pytest.mark.parametrize("segment_steps", [1, 3])
-def test_checkpointed_backward_hands_the_adjoint_solves_first_guess_across_segments(segment_steps):
-    # at a loose CG tolerance the adjoint solves' warm starts shape the gradient: each segment hands the adjoint
-    # solve of its first step to the segment before it, as one tape does, so the gradients agree to rounding
-    # (before: to the CG tolerance, 1e-4 relative on the 700-step throw)
-    model = windy_model(requires_grad=True, dtype=wp.float64)
-    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-4, cg_atol=1e-30))
-    w = wp.array(np.random.default_rng(3).standard_normal((model.particle_count, 3)), dtype=wp.vec3d)
-    steps = 9
-
-    def loss(i, state, out):
-        if i == steps:
-            wp.launch(_x_dot_w, model.particle_count, inputs=[state.particle_x, w], outputs=[out])
-
-    state = model.state()
-    out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        traj = wc.rollout(sim, state, steps=steps)
-        loss(steps, traj[-1], out)
-    tape.backward(out)
-    full = [state.particle_x.grad.numpy().copy(), state.particle_v.grad.numpy().copy()]
-    tape.zero()
-    state = model.state()
-    wc.checkpointed_backward(sim, state, None, steps=steps, loss=loss, segment_steps=segment_steps)
-    for g, f in zip([state.particle_x.grad.numpy(), state.particle_v.grad.numpy()], full):
         np.testing.assert_allclose(g, f, rtol=1e-12, atol=1e-12 * np.abs(f).max())
 
 
