@@ -96,7 +96,6 @@ class ZoneBackend:
         self.model = model
         self.detector = detector
         self.timings = timings
-        self.thickness = float(model.collision.thickness)
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,

@@ -19,6 +19,7 @@ import warp as wp
 
 from warpcloth.collision.backends import contact_geometry, gather_nodes
 from warpcloth.collision.detection import ContactDetector
+from warpcloth.collision.zones import components
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.failsafe import failsafe_kernels
 
@@ -49,40 +50,27 @@ class RigidImpactZones:
         self.detector = detector
         self.cloth_count = model.particle_count
         self.thickness = float(model.collision.thickness)
-        self.free = model.particle_pin.numpy() < 0
+        self.free = model.particle_pin.numpy() < 0  # read again at each resolve: the model's pins as they are then
         self.kernels = failsafe_kernels(model.scalar)
 
     def zones(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(zone of each cloth particle, -1 for none; anchor zones; anchor nodes) of contacts ``rows`` (m, 4): free
-        particles that share a contact share a zone; the contacts' other nodes (obstacle vertices, pinned
-        particles) anchor it."""
+        particles that share a contact share a zone (zones numbered by their smallest particle); the contacts' other
+        nodes (obstacle vertices, pinned particles) anchor it."""
         n = self.cloth_count
-        parent = np.arange(n)
-
-        def root(i):
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        free_rows = []
-        for row in rows:
-            free = [int(a) for a in row if a < n and self.free[a]]
-            if not free:
-                continue
-            first = root(free[0])
-            for a in free[1:]:
-                parent[root(a)] = first
-            free_rows.append((free[0], [int(a) for a in row if a >= n or not self.free[a]]))
-        members = sorted({a for row in rows for a in row if a < n and self.free[a]})
-        label = {}
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1, 4)
+        free = (rows < n) & self.free[np.where(rows < n, rows, 0)]
+        linked = free.any(axis=1)
+        rows, free = rows[linked], free[linked]
+        first = rows[np.arange(len(rows)), np.argmax(free, axis=1)]  # a free particle of each contact
+        label = components(n, np.broadcast_to(first[:, None], rows.shape)[free], rows[free])
         zone = np.full(n, -1, dtype=np.int32)
-        for a in members:
-            zone[a] = label.setdefault(root(a), len(label))
-        anchors = {(int(zone[f]), a) for f, constants in free_rows for a in constants}
-        anchor_zone = np.array([z for z, _ in sorted(anchors)], dtype=np.int32)
-        anchor_node = np.array([a for _, a in sorted(anchors)], dtype=np.int32)
-        return zone, anchor_zone, anchor_node
+        members = np.unique(rows[free])
+        if members.size:
+            zone[members] = np.unique(label[members], return_inverse=True)[1]
+        anchors = np.unique(np.stack([np.broadcast_to(zone[first][:, None], rows.shape)[~free], rows[~free]], axis=1),
+                            axis=0).astype(np.int32).reshape(-1, 2)
+        return zone, anchors[:, 0].copy(), anchors[:, 1].copy()
 
     def positions(self, x0: wp.array, x_hat: wp.array, mass: wp.array, start: wp.array, end: wp.array,
                   zone: np.ndarray, anchor_zone: np.ndarray, anchor_node: np.ndarray, recording: bool) -> wp.array:
