@@ -275,10 +275,11 @@ def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     one = wp.float64(1.0)
     n1 = wp.cross(b1 - a1, c1 - a1)
     nl = wp.length(n1)
-    n0 = wp.cross(b0 - a0, c0 - a0)
     start = thickness
-    if keep_start_gaps != 0 and wp.length(n0) > zero:
-        start = wp.abs(wp.dot(n0, p0 - a0)) / wp.length(n0)
+    if keep_start_gaps != 0:
+        n0 = wp.cross(b0 - a0, c0 - a0)
+        if wp.length(n0) > zero:
+            start = wp.abs(wp.dot(n0, p0 - a0)) / wp.length(n0)
     if crossed and start < thickness and nl > zero:
         # A vertex that started inside the thickness and ends on its start side no closer than it started: its
         # linear path dips through the face's plane and back (a double crossing), which no constraint on the end

@@ -319,3 +319,26 @@ def test_gradients_of_the_second_try_keeping_start_gaps_match_finite_differences
     assert sim.collision.last.kept_start_gaps is not None
     for name, eps in (("x0", 1e-8), ("v0", 1e-5), ("transform", 1e-8)):
         fd_check(run, (x0, v0, tf), g, name, eps, rng)
+    # the materials, along a relative direction of each: density, stretching and bending tables
+    arrays = (model.material_density, model.material_stretching, model.material_bending)
+    for array in arrays:  # tape_gradients' backward left its share in them
+        array.grad.zero_()
+    tape = wp.Tape()
+    with tape:
+        _, _, traj, _, (cx, cv) = run(x0, v0, tf, tape=True)
+    tape.backward(grads={traj[-1].particle_x: cx, traj[-1].particle_v: cv})
+    grads = [a.grad.numpy().copy() for a in arrays]
+    tape.zero()
+    for array, grad in zip(arrays, grads):
+        base = array.numpy().copy()
+        direction = base * rng.choice([-1.0, 1.0], size=base.shape)
+        fds = []
+        for h in (1e-5, 1e-6):
+            values = []
+            for sign in (1.0, -1.0):
+                array.assign(base + sign * h * direction)
+                values.append(run(x0, v0, tf)[0])
+            array.assign(base)
+            fds.append((values[0] - values[1]) / (2 * h))
+        assert fds[0] == pytest.approx(fds[1], rel=1e-3, abs=1e-9)  # converged at two step sizes
+        assert float(np.sum(grad * direction)) == pytest.approx(fds[1], rel=1e-4, abs=1e-9)
