@@ -31,7 +31,7 @@ import numpy as np
 import warp as wp
 from common import wc
 
-from warpcloth.tasks import estimation, throw
+from warpcloth.tasks import estimation, scenes, throw
 from warpcloth.tasks.optim import lbfgs
 
 STEPS_H = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)
@@ -65,7 +65,8 @@ def check_throw(task: throw.ThrowTask, label: str, params: np.ndarray) -> dict:
     direction = rng.standard_normal(throw.N_PARAMS)
     direction /= np.linalg.norm(direction)
     t0 = time.perf_counter()
-    loss, grad, com = task.loss_and_grad(params)
+    e = task.evaluate(params)
+    loss, grad = e.loss, e.grad
     seconds = time.perf_counter() - t0
     tape_value = float(grad @ direction)
     fds = []
@@ -73,7 +74,7 @@ def check_throw(task: throw.ThrowTask, label: str, params: np.ndarray) -> dict:
         plus = task.loss_and_grad(params + h * direction)[0]
         minus = task.loss_and_grad(params - h * direction)[0]
         fds.append((plus - minus) / (2.0 * h))
-    return {"point": label, "loss": loss, "error_pct": throw.error_pct(com, task.com_initial),
+    return {"point": label, "loss": loss, "error_pct": task.error_pct(e.positions),
             "grad_norm": float(np.linalg.norm(grad)), "tape": tape_value, "central_differences": fds,
             "steps_h": list(STEPS_H), "seconds_forward_backward": seconds}
 
@@ -124,7 +125,7 @@ def main():
     common.print_machine(info)
     options = wc.SolverOptions(cg_tol=1e-10, cg_atol=1e-30, collision=wc.CollisionOptions(rounds=50))
     steps = 60 if args.quick else throw.STEPS
-    task = throw.ThrowTask(throw.basket_scene(dtype=wp.float64), options=options, steps=steps)
+    task = throw.ThrowTask(scenes.basket_scene(dtype=wp.float64), options=options, steps=steps)
     rows = [check_throw(task, label, p) for label, p in throw_points(task, args.points)]
     common.print_table(["point", "error %", "|grad|", "tape", *(f"CD h={h:g}" for h in STEPS_H)],
                        [[r["point"], r["error_pct"], r["grad_norm"], r["tape"], *r["central_differences"]]

@@ -91,8 +91,8 @@ def summarise(records: list[dict], label: str) -> dict:
 def cross_check(optimizer: str, iters: int) -> list[dict]:
     rows = []
     for short, name in SEED_TARGETS.items():
-        files = E.target_files(common.seed_dir() / "targets" / short)
-        frames = E.load_target_sequence(files)
+        files = wc.obj_sequence_files(common.seed_dir() / "targets" / short)
+        frames = wc.load_obj_sequence(files)
         model = hanging_cloth(E.initial_guess(), mesh_path=files[0])
         fit = E.TrajectoryFit(model, frames)
         result = E.estimate_material(fit, optimizer=optimizer, iters=iters)

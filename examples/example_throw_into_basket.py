@@ -1,8 +1,10 @@
 """Motion control (the seed's Table 3 task): push a cloth's corners so that it lands in a basket behind a wall.
 
-36 numbers (a push per corner for each of the first 3 seconds) are optimised with L-BFGS; every gradient comes from
-one forward and one checkpointed backward pass through 700 steps with collisions. With ``--mlp`` a PyTorch MLP that
-reads the cloth's state once per second is trained through the simulator instead (needs the torch extra).
+36 numbers (a push per corner for each of the first 3 seconds) are optimised by damped Gauss-Newton; every gradient
+comes from one forward and one checkpointed backward pass through 700 steps with collisions. The task is the embedded
+scene ``basket-throw`` (its [control] table); ``warpcloth control SCENE.toml`` runs a scene of your own. With
+``--mlp`` a PyTorch MLP that reads the cloth's state once per second is trained through the simulator instead (needs
+the torch extra).
 
     python examples/example_throw_into_basket.py --iters 30 --usd throw.usda
 """

@@ -2,7 +2,7 @@
 and forces on chosen particles.
 
 Every kernel is differentiable (Warp's tape runs their adjoints), so a loss built from them back-propagates into
-the trajectory and a force built by ``corner_forces`` into its parameters. Sums accumulate into ``loss[0]`` /
+the trajectory and a force built by ``push_forces`` into its parameters. Sums accumulate into ``loss[0]`` /
 ``com[0]``: the caller zeroes them and may launch several times into the same array (one launch per compared frame).
 """
 
@@ -22,7 +22,7 @@ def loss_kernels(scalar):
 
     Returns:
         A namespace with the kernels ``squared_distance``, ``centre_of_mass``, ``add_component``,
-        ``point_squared_distance`` and ``corner_forces``.
+        ``point_squared_distance`` and ``push_forces``.
     """
     vec3 = types(scalar).vec3
 
@@ -72,7 +72,7 @@ def loss_kernels(scalar):
         loss[0] = loss[0] + scale * wp.dot(d, d)
 
     @wp.kernel
-    def corner_forces(
+    def push_forces(
         push: wp.array(dtype=vec3),
         block: int,
         particles: wp.array(dtype=wp.int32),
@@ -90,6 +90,6 @@ def loss_kernels(scalar):
         centre_of_mass=centre_of_mass,
         add_component=add_component,
         point_squared_distance=point_squared_distance,
-        corner_forces=corner_forces,
+        push_forces=push_forces,
     )
 

@@ -7,9 +7,8 @@ import warp as wp
 
 import warpcloth as wc
 from warpcloth.cli import main
-from warpcloth.mesh_io import TriangleMesh
+from warpcloth.mesh_io import TriangleMesh, load_obj_sequence, obj_sequence_files
 from warpcloth.scene import scene_from_toml
-from warpcloth.tasks.estimation import load_target_sequence, target_files
 from warpcloth.usd import read_usd_points, write_usd
 
 MAT = wc.preset("gray-interlock")
@@ -169,15 +168,15 @@ def test_step_refuses_a_state_of_another_model():
 def test_target_frames_are_read_in_numeric_order(tmp_path):
     for k in (0, 1, 2, 10, 11):
         (tmp_path / f"{k}.obj").write_text(f"v {k} 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    files = target_files(tmp_path)
+    files = obj_sequence_files(tmp_path)
     assert [f.name for f in files] == ["0.obj", "1.obj", "2.obj", "10.obj", "11.obj"]
 
 
 def test_a_non_finite_target_frame_is_named(tmp_path):
     (tmp_path / "0.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     (tmp_path / "1.obj").write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(ValueError, match="target frame 1.obj: vertex 1 has a non-finite position"):
-        load_target_sequence(target_files(tmp_path))
+    with pytest.raises(ValueError, match="frame 1.obj: vertex 1 has a non-finite position"):
+        load_obj_sequence(obj_sequence_files(tmp_path))
 
 
 def test_progress_bars_silence_warps_module_lines_while_open():

@@ -198,9 +198,9 @@ def test_fit_rejects_mismatched_targets(tmp_path):
     with pytest.raises(ValueError, match="multiple"):
         E.TrajectoryFit(model, [np.zeros((model.particle_count, 3))] * 3, steps=3)
     with pytest.raises(ValueError, match="does not exist"):
-        E.target_files(tmp_path / "missing")
+        wc.obj_sequence_files(tmp_path / "missing")
     with pytest.raises(ValueError, match="0 .obj"):
-        E.target_files(tmp_path)
+        wc.obj_sequence_files(tmp_path)
     with pytest.raises(ValueError, match="unknown optimizer"):
         E.estimate_material(E.TrajectoryFit(model, [np.zeros((model.particle_count, 3))] * 2, steps=2),
                             optimizer="newton")
@@ -213,7 +213,7 @@ def test_throw_scene_geometry():
     np.testing.assert_allclose(x.min(axis=0), [-3.7, 0.0, 2.0], atol=1e-6)
     np.testing.assert_allclose(x.max(axis=0), [-3.0, 0.7, 2.0], atol=1e-6)
     assert model.particle_count == 81 and model.obstacle_count == 2
-    corners = x[list(S.THROW_CORNERS)]
+    corners = x[list(C.CORNERS)]
     expected = np.array([(-3.7, 0.0), (-3.0, 0.0), (-3.7, 0.7), (-3.0, 0.7)])
     np.testing.assert_allclose(np.sort(corners[:, :2], axis=0), np.sort(expected, axis=0), atol=1e-6)
 
@@ -287,7 +287,7 @@ def test_mlp_controller_takes_the_models_dtype_and_device(monkeypatch):
     result = C.train_mlp(task, iters=1)
     assert len(seen) == 3 * C.SECONDS_CONTROLLED
     assert set(seen) == {(torch.float64, wct.torch_device(task.model))}
-    assert np.isfinite(result.losses[0]) and result.params.shape == (C.SECONDS_CONTROLLED, len(S.THROW_CORNERS), 3)
+    assert np.isfinite(result.losses[0]) and result.params.shape == (C.SECONDS_CONTROLLED, len(C.CORNERS), 3)
 
 
 # -- command line ----------------------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """Property-based tests of the loaders (issue 15): random and malformed scene TOML, OBJ text and material JSON
 either load or raise ValueError naming the problem; never another exception, never a hang."""
 
+import importlib.resources
 import json
 import math
 import os
@@ -63,13 +64,12 @@ def dump(table) -> str:
 
 
 def embedded_documents():
-    from importlib import resources
-
-    return {name: tomllib.loads(resources.files("warpcloth.scenes").joinpath(f"{name}.toml").read_text())
+    return {name: tomllib.loads(importlib.resources.files("warpcloth.scenes").joinpath(f"{name}.toml").read_text())
             for name in SCENE_NAMES}
 
 
 DOCUMENTS = embedded_documents()
+SCENES_DIR = str(importlib.resources.files("warpcloth.scenes"))  # the embedded scenes' meshes are relative to it
 
 
 def loads_or_value_error(load):
@@ -100,7 +100,7 @@ def test_embedded_scenes_with_one_value_replaced_or_removed(name, data):
     else:
         del parent[path[-1]]
     text = dump(document)
-    loads_or_value_error(lambda: scene_from_toml(text, base_dir=os.getcwd()))
+    loads_or_value_error(lambda: scene_from_toml(text, base_dir=SCENES_DIR))
 
 
 obj_lines = st.one_of(
@@ -144,6 +144,6 @@ def test_random_material_json(document, raw, junk):
 def test_the_fuzzers_reach_valid_documents():
     # the mutation test starts from documents that load: a failure there is the mutation's, not the base's
     for document in DOCUMENTS.values():
-        scene_from_toml(dump(document), base_dir=os.getcwd())
+        scene_from_toml(dump(document), base_dir=SCENES_DIR)
     with pytest.raises(ValueError):
         scene_from_toml(dump({"name": "x"}))

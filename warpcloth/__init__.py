@@ -4,7 +4,7 @@ from warpcloth.builder import ModelBuilder
 from warpcloth.errors import CollisionError, ContactCapacityError, SimulationError
 from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh
 from warpcloth.materials import PRESET_NAMES, Material, load_material_json, mean_material, preset
-from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_usd_mesh
+from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_obj_sequence, load_usd_mesh, obj_sequence_files
 from warpcloth.model import CollisionSettings, Control, Model, State
 from warpcloth.obstacles import (
     Obstacle,
@@ -57,9 +57,11 @@ __all__ = [
     "grid_mesh",
     "load_material_json",
     "load_obj",
+    "load_obj_sequence",
     "load_scene",
     "load_usd_mesh",
     "mean_material",
+    "obj_sequence_files",
     "obstacle_meshes_numpy",
     "obstacle_points",
     "obstacle_points_numpy",

@@ -1,5 +1,7 @@
-"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD; ``warpcloth scenes`` lists scenes;
-``warpcloth estimate`` fits a fabric's material to a trajectory; ``warpcloth control`` throws a cloth into a basket.
+"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD; ``warpcloth scenes`` lists scenes and
+their tasks; ``warpcloth estimate [SCENE]`` fits a fabric's material to a trajectory (a scene's ``[estimate]``
+task; by default the seed's hanging cloth); ``warpcloth control [SCENE]`` finds the pushes of a scene's
+``[control]`` task (by default the seed's throw into a basket).
 
 Exit status: 0 on success, 2 for a usage error (bad arguments, unknown scene, invalid scene file), 1 when the
 simulation itself fails (diverges). Errors are one line on stderr, without a traceback.
@@ -17,6 +19,11 @@ __all__ = ["main"]
 
 _USAGE_ERROR = 2
 _RUNTIME_ERROR = 1
+
+ESTIMATE_SCENE = "material-estimation"
+"""The scene ``warpcloth estimate`` runs when none is named (the seed's hanging cloth in the wind)."""
+CONTROL_SCENE = "basket-throw"
+"""The scene ``warpcloth control`` runs when none is named (the seed's throw into a basket)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -40,27 +47,33 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scenes", help="list the embedded scenes")
 
     from warpcloth.materials import PRESET_NAMES
-    from warpcloth.tasks.estimation import OPTIMIZERS
+    from warpcloth.scene import CONTROLLERS, ESTIMATION_OPTIMIZERS
 
-    est = sub.add_parser("estimate", help="estimate a fabric's material from a hanging cloth's motion in the wind")
+    est = sub.add_parser("estimate", help="estimate a fabric's material from how it moves (a scene's [estimate] task)")
+    est.add_argument("scene", nargs="?", default=None,
+                     help=f"a scene with an [estimate] table: embedded name or .toml path (default: {ESTIMATE_SCENE})")
     what = est.add_mutually_exclusive_group()
     what.add_argument("--material", default=None, choices=PRESET_NAMES, metavar="NAME",
-                      help="ground truth simulated by warpcloth with this fabric (default: gray-interlock); "
+                      help="make the target by simulating the scene with this fabric instead of its own; "
                       f"one of {', '.join(PRESET_NAMES)}")
     what.add_argument("--target", metavar="DIR", default=None,
-                      help="fit an OBJ sequence instead (frame 0 = the start shape with vt coordinates, one frame per "
-                      "0.04 s, such as the seed's targets)")
-    est.add_argument("--optimizer", default="lbfgs", choices=OPTIMIZERS, help="default: lbfgs")
-    est.add_argument("--iters", type=int, default=100, help="forward+backward evaluations (default: 100)")
-    est.add_argument("--steps", type=int, default=50, help="steps of 0.02 s compared (default: 50, the seed's)")
+                      help="instead of a scene, fit an OBJ sequence of the seed's hanging cloth (frame 0 = the start "
+                      "shape with vt coordinates, one frame per 0.04 s, such as the seed's targets)")
+    est.add_argument("--optimizer", default=None, choices=ESTIMATION_OPTIMIZERS, help="default: the scene's (lbfgs)")
+    est.add_argument("--iters", type=int, default=None, help="forward+backward evaluations (default: the scene's)")
+    est.add_argument("--steps", type=int, default=None, help="steps compared (default: the scene's)")
     est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
     _add_outputs(est)
 
-    ctl = sub.add_parser("control", help="find corner pushes that throw a cloth over a wall into a basket")
-    ctl.add_argument("--controller", default="open-loop", choices=("open-loop", "mlp"),
-                     help="open-loop: 36 corner accelerations, damped Gauss-Newton; mlp: a PyTorch MLP of the cloth's "
-                     "state, trained with Adam through the simulator (needs the torch extra)")
-    ctl.add_argument("--iters", type=int, default=None, help="simulations (default: 50 open-loop, 100 mlp)")
+    ctl = sub.add_parser("control", help="find the pushes that move a cloth where a scene's [control] task says")
+    ctl.add_argument("scene", nargs="?", default=CONTROL_SCENE,
+                     help=f"a scene with a [control] table: embedded name or .toml path (default: {CONTROL_SCENE}, "
+                     "the seed's throw into a basket)")
+    ctl.add_argument("--controller", default=None, choices=CONTROLLERS,
+                     help="open-loop: the pushes themselves (the scene's optimiser); mlp: a PyTorch MLP of the "
+                     "cloth's state, trained with Adam through the simulator (needs the torch extra); default: the "
+                     "scene's")
+    ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
     _add_outputs(ctl)
     return parser
 
@@ -81,9 +94,11 @@ def _cmd_scenes() -> int:
     from warpcloth.scene import DEFAULT_SCENE, SCENE_NAMES, load_scene
 
     width = max(len(n) for n in SCENE_NAMES)
-    for name in SCENE_NAMES:
-        mark = " (default)" if name == DEFAULT_SCENE else ""
-        print(f"{name:<{width}}  {load_scene(name).description}{mark}")
+    scenes = [load_scene(name) for name in SCENE_NAMES]
+    task_width = max(len(", ".join(s.tasks) or "-") for s in scenes)
+    for s in scenes:
+        mark = " (default)" if s.name == DEFAULT_SCENE else ""
+        print(f"{s.name:<{width}}  {', '.join(s.tasks) or '-':<{task_width}}  {s.description}{mark}")
     return 0
 
 
@@ -225,36 +240,42 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 
     from warpcloth.errors import SimulationError
     from warpcloth.materials import preset
+    from warpcloth.mesh_io import load_obj_sequence, obj_sequence_files
+    from warpcloth.scene import load_scene
     from warpcloth.tasks import estimation as E
-    from warpcloth.tasks import scenes as S
     from warpcloth.tasks.scenes import hanging_cloth
     from warpcloth.usd import write_usd
 
     try:
-        initial = E.initial_guess()
         if args.target is not None:
-            files = E.target_files(args.target)
-            frames = E.load_target_sequence(files)
-            handles = _parse_handles(args.handles)
-            model = hanging_cloth(initial, mesh_path=files[0], handles=handles, device=args.device)
-            truth = None
+            if args.scene is not None:
+                raise ValueError("give a scene or --target, not both")
+            files = obj_sequence_files(args.target)
+            frames = load_obj_sequence(files)
+            model = hanging_cloth(E.initial_guess(), mesh_path=files[0], handles=_parse_handles(args.handles),
+                                  device=args.device)
+            fit = E.TrajectoryFit(model, frames, steps=args.steps or E.STEPS)
+            task = E.EstimationTask(fit, source=args.target)
         else:
-            truth = preset(args.material or "gray-interlock", thicken=S.THICKEN)
-            model = hanging_cloth(truth, device=args.device)
-            frames = E.TrajectoryFit.simulate_targets(model, truth, steps=args.steps)
-        fit = E.TrajectoryFit(model, frames, steps=args.steps)
+            scene = load_scene(args.scene or ESTIMATE_SCENE)
+            truth = None
+            if args.material is not None:
+                truth = preset(args.material, thicken=scene.cloth_material.thicken)
+            task = E.EstimationTask.from_scene(scene, device=args.device, truth=truth, steps=args.steps)
     except (ValueError, OSError, RuntimeError) as exc:
         return _error(str(exc), _USAGE_ERROR)
-    source = args.target if truth is None else f"{truth.name} simulated by warpcloth"
-    print(f"estimating the material of {source}: {args.steps} steps of {E.DT} s, optimizer {args.optimizer}, "
-          f"{args.iters} forward+backward simulations, start: the mean of 8 fabrics")
+    fit, truth = task.fit, task.truth
+    optimizer, iters = args.optimizer or task.optimizer, args.iters or task.iters
+    dt = fit.sim.dt
+    print(f"estimating the material of {task.source}: {fit.steps} steps of {dt:g} s, optimizer {optimizer}, "
+          f"{iters} forward+backward simulations, fitting {', '.join(task.free)}, start: {task.start.name}")
     try:
-        result = E.estimate_material(fit, initial=initial, optimizer=args.optimizer, iters=args.iters, progress=True)
+        result = task.run(optimizer=optimizer, iters=iters, progress=True)
     except SimulationError as exc:
         return _error(str(exc), _RUNTIME_ERROR)
 
-    record = {"source": source, "optimizer": args.optimizer, "iters": args.iters, "steps": args.steps,
-              "runtime_s_per_step_iter": result.seconds_per_step_iter,
+    record = {"source": task.source, "optimizer": optimizer, "iters": iters, "steps": fit.steps,
+              "free": list(task.free), "runtime_s_per_step_iter": result.seconds_per_step_iter,
               "sim_err_pct_initial": result.initial_simulation_error_pct,
               "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
               "estimate": {"density": result.material.density, "stretching": result.material.stretching.tolist(),
@@ -262,27 +283,28 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     seed = E.SEED_PUBLISHED
     rows = [["runtime [s/step/iter]", "-", result.seconds_per_step_iter, seed["runtime_s_per_step_iter"]]]
     if truth is not None:
-        before, after = E.parameter_errors(initial, truth), E.parameter_errors(result.material, truth)
+        before, after = E.parameter_errors(task.start, truth), E.parameter_errors(result.material, truth)
         record.update(after)
         for key, label in E.ERROR_LABELS.items():
             rows.append([label, before[key], after[key], seed[key]])
     rows.append(["simulation error [%]", result.initial_simulation_error_pct, result.simulation_error_pct,
                  seed["sim_err_pct"]])
     print()
-    _print_table(["", "start (mean fabric)", "warpcloth", "seed (published, mean of 10)"], rows)
+    _print_table(["", "start", "warpcloth", "seed (published, its hanging cloth, mean of 10)"], rows)
     if truth is not None:
-        print("bending and the non-linear stretching rows are barely identifiable from this motion: see the README")
+        print("what a motion barely excites (bending, the non-linear stretching rows of a hanging cloth) is barely "
+              "identifiable from it: see the README")
     if args.json:
         _write_json(args.json, record)
         print(f"wrote {os.path.abspath(args.json)}")
     if args.plot:
-        _plot_losses(args.plot, {args.optimizer: result.losses}, "loss [m^2]", f"material estimation: {source}")
+        _plot_losses(args.plot, {optimizer: result.losses}, "loss [m^2]", f"material estimation: {task.source}")
         print(f"wrote {os.path.abspath(args.plot)}")
     if args.usd:
         sim_frames = fit.trajectory(result.material)[:: fit.frame_stride]
-        target = np.stack([np.asarray(x, dtype=np.float64) for x in frames[: len(sim_frames)]])
-        tris = model.tri_indices.numpy()
-        write_usd(args.usd, triangles=tris, frames=sim_frames, fps=1.0 / (E.DT * fit.frame_stride),
+        target = np.stack([t.numpy().astype(np.float64) for t in fit.targets[: len(sim_frames)]])
+        tris = fit.model.tri_indices.numpy()
+        write_usd(args.usd, triangles=tris, frames=sim_frames, fps=1.0 / (dt * fit.frame_stride),
                   obstacles=[("Target", target, tris)])
         print(f"wrote {os.path.abspath(args.usd)} "
               "(the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
@@ -292,44 +314,57 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 def _cmd_control(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.scene import load_scene
     from warpcloth.tasks import throw as C
-    from warpcloth.tasks.scenes import basket_scene
+    from warpcloth.tasks.control import ControlTask
     from warpcloth.usd import write_usd
 
-    iters = args.iters or (50 if args.controller == "open-loop" else 100)
     try:
-        task = C.ThrowTask(basket_scene(args.device))
-    except (ValueError, RuntimeError) as exc:
+        scene = load_scene(args.scene)
+        task = ControlTask.from_scene(scene, device=args.device)
+    except (ValueError, OSError, RuntimeError) as exc:
         return _error(str(exc), _USAGE_ERROR)
-    print(f"throwing a cloth into a basket: {task.steps} steps of {C.DT} s, controller {args.controller}, "
-          f"{iters} forward+backward simulations")
+    controller = args.controller or task.controller
+    iters = args.iters or (task.iters if controller == task.controller else None) or (
+        50 if controller == "open-loop" else 100)
+    goal = "it to target positions"
+    if task.target_com is not None:
+        goal = f"its centre of mass to {task.target_com.tolist()}"
+    print(f"{scene.name}: {len(task.particles)} particles pushed {task.intervals} times, {task.steps} steps of "
+          f"{task.dt:g} s, moving {goal}; controller {controller}"
+          f"{' (' + task.optimizer + ')' if controller == 'open-loop' else ''}, {iters} simulations")
     try:
-        if args.controller == "open-loop":
-            result = C.optimize_open_loop(task, iters=iters, progress=True)
-        else:
-            try:
-                result = C.train_mlp(task, iters=iters, progress=True)
-            except ImportError as exc:
-                return _error(str(exc), _USAGE_ERROR)
+        result = task.run(controller=controller, iters=iters, progress=True)
+    except ImportError as exc:
+        return _error(str(exc), _USAGE_ERROR)
     except SimulationError as exc:
         return _error(str(exc), _RUNTIME_ERROR)
-    seed = C.SEED_PUBLISHED[args.controller]
     print()
-    _print_table(["", "warpcloth", "seed (published)", "target"],
-                 [["error [%]", result.error_pct, seed["error_pct"], seed["target_error_pct"]],
-                  ["simulations to reach it", result.simulations, seed["simulations"], seed["target_simulations"]]])
-    record = {"controller": args.controller, "error_pct": result.error_pct, "simulations": result.simulations,
-              "iters": iters, "seconds": result.seconds, "losses": result.losses, "errors_pct": result.errors_pct}
+    rows = [["error [%]", result.error_pct], ["simulations to reach it", result.simulations]]
+    header = ["", "warpcloth"]
+    if scene.name == C.SCENE and scene.source == f"embedded:{C.SCENE}":  # the seed's own task: its published figures
+        seed = C.SEED_PUBLISHED[controller]
+        header += ["seed (published)", "target"]
+        rows[0] += [seed["error_pct"], seed["target_error_pct"]]
+        rows[1] += [seed["simulations"], seed["target_simulations"]]
+    _print_table(header, rows)
+    if result.failed_trials:
+        print(f"{len(result.failed_trials)} trial(s) raised and were rejected as bad steps; the first: "
+              f"{result.failed_trials[0]}")
+    record = {"scene": scene.name, "controller": controller, "error_pct": result.error_pct,
+              "simulations": result.simulations, "iters": iters, "seconds": result.seconds, "losses": result.losses,
+              "errors_pct": result.errors_pct, "failed_trials": result.failed_trials,
+              "params": result.params.tolist()}
     if args.json:
         _write_json(args.json, record)
         print(f"wrote {os.path.abspath(args.json)}")
     if args.plot:
-        _plot_losses(args.plot, {args.controller: result.errors_pct}, "error [%]", "throwing a cloth into a basket")
+        _plot_losses(args.plot, {controller: result.errors_pct}, "error [%]", f"{scene.name}: motion control")
         print(f"wrote {os.path.abspath(args.plot)}")
     if args.usd:
         frames = result.trajectory(task)
-        times = [i * C.DT for i in range(len(frames))]
-        write_usd(args.usd, triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / C.DT,
+        times = [i * task.dt for i in range(len(frames))]
+        write_usd(args.usd, triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
                   obstacles=obstacle_meshes_numpy(task.model, times))
         print(f"wrote {os.path.abspath(args.usd)}")
     return 0

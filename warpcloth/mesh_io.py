@@ -7,11 +7,15 @@ A cloth mesh has two shapes: world positions ``x`` (the current shape, [m]) and 
 from __future__ import annotations
 
 import os
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["TriangleMesh", "grid_mesh", "load_obj", "load_usd_mesh", "validate_triangles"]
+__all__ = ["TriangleMesh", "grid_mesh", "load_obj", "load_obj_sequence", "load_usd_mesh", "obj_sequence_files",
+           "validate_triangles"]
 
 # Triangles whose material area is below this fraction of the mean |area| count as degenerate: their inverse rest
 # matrix would be dominated by round-off.
@@ -443,3 +447,29 @@ def grid_mesh(res_x: int, res_y: int, size_x: float, size_y: float) -> TriangleM
     triangles = np.stack([t0, t1], axis=1).reshape(-1, 3).astype(np.int32)
     tri_uv = positions[triangles][:, :, :2].copy()
     return TriangleMesh(positions=positions, triangles=triangles, tri_uv=tri_uv)
+
+
+def obj_sequence_files(directory: str | os.PathLike) -> list[Path]:
+    """The .obj files of a sequence (a trajectory, one frame per file) in frame order, frame 0 (the start shape)
+    first: sorted by name with digit runs compared as numbers, so 2.obj comes before 10.obj."""
+    if not Path(directory).is_dir():
+        raise ValueError(f"sequence directory {str(directory)!r} does not exist")
+    files = sorted(Path(directory).glob("*.obj"),
+                   key=lambda f: [(0, int(part), "") if part.isdigit() else (1, 0, part)
+                                  for part in re.split(r"(\d+)", f.name)])
+    if len(files) < 2:
+        raise ValueError(f"sequence directory {str(directory)!r} holds {len(files)} .obj files; need >= 2")
+    return files
+
+
+def load_obj_sequence(files: Sequence[str | os.PathLike]) -> list[np.ndarray]:
+    """Vertex positions (n, 3) [m] of each frame file."""
+    frames = [load_obj(f, validate=False).positions for f in files]
+    for f, x in zip(files, frames):
+        if x.shape != frames[0].shape:
+            raise ValueError(f"frame {Path(f).name} has {len(x)} vertices, frame 0 has {len(frames[0])}")
+        bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+        if bad.size:
+            raise ValueError(f"frame {Path(f).name}: vertex {int(bad[0])} has a non-finite position "
+                             f"{x[bad[0]].tolist()}")
+    return frames

@@ -74,6 +74,37 @@ Schema (every key is checked: an unknown key or a wrong type is a ``ValueError``
     friction = 0.6                     # cloth-cloth Coulomb friction, >= 0
     obstacle_friction = 0.3            # cloth-obstacle Coulomb friction, >= 0
 
+A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth estimate SCENE`` (and
+``ControlTask.from_scene`` / ``EstimationTask.from_scene`` in ``warpcloth.tasks``)::
+
+    [control]                          # optional: find pushes that move the cloth where the loss says
+    grid_vertices = [[0, 0], [-1, 0]]  # the pushed particles, exactly one of: particles = [i, ...] |
+                                       #   grid_vertices = [[i, j], ...] (a grid cloth; negative values from the end)
+    interval = 1.0                     # [s] per push, a whole number of sim.dt steps
+    intervals = 3                      # pushes per particle: the first intervals * interval seconds are controlled
+    steps = 700                        # optional horizon [steps], default sim.steps
+    loss = { com = [0.0, 0.0, -0.7] }  # 1/2 |centre of mass - com|^2 (vertex mean) at the horizon [m^2], or
+                                       #   { positions = "target.obj" }: 1/2 mean_i |x_i - target_i|^2, an OBJ with
+                                       #   the cloth's vertex count, in world coordinates (relative to the scene file)
+    regularizer = 0.0                  # optional: adds regularizer * 1/2 |pushes|^2 [pushes in m/s^2]
+    controller = "open-loop"           # optional: "open-loop" (default) or "mlp" (a PyTorch MLP of the state)
+    optimizer = "gauss-newton"         # optional, open loop: "gauss-newton" (default with com) or "lbfgs" (default
+                                       #   with positions)
+    iters = 50                         # optional: simulations spent (default 50 open-loop, 100 mlp)
+
+    [estimate]                         # optional: fit the cloth's material to a trajectory
+    targets = "frames"                 # optional: a directory of OBJ frames (frame 0 = the start), relative to the
+                                       #   scene file; default: the scene simulated with cloth.material (a known truth)
+    frame_stride = 2                   # optional: steps per target frame, default 1
+    steps = 50                         # optional: steps compared, default sim.steps
+    start = "gray-interlock"           # optional material (the forms above); default the mean of 8 fabrics (the seed's)
+    free = ["density", "stretching", "bending"]   # optional: what is fitted (default all); the rest stays at start
+    optimizer = "lbfgs"                # optional: "lbfgs" (default), "adam" or "seed-sgd"
+    iters = 100                        # optional: forward + backward evaluations, default 100
+
+A push is a constant force ``(M / k) p`` on each of the k pushed particles over its interval (M the cloth's mass),
+so ``p`` [m/s^2] is the acceleration k equal pushes give the whole cloth.
+
 A ``grid_row``/``grid_column`` selector adds one handle (or pin) per vertex of that row/column, all with the same
 stiffness and motion. Particle indices are those of the cloth (the scene's only one). Embedded scenes live in
 ``warpcloth/scenes/*.toml``; their names are :data:`SCENE_NAMES`.
@@ -98,7 +129,7 @@ from warpcloth import mesh_io
 from warpcloth.builder import DEFAULT_HANDLE_STIFFNESS
 from warpcloth.geometry.transforms import QUAT_UNIT_TOL
 
-__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "Scene", "load_scene", "scene_from_toml"]
+__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "ControlSpec", "EstimateSpec", "Scene", "load_scene", "scene_from_toml"]
 
 DEFAULT_SCENE = "hanging-wind"
 """The scene ``warpcloth simulate`` runs when none is named."""
@@ -110,6 +141,62 @@ SCENE_NAMES: tuple[str, ...] = tuple(
 
 _DEFAULT_GRAVITY = (0.0, 0.0, -9.8)
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+
+
+@dataclass
+class ControlSpec:
+    """A scene's ``[control]`` table, checked (``warpcloth.tasks.control.ControlTask.from_scene`` runs it).
+
+    Attributes:
+        particles: The pushed particles (model indices), in the order of the pushes.
+        interval_steps: Steps per push: each particle gets one push (a constant acceleration [m/s^2]) per interval.
+        intervals: Pushes per particle; the first ``intervals * interval_steps`` steps are controlled.
+        steps: The horizon [steps].
+        target_com: The centre of mass's target [m], or None.
+        target_positions: Every particle's target position [m] (particle_count, 3), or None; exactly one of the two.
+        regularizer: Weight of ``1/2 |pushes|^2`` in the loss.
+        controller: ``"open-loop"`` or ``"mlp"``.
+        optimizer: The open loop's optimiser, ``"gauss-newton"`` (a centre-of-mass target only) or ``"lbfgs"``.
+        iters: Simulations the optimisation may spend.
+    """
+
+    particles: tuple[int, ...]
+    interval_steps: int
+    intervals: int
+    steps: int
+    target_com: tuple[float, float, float] | None
+    target_positions: np.ndarray | None
+    regularizer: float
+    controller: str
+    optimizer: str
+    iters: int
+
+
+@dataclass
+class EstimateSpec:
+    """A scene's ``[estimate]`` table, checked (``warpcloth.tasks.estimation.EstimationTask.from_scene`` runs it).
+
+    Attributes:
+        targets: The target frames (particle_count, 3) [m], frame 0 the start; None: the scene simulated with its own
+            cloth material (a known truth).
+        targets_source: Where the targets came from (the directory), or None.
+        frame_stride: Steps per target frame.
+        steps: Steps compared.
+        start: The material the fit starts from.
+        free: The material parameters fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others stay at
+            ``start``'s.
+        optimizer: ``"lbfgs"``, ``"adam"`` or ``"seed-sgd"``.
+        iters: Forward + backward evaluations.
+    """
+
+    targets: list[np.ndarray] | None
+    targets_source: str | None
+    frame_stride: int
+    steps: int
+    start: _materials.Material
+    free: tuple[str, ...]
+    optimizer: str
+    iters: int
 
 
 @dataclass
@@ -127,6 +214,9 @@ class Scene:
         grid_res: (cells_x, cells_y) of a grid cloth, else None; grid vertex (i, j) is particle
             ``j * (cells_x + 1) + i``.
         max_dt: the solver preset's time-step ceiling [s], else None (:meth:`set_dt` keeps to it).
+        cloth_material: The cloth's material.
+        control: The scene's control task (its ``[control]`` table), else None.
+        estimate: The scene's estimation task (its ``[estimate]`` table), else None.
     """
 
     name: str
@@ -138,6 +228,9 @@ class Scene:
     source: str = "<string>"
     grid_res: tuple[int, int] | None = None
     max_dt: float | None = None
+    cloth_material: _materials.Material | None = None
+    control: ControlSpec | None = None
+    estimate: EstimateSpec | None = None
 
     MAX_FRAME_BYTES = 4 * 2**30
     """Most memory the frames of one ``warpcloth simulate`` run may take (they are kept until the USD is written)."""
@@ -162,21 +255,34 @@ class Scene:
                              f"{need / 2**30:.1f} GiB of frames, more than {self.MAX_FRAME_BYTES / 2**30:g} GiB; "
                              f"simulate at most {most} steps per run")
 
-    def build(self, device=None, requires_grad: bool = False):
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """The tasks the scene carries: ``"control"``, ``"estimate"``, both or none."""
+        return tuple(k for k in ("control", "estimate") if getattr(self, k) is not None)
+
+    def build(self, device=None, requires_grad: bool = False, dtype=None):
         """Finalises the model and creates its simulator.
 
         Args:
             device: Warp device; Warp's default when None.
             requires_grad: Allocate gradient arrays in the model.
+            dtype: ``wp.float32`` (default) or ``wp.float64``.
 
         Returns:
             ``(model, sim)``: the ``Model`` and a ``Simulator`` with this scene's ``dt`` and solver options.
         """
         from warpcloth.solver.simulator import Simulator
 
-        model = self.model_builder.finalize(device=device, requires_grad=requires_grad)
+        model = self.finalize(device=device, requires_grad=requires_grad, dtype=dtype)
         sim = Simulator(model, dt=self.dt, options=self.solver_options)
         return model, sim
+
+
+    def finalize(self, device=None, requires_grad: bool = False, dtype=None):
+        """The scene's ``Model`` (``ModelBuilder.finalize``; float32 when ``dtype`` is None)."""
+        if dtype is None:
+            return self.model_builder.finalize(device=device, requires_grad=requires_grad)
+        return self.model_builder.finalize(device=device, requires_grad=requires_grad, dtype=dtype)
 
 
 def load_scene(name_or_path: str | os.PathLike) -> Scene:
@@ -293,10 +399,19 @@ def _vector(value: Any, path: str, n: int = 3) -> tuple[float, ...]:
     return tuple(_float(v, f"{path}[{i}]") for i, v in enumerate(value))
 
 
+def _cos_sin_deg(angle: float) -> tuple[float, float]:
+    """cos and sin of an angle in degrees, exact at multiples of 90 (np.cos(pi/2) is 6e-17: a sheet turned upright
+    would lean by that much)."""
+    quarter, rest = divmod(angle, 90.0)
+    if rest == 0.0:
+        return ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))[int(quarter) % 4]
+    a = math.radians(angle)
+    return math.cos(a), math.sin(a)
+
+
 def _rotation_xyz_deg(angles: tuple[float, float, float]) -> np.ndarray:
     """Rotation by angles[0] about X, then angles[1] about Y, then angles[2] about Z (fixed axes)."""
-    ax, ay, az = np.radians(angles)
-    cx, sx, cy, sy, cz, sz = np.cos(ax), np.sin(ax), np.cos(ay), np.sin(ay), np.cos(az), np.sin(az)
+    (cx, sx), (cy, sy), (cz, sz) = (_cos_sin_deg(a) for a in angles)
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
     ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
     rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
@@ -329,7 +444,7 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         "",
         (
             "name", "description", "gravity", "sim", "solver", "cloth", "handles", "pins", "wind", "damping",
-            "obstacles", "collision",
+            "obstacles", "collision", "control", "estimate",
         ),
         required=("name", "sim", "cloth"),
     )
@@ -348,7 +463,7 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     solver_options, max_dt = _parse_solver(data.get("solver", {}), dt)
 
     builder = ModelBuilder(gravity=gravity)
-    first, grid_res, count = _parse_cloth(builder, _table(data["cloth"], "cloth"), base_dir)
+    first, grid_res, count, cloth_material = _parse_cloth(builder, _table(data["cloth"], "cloth"), base_dir)
 
     attached: dict[int, str] = {}  # particle -> the entry that holds it, to name both entries in a conflict
     for kind in ("handles", "pins"):
@@ -398,6 +513,13 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         with _Context("collision"):
             builder.set_collision(**kwargs)
 
+    control = estimate = None
+    if "control" in data:
+        control = _parse_control(_table(data["control"], "control"), dt, steps, first, count, grid_res, attached,
+                                 base_dir)
+    if "estimate" in data:
+        estimate = _parse_estimate(_table(data["estimate"], "estimate"), steps, count, cloth_material, base_dir)
+
     return Scene(
         name=name,
         description=description,
@@ -408,6 +530,9 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         source=source,
         grid_res=grid_res,
         max_dt=max_dt,
+        cloth_material=cloth_material,
+        control=control,
+        estimate=estimate,
     )
 
 
@@ -466,8 +591,8 @@ def _option_fields(table: dict, prefix: str, defaults: dict) -> dict:
     return kwargs
 
 
-def _parse_cloth(builder, cloth: dict, base_dir: Path) -> tuple[int, tuple[int, int] | None, int]:
-    """Adds the cloth; returns (first particle, grid resolution or None, particle count)."""
+def _parse_cloth(builder, cloth: dict, base_dir: Path):
+    """Adds the cloth; returns (first particle, grid resolution or None, particle count, material)."""
     allowed = ("grid", "mesh", "pos", "rot_deg", "vel", "material", "thicken")
     _check_keys(cloth, "cloth", allowed, required=("material",))
     if ("grid" in cloth) == ("mesh" in cloth):
@@ -519,7 +644,7 @@ def _parse_cloth(builder, cloth: dict, base_dir: Path) -> tuple[int, tuple[int, 
         with _Context("cloth"):
             first = builder.add_cloth_mesh(mesh, material=material, vel=vel)
         grid_res = None
-    return first, grid_res, builder.particle_count - before
+    return first, grid_res, builder.particle_count - before, material
 
 
 _MATERIAL_FORMS = (
@@ -588,6 +713,16 @@ def _grid_index(value: int, extent: int, path: str) -> int:
     return value % extent
 
 
+def _grid_vertex(value: Any, path: str, grid_res: tuple[int, int]) -> int:
+    """The particle of grid vertex ``[i, j]`` (Python-style indices)."""
+    if not isinstance(value, list) or len(value) != 2:
+        raise _err(path, f"expected an array of 2 integers [i, j], got {_type_name(value)}")
+    nx, ny = grid_res[0] + 1, grid_res[1] + 1
+    i = _grid_index(_int(value[0], f"{path}[0]"), nx, f"{path}[0]")
+    j = _grid_index(_int(value[1], f"{path}[1]"), ny, f"{path}[1]")
+    return j * nx + i
+
+
 def _parse_attachment(
     builder, kind: str, path: str, entry: dict, first: int, count: int, grid_res, attached: dict[int, str]
 ) -> None:
@@ -609,11 +744,7 @@ def _parse_attachment(
             raise _err(sel_path, f"particle {p} out of range: the cloth has {count} particles")
         particles = [p]
     elif selector == "grid_vertex":
-        if not isinstance(value, list) or len(value) != 2:
-            raise _err(sel_path, f"expected an array of 2 integers [i, j], got {_type_name(value)}")
-        i = _grid_index(_int(value[0], f"{sel_path}[0]"), nx, f"{sel_path}[0]")
-        j = _grid_index(_int(value[1], f"{sel_path}[1]"), ny, f"{sel_path}[1]")
-        particles = [j * nx + i]
+        particles = [_grid_vertex(value, sel_path, grid_res)]
     elif selector == "grid_row":
         j = _grid_index(_int(value, sel_path), ny, sel_path)
         particles = [j * nx + i for i in range(nx)]
@@ -764,3 +895,135 @@ def _parse_rigid_motion(value: Any, path: str) -> list:
             )
         keys.append((t, _vector(key[1], f"{kp}[1]"), q))
     return keys
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Tasks: [control] and [estimate]. Each names its run's choices; the task modules (warpcloth.tasks) run them.
+
+CONTROLLERS = ("open-loop", "mlp")
+"""Controllers of a ``[control]`` task."""
+OPEN_LOOP_OPTIMIZERS = ("gauss-newton", "lbfgs")
+"""Optimisers of an open-loop ``[control]`` task (Gauss-Newton needs a centre-of-mass target)."""
+ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
+"""Optimisers of an ``[estimate]`` task."""
+MATERIAL_PARTS = ("density", "stretching", "bending")
+"""The parts of a material an ``[estimate]`` task may free."""
+
+
+def _choice(value: Any, path: str, choices: tuple[str, ...]) -> str:
+    value = _str(value, path)
+    if value not in choices:
+        raise _err(path, f"unknown value {value!r}; one of: {', '.join(choices)}")
+    return value
+
+
+def _steps_within(table: dict, path: str, sim_steps: int) -> int:
+    return _int(table.get("steps", sim_steps), f"{path}.steps", min_value=1)
+
+
+def _parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int, grid_res, attached: dict[int, str],
+                   base_dir: Path) -> ControlSpec:
+    keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "controller",
+            "optimizer", "iters")
+    _check_keys(table, "control", keys, required=("interval", "intervals", "loss"))
+    if ("particles" in table) == ("grid_vertices" in table):
+        raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
+    key = "particles" if "particles" in table else "grid_vertices"
+    values = table[key]
+    if not isinstance(values, list) or not values:
+        raise _err(f"control.{key}", f"expected a non-empty array, got {_type_name(values)}")
+    particles = []
+    for k, value in enumerate(values):
+        item = f"control.{key}[{k}]"
+        if key == "particles":
+            p = _int(value, item, min_value=0)
+            if p >= count:
+                raise _err(item, f"particle {p} out of range: the cloth has {count} particles")
+        else:
+            if grid_res is None:
+                raise _err(f"control.{key}", "needs a grid cloth (cloth.grid)")
+            p = _grid_vertex(value, item, grid_res)
+        if p in particles:
+            raise _err(item, f"particle {p} is pushed twice")
+        if attached.get(p, "").startswith("pins"):
+            raise _err(item, f"particle {p} is pinned by {attached[p]}: a push on it would do nothing")
+        particles.append(p)
+
+    interval = _float(table["interval"], "control.interval", min_value=0.0, strict=True)
+    interval_steps = round(interval / dt)
+    if interval_steps < 1 or abs(interval_steps * dt - interval) > 1e-9 * interval:
+        raise _err("control.interval", f"{interval:g} s is not a whole number of sim.dt = {dt:g} s steps")
+    intervals = _int(table["intervals"], "control.intervals", min_value=1)
+    steps = _steps_within(table, "control", sim_steps)
+    if intervals * interval_steps > steps:
+        raise _err("control.intervals", f"{intervals} pushes of {interval_steps} steps outlast the horizon of "
+                                        f"{steps} steps")
+
+    loss = _table(table["loss"], "control.loss")
+    _check_keys(loss, "control.loss", ("com", "positions"))
+    if len(loss) != 1:
+        raise _err("control.loss", "give exactly one of 'com' (a centre-of-mass target [m]) and 'positions' (an OBJ "
+                                   "file of every particle's target)")
+    target_com = target_positions = None
+    if "com" in loss:
+        target_com = _vector(loss["com"], "control.loss.com")
+    else:
+        file = base_dir / _str(loss["positions"], "control.loss.positions")
+        with _Context("control.loss.positions"):
+            if not file.is_file():
+                raise ValueError(f"file not found: {file}")
+            target_positions = mesh_io.load_obj(file, validate=False).positions
+        if len(target_positions) != count:
+            raise _err("control.loss.positions", f"{file.name} has {len(target_positions)} vertices, the cloth has "
+                                                 f"{count}")
+        if not np.all(np.isfinite(target_positions)):
+            raise _err("control.loss.positions", f"{file.name} has non-finite positions")
+    regularizer = _float(table.get("regularizer", 0.0), "control.regularizer", min_value=0.0)
+    controller = _choice(table.get("controller", "open-loop"), "control.controller", CONTROLLERS)
+    default = "gauss-newton" if target_com is not None else "lbfgs"
+    optimizer = _choice(table.get("optimizer", default), "control.optimizer", OPEN_LOOP_OPTIMIZERS)
+    if optimizer == "gauss-newton" and target_com is None:
+        raise _err("control.optimizer", "gauss-newton fits a centre-of-mass target (control.loss.com); use lbfgs "
+                                        "with target positions")
+    iters = _int(table.get("iters", 50 if controller == "open-loop" else 100), "control.iters", min_value=1)
+    return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
+                       intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,
+                       regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters)
+
+
+def _parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _materials.Material,
+                    base_dir: Path) -> EstimateSpec:
+    keys = ("targets", "frame_stride", "steps", "start", "free", "optimizer", "iters")
+    _check_keys(table, "estimate", keys)
+    frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
+    steps = _steps_within(table, "estimate", sim_steps)
+    if steps % frame_stride:
+        raise _err("estimate.frame_stride", f"the {steps} steps compared are not a whole number of frames of "
+                                            f"{frame_stride} steps")
+    targets = source = None
+    if "targets" in table:
+        directory = base_dir / _str(table["targets"], "estimate.targets")
+        with _Context("estimate.targets"):
+            targets = mesh_io.load_obj_sequence(mesh_io.obj_sequence_files(directory))
+        source = str(directory)
+        if targets[0].shape[0] != count:
+            raise _err("estimate.targets", f"its frames have {targets[0].shape[0]} vertices, the cloth has {count}")
+        need = steps // frame_stride + 1
+        if len(targets) < need:
+            raise _err("estimate.targets", f"{steps} steps compare {need} frames (frame 0 included) every "
+                                           f"{frame_stride} steps, but {directory} holds {len(targets)}")
+    thicken = cloth_material.thicken
+    if "start" in table:
+        start = _parse_material(table["start"], "estimate.start", thicken, base_dir)
+    else:  # the seed's start: the mean of 8 measured fabrics
+        start = _materials.mean_material(_materials.SEED_INITIAL_GUESS_NAMES, thicken=thicken)
+    free = table.get("free", list(MATERIAL_PARTS))
+    if not isinstance(free, list) or not free:
+        raise _err("estimate.free", f"expected a non-empty array of {', '.join(MATERIAL_PARTS)}")
+    free = tuple(_choice(v, f"estimate.free[{k}]", MATERIAL_PARTS) for k, v in enumerate(free))
+    if len(set(free)) != len(free):
+        raise _err("estimate.free", "names a part twice")
+    optimizer = _choice(table.get("optimizer", "lbfgs"), "estimate.optimizer", ESTIMATION_OPTIMIZERS)
+    iters = _int(table.get("iters", 100), "estimate.iters", min_value=1)
+    return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
+                        free=free, optimizer=optimizer, iters=iters)

@@ -11,12 +11,11 @@ come from Warp's tape through the whole rollout.
 from __future__ import annotations
 
 import math
-import re
+import os
 import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -31,6 +30,7 @@ from warpcloth.materials import (
     STRETCHING_SHAPE,
 )
 from warpcloth.progress import progress_bar
+from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, load_scene
 from warpcloth.tasks.optim import adam, lbfgs
 from warpcloth.tasks.scenes import THICKEN
 
@@ -46,32 +46,6 @@ FRAME_STRIDE = 2
 def initial_guess() -> wc.Material:
     """The seed's start point: the element-wise mean of 8 of the 10 measured fabrics (SPEC §1.5)."""
     return wc.mean_material(SEED_INITIAL_GUESS_NAMES, thicken=THICKEN)
-
-
-def target_files(directory: str | Path) -> list[Path]:
-    """The .obj files of a target sequence in frame order (frame 0 first: the start shape): sorted by name with
-    digit runs compared as numbers, so 2.obj comes before 10.obj."""
-    if not Path(directory).is_dir():
-        raise ValueError(f"target directory {str(directory)!r} does not exist")
-    files = sorted(Path(directory).glob("*.obj"),
-                   key=lambda f: [(0, int(part), "") if part.isdigit() else (1, 0, part)
-                                  for part in re.split(r"(\d+)", f.name)])
-    if len(files) < 2:
-        raise ValueError(f"target directory {str(directory)!r} holds {len(files)} .obj files; need a sequence of >= 2")
-    return files
-
-
-def load_target_sequence(files: Sequence[Path]) -> list[np.ndarray]:
-    """Vertex positions (n, 3) [m] of each frame file."""
-    frames = [wc.load_obj(f, validate=False).positions for f in files]
-    for f, x in zip(files, frames):
-        if x.shape != frames[0].shape:
-            raise ValueError(f"target frame {f.name} has {len(x)} vertices, frame 0 has {len(frames[0])}")
-        bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
-        if bad.size:
-            raise ValueError(f"target frame {f.name}: vertex {int(bad[0])} has a non-finite position "
-                             f"{x[bad[0]].tolist()}")
-    return frames
 
 
 # -- parameterisation ------------------------------------------------------------------------------------------------
@@ -274,8 +248,18 @@ class MultiMotionFit:
         return 100.0 * math.sqrt(self.loss(m))
 
 
+def free_mask(free: Sequence[str]) -> np.ndarray:
+    """Which of the N_PARAMS entries of theta (density, stretching, bending) the named parts free."""
+    ns = STRETCHING_SHAPE[0] * STRETCHING_SHAPE[1]
+    parts = {"density": [0], "stretching": range(1, 1 + ns), "bending": range(1 + ns, N_PARAMS)}
+    mask = np.zeros(N_PARAMS, dtype=bool)
+    for name in free:
+        mask[list(parts[name])] = True
+    return mask
+
+
 # -- one estimation --------------------------------------------------------------------------------------------------
-OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
+OPTIMIZERS = ESTIMATION_OPTIMIZERS
 
 
 @dataclass
@@ -299,18 +283,26 @@ class EstimationResult:
 
 
 def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
-                      optimizer: str = "lbfgs", iters: int = 60, progress: bool = False) -> EstimationResult:
+                      optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
+                      progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
     Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
     SGD with momentum 0.9 on the seed's scaled units, lr 0.1 for density and stretching and 10 for bending, with the
     growing-horizon curriculum: 2 steps more each time the loss drops under 1e-4 m^2). ``iters`` counts forward +
-    backward evaluations.
+    backward evaluations. ``free`` names the parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the
+    others keep ``initial``'s values.
     """
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if optimizer == "seed-sgd" and isinstance(fit, MultiMotionFit):
         raise ValueError("the seed-sgd optimiser grows one motion's horizon; use lbfgs or adam with a MultiMotionFit")
+    unknown = [p for p in free if p not in MATERIAL_PARTS]
+    if unknown or not free:
+        raise ValueError(f"free must name some of {', '.join(MATERIAL_PARTS)}, got {list(free)}")
+    if optimizer == "seed-sgd" and set(free) != set(MATERIAL_PARTS):
+        raise ValueError("the seed-sgd optimiser fits the whole material; use lbfgs or adam to free only some of it")
+    mask = free_mask(free)
     if int(iters) != iters or iters < 1:
         raise ValueError(f"iters must be a positive integer, got {iters!r}")
     initial = initial or initial_guess()
@@ -338,12 +330,20 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         record(loss, steps)
         return loss, param.chain(theta, gd, gs, gb)
 
+    def objective_free(theta_free: np.ndarray) -> tuple[float, np.ndarray]:  # theta = 0 (the start) where fixed
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = theta_free
+        loss, g = objective(theta)
+        return loss, g[mask]
+
     seconds0 = fit.seconds
-    theta0 = np.zeros(N_PARAMS)
+    theta0 = np.zeros(int(mask.sum()))
     if optimizer == "lbfgs":
-        theta = lbfgs(objective, theta0, iters=iters)
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = lbfgs(objective_free, theta0, iters=iters)
     elif optimizer == "adam":
-        theta = adam(objective, theta0, iters=iters)
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = adam(objective_free, theta0, iters=iters)
     else:
         theta = _seed_sgd(fit, param, objective, iters)
     result.seconds = fit.seconds - seconds0
@@ -353,6 +353,75 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     result.simulation_error_pct = fit.simulation_error(result.material)
     result.initial_simulation_error_pct = fit.simulation_error(initial)
     return result
+
+
+@dataclass
+class EstimationTask:
+    """A material estimation: the fit (a scene and its target trajectory), the material it starts from, the parts it
+    frees and how it optimises. ``run`` fits; ``from_scene`` reads a scene's ``[estimate]`` table.
+
+    Attributes:
+        fit: The loss (a TrajectoryFit, or a MultiMotionFit of several).
+        start: The material the fit starts from (default: the seed's mean of 8 fabrics).
+        free: The parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``).
+        optimizer: ``"lbfgs"``, ``"adam"`` or ``"seed-sgd"``.
+        iters: Forward + backward evaluations.
+        truth: The true material when the targets were simulated with one (for parameter errors), else None.
+        source: Where the targets came from, in words.
+    """
+
+    fit: TrajectoryFit | MultiMotionFit
+    start: wc.Material = field(default_factory=initial_guess)
+    free: tuple[str, ...] = MATERIAL_PARTS
+    optimizer: str = "lbfgs"
+    iters: int = 100
+    truth: wc.Material | None = None
+    source: str = ""
+
+    @classmethod
+    def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None, truth: wc.Material | None = None,
+                   steps: int | None = None) -> EstimationTask:
+        """The task of a scene's ``[estimate]`` table (a scene name, a path or a loaded Scene).
+
+        Args:
+            scene: An embedded scene name (``warpcloth scenes``), a .toml path, or a Scene.
+            device, dtype: Of the model (Warp's default device, float32).
+            truth: The material that makes the targets, instead of the scene's cloth material (only for a scene
+                without recorded targets).
+            steps: Steps compared instead of the table's (a whole number of frames).
+
+        Raises:
+            ValueError: for a scene without an ``[estimate]`` table, a ``truth`` with recorded targets, or steps that
+                the targets do not cover.
+        """
+        scene = scene if isinstance(scene, Scene) else load_scene(scene)
+        spec = scene.estimate
+        if spec is None:
+            raise ValueError(f"scene {scene.name!r} ({scene.source}) has no [estimate] table")
+        steps = steps or spec.steps
+        model = scene.finalize(device=device, requires_grad=True, dtype=dtype)
+        if spec.targets is not None:
+            if truth is not None:
+                raise ValueError(f"scene {scene.name!r} fits recorded targets ({spec.targets_source}); a truth "
+                                 "material only makes the targets of a scene without them")
+            targets, source = spec.targets, spec.targets_source
+        else:
+            truth = truth or scene.cloth_material
+            if steps % spec.frame_stride:  # checked here too, before simulating the targets
+                raise ValueError(f"steps ({steps}) must be a multiple of frame_stride ({spec.frame_stride})")
+            targets = TrajectoryFit.simulate_targets(model, truth, steps=steps, frame_stride=spec.frame_stride,
+                                                     dt=scene.dt)
+            source = f"{truth.name} simulated by warpcloth"
+        fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
+                            options=scene.solver_options)
+        return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters, truth=truth,
+                   source=source)
+
+    def run(self, *, optimizer: str | None = None, iters: int | None = None, progress: bool = False
+            ) -> EstimationResult:
+        """:func:`estimate_material` with the task's settings (``optimizer``, ``iters`` override them)."""
+        return estimate_material(self.fit, initial=self.start, optimizer=optimizer or self.optimizer,
+                                 iters=iters or self.iters, free=self.free, progress=progress)
 
 
 def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:

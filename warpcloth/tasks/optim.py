@@ -32,11 +32,12 @@ def adam(f: Objective, theta: np.ndarray, *, iters: int, lr: float = 0.05, betas
 
 
 def lbfgs(f: Objective, theta: np.ndarray, *, iters: int, memory: int = 10, max_step: float = 0.5,
-          callback=None) -> np.ndarray:
+          callback=None, first: tuple[float, np.ndarray] | None = None) -> np.ndarray:
     """L-BFGS (Nocedal and Wright, alg. 7.4) with a backtracking line search that accepts any decrease; ``iters``
-    counts evaluations of f (one forward + backward each). ``max_step`` bounds a step's largest change of any entry of
-    theta. Assumes the loss's minimum is near 0 (true of fitting losses) to scale the first step."""
-    loss, g = f(theta)
+    counts evaluations of f (one forward + backward each), ``first`` (the loss and gradient at theta, if already
+    known) among them. ``max_step`` bounds a step's largest change of any entry of theta. Assumes the loss's minimum is
+    near 0 (true of fitting losses) to scale the first step."""
+    loss, g = f(theta) if first is None else first
     evals = 1
     if callback:
         callback(evals, loss, theta)

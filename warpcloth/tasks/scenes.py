@@ -3,7 +3,7 @@
 * ``hanging_cloth``: material estimation (SPEC §5(b)), a 1 m cloth held at its two top corners by soft handles in a
   5 m/s wind, either a flat grid made in code or the seed's demo_wind.obj (or any OBJ with material coordinates).
 * ``basket_scene``: motion control (SPEC §5(c)), a 0.7 m cloth flat above the ground, the seed's basket and the wall
-  in front of it.
+  in front of it (the embedded scene ``basket-throw``, whose ``[control]`` table is the task).
 
 Time steps and horizons belong to the tasks (``warpcloth.tasks.estimation``, ``warpcloth.tasks.throw``).
 """
@@ -26,16 +26,11 @@ __all__ = [
     "GRID_TO_YZ",
     "SEED_HANDLES",
     "THICKEN",
-    "THROW_CELLS",
-    "THROW_CORNERS",
-    "THROW_SIZE",
     "WIND",
     "basket_scene",
-    "basket_vertices_triangles",
     "cloth_dropped_on_sphere",
     "hanging_cloth",
     "shaken_cloth",
-    "wall_vertices_triangles",
 ]
 
 GRAVITY = (0.0, 0.0, -9.8)
@@ -128,42 +123,11 @@ def shaken_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, dty
 
 
 # -- the throw into a basket (motion control) ------------------------------------------------------------------------
-THROW_CELLS = 8
-"""Cells per side of the thrown cloth."""
-THROW_SIZE = 0.7
-"""Side of the thrown cloth [m]."""
-THROW_CORNERS = (0, THROW_CELLS, THROW_CELLS * (THROW_CELLS + 1), THROW_CELLS * (THROW_CELLS + 1) + THROW_CELLS)
-"""Corner particles of the thrown cloth's grid (row-major, x fastest)."""
-
-
-def basket_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
-    """The seed's bucket.obj: an open-top box 0.98 x 0.98 m centred at the origin, z in [-0.7, 0.7].
-
-    Returns:
-        Vertices (8, 3) [m] and triangles (10, 3), facing inwards.
-    """
-    h, lo, hi = 0.49, -0.7, 0.7
-    v = np.array([[x, y, z] for z in (lo, hi) for y in (-h, h) for x in (-h, h)])  # index = 4*z + 2*y + x
-    quads = [(0, 2, 3, 1), (0, 1, 5, 4), (1, 3, 7, 5), (3, 2, 6, 7), (2, 0, 4, 6)]  # bottom, 4 walls (inward)
-    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
-    return v, np.array(tris, dtype=np.int32)
-
-
-def wall_vertices_triangles() -> tuple[np.ndarray, np.ndarray]:
-    """The seed's bucketobs.obj: a vertical plate at x = -0.562, y in [-0.615, 0.615], z in [0.598, 1.828].
-
-    Returns:
-        Vertices (4, 3) [m] and triangles (2, 3).
-    """
-    x = -0.562206
-    v = np.array([[x, -0.615245, 0.597941], [x, 0.615245, 0.597941], [x, 0.615245, 1.828432],
-                  [x, -0.615245, 1.828432]])
-    return v, np.array([(0, 1, 2), (0, 2, 3)], dtype=np.int32)
-
-
 def basket_scene(device=None, *, dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
-    """The seed's throw scene: a 0.7 m gray-interlock cloth (8x8 cells, thicken 2) flat at z = 2 over
-    x in [-3.7, -3], y in [0, 0.7]; the basket and the wall; gravity; no wind, no handles.
+    """The seed's throw scene, the embedded scene ``basket-throw``: a 0.7 m gray-interlock cloth (8x8 cells,
+    thicken 2) flat at z = 2 over x in [-3.7, -3], y in [0, 0.7]; the seed's basket (an open-top box 0.98 x 0.98 m
+    centred at the origin, z in [-0.7, 0.7]) and the wall in front of it (a plate at x = -0.562); gravity; no wind,
+    no handles.
 
     Args:
         device: Warp device (default: Warp's default device).
@@ -173,9 +137,4 @@ def basket_scene(device=None, *, dtype=wp.float32, requires_grad: bool = True) -
     Returns:
         The finalized model (obstacles ``basket`` and ``wall``).
     """
-    b = wc.ModelBuilder(gravity=GRAVITY)
-    b.add_cloth_grid((THROW_CELLS, THROW_CELLS), (THROW_SIZE, THROW_SIZE),
-                     material=wc.preset("gray-interlock", thicken=THICKEN), pos=(-3.0 - THROW_SIZE, 0.0, 2.0))
-    b.add_obstacle_mesh(*basket_vertices_triangles(), name="basket")
-    b.add_obstacle_mesh(*wall_vertices_triangles(), name="wall")
-    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+    return wc.load_scene("basket-throw").finalize(device, requires_grad=requires_grad, dtype=dtype)

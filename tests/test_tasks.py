@@ -1,0 +1,281 @@
+"""Tasks as data: a scene's [control] and [estimate] tables, the task objects that run them, and the command line.
+
+The seed's two tasks are embedded scenes (basket-throw, material-estimation) and must give what the code-built
+scenes gave; a user's scene gets every key checked before anything is simulated, and its tasks' gradients match
+central differences for every parameter a user can optimise (the pushes).
+"""
+
+import json
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcloth as wc
+from warpcloth.cli import main
+from warpcloth.tasks import estimation as E
+from warpcloth.tasks import scenes as S
+from warpcloth.tasks import throw as C
+from warpcloth.tasks.control import ControlTask, optimize_open_loop
+
+# A small hanging sheet: 4x4 cells, two soft handles, no contact; pushes on two lower corners.
+SMALL = """
+name = "small"
+[sim]
+dt = 0.02
+steps = 12
+[solver]
+cg_tol = 1e-12
+[cloth]
+grid = {{ res = [4, 4], size = [0.5, 0.5] }}
+rot_deg = [90.0, 0.0, 90.0]
+material = "gray-interlock"
+thicken = 2.0
+[[handles]]
+grid_vertex = [0, -1]
+[[handles]]
+grid_vertex = [-1, -1]
+{extra}
+"""
+CONTROL = """
+[control]
+grid_vertices = [[0, 0], [-1, 0]]
+interval = 0.1
+intervals = 2
+loss = {loss}
+regularizer = {reg}
+{more}
+"""
+
+
+def small_scene(tmp_path, extra: str = "", name: str = "small.toml"):
+    path = tmp_path / name
+    path.write_text(SMALL.format(extra=extra))
+    return path
+
+
+def write_obj(path, x: np.ndarray) -> None:
+    rows = np.asarray(x, dtype=np.float64).tolist()
+    path.write_text("".join(f"v {a!r} {b!r} {c!r}\n" for a, b, c in rows) + "f 1 2 3\n")
+
+
+def known_final(tmp_path) -> np.ndarray:
+    """Where the small sheet ends under known pushes on its two lower corners: a target reachable exactly."""
+    model = wc.load_scene(small_scene(tmp_path, name="base.toml")).finalize("cpu", requires_grad=True)
+    task = ControlTask(model, 0.02, particles=(0, 4), interval_steps=5, intervals=2, steps=12,
+                       target_positions=model.particle_x0.numpy())
+    return task.trajectory(np.tile([3.0, 1.0, -2.0], 4))[-1].astype(np.float64)
+
+
+def positions_target(tmp_path) -> str:
+    write_obj(tmp_path / "target.obj", known_final(tmp_path))
+    return '{ positions = "target.obj" }'
+
+
+def com_target(tmp_path) -> str:
+    return f"{{ com = {known_final(tmp_path).mean(axis=0).tolist()!r} }}"
+
+
+# -- the seed's tasks as embedded scenes ------------------------------------------------------------------------------
+def test_the_seeds_tasks_are_embedded_scenes():
+    assert {"basket-throw": ("control",), "material-estimation": ("estimate",)}.items() <= {
+        name: wc.load_scene(name).tasks for name in wc.SCENE_NAMES}.items()
+
+
+def test_the_estimation_scene_is_the_seeds_hanging_cloth():
+    truth = wc.preset("gray-interlock", thicken=2)
+    task = E.EstimationTask.from_scene("material-estimation", device="cpu")
+    model = S.hanging_cloth(truth, device="cpu")
+    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth))
+    assert task.fit.steps == E.STEPS and task.fit.frame_stride == E.FRAME_STRIDE and task.fit.sim.dt == E.DT
+    for a, b in zip(task.fit.targets, fit.targets):
+        np.testing.assert_array_equal(a.numpy(), b.numpy())
+    start = E.initial_guess()
+    assert task.fit.loss_and_grad(start)[0] == fit.loss_and_grad(start)[0]  # bitwise: the same scene and solver
+    assert task.start.name == start.name and np.array_equal(task.start.stretching, start.stretching)
+
+
+def test_the_throw_task_is_the_basket_scenes_control_table():
+    task = ControlTask.from_scene("basket-throw", device="cpu", steps=60)
+    throw = C.ThrowTask(S.basket_scene("cpu"), steps=60)
+    assert task.particles == C.CORNERS == (0, 8, 72, 80) and task.n_params == C.N_PARAMS == 36
+    params = np.random.default_rng(0).normal(scale=3.0, size=36)
+    a, b = task.evaluate(params), throw.evaluate(params)
+    assert a.loss == b.loss and np.array_equal(a.grad, b.grad)
+
+
+# -- control tasks on a user's scene ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["com", "positions"])
+def test_control_gradient_matches_central_differences_for_every_push(tmp_path, kind):
+    loss = "{ com = [0.1, 0.0, -0.3] }" if kind == "com" else positions_target(tmp_path)
+    path = small_scene(tmp_path, CONTROL.format(loss=loss, reg=0.01, more=""))
+    task = ControlTask.from_scene(path, device="cpu", dtype=wp.float64)
+    assert task.n_params == 12 and task.steps == 12 and task.interval_steps == 5
+    params = np.random.default_rng(1).normal(scale=2.0, size=task.n_params)
+    value, grad, _ = task.loss_and_grad(params)
+    eps = 1e-5
+    for k in range(task.n_params):  # every push; both intervals act within the 12-step horizon
+        e = np.zeros(task.n_params)
+        e[k] = eps
+        fd = (task.loss_and_grad(params + e)[0] - task.loss_and_grad(params - e)[0]) / (2 * eps)
+        assert grad[k] == pytest.approx(fd, rel=1e-5, abs=1e-12), k
+    assert np.all(grad != 0.0)
+
+
+def test_the_open_loop_fits_target_positions_with_lbfgs(tmp_path):
+    path = small_scene(tmp_path, CONTROL.format(loss=positions_target(tmp_path), reg=0.0, more="iters = 6"))
+    task = ControlTask.from_scene(path, device="cpu")
+    assert task.optimizer == "lbfgs" and task.iters == 6
+    result = task.run()
+    assert len(result.errors_pct) == 6 and result.errors_pct[0] > 90.0  # zero pushes: it only sags
+    assert result.error_pct < 0.3 * result.errors_pct[0]
+    assert result.params.shape == (2, 2, 3)
+
+
+def test_the_mlp_controller_takes_a_scenes_task(tmp_path):
+    pytest.importorskip("torch")
+    path = small_scene(tmp_path, CONTROL.format(loss=positions_target(tmp_path), reg=0.01, more=""))
+    task = ControlTask.from_scene(path, device="cpu")
+    result = task.run(controller="mlp", iters=3, lr=1e-2)
+    assert len(result.errors_pct) == 3 and result.errors_pct[-1] < result.errors_pct[0]
+    assert result.params.shape == (2, 2, 3)
+
+
+def test_gauss_newton_with_a_regulariser_keeps_pushes_small(tmp_path):
+    # the com target is reachable; the regulariser (about a tenth of |J|^2 here) trades error for smaller pushes
+    norms = []
+    for reg in (0.0, 3e-5):
+        path = small_scene(tmp_path, CONTROL.format(loss=com_target(tmp_path), reg=reg, more=""))
+        result = optimize_open_loop(ControlTask.from_scene(path, device="cpu"), iters=12)
+        assert result.error_pct < 20.0
+        norms.append(np.linalg.norm(result.params))
+    assert norms[1] < 0.9 * norms[0]
+
+
+# -- estimation tasks on a user's scene ------------------------------------------------------------------------------
+def test_estimate_frees_only_what_the_scene_says(tmp_path):
+    path = small_scene(tmp_path, '[estimate]\nfree = ["density"]\nstart = "white-swim-solid"\niters = 4\n')
+    task = E.EstimationTask.from_scene(path, device="cpu")
+    result = task.run()
+    start = wc.preset("white-swim-solid", thicken=2)
+    assert np.array_equal(result.material.stretching, start.stretching)
+    assert np.array_equal(result.material.bending, start.bending)
+    assert result.material.density != start.density and min(result.losses) < result.losses[0]
+
+
+def test_estimate_fits_recorded_frames(tmp_path):
+    start = E.initial_guess()  # the default start; the truth is 1.5 times as heavy
+    truth = wc.Material(density=1.5 * start.density, stretching=start.stretching, bending=start.bending, thicken=2)
+    model = wc.load_scene(small_scene(tmp_path, name="base.toml")).finalize("cpu", requires_grad=True)
+    frames = E.TrajectoryFit.simulate_targets(model, truth, steps=12, frame_stride=3, dt=0.02)
+    (tmp_path / "frames").mkdir()
+    for k, x in enumerate(frames):
+        write_obj(tmp_path / "frames" / f"{k}.obj", x)
+    path = small_scene(tmp_path, '[estimate]\ntargets = "frames"\nframe_stride = 3\nfree = ["density"]\niters = 5\n')
+    task = E.EstimationTask.from_scene(path, device="cpu")
+    assert task.truth is None and len(task.fit.targets) == 5
+    result = task.run()
+    error = abs(result.material.density - truth.density) / truth.density
+    assert error < 0.5 * abs(task.start.density - truth.density) / truth.density
+    with pytest.raises(ValueError, match="recorded targets"):
+        E.EstimationTask.from_scene(path, device="cpu", truth=truth)
+
+
+# -- every key checked, before anything is simulated -----------------------------------------------------------------
+BAD_CONTROL = [
+    ("grid_vertices = [[0, 0]]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nspeed = 1",
+     r"control.speed: unknown key"),
+    ("particles = [0, 25]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }",
+     r"control.particles\[1\]: particle 25 out of range: the cloth has 25 particles"),
+    ("grid_vertices = [[0, 5]]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }",
+     r"control.grid_vertices\[0\]\[1\]: index 5 out of range"),
+    ("particles = [3, 3]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }",
+     r"control.particles\[1\]: particle 3 is pushed twice"),
+    ("particles = [1]\ninterval = 0.03\nintervals = 2\nloss = { com = [0, 0, 0] }",
+     r"control.interval: 0.03 s is not a whole number of sim.dt = 0.02 s steps"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 3\nloss = { com = [0, 0, 0] }",
+     r"control.intervals: 3 pushes of 5 steps outlast the horizon of 12 steps"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0] }",
+     r"control.loss.com: expected an array of 3 numbers"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = {}", r"control.loss: give exactly one of 'com'"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { positions = 'few.obj' }",
+     r"control.loss.positions: few.obj has 3 vertices, the cloth has 25"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\noptimizer = 'newton'",
+     r"control.optimizer: unknown value 'newton'; one of: gauss-newton, lbfgs"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nregularizer = -1",
+     r"control.regularizer: must be >= 0"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\ncontroller = 'ppo'",
+     r"control.controller: unknown value 'ppo'; one of: open-loop, mlp"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\niters = 'many'",
+     r"control.iters: expected an integer, got string"),
+    ("particles = [5]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }",
+     r"control.particles\[0\]: particle 5 is pinned by pins\[0\]"),
+]
+BAD_ESTIMATE = [
+    ("free = ['density', 'wind']", r"estimate.free\[1\]: unknown value 'wind'; one of: density, stretching, bending"),
+    ("free = ['density', 'density']", r"estimate.free: names a part twice"),
+    ("free = []", r"estimate.free: expected a non-empty array"),
+    ("frame_stride = 5", r"estimate.frame_stride: the 12 steps compared are not a whole number of frames of 5"),
+    ("targets = 'missing'", r"estimate.targets: sequence directory .* does not exist"),
+    ("targets = 'few'", r"estimate.targets: its frames have 3 vertices, the cloth has 25"),
+    ("targets = 'short'\nframe_stride = 3", r"estimate.targets: 12 steps compare 5 frames .* holds 2"),
+    ("optimizer = 'newton'", r"estimate.optimizer: unknown value 'newton'"),
+    ("start = 'silk'", r"estimate.start: unknown"),
+    ("iters = 0", r"estimate.iters: must be >= 1"),
+    ("horizon = 3", r"estimate.horizon: unknown key"),
+]
+
+
+@pytest.mark.parametrize("table,message", [("[control]\n" + t, m) for t, m in BAD_CONTROL]
+                         + [("[estimate]\n" + t, m) for t, m in BAD_ESTIMATE])
+def test_bad_task_keys_are_named(tmp_path, table, message):
+    write_obj(tmp_path / "few.obj", np.eye(3))
+    for name, count in (("few", 3), ("short", 25)):
+        (tmp_path / name).mkdir()
+        for k in range(2):
+            write_obj(tmp_path / name / f"{k}.obj", np.zeros((count, 3)))
+    pin = "[[pins]]\nparticle = 5\n" if "particles = [5]" in table else ""
+    with pytest.raises(ValueError, match=message):
+        wc.load_scene(small_scene(tmp_path, pin + table))
+
+
+def test_gauss_newton_needs_a_com_target(tmp_path):
+    write_obj(tmp_path / "t.obj", np.zeros((25, 3)))
+    table = "[control]\nparticles = [1]\ninterval = 0.1\nintervals = 2\nloss = { positions = 't.obj' }\n"
+    with pytest.raises(ValueError, match="control.optimizer: gauss-newton fits a centre-of-mass target"):
+        wc.load_scene(small_scene(tmp_path, table + "optimizer = 'gauss-newton'\n"))
+
+
+def test_a_scene_without_the_task_is_refused(tmp_path, capsys):
+    with pytest.raises(ValueError, match=r"scene 'small' .* has no \[control\] table"):
+        ControlTask.from_scene(small_scene(tmp_path))
+    with pytest.raises(ValueError, match=r"has no \[estimate\] table"):
+        E.EstimationTask.from_scene("hanging-wind")
+    assert main(["control", str(small_scene(tmp_path))]) == 2
+    assert "has no [control] table" in capsys.readouterr().err
+
+
+# -- the command line ------------------------------------------------------------------------------------------------
+def test_cli_runs_a_scenes_tasks(tmp_path, capsys):
+    path = small_scene(tmp_path, CONTROL.format(loss="{ com = [0.1, 0.0, -0.3] }", reg=0.0, more="")
+                       + '[estimate]\nfree = ["density"]\n')
+    out = tmp_path / "c.json"
+    assert main(["control", str(path), "--iters", "4", "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["scene"] == "small" and len(record["errors_pct"]) == 4 and np.shape(record["params"]) == (2, 2, 3)
+    assert "seed (published)" not in capsys.readouterr().out  # the seed's figures are for its own throw only
+    out = tmp_path / "e.json"
+    assert main(["estimate", str(path), "--iters", "2", "--material", "royal-target", "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["free"] == ["density"] and len(record["losses"]) == 2 and "density_err_pct" in record
+    assert "royal-target simulated by warpcloth" in record["source"]
+    assert main(["estimate", str(path), "--target", str(tmp_path)]) == 2
+    assert "give a scene or --target, not both" in capsys.readouterr().err
+
+
+def test_cli_lists_the_scenes_tasks(capsys):
+    assert main(["scenes"]) == 0
+    lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}
+    assert lines["basket-throw"].split()[1] == "control"
+    assert lines["material-estimation"].split()[1] == "estimate"
+    assert lines["free-fall"].split()[1] == "-"

@@ -1,0 +1,532 @@
+"""Motion control: find the pushes that move a cloth where a loss says (the seed's throw into a basket, SPEC §5(c),
+or any scene's ``[control]`` table).
+
+The control is a schedule of pushes: for each of the first ``intervals`` intervals of ``interval_steps`` steps, one
+push per controlled particle, applied every step of the interval as a force ``F = (M / k) p`` on each of the k
+particles, with M the cloth's mass. So ``p`` [m/s^2] is the acceleration k equal pushes give the whole cloth: on the
+seed's throw ``p = (0, 0, 9.8)`` on every corner holds the cloth up. (The seed adds a velocity increment to each
+corner every step, a corner acceleration; this is a fixed linear rescaling of it that puts the parameters on the
+scale of gravity.) The loss is taken at the horizon: ``1/2 |com_T - target|^2`` on the centre of mass (the vertex
+mean), or ``1/2 mean_i |x_i,T - target_i|^2`` on every particle, plus an optional ``regularizer * 1/2 |p|^2``.
+Gradients come from a checkpointed rollout (``wc.checkpointed_backward``), so long horizons back-propagate with
+O(sqrt(T)) stored states.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+import warpcloth as wc
+from warpcloth.kernels.losses import loss_kernels
+from warpcloth.progress import progress_bar
+from warpcloth.scene import CONTROLLERS, OPEN_LOOP_OPTIMIZERS, Scene, load_scene
+from warpcloth.tasks.optim import lbfgs
+
+
+@dataclass
+class Evaluation:
+    """One forward + backward simulation of a control task."""
+
+    loss: float
+    """The loss (the regulariser included), or the chosen centre-of-mass coordinate with ``component``."""
+    grad: np.ndarray
+    """d loss / d params, flat."""
+    com: np.ndarray
+    """The centre of mass (vertex mean) at the horizon (3,)."""
+    positions: np.ndarray
+    """Every particle's position at the horizon (n, 3)."""
+
+
+class ControlTask:
+    """Loss, gradient and trajectory of a cloth as functions of its pushes ``p[interval, particle, xyz]`` [m/s^2].
+
+    Args:
+        model: The scene's model (with gradients: ``requires_grad=True``).
+        dt: Time step [s].
+        particles: The pushed particles, in the order of the pushes.
+        interval_steps: Steps per push.
+        intervals: Pushes per particle: the first ``intervals * interval_steps`` steps are controlled (pushes that
+            begin at or after the horizon do nothing).
+        steps: The horizon [steps].
+        target_com: The centre of mass's target [m]; exactly one of it and ``target_positions``.
+        target_positions: Every particle's target [m], shape (particle_count, 3).
+        regularizer: Weight of ``1/2 |p|^2`` in the loss.
+        options: Solver options (default: SolverOptions()).
+        segment_steps: Checkpoint segment length (default sqrt(steps)).
+        controller, optimizer, iters: What :meth:`run` does when not told otherwise (a scene's choices).
+    """
+
+    def __init__(self, model: wc.Model, dt: float, *, particles, interval_steps: int, intervals: int, steps: int,
+                 target_com=None, target_positions=None, regularizer: float = 0.0,
+                 options: wc.SolverOptions | None = None, segment_steps: int | None = None,
+                 controller: str = "open-loop", optimizer: str | None = None, iters: int | None = None):
+        n = model.particle_count
+        self.particles = tuple(int(p) for p in particles)
+        if not self.particles or len(set(self.particles)) != len(self.particles):
+            raise ValueError(f"particles must be distinct particle indices, got {list(particles)}")
+        for p in self.particles:
+            if not 0 <= p < n:
+                raise ValueError(f"particles: particle {p} out of range for a model of {n} particles")
+        for name, value in (("interval_steps", interval_steps), ("intervals", intervals), ("steps", steps)):
+            if int(value) != value or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if (target_com is None) == (target_positions is None):
+            raise ValueError("give exactly one of target_com and target_positions")
+        if target_positions is not None:
+            target_positions = np.asarray(target_positions, dtype=np.float64)
+            if target_positions.shape != (n, 3) or not np.all(np.isfinite(target_positions)):
+                raise ValueError(f"target_positions must be finite, of shape ({n}, 3), got {target_positions.shape}")
+        if not (regularizer >= 0.0 and math.isfinite(regularizer)):
+            raise ValueError(f"regularizer must be finite and >= 0, got {regularizer!r}")
+        if controller not in CONTROLLERS:
+            raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        self.model, self.dt, self.steps = model, float(dt), int(steps)
+        self.interval_steps, self.intervals = int(interval_steps), int(intervals)
+        self.target_com = None if target_com is None else np.asarray(target_com, dtype=np.float64).reshape(3)
+        self.target_positions = target_positions
+        self.regularizer = float(regularizer)
+        self.segment_steps = segment_steps
+        self.controller = controller
+        self.optimizer = optimizer or ("gauss-newton" if self.target_com is not None else "lbfgs")
+        self.iters = iters
+        self.sim = wc.Simulator(model, dt, options=options)
+        self._kernels = loss_kernels(model.scalar)
+        device = model.device
+        self._particles = wp.array(self.particles, dtype=wp.int32, device=device)
+        self.push_mass = float(model.particle_mass().sum()) / len(self.particles)
+        """The mass one push accelerates: F = push_mass * p [kg]."""
+        if self.target_com is not None:
+            self._target_com = model.types.vec3(*self.target_com)
+        else:
+            self._target_positions = wp.array(target_positions, dtype=model.types.vec3, device=device)
+        self.x_initial = model.particle_x0.numpy().astype(np.float64)
+        self.com_initial = self.x_initial.mean(axis=0)
+        self.simulations = 0
+        self.seconds = 0.0
+
+    @classmethod
+    def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None,
+                   options: wc.SolverOptions | None = None, steps: int | None = None,
+                   segment_steps: int | None = None) -> ControlTask:
+        """The task of a scene's ``[control]`` table (a scene name, a path or a loaded Scene).
+
+        Args:
+            scene: An embedded scene name (``warpcloth scenes``), a .toml path, or a Scene.
+            device, dtype: Of the model (Warp's default device, float32).
+            options: Solver options instead of the scene's.
+            steps: A horizon instead of the scene's.
+            segment_steps: Checkpoint segment length.
+
+        Raises:
+            ValueError: for a scene without a ``[control]`` table (and as load_scene does).
+        """
+        scene = scene if isinstance(scene, Scene) else load_scene(scene)
+        spec = scene.control
+        if spec is None:
+            raise ValueError(f"scene {scene.name!r} ({scene.source}) has no [control] table")
+        model = scene.finalize(device=device, requires_grad=True, dtype=dtype)
+        return cls(model, scene.dt, particles=spec.particles, interval_steps=spec.interval_steps,
+                   intervals=spec.intervals, steps=steps or spec.steps, target_com=spec.target_com,
+                   target_positions=spec.target_positions, regularizer=spec.regularizer,
+                   options=options or scene.solver_options, segment_steps=segment_steps, controller=spec.controller,
+                   optimizer=spec.optimizer, iters=spec.iters)
+
+    @property
+    def n_params(self) -> int:
+        return self.intervals * len(self.particles) * 3
+
+    @property
+    def params_shape(self) -> tuple[int, int, int]:
+        return self.intervals, len(self.particles), 3
+
+    def error_pct(self, positions: np.ndarray) -> float:
+        """How far the cloth ends from its target, against how far it started, in %: ``|com_T - target| /
+        |com_0 - target|`` for a centre-of-mass target, the same ratio of RMS distances for target positions.
+        100 % ends as far as it started (on the seed's throw not "no better than doing nothing": with no pushes
+        the cloth drops outside the wall, with no floor to stop it, to z = -238 m after the 7 s: 5508 %)."""
+        positions = np.asarray(positions, dtype=np.float64)
+        if self.target_com is not None:
+            return 100.0 * float(np.linalg.norm(positions.mean(axis=0) - self.target_com)
+                                 / np.linalg.norm(self.com_initial - self.target_com))
+        return 100.0 * float(np.linalg.norm(positions - self.target_positions)
+                             / np.linalg.norm(self.x_initial - self.target_positions))
+
+    def _forces(self, push: wp.array) -> list[wp.array]:
+        forces = []
+        for s in range(self.intervals):
+            f = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
+                         requires_grad=True)
+            wp.launch(self._kernels.push_forces, len(self.particles),
+                      inputs=[push, s, self._particles, self.model.scalar(self.push_mass)], outputs=[f],
+                      device=self.model.device)
+            forces.append(f)
+        return forces
+
+    def _control_fn(self, forces: list[wp.array]):
+        base = self.model.control(requires_grad=False)
+        controls = [wc.Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
+                    for f in forces]
+
+        def control(i: int) -> wc.Control:
+            s = i // self.interval_steps
+            return controls[s] if s < self.intervals else base
+
+        return control
+
+    def _push_array(self, params: np.ndarray) -> wp.array:
+        params = np.asarray(params, dtype=np.float64).reshape(-1)
+        if params.shape != (self.n_params,) or not np.all(np.isfinite(params)):
+            raise ValueError(f"control parameters must be {self.n_params} finite numbers, got shape {params.shape}")
+        return wp.array(params.reshape(-1, 3), dtype=self.model.types.vec3, device=self.model.device,
+                        requires_grad=True)
+
+    def _loss_fn(self, component: int | None, final: dict):
+        model = self.model
+        com = wp.zeros(1, dtype=model.types.vec3, device=model.device, requires_grad=True)
+        n = model.particle_count
+
+        def loss(i: int, state: wc.State, out: wp.array) -> None:
+            if i != self.steps:
+                return
+            final["positions"] = state.particle_x.numpy().astype(np.float64)
+            if self.target_positions is not None:
+                wp.launch(self._kernels.squared_distance, n,
+                          inputs=[state.particle_x, self._target_positions, model.scalar(0.5 / n)], outputs=[out])
+                return
+            com.zero_()  # the loss squares the mean: accumulate the mean first, then square it
+            wp.launch(self._kernels.centre_of_mass, n, inputs=[state.particle_x, model.scalar(1.0 / n)],
+                      outputs=[com])
+            if component is None:
+                wp.launch(self._kernels.point_squared_distance, 1, inputs=[com, self._target_com, model.scalar(0.5)],
+                          outputs=[out])
+            else:
+                wp.launch(self._kernels.add_component, 1, inputs=[com, component], outputs=[out])
+
+        return loss
+
+    def evaluate(self, params: np.ndarray, *, component: int | None = None) -> Evaluation:
+        """One forward + backward simulation: the loss and its gradient at ``params`` (any shape of n_params
+        numbers). With ``component`` (0, 1, 2; a centre-of-mass target only) the "loss" is that coordinate of the
+        final centre of mass instead, without the regulariser."""
+        if component is not None and self.target_com is None:
+            raise ValueError("component needs a centre-of-mass target")
+        t0 = time.perf_counter()
+        push = self._push_array(params)
+        tape = wp.Tape()
+        with tape:
+            forces = self._forces(push)
+        final: dict = {}
+        value, _ = wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
+                                            steps=self.steps, loss=self._loss_fn(component, final),
+                                            segment_steps=self.segment_steps)
+        tape.backward(grads={f: f.grad for f in forces})
+        grad = push.grad.numpy().astype(np.float64).reshape(-1)
+        if self.regularizer and component is None:
+            p = np.asarray(params, dtype=np.float64).reshape(-1)
+            value += 0.5 * self.regularizer * float(p @ p)
+            grad = grad + self.regularizer * p
+        self.simulations += 1
+        self.seconds += time.perf_counter() - t0
+        positions = final["positions"]
+        return Evaluation(loss=float(value), grad=grad, com=positions.mean(axis=0), positions=positions)
+
+    def loss_and_grad(self, params: np.ndarray, *, component: int | None = None
+                      ) -> tuple[float, np.ndarray, np.ndarray]:
+        """(loss [m^2], d loss / d params (n_params,), final centre of mass (3,)): :meth:`evaluate`, unpacked."""
+        e = self.evaluate(params, component=component)
+        return e.loss, e.grad, e.com
+
+    def trajectory(self, params: np.ndarray) -> list[np.ndarray]:
+        """Positions (n, 3) of every step, from a forward pass only."""
+        control = self._control_fn(self._forces(self._push_array(params)))
+        state = self.model.state(requires_grad=False)
+        frames = [state.particle_x.numpy()]
+        for i in range(self.steps):
+            nxt = self.model.empty_state(requires_grad=False)
+            self.sim.step(state, nxt, control(i))
+            state = nxt
+            frames.append(state.particle_x.numpy())
+        return frames
+
+    def run(self, *, controller: str | None = None, iters: int | None = None, progress: bool = False,
+            **kwargs) -> ControlResult:
+        """Optimise with the task's controller (or ``controller``): :func:`optimize_open_loop` or :func:`train_mlp`
+        (keyword arguments go to them); ``iters`` simulations (default: the task's, else 50 open-loop, 100 mlp)."""
+        controller = controller or self.controller
+        if controller not in CONTROLLERS:
+            raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        if controller == "open-loop":
+            return optimize_open_loop(self, iters=iters or self.iters or 50, progress=progress, **kwargs)
+        return train_mlp(self, iters=iters or self.iters or 100, progress=progress, **kwargs)
+
+
+@dataclass
+class ControlResult:
+    params: np.ndarray
+    """Pushes [m/s^2], shape (intervals, particles, 3) (see the module docstring)."""
+    losses: list[float] = field(default_factory=list)
+    errors_pct: list[float] = field(default_factory=list)
+    simulations: int = 0
+    """Forward + backward simulations until the best result."""
+    error_pct: float = math.nan
+    seconds: float = 0.0
+    failed_trials: list[str] = field(default_factory=list)
+    """Messages of trial steps whose simulation raised (a CollisionError or a SimulationError): each is rejected as a
+    bad step, counted as a simulation, and the run goes on."""
+
+    def trajectory(self, task: ControlTask) -> list[np.ndarray]:
+        """Positions of every step with the best pushes (forward only; the MLP's pushes replayed open-loop)."""
+        return task.trajectory(self.params.reshape(-1))
+
+
+def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
+                       start: np.ndarray | None = None, optimizer: str | None = None, progress: bool = False,
+                       callback=None) -> ControlResult:
+    """Optimise the pushes directly, from zero (the seed's start) or ``start`` (n_params pushes [m/s^2]).
+    ``iters`` bounds the simulations (forward + backward) spent; returns the best iterate and the simulations spent
+    to reach it. A start whose simulation raises is halved towards zero until one runs.
+
+    ``optimizer`` (default: the task's):
+
+    * ``"gauss-newton"`` (a centre-of-mass target): damped Gauss-Newton on r = com_T - target (3 numbers). Without
+      contact the mass-weighted centre moves affinely with the pushes (they are external forces) and the vertex mean
+      (the seed's com) nearly so, so a Gauss-Newton step makes most of the way where first-order methods crawl;
+      contacts make it nonlinear, and a step is halved until the loss drops. Each point costs three simulations (one
+      reverse pass per coordinate of com_T: the 3 x n_params Jacobian), cut short when its loss is worse. The step
+      solves ``(J^T J + (w + mu) I) d = -(J^T r + w p)`` (w the regulariser, mu = damping * tr(J J^T) / 3).
+    * ``"lbfgs"``: L-BFGS (``warpcloth.tasks.optim.lbfgs``) on the loss; one simulation per point.
+
+    ``max_step`` [m/s^2] bounds how far one step moves any push.
+    """
+    optimizer = optimizer or task.optimizer
+    if optimizer not in OPEN_LOOP_OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {optimizer!r}; one of {', '.join(OPEN_LOOP_OPTIMIZERS)}")
+    if optimizer == "gauss-newton" and task.target_com is None:
+        raise ValueError("gauss-newton needs a centre-of-mass target; use lbfgs with target positions")
+    result = ControlResult(params=np.zeros(task.params_shape))
+    bar = progress_bar(iters, f"control (open-loop, {optimizer})", "sim") if progress else None
+    t0 = time.perf_counter()
+
+    def record(params, loss: float, err: float) -> None:
+        result.losses.append(loss)
+        result.errors_pct.append(err)
+        k = len(result.losses)
+        if not err >= result.error_pct:  # the first recorded point (error_pct is NaN until then) or a better one
+            result.params = np.asarray(params, dtype=np.float64).reshape(task.params_shape).copy()
+            result.simulations, result.error_pct = k, err
+        if bar is not None:
+            bar.update()
+            bar.set_postfix(loss=f"{loss:.3e}", err=f"{err:.1f}%")
+        if callback is not None:
+            callback(k, loss, err, params)
+
+    def failed(exc: Exception) -> None:
+        result.failed_trials.append(f"{type(exc).__name__}: {exc}")
+        result.losses.append(math.inf)
+        result.errors_pct.append(math.inf)
+        if bar is not None:
+            bar.update()
+
+    params = np.zeros(task.n_params) if start is None else np.array(start, dtype=np.float64).reshape(task.n_params)
+    if optimizer == "lbfgs":
+        def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
+            try:
+                e = task.evaluate(theta)
+            except (wc.CollisionError, wc.SimulationError) as exc:  # a rejected trial: an infinite loss
+                failed(exc)
+                return math.inf, np.zeros(task.n_params)
+            record(theta, e.loss, task.error_pct(e.positions))
+            return e.loss, e.grad
+
+        loss, grad = objective(params)
+        while not math.isfinite(loss) and len(result.losses) < iters:  # the start raised: pull it in
+            params = 0.5 * params
+            loss, grad = objective(params)
+        if math.isfinite(loss) and len(result.losses) < iters:  # lbfgs counts the start among its evaluations
+            lbfgs(objective, params, iters=iters - len(result.losses) + 1, max_step=max_step, first=(loss, grad))
+        return _finish(result, bar, t0)
+
+    w = task.regularizer
+
+    def evaluate(params: np.ndarray, best_loss: float):
+        """Loss, com_T and the Jacobian at params: three simulations (one reverse pass per coordinate); stops early
+        at a worse loss. A simulation that raises (CollisionError, SimulationError) counts as an infinite loss: the
+        step is rejected and halved."""
+        jac = np.zeros((3, task.n_params))
+        com = None
+        for k in range(3):
+            if len(result.losses) >= iters:
+                return math.inf, None, None
+            try:
+                e = task.evaluate(params, component=k)
+            except (wc.CollisionError, wc.SimulationError) as exc:
+                failed(exc)
+                return math.inf, None, None
+            jac[k] = e.grad
+            if k == 0:
+                com = e.com
+                r = com - task.target_com
+                trial_loss = 0.5 * float(r @ r) + 0.5 * w * float(params @ params)
+                record(params, trial_loss, task.error_pct(e.positions))
+                if trial_loss >= best_loss:
+                    return trial_loss, None, None
+            else:  # the same point again: keep the per-simulation history aligned
+                result.losses.append(result.losses[-1])
+                result.errors_pct.append(result.errors_pct[-1])
+                if bar is not None:
+                    bar.update()
+        return trial_loss, com, jac
+
+    best_loss, com, jac = evaluate(params, math.inf)
+    while com is None and result.failed_trials and len(result.losses) < iters:  # the start raised: pull it in
+        params = 0.5 * params
+        best_loss, com, jac = evaluate(params, math.inf)
+    step = None
+    while com is not None and len(result.losses) < iters:
+        if step is None:
+            r = com - task.target_com
+            mu = damping * float(np.sum(jac * jac)) / 3
+            lhs = jac.T @ jac + (w + mu) * np.eye(task.n_params)
+            step = -np.linalg.solve(lhs, jac.T @ r + w * params)
+            step *= min(1.0, max_step / max(np.abs(step).max(), 1e-30))
+        trial_loss, trial_com, trial_jac = evaluate(params + step, best_loss)
+        if trial_com is not None:  # accepted: a lower loss with its Jacobian
+            params, best_loss, com, jac, step = params + step, trial_loss, trial_com, trial_jac, None
+        else:
+            step = 0.5 * step
+    return _finish(result, bar, t0)
+
+
+def _finish(result: ControlResult, bar, t0: float) -> ControlResult:
+    if bar is not None:
+        bar.close()
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: int = 200, seed: int = 0,
+              zero_start: bool = True, progress: bool = False) -> ControlResult:
+    """Train a PyTorch MLP controller through the simulator (warpcloth.torch): at the start of every controlled
+    interval the MLP maps the cloth's state (positions relative to the target and velocities of all particles) to
+    the interval's pushes (the seed's "Ours + FC": Linear -> ReLU -> Linear). Adam on the weights; each iteration is
+    one forward + backward simulation of the whole horizon. A simulation that raises (CollisionError,
+    SimulationError) is a rejected step: the weights go back to the last ones that simulated and the learning rate
+    halves (``ControlResult.failed_trials``); the run goes on.
+
+    The network and every tensor take the model's torch device and dtype (``warpcloth.torch.torch_device`` and
+    ``torch_dtype``); the initial weights are drawn on the CPU in float32 whatever they are, so a seed gives the same
+    start on every device and precision.
+
+    Args:
+        task: The control task (its model, simulator, schedule, horizon and loss).
+        iters: Training iterations (one forward + backward simulation each).
+        lr: Adam's learning rate.
+        hidden: Width of the hidden layer.
+        seed: Seed of torch's generator for the initial weights.
+        zero_start: Zero the output layer, so training starts from no pushes (as the open loop does); else it keeps
+            PyTorch's random initialisation (a random start).
+        progress: Show a progress bar (tqdm).
+
+    Returns:
+        The pushes of the best iteration (replayed open-loop by ``ControlResult.trajectory``) and the history.
+
+    Raises:
+        ImportError: When PyTorch is not installed.
+    """
+    import torch
+
+    from warpcloth.torch import simulate, torch_device, torch_dtype
+
+    torch.manual_seed(seed)
+    model = task.model
+    device, dtype = torch_device(model), torch_dtype(model)
+    n, k = model.particle_count, len(task.particles)
+    net = torch.nn.Sequential(torch.nn.Linear(6 * n, hidden), torch.nn.ReLU(), torch.nn.Linear(hidden, 3 * k))
+    if zero_start:
+        with torch.no_grad():  # start from "no push", as the open-loop optimisation does
+            net[2].weight.zero_()
+            net[2].bias.zero_()
+    net = net.to(device=device, dtype=dtype)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    x0 = torch.tensor(model.particle_x0.numpy(), dtype=dtype, device=device)
+    v0 = torch.tensor(model.particle_v0.numpy(), dtype=dtype, device=device)
+    if task.target_com is not None:
+        target = torch.tensor(task.target_com, dtype=dtype, device=device)
+    else:
+        target = torch.tensor(task.target_positions, dtype=dtype, device=device)
+    pushed = torch.tensor(task.particles, device=device)
+    push_scale = 10.0  # network outputs of order one -> pushes of order gravity [m/s^2]
+
+    def policy(x, v):
+        features = torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
+        return push_scale * net(features).reshape(k, 3)
+
+    def loss_of(x, pushes):
+        if task.target_com is not None:
+            loss = 0.5 * ((x.mean(dim=0) - target) ** 2).sum()
+        else:
+            loss = 0.5 * ((x - target) ** 2).sum() / n
+        if task.regularizer:
+            loss = loss + 0.5 * task.regularizer * sum((p**2).sum() for p in pushes)
+        return loss
+
+    result = ControlResult(params=np.zeros(task.params_shape))
+    best = math.inf
+    bar = progress_bar(iters, "control (mlp)", "sim") if progress else None
+    t0 = time.perf_counter()
+    last_good = copy.deepcopy(net.state_dict())  # the weights of the last simulation that ran through
+    controlled = min(task.intervals, -(-task.steps // task.interval_steps))
+    for it in range(1, iters + 1):
+        x, v = x0, v0
+        pushes = []
+        try:
+            for s in range(controlled):
+                push = policy(x, v)
+                pushes.append(push)
+                steps = min(task.interval_steps, task.steps - s * task.interval_steps)
+                force = torch.zeros((n, 3), dtype=dtype, device=device).index_put((pushed,), task.push_mass * push)
+                xs, vs = simulate(task.sim, x, v, steps=steps, time=s * task.interval_steps * task.dt,
+                                  particle_force=force)
+                x, v = xs[-1], vs[-1]
+            rest = task.steps - controlled * task.interval_steps
+            if rest > 0:
+                xs, vs = simulate(task.sim, x, v, steps=rest, time=controlled * task.interval_steps * task.dt)
+                x = xs[-1]
+            loss = loss_of(x, pushes)
+            opt.zero_grad()
+            loss.backward()
+        except (wc.CollisionError, wc.SimulationError) as exc:
+            # a rejected step: back to the last weights that simulated, with half the learning rate
+            task.simulations += 1
+            result.failed_trials.append(f"{type(exc).__name__}: {exc}")
+            result.losses.append(math.inf)
+            result.errors_pct.append(math.inf)
+            net.load_state_dict(last_good)
+            for group in opt.param_groups:
+                group["lr"] *= 0.5
+            if bar is not None:
+                bar.update()
+            continue
+        last_good = copy.deepcopy(net.state_dict())
+        opt.step()
+        task.simulations += 1
+        err = task.error_pct(x.detach().cpu().numpy().astype(np.float64))
+        result.losses.append(float(loss.detach()))
+        result.errors_pct.append(err)
+        if err < best:
+            best = err
+            params = np.zeros(task.params_shape)
+            params[: len(pushes)] = torch.stack(pushes).detach().cpu().numpy().astype(np.float64)
+            result.params = params
+            result.simulations, result.error_pct = it, err
+        if bar is not None:
+            bar.update()
+            bar.set_postfix(loss=f"{float(loss):.3e}", err=f"{err:.1f}%")
+    return _finish(result, bar, t0)
