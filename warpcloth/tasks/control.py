@@ -132,11 +132,7 @@ class ControlTask:
         if spec is None:
             raise ValueError(f"scene {scene.name!r} ({scene.source}) has no [control] table")
         model = scene.finalize(device=device, requires_grad=True, dtype=dtype)
-        return cls(model, scene.dt, particles=spec.particles, interval_steps=spec.interval_steps,
-                   intervals=spec.intervals, steps=steps or spec.steps, target_com=spec.target_com,
-                   target_positions=spec.target_positions, regularizer=spec.regularizer,
-                   options=options or scene.solver_options, segment_steps=segment_steps, controller=spec.controller,
-                   optimizer=spec.optimizer, iters=spec.iters)
+        return cls(model, **scene_task_args(scene, steps=steps, options=options, segment_steps=segment_steps))
 
     @property
     def n_params(self) -> int:
@@ -265,6 +261,16 @@ class ControlTask:
         if controller == "open-loop":
             return optimize_open_loop(self, iters=iters or self.iters or 50, progress=progress, **kwargs)
         return train_mlp(self, iters=iters or self.iters or 100, progress=progress, **kwargs)
+
+
+def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.SolverOptions | None = None,
+                    segment_steps: int | None = None) -> dict:
+    """ControlTask's arguments after the model, from a scene's checked ``[control]`` table."""
+    spec = scene.control
+    return dict(dt=scene.dt, particles=spec.particles, interval_steps=spec.interval_steps, intervals=spec.intervals,
+                steps=steps or spec.steps, target_com=spec.target_com, target_positions=spec.target_positions,
+                regularizer=spec.regularizer, options=options or scene.solver_options, segment_steps=segment_steps,
+                controller=spec.controller, optimizer=spec.optimizer, iters=spec.iters)
 
 
 @dataclass

@@ -12,7 +12,7 @@ import warpcloth as wc
 from warpcloth.scene import load_scene
 
 # the optimisers (warpcloth.tasks.control), importable from here too
-from warpcloth.tasks.control import ControlResult, ControlTask, optimize_open_loop, train_mlp
+from warpcloth.tasks.control import ControlResult, ControlTask, optimize_open_loop, scene_task_args, train_mlp
 
 __all__ = ["CORNERS", "DT", "N_PARAMS", "SCENE", "SECONDS_CONTROLLED", "SEED_PUBLISHED", "STEPS", "STEPS_PER_SECOND",
            "TARGET", "ControlResult", "ControlTask", "ThrowTask", "optimize_open_loop", "train_mlp"]
@@ -49,9 +49,5 @@ class ThrowTask(ControlTask):
 
     def __init__(self, model: wc.Model | None = None, *, steps: int = STEPS, options: wc.SolverOptions | None = None,
                  segment_steps: int | None = None):
-        spec = _SCENE.control
-        super().__init__(model or _SCENE.finalize(requires_grad=True), _SCENE.dt, particles=spec.particles,
-                         interval_steps=spec.interval_steps, intervals=spec.intervals, steps=steps,
-                         target_com=spec.target_com, options=options or _SCENE.solver_options,
-                         segment_steps=segment_steps, controller=spec.controller, optimizer=spec.optimizer,
-                         iters=spec.iters)
+        super().__init__(model or _SCENE.finalize(requires_grad=True),
+                         **scene_task_args(_SCENE, steps=steps, options=options, segment_steps=segment_steps))
