@@ -686,6 +686,24 @@ def prediction(d: dict) -> str:
                          "the drop), in the wind it was not fitted on." if multi else ""), "", provenance(d)])
 
 
+def worlds(d: dict) -> str:
+    rows = [[r["scene"], str(r["worlds"]), str(r["particles"]), g(r["forward_world_steps_per_s"], 3),
+             f"{r['forward_speedup']:.1f}×", g(r["forward_backward_world_steps_per_s"], 3),
+             f"{r['forward_backward_speedup']:.1f}×", f"{r['cg_iterations_per_step']:.1f}"] for r in d["records"]]
+    out = ["World-steps per second against the number of worlds in one model (`benchmarks/worlds.py`; forward "
+           f"{d['records'][0]['steps']} steps, forward + backward {d['records'][0]['grad_steps']} steps and one "
+           "backward pass; speed-up over one world):", "",
+           table(["scene", "worlds", "particles", "forward world-steps/s", "speed-up", "fwd+bwd world-steps/s",
+                  "speed-up", "CG iterations/step (slowest world)"], rows)]
+    target = next((r for r in d["records"] if r["scene"] == "throw" and r["worlds"] == 64), None)
+    if target is not None:
+        out += ["", f"Target from issue 25: 64 throw worlds at ≥ {d['target_speedup']:g}× the world-steps per second "
+                f"of one world: forward {target['forward_speedup']:.1f}×, forward + backward "
+                f"{target['forward_backward_speedup']:.1f}×: {met(target['forward_speedup'] >= d['target_speedup'])}."]
+    out += ["", provenance(d)]
+    return "\n".join(out)
+
+
 BLOCKS = {
     "presets": presets,
     "tradeoff_findings": tradeoff_findings,
@@ -699,6 +717,7 @@ BLOCKS = {
     "material_estimation": material_estimation,
     "motion_control": motion_control,
     "memory": memory,
+    "worlds": worlds,
     "prediction": prediction,
     "contact": contact,
     "contact_gradients": contact_gradients,

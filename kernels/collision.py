@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.geometry import segment_parameters, span_coordinates
+from warpcloth.kernels.geometry import segment_parameters, span_coordinates, world_root
 from warpcloth.kernels.types import per_precision, types
 
 wp.set_module_options({"enable_backward": False})
@@ -425,6 +425,7 @@ def collision_kernels(scalar):
                            x_ref: wp.array(dtype=vec3), queries: query_array, targets: wp.array2d(dtype=wp.int32),
                            query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
                            same_cloth: int, thickness: wp.float64, keep_start_gaps: int, capacity: int,
+                           node_world: wp.array(dtype=wp.int32), grouped: int,
                            # out:
                            count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
                            contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
@@ -438,7 +439,10 @@ def collision_kernels(scalar):
             else:
                 q0 = queries[i, 0]
                 q1 = queries[i, 1]
-            query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i])
+            root = world_root(bvh, grouped, node_world[q0])  # only the query's own world (ModelBuilder.add_world)
+            if root == -2:
+                return
+            query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i], root)
             j = int(0)
             # the most urgent contact on each side of the query primitive (EE_DIRECTION counts as the + side)
             best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))

@@ -109,3 +109,16 @@ def triangle_barycentric(p: Any, a: Any, b: Any, c: Any):
     v = vb * denom
     w = vc * denom
     return one - v - w, v, w
+
+
+@wp.func
+def world_root(bvh: wp.uint64, grouped: int, world: int):
+    """The BVH node a query of a primitive in ``world`` starts from: the root of that world's group in a BVH grouped
+    by world (``grouped`` != 0), so it meets only its own world's primitives; -1 (the global root) otherwise, and
+    -2 where the world has no primitive in the BVH (the query must be skipped: -1 would search every world)."""
+    if grouped == 0:
+        return int(-1)
+    root = wp.bvh_get_group_root(bvh, world)
+    if root < 0:
+        return int(-2)
+    return root

@@ -59,7 +59,8 @@ def implicit_kernels(scalar):
         thicken: wp.array(dtype=scalar)
         lut_weight: wp.array(dtype=vec3)
         lut_row: wp.array(dtype=wp.int32)
-        gravity: wp.array(dtype=vec3)
+        gravity: wp.array(dtype=vec3)  # per world
+        particle_world: wp.array(dtype=wp.int32)
 
     @wp.struct
     class HingeData:
@@ -179,8 +180,8 @@ def implicit_kernels(scalar):
                 f, face.indices, face.material, face.inv_dm, face.area, face.density, face.stretching, face.thicken,
                 face.lut_weight, face.lut_row, x)
             c = dt * (dt + s.damping_stiffness)
+            g = gravity[face.particle_world[idx[0]]]
             if wp.static(mode == "assemble"):
-                g = gravity[0]
                 eye = wp.identity(n=3, dtype=scalar)
                 for a in range(3):
                     pa = particle_pin[idx[a]] >= 0
@@ -215,7 +216,7 @@ def implicit_kernels(scalar):
                     Lv += dw[a] * la
                     Wu += du[a] * w
                     Wv += dw[a] * w
-                    inertia += wp.dot(la, dt * gravity[0] - dt * damping_mass * v[p]
+                    inertia += wp.dot(la, dt * g - dt * damping_mass * v[p]
                                       - (scalar(1.0) + dt * damping_mass) * dv[p])
                 Lxu = wp.dot(Lu, xu)
                 Lxv = wp.dot(Lv, xv)
@@ -240,7 +241,7 @@ def implicit_kernels(scalar):
                 v2 = v[idx[2]]
                 wp.atomic_add(scalars, 0, scalar(0.5) * node_mass * (wp.dot(v0, v0) + wp.dot(v1, v1) + wp.dot(v2, v2)))
                 wp.atomic_add(scalars, 1, area * st.energy_density(k, G00, G11, G01))
-                wp.atomic_add(scalars, 2, -node_mass * wp.dot(gravity[0], x[idx[0]] + x[idx[1]] + x[idx[2]]))
+                wp.atomic_add(scalars, 2, -node_mass * wp.dot(g, x[idx[0]] + x[idx[1]] + x[idx[2]]))
 
         @wp.kernel
         def hinges(
@@ -297,7 +298,8 @@ def implicit_kernels(scalar):
         tri_indices: wp.array2d(dtype=wp.int32),
         tri_area: wp.array(dtype=scalar),
         particle_pin: wp.array(dtype=wp.int32),
-        wind_velocity: wp.array(dtype=vec3),
+        particle_world: wp.array(dtype=wp.int32),
+        wind_velocity: wp.array(dtype=vec3),  # per world, as wind_density and wind_drag
         wind_density: wp.array(dtype=scalar),
         wind_drag: wp.array(dtype=scalar),
         # State in: (x_normal: positions the face normals are taken from)
@@ -313,10 +315,11 @@ def implicit_kernels(scalar):
         i1 = tri_indices[f, 1]
         i2 = tri_indices[f, 2]
         n = wp.normalize(wp.cross(x_normal[i1] - x_normal[i0], x_normal[i2] - x_normal[i0]))
-        v_rel = wind_velocity[0] - (v[i0] + v[i1] + v[i2]) / scalar(3.0)
+        world = particle_world[i0]
+        v_rel = wind_velocity[world] - (v[i0] + v[i1] + v[i2]) / scalar(3.0)
         vn = wp.dot(n, v_rel)
         area = tri_area[f]
-        force = wind_density[0] * area * wp.abs(vn) * vn * n + wind_drag[0] * area * (v_rel - vn * n)
+        force = wind_density[world] * area * wp.abs(vn) * vn * n + wind_drag[world] * area * (v_rel - vn * n)
         share = (dt / scalar(3.0)) * force
         if particle_pin[i0] < 0:
             wp.atomic_add(rhs, i0, share)

@@ -44,7 +44,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
+from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric, world_root
 from warpcloth.kernels.types import per_precision, types
 
 COINCIDENT = 1.0e-9
@@ -114,6 +114,8 @@ def proximity_kernels(scalar):
         pair_nodes: wp.array2d(dtype=wp.int32)
         pair_kind: wp.array(dtype=wp.int32)
         pair_area: wp.array(dtype=scalar)
+        node_world: wp.array(dtype=wp.int32)  # the world of every node; BVHs grouped by world where grouped != 0
+        grouped: int
 
     @wp.func
     def emit(search: PairSearch, nodes: wp.vec4i, kind: int, area: scalar):
@@ -143,7 +145,10 @@ def proximity_kernels(scalar):
         q = queries[i]
         p = x[q]
         r = float(search.radius)
-        query = wp.bvh_query_aabb(bvh, wp.vec3(p) - wp.vec3(r, r, r), wp.vec3(p) + wp.vec3(r, r, r))
+        root = world_root(bvh, search.grouped, search.node_world[q])
+        if root == -2:
+            return
+        query = wp.bvh_query_aabb(bvh, wp.vec3(p) - wp.vec3(r, r, r), wp.vec3(p) + wp.vec3(r, r, r), root)
         j = int(0)
         best = search.radius
         best_j = int(-1)
@@ -186,7 +191,10 @@ def proximity_kernels(scalar):
         lo = wp.min(wp.vec3(x[e0]), wp.vec3(x[e1]))
         hi = wp.max(wp.vec3(x[e0]), wp.vec3(x[e1]))
         r = float(search.radius)
-        query = wp.bvh_query_aabb(bvh, lo - wp.vec3(r, r, r), hi + wp.vec3(r, r, r))
+        root = world_root(bvh, search.grouped, search.node_world[e0])
+        if root == -2:
+            return
+        query = wp.bvh_query_aabb(bvh, lo - wp.vec3(r, r, r), hi + wp.vec3(r, r, r), root)
         j = int(0)
         while wp.bvh_query_next(query, j):
             f0 = targets[j, 0]

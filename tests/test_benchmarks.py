@@ -41,6 +41,7 @@ BENCHMARKS = {
     "newton_corrections": (("rows", "horizon", "library_check_max_dx_m"), False, False),
     "memory": (("records", "target_ratio"), False, False),
     "prediction": (("records", "means", "motions"), True, False),
+    "worlds": (("records", "target_speedup"), False, False),
 }
 
 

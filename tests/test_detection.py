@@ -37,7 +37,8 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
     kernel = k.vertex_face if kind == "vf" else k.edge_edge
     query_index = q.flatten() if kind == "vf" else q
     wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, XR, query_index, tg, bounds[0][0], bounds[0][1], flag,
-                                          wp.float64(DELTA), keep_start_gaps, capacity],
+                                          wp.float64(DELTA), keep_start_gaps, capacity,
+                                          wp.zeros(len(x0), dtype=wp.int32), 0],
               outputs=[count, nodes, mode, t, sign])
     c = int(count.numpy()[0])
     m = min(c, capacity)

@@ -203,10 +203,11 @@ def test_wind_and_handle_kernels_gradcheck():
     tris = wp.array(TRIS, dtype=wp.int32)
     area = wp.array([0.005, 0.005], dtype=wp.float64, requires_grad=True)
     free = wp.full(4, -1, dtype=wp.int32)
+    world = wp.zeros(4, dtype=wp.int32)
     wind = wp.array([[3.0, -1.0, 2.0]], dtype=vec3, requires_grad=True)
     rho = wp.array([1.2], dtype=wp.float64, requires_grad=True)
     drag = wp.array([0.3], dtype=wp.float64, requires_grad=True)
     rhs = wp.zeros(4, dtype=vec3, requires_grad=True)
     assert warp.autograd.gradcheck(
-        k.wind, dim=2, inputs=[tris, area, free, wind, rho, drag, x, v, wp.float64(DT)], outputs=[rhs],
+        k.wind, dim=2, inputs=[tris, area, free, world, wind, rho, drag, x, v, wp.float64(DT)], outputs=[rhs],
         eps=1e-7, atol=1e-6, rtol=1e-5, raise_exception=False, show_summary=False)

@@ -400,3 +400,40 @@ def test_torch_is_optional():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "IMPORTERROR" in out.stdout and "pip install warpcloth[torch]" in out.stdout, out.stdout
+
+
+def test_batch_dimension_equals_single_worlds():
+    """A model of 3 worlds (one material each) takes (W, m, 3) tensors and returns (W, steps+1, m, 3): each world's
+    trajectory and its gradients (x0, v0, per-step forces, its material's density) equal a one-world model's."""
+    options = dataclasses.replace(OPTIONS, preconditioner="block_ssor")
+    materials = [MATERIAL, wc.preset("11oz-black-denim", thicken=2), wc.preset("tango-red-jet-set", thicken=2)]
+    composed = wc.ModelBuilder()
+    for mat in materials:
+        composed.add_world(hanging_builder(res=3, material=mat))
+    batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    W, m = batch.world_count, batch.particle_count // batch.world_count
+    rng = np.random.default_rng(5)
+    x0 = batch.particle_x0.numpy().reshape(W, m, 3) + 2.0e-3 * rng.standard_normal((W, m, 3))
+    v0 = 0.05 * rng.standard_normal((W, m, 3))
+    force = 1.0e-3 * rng.standard_normal((W, STEPS, m, 3))
+    weights = torch.tensor(rng.standard_normal((W, STEPS + 1, m, 3)))
+
+    def run(sim, x0, v0, force, density, w):
+        t = [torch.tensor(a, dtype=torch.float64, requires_grad=True) for a in (x0, v0, force, density)]
+        x, v = wct.simulate(sim, t[0], t[1], steps=STEPS, particle_force=t[2], density=t[3])
+        (x * w).sum().backward()
+        return x.detach().numpy(), [a.grad.numpy() for a in t]
+
+    x, grads = run(wc.Simulator(batch, DT, options=options), x0, v0, force, batch.material_density.numpy(), weights)
+    assert x.shape == (W, STEPS + 1, m, 3)
+    for w, mat in enumerate(materials):
+        model = hanging_builder(res=3, material=mat).finalize("cpu", requires_grad=True, dtype=wp.float64)
+        xs, gs = run(wc.Simulator(model, DT, options=options), x0[w], v0[w], force[w],
+                     model.material_density.numpy(), weights[w])
+        np.testing.assert_allclose(x[w], xs, rtol=0, atol=1e-14)
+        for name, g, g1 in zip(("x0", "v0", "force"), grads[:3], gs[:3]):
+            np.testing.assert_allclose(g[w], g1, rtol=1e-10, atol=1e-14, err_msg=name)
+        np.testing.assert_allclose(grads[3][w], gs[3][0], rtol=1e-10)
+    with pytest.raises(ValueError, match=r"particle_force must have shape \(3, 16, 3\) or \(3, 4, 16, 3\)"):
+        wct.simulate(wc.Simulator(batch, DT, options=options), torch.tensor(x0), torch.tensor(v0), steps=STEPS,
+                     particle_force=torch.zeros(STEPS, W * m, 3, dtype=torch.float64))

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -73,6 +75,19 @@ def _local_frame_uv(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return uv
 
 
+@dataclass(frozen=True)
+class _World:
+    """What a world of a model has of its own beyond its particles and obstacles: the builder settings it was added
+    with (``ModelBuilder.add_world``)."""
+
+    first_particle: int
+    first_obstacle: int
+    gravity: np.ndarray
+    wind: tuple[np.ndarray, float, float] | None
+    # scene-wide: every world of a model has the same
+    shared: tuple
+
+
 class ModelBuilder:
     """Collects a scene on the host (NumPy) and ``finalize``s it into a device ``Model``.
 
@@ -110,6 +125,7 @@ class ModelBuilder:
         self.collision_thickness = DEFAULT_COLLISION_THICKNESS
         self.repulsion = (DEFAULT_REPULSION_THICKNESS, DEFAULT_REPULSION_STIFFNESS, DEFAULT_FRICTION,
                           DEFAULT_OBSTACLE_FRICTION)
+        self._worlds: list[_World] = []  # empty: the builder's own scene is the model's one world
 
     @property
     def particle_count(self) -> int:
@@ -123,6 +139,91 @@ class ModelBuilder:
     def obstacles(self) -> tuple[Obstacle, ...]:
         """The obstacles added so far (validated), in index order."""
         return tuple(self._obstacles)
+
+    # -- worlds ------------------------------------------------------------------------------------------------------
+    def add_world(self, builder: ModelBuilder) -> int:
+        """Add a copy of everything ``builder`` holds (cloths, materials, handles, pins, obstacles and their motions,
+        gravity and wind) as a new world of this builder's model, and return the world's index.
+
+        Worlds never interact: contact detection, proximity forces and the collision response pair nothing across
+        worlds, even where they overlap in space; each world's linear solve converges on its own. Gravity, wind,
+        materials and controls may differ between worlds (build each world's builder with its own); the scene-wide
+        settings (damping, collision settings, the wind's lagged normals) must be the same in every world. A
+        builder holds either its own scene or worlds added here, not both; its own ``gravity`` is not used once it
+        holds worlds. Obstacles are renamed ``<name>_<world>`` (names stay unique). ``builder`` may itself hold
+        worlds: each becomes a world here.
+
+        Raises:
+            ValueError: this builder has a scene of its own, ``builder`` has no cloth, or a scene-wide setting of
+                ``builder`` differs from the worlds added before (naming the setting).
+        """
+        if not isinstance(builder, ModelBuilder):
+            raise TypeError(f"add_world: expected a ModelBuilder, got {type(builder).__name__}")
+        if builder is self:
+            raise ValueError("add_world: a builder cannot add itself as a world")
+        if self._particle_count and not self._worlds:
+            raise ValueError("add_world: this builder has a cloth of its own; a builder holds either its own scene "
+                             "or worlds added with add_world/replicate")
+        if builder.particle_count == 0:
+            raise ValueError("add_world: the builder has no cloth")
+        self._check_size(builder.particle_count, f"world {len(self._worlds)}")
+        sources = builder._worlds or [builder._own_world()]
+        for source in sources:
+            if self._worlds and source.shared != self._worlds[0].shared:
+                names = ("damping mass", "damping stiffness", "self_collision", "collision thickness",
+                         "repulsion (thickness, stiffness, friction, obstacle friction)", "wind lagged_normals")
+                which = [f"{n} {a} (world 0: {b})" for n, a, b in zip(names, source.shared, self._worlds[0].shared)
+                         if a != b]
+                raise ValueError(f"add_world: world {len(self._worlds)} differs from world 0 in a scene-wide "
+                                 f"setting, which every world of a model shares: {'; '.join(which)}")
+            self._worlds.append(dataclasses.replace(source, first_particle=self._particle_count + source.first_particle,
+                                                    first_obstacle=len(self._obstacles) + source.first_obstacle))
+        first_world = len(self._worlds) - len(sources)
+        offset = self._particle_count
+        materials = [self.add_material(m) for m in builder._materials]
+        self._positions += [p.copy() for p in builder._positions]
+        self._velocities += [v.copy() for v in builder._velocities]
+        self._triangles += [t + offset for t in builder._triangles]
+        self._tri_uv += [uv.copy() for uv in builder._tri_uv]
+        self._tri_material += [np.asarray(materials, dtype=np.int32)[m] for m in builder._tri_material]
+        self._rest_angle_initial += builder._rest_angle_initial
+        self._handles += [(p + offset, k, motion) for p, k, motion in builder._handles]
+        self._pins += [(p + offset, motion) for p, motion in builder._pins]
+        starts = [s.first_obstacle for s in sources] + [len(builder._obstacles)]
+        for w in range(len(sources)):
+            for o in builder._obstacles[starts[w]:starts[w + 1]]:
+                self._obstacles.append(dataclasses.replace(o, name=f"{o.name}_{first_world + w}"))
+        self._particle_count += builder.particle_count
+        return len(self._worlds) - 1
+
+    def replicate(self, builder: ModelBuilder, count: int) -> range:
+        """Add ``count`` copies of ``builder`` as worlds (``add_world``, after Newton's ``replicate``); returns
+        their world indices."""
+        if not _is_integer(count) or count < 1:
+            raise ValueError(f"replicate: count must be a positive integer, got {count!r}")
+        self._check_size(builder.particle_count * int(count), f"{count} worlds")
+        first = len(self._worlds)
+        for _ in range(int(count)):
+            self.add_world(builder)
+        return range(first, len(self._worlds))
+
+    @property
+    def world_count(self) -> int:
+        """Worlds of the model this builder makes: those added with add_world/replicate, or 1 (its own scene)."""
+        return len(self._worlds) or 1
+
+    def _own_world(self) -> _World:
+        """This builder's own scene as a world."""
+        shared = (self.damping_mass, self.damping_stiffness, self.self_collision, self.collision_thickness,
+                  self.repulsion, self.wind_lagged_normals)
+        wind = None if self.wind is None else (self.wind[0].copy(), self.wind[1], self.wind[2])
+        return _World(0, 0, self.gravity.copy(), wind, shared)
+
+    def _check_own(self, what: str) -> None:
+        """Refuse to add to a builder that holds worlds: what is added belongs in a world's own builder."""
+        if self._worlds:
+            raise ValueError(f"{what}: this builder holds worlds added with add_world/replicate; add it to the "
+                             "world's own builder before adding the world")
 
     # -- cloth -----------------------------------------------------------------------------------------------------
     def add_material(self, material: Material) -> int:
@@ -156,6 +257,7 @@ class ModelBuilder:
                 lines) if it has them, else zero.
             rest_angle: ``"flat"`` (ARCSim's default: rest dihedral angle 0) or ``"initial"`` (the initial shape's).
         """
+        self._check_own("add_cloth_mesh")
         if rest_angle not in ("flat", "initial"):
             raise ValueError(f"rest_angle must be 'flat' or 'initial', got {rest_angle!r}")
         positions = np.asarray(mesh.positions, dtype=np.float64)
@@ -273,6 +375,7 @@ class ModelBuilder:
         The target starts at the particle's initial position; ``Control.handle_target`` can move it, and
         ``motion`` (a list of ``(time [s], (dx, dy, dz) [m])`` keyframes, piecewise linear) adds a scripted offset.
         """
+        self._check_own("add_handle")
         p = self._check_particle("add_handle", particle)
         if any(q == p for q, _, _ in self._handles):
             raise ValueError(f"particle {p} has a handle already")
@@ -284,6 +387,7 @@ class ModelBuilder:
 
     def add_pin(self, particle: int, *, motion=None) -> int:
         """Fix ``particle`` exactly to a target (hard constraint: its velocity is prescribed each step)."""
+        self._check_own("add_pin")
         p = self._check_particle("add_pin", particle)
         if any(q == p for q, _ in self._pins):
             raise ValueError(f"particle {p} is pinned twice")
@@ -323,6 +427,7 @@ class ModelBuilder:
             ValueError: naming the obstacle for a repeated or invalid name, a bad placement or motion, a
                 non-finite vertex, an index out of range or a degenerate triangle (naming the triangle).
         """
+        self._check_own("add_obstacle_mesh")
         index = len(self._obstacles)
         taken = {o.name for o in self._obstacles}
         if name is None:
@@ -413,6 +518,7 @@ class ModelBuilder:
             friction: cloth-cloth Coulomb friction coefficient, >= 0 (0: none).
             obstacle_friction: cloth-obstacle Coulomb friction coefficient, >= 0 (0: none).
         """
+        self._check_own("set_collision")
         if not isinstance(self_collision, (bool, np.bool_)):
             raise ValueError(f"self_collision must be a boolean, got {self_collision!r}")
         for name, value, positive in (("collision thickness", thickness, True),
@@ -438,6 +544,7 @@ class ModelBuilder:
         ``step_mesh``, and again after a collision response that moved the cloth: the step after one sees current
         normals); use it to reproduce the seed's trajectories, not for new work.
         """
+        self._check_own("set_wind")
         v = _finite_vector("wind velocity", velocity)
         for name, val in (("wind density", density), ("wind drag", drag)):
             if not math.isfinite(val) or val < 0.0:
@@ -447,6 +554,7 @@ class ModelBuilder:
 
     def set_damping(self, *, mass: float = 0.0, stiffness: float = 0.0) -> None:
         """Rayleigh damping: ``mass`` alpha [1/s] (force -alpha M v), ``stiffness`` beta [s] (force -beta K v)."""
+        self._check_own("set_damping")
         for name, val in (("damping mass", mass), ("damping stiffness", stiffness)):
             if not math.isfinite(val) or val < 0.0:
                 raise ValueError(f"{name} must be finite and >= 0, got {val}")
@@ -471,6 +579,8 @@ class ModelBuilder:
         from warpcloth.kernels.types import types
 
         t = types(dtype)
+        worlds = self._worlds or [self._own_world()]
+        damping_mass, damping_stiffness, self_collision, collision_thickness, repulsion, lagged = worlds[0].shared
         positions = np.concatenate(self._positions)
         velocities = np.concatenate(self._velocities)
         triangles = np.concatenate(self._triangles).astype(np.int32)
@@ -518,11 +628,19 @@ class ModelBuilder:
         edges = unique_edges(triangles)
         obstacle_fields = self._obstacle_fields(arr, t)
         collision = None
-        if self._obstacles or self.self_collision:
+        if self._obstacles or self_collision:
             collision = CollisionSettings(
-                obstacles=bool(self._obstacles), self_collision=self.self_collision,
-                thickness=self.collision_thickness, repulsion_thickness=self.repulsion[0],
+                obstacles=bool(self._obstacles), self_collision=self_collision,
+                thickness=collision_thickness, repulsion_thickness=repulsion[0],
             )
+        world_start = np.array([w.first_particle for w in worlds] + [n], dtype=np.int64)
+        obstacle_start = [w.first_obstacle for w in worlds] + [len(self._obstacles)]
+        windy = [w for w in worlds if w.wind is not None]
+        wind = None
+        if windy:  # a world without wind has none: no pressure (density 0) and no drag
+            wind = (np.stack([w.wind[0] if w.wind else np.zeros(3) for w in worlds]),
+                    np.array([w.wind[1] if w.wind else 0.0 for w in worlds]),
+                    np.array([w.wind[2] if w.wind else 0.0 for w in worlds]))
         model = Model(
             device=device,
             scalar=scalar,
@@ -554,13 +672,16 @@ class ModelBuilder:
             material_thicken=arr(np.array([m.thicken for m in mats]), scalar),
             lut_weight=arr(lut_w, t.vec3),
             lut_row=arr(lut_r, wp.int32),
-            gravity=arr(self.gravity[None, :], t.vec3, True),
-            wind_velocity=None if self.wind is None else arr(self.wind[0][None, :], t.vec3, True),
-            wind_density=None if self.wind is None else arr(np.array([self.wind[1]]), scalar, True),
-            wind_drag=None if self.wind is None else arr(np.array([self.wind[2]]), scalar, True),
-            wind_lagged_normals=self.wind_lagged_normals,
-            damping_mass=self.damping_mass,
-            damping_stiffness=self.damping_stiffness,
+            world_count=len(worlds),
+            particle_world=arr(np.repeat(np.arange(len(worlds), dtype=np.int32), np.diff(world_start)), wp.int32),
+            world_particle_start=world_start,
+            gravity=arr(np.stack([w.gravity for w in worlds]), t.vec3, True),
+            wind_velocity=None if wind is None else arr(wind[0], t.vec3, True),
+            wind_density=None if wind is None else arr(wind[1], scalar, True),
+            wind_drag=None if wind is None else arr(wind[2], scalar, True),
+            wind_lagged_normals=lagged,
+            damping_mass=damping_mass,
+            damping_stiffness=damping_stiffness,
             handle_count=len(self._handles),
             handle_particle=arr(np.array([h[0] for h in self._handles], dtype=np.int32), wp.int32),
             handle_stiffness=arr(np.array([h[1] for h in self._handles]), scalar, True),
@@ -576,8 +697,9 @@ class ModelBuilder:
             edge_count=len(edges),
             edge_indices=arr(edges, wp.int32),
             collision=collision,
-            contact_repulsion_stiffness=None if collision is None else arr(np.array([self.repulsion[1]]), scalar, True),
-            contact_friction=None if collision is None else arr(np.array(self.repulsion[2:]), scalar, True),
+            contact_repulsion_stiffness=None if collision is None else arr(np.array([repulsion[1]]), scalar, True),
+            contact_friction=None if collision is None else arr(np.array(repulsion[2:]), scalar, True),
+            obstacle_world=np.repeat(np.arange(len(worlds), dtype=np.int32), np.diff(obstacle_start)),
             particle_area=arr(particle_area, scalar),
             **obstacle_fields,
         )

@@ -203,14 +203,22 @@ class Model:
     lut_row: wp.array
     """Stretching lookup: angle row r per cell [-], (27000,) int32."""
 
+    world_count: int
+    """Number of worlds: independent copies of a scene simulated together (``ModelBuilder.add_world``) [-], scalar
+    (host); 1 for a builder's own scene."""
+    particle_world: wp.array
+    """World of each particle [-], (particle_count,) int32."""
+    world_particle_start: np.ndarray
+    """First particle of each world, and the particle count [-], (world_count + 1,) int64 (host): a world's
+    particles are one contiguous range."""
     gravity: wp.array
-    """Gravitational acceleration [m/s^2], (1,) vec3."""
+    """Gravitational acceleration of each world [m/s^2], (world_count,) vec3."""
     wind_velocity: wp.array | None
-    """Wind velocity [m/s], (1,) vec3; None when the scene has no wind."""
+    """Wind velocity of each world [m/s], (world_count,) vec3; None when no world has wind."""
     wind_density: wp.array | None
-    """Air density of the wind's normal pressure [kg/m^3], (1,)."""
+    """Air density of each world's wind pressure [kg/m^3], (world_count,) (0 in a world without wind)."""
     wind_drag: wp.array | None
-    """Tangential drag coefficient [kg/(m^2 s)], (1,)."""
+    """Tangential drag coefficient of each world's wind [kg/(m^2 s)], (world_count,) (0 in a world without wind)."""
     wind_lagged_normals: bool
     """Wind uses face normals of the previous step's start positions (ARCSim's lag), else the current ones [-],
     scalar (host)."""
@@ -296,10 +304,36 @@ class Model:
     """Scripted motion of each obstacle, or None for a static one [-], (obstacle_count,)."""
     obstacle_triangles_np: np.ndarray | None = field(repr=False, default=None)
     """Host copy of obstacle_tri_indices, for I/O [-], (obstacle_tri_count, 3) int32."""
+    obstacle_world: np.ndarray | None = field(repr=False, default=None)
+    """World of each obstacle [-], (obstacle_count,) int32 (host)."""
 
     @property
     def types(self):
         return types(self.scalar)
+
+    def world_slice(self, world: int) -> slice:
+        """The particle range of ``world``: ``state.particle_x[model.world_slice(w)]`` is a view of its positions."""
+        if not isinstance(world, (int, np.integer)) or isinstance(world, bool) or not 0 <= world < self.world_count:
+            raise ValueError(f"world {world!r} out of range [0, {self.world_count})")
+        return slice(int(self.world_particle_start[world]), int(self.world_particle_start[world + 1]))
+
+    def world_of(self, particle: int) -> int:
+        """The world of a particle (host)."""
+        return int(np.searchsorted(self.world_particle_start, particle, side="right") - 1)
+
+    def world_state(self, state: State, world: int) -> State:
+        """``world``'s part of ``state``: views of its positions and velocities (no copies; writes reach ``state``),
+        at the same time and step."""
+        part = self.world_slice(world)
+        return State(state.particle_x[part], state.particle_v[part], state.time, step=state.step)
+
+    def particle_name(self, particle: int) -> str:
+        """How error messages name a particle: ``particle 5``, or ``particle 5 (world 2, its particle 1)`` in a
+        model of several worlds."""
+        if self.world_count == 1:
+            return f"particle {particle}"
+        w = self.world_of(particle)
+        return f"particle {particle} (world {w}, its particle {particle - int(self.world_particle_start[w])})"
 
     @property
     def bsr_nnz(self) -> int:

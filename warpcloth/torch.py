@@ -20,6 +20,7 @@ except ImportError as exc:  # pragma: no cover - exercised in a subprocess by th
         "warpcloth.torch needs PyTorch, which is an optional extra: pip install warpcloth[torch]"
     ) from exc
 
+import numpy as np
 import warp as wp
 
 from warpcloth.materials import check_material_values
@@ -71,6 +72,11 @@ def simulate(
         time: simulated time of x0 [s]; scripted handle, pin and obstacle motion is keyed to it, so a chained call
             continues with ``time = previous start + previous steps * sim.dt``.
 
+    A batch dimension: for a model of W worlds of m particles each (``ModelBuilder.replicate``), x0 and v0 may be
+    (W, m, 3), ``particle_force`` then (W, m, 3) or (W, steps, m, 3), and the trajectory comes back as
+    (W, steps+1, m, 3) each: world w's is ``x[w]``. The worlds are simulated together, one launch per kernel for
+    all of them, and one backward pass gives every world's gradient.
+
     Every tensor must have the model's float dtype and live on its device (ValueError naming the argument
     otherwise). Each call starts a new trajectory: with ``set_wind(lagged_normals=True)`` its first step uses
     x0's normals. Backward can run again only with ``retain_graph=True``; double backward is not supported.
@@ -81,6 +87,8 @@ def simulate(
         raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
     steps = int(steps)
     model = sim.model
+    if isinstance(x0, torch.Tensor) and x0.dim() == 3:
+        return _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time)
     n = model.particle_count
     _check_tensor("x0", x0, model, [(n, 3)])
     _check_tensor("v0", v0, model, [(n, 3)])
@@ -99,6 +107,26 @@ def simulate(
         raise ValueError("simulate: a gradient was asked for but the model has none; build it with "
                          "ModelBuilder.finalize(..., requires_grad=True)")
     return _Rollout.apply(_Config(sim, steps, float(time)), x0, v0, particle_force, density, stretching, bending)
+
+
+def _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time):
+    """``simulate`` with a leading world dimension: the worlds' tensors flattened into the model's particle order
+    (each world's particles are one contiguous range), the trajectory split back into worlds."""
+    model = sim.model
+    sizes = set(np.diff(model.world_particle_start).tolist())
+    if len(sizes) != 1:
+        raise ValueError(f"simulate: a batch dimension needs worlds of one size; this model's worlds have "
+                         f"{sorted(sizes)} particles (pass (particle_count, 3) tensors instead)")
+    W, m = model.world_count, sizes.pop()
+    _check_tensor("x0", x0, model, [(W, m, 3)])
+    _check_tensor("v0", v0, model, [(W, m, 3)])
+    force = particle_force
+    if force is not None:
+        _check_tensor("particle_force", force, model, [(W, m, 3), (W, steps, m, 3)])
+        force = force.reshape(-1, 3) if force.dim() == 3 else force.transpose(0, 1).reshape(steps, W * m, 3)
+    x, v = simulate(sim, x0.reshape(-1, 3), v0.reshape(-1, 3), steps=steps, particle_force=force, density=density,
+                    stretching=stretching, bending=bending, time=time)
+    return (x.reshape(steps + 1, W, m, 3).transpose(0, 1), v.reshape(steps + 1, W, m, 3).transpose(0, 1))
 
 
 def _check_tensor(name: str, t, model: Model, shapes: list[tuple[int, ...]]) -> None:

@@ -44,16 +44,37 @@ class Contacts:
                    t=np.concatenate([p.t for p in parts]), sign=np.concatenate([p.sign for p in parts]))
 
 
-class PrimitiveSet:
-    """Vertices, edges or triangles (node indices, one row each) with their swept bounding boxes."""
+def node_worlds(model: Model, obstacles: bool) -> np.ndarray:
+    """The world of every contact node: the cloth particles, then (with ``obstacles``) the obstacle vertices,
+    (particle_count [+ obstacle_vertex_count],) int32."""
+    worlds = [model.particle_world.numpy()]
+    if obstacles:
+        worlds.append(model.obstacle_world[model.obstacle_vertex_body.numpy()])
+    return np.concatenate(worlds).astype(np.int32)
 
-    def __init__(self, indices: np.ndarray, device):
+
+class PrimitiveSet:
+    """Vertices, edges or triangles (node indices, one row each) with their bounding boxes and a BVH over them,
+    grouped by world where the model has several (``node_world``: the world of each node), so that a query meets
+    only its own world's primitives (kernels/geometry.py world_root)."""
+
+    def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None):
         self.count = len(indices)
         self.corners = indices.shape[1]
         self.indices = wp.array(indices.astype(np.int32), dtype=wp.int32, device=device)
         self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
         self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
         self.bvh: wp.Bvh | None = None
+        self.groups = None
+        if node_world is not None and self.count and node_world.max() > 0:
+            self.groups = wp.array(node_world[indices[:, 0]], dtype=wp.int32, device=device)
+
+    def update_bvh(self) -> None:
+        """Build the BVH over the current boxes, or refit it to them."""
+        if self.bvh is None:
+            self.bvh = wp.Bvh(self.lowers, self.uppers, groups=self.groups)
+        else:
+            self.bvh.refit()
 
 
 class ContactDetector:
@@ -74,17 +95,21 @@ class ContactDetector:
         self.capacity = int(capacity)
         self.kernels = collision_kernels(model.scalar)
         n = model.particle_count
-        cloth_tris = PrimitiveSet(model.triangles_np, dev)
-        cloth_vertices = PrimitiveSet(np.arange(n)[:, None], dev)
-        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev)
+        worlds = node_worlds(model, obstacles)
+        self.node_world = wp.array(worlds, dtype=wp.int32, device=dev)
+        """The world of every node, (nodes,) int32."""
+        self.grouped = int(model.world_count > 1)
+        cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
+        cloth_vertices = PrimitiveSet(np.arange(n)[:, None], dev, worlds)
+        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds)
         self._sets = [cloth_tris, cloth_vertices, cloth_edges]
         # (query set, target set, kind, skip-incident/same-set flag)
         self._queries: list[tuple[PrimitiveSet, PrimitiveSet, str, int]] = []
         if obstacles:
             V = model.obstacle_vertex_count
-            obst_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev)
-            obst_vertices = PrimitiveSet(np.arange(n, n + V)[:, None], dev)
-            obst_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev)
+            obst_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev, worlds)
+            obst_vertices = PrimitiveSet(np.arange(n, n + V)[:, None], dev, worlds)
+            obst_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev, worlds)
             self._sets += [obst_tris, obst_vertices, obst_edges]
             self._queries += [(cloth_vertices, obst_tris, "vf", 0), (obst_vertices, cloth_tris, "vf", 0),
                               (cloth_edges, obst_edges, "ee", 0)]
@@ -149,16 +174,15 @@ class ContactDetector:
         for query, target, kind, flag in self._queries:
             if query.count == 0 or target.count == 0:
                 continue
-            if target.bvh is None:
-                target.bvh = wp.Bvh(target.lowers, target.uppers)
-            elif id(target) not in refitted:
-                target.bvh.refit()
+            if id(target) not in refitted:
+                target.update_bvh()
             refitted.add(id(target))
             kernel = k.vertex_face if kind == "vf" else k.edge_edge
             query_index = query.indices if kind == "ee" else query.indices.flatten()
             wp.launch(kernel, query.count, device=self.device,
                       inputs=[target.bvh.id, x0, x1, reference, query_index, target.indices, query.lowers,
-                              query.uppers, flag, wp.float64(self.thickness), int(keep_start_gaps), self.capacity],
+                              query.uppers, flag, wp.float64(self.thickness), int(keep_start_gaps), self.capacity,
+                              self.node_world, self.grouped],
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
         count = int(self._count.numpy()[0])
         if count > self.capacity:
@@ -185,9 +209,9 @@ class ContactDetector:
             inside = wp.zeros(model.particle_count, dtype=wp.int32, device=self.device)
             wp.launch(self.kernels.inside_mesh, model.particle_count, device=self.device,
                       inputs=[mesh.id, x0, 1.0e6], outputs=[inside], record_tape=False)
-            bad = np.flatnonzero(inside.numpy())
+            bad = np.flatnonzero(inside.numpy() & (model.particle_world.numpy() == model.obstacle_world[b]))
             if bad.size:
                 p = int(bad[0])
                 raise ValueError(
-                    f"cloth particle {p} at {x0.numpy()[p].tolist()} starts inside obstacle "
+                    f"cloth {model.particle_name(p)} at {x0.numpy()[p].tolist()} starts inside obstacle "
                     f"{model.obstacle_names[b]!r} ({bad.size} particles inside); move the cloth or the obstacle")

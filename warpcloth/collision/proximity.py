@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warpcloth.collision.detection import PrimitiveSet
+from warpcloth.collision.detection import PrimitiveSet, node_worlds
 from warpcloth.errors import ContactCapacityError
 from warpcloth.kernels.proximity import FRICTION_SWEEPS, proximity_kernels
 from warpcloth.model import Model, State
@@ -68,8 +68,10 @@ class ProximityForces:
         self.cloth_count, self.node_count = n, n + V
         self.capacity = int(capacity or 8 * (n + V))
         scalar = model.scalar
-        cloth_tris = PrimitiveSet(model.triangles_np, dev)
-        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev)
+        worlds = node_worlds(model, obstacles)
+        self._node_world = wp.array(worlds, dtype=wp.int32, device=dev)
+        cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
+        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds)
         cloth_vertices = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=dev)
         # the primitives' areas, for the pairs' stiffness (kernels/proximity.py): the cloth's rest areas; obstacles
         # count as infinite, so a pair takes its cloth primitive's area and an obstacle's tessellation cannot change
@@ -85,8 +87,8 @@ class ProximityForces:
         # areas by node id) or edges (EE)
         self._queries = []
         if obstacles:
-            obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev)
-            obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev)
+            obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev, worlds)
+            obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev, worlds)
             infinite = wp.array(np.full(max(obstacle_tris.count, obstacle_edges.count), np.inf), dtype=scalar,
                                 device=dev)
             self._queries += [
@@ -138,16 +140,14 @@ class ProximityForces:
                 continue
             wp.launch(k.primitive_boxes, prims.count, device=self.device, inputs=[x, prims.indices, radius],
                       outputs=[prims.lowers, prims.uppers], record_tape=False)
-            if prims.bvh is None:
-                prims.bvh = wp.Bvh(prims.lowers, prims.uppers)
-            else:
-                prims.bvh.refit()
+            prims.update_bvh()
         self._count.zero_()
         search = k.PairSearch()
         search.offsets, search.columns, search.cloth_count = m.bsr_offsets, m.bsr_columns, self.cloth_count
         search.radius = m.scalar(radius)
         search.count, search.pair_nodes, search.pair_kind = self._count, self._nodes, self._kind
         search.pair_area = self._pair_area
+        search.node_world, search.grouped = self._node_world, int(m.world_count > 1)
         for rows, target, kind, row_area, target_area, same in self._queries:
             if rows.shape[0] == 0 or target.count == 0:
                 continue

@@ -37,7 +37,7 @@ class SystemAssembler:
                             ("area", m.tri_area), ("block_slot", m.tri_block_slot), ("particle_pin", m.particle_pin),
                             ("density", m.material_density), ("stretching", m.material_stretching),
                             ("thicken", m.material_thicken), ("lut_weight", m.lut_weight), ("lut_row", m.lut_row),
-                            ("gravity", m.gravity)):
+                            ("gravity", m.gravity), ("particle_world", m.particle_world)):
             setattr(self.face_data, name, array)
         self.hinge_data = k.HingeData()
         for name, array in (("indices", m.hinge_indices), ("material", m.hinge_material),
@@ -107,8 +107,8 @@ class SystemAssembler:
             if model.wind_lagged_normals and state_in.particle_x_previous is not None:
                 x_normal = state_in.particle_x_previous  # continuing a trajectory: the previous step's start
             wp.launch(k.wind, model.tri_count, device=self.device,
-                      inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.wind_velocity,
-                              model.wind_density, model.wind_drag, x_normal, v_wind, dt],
+                      inputs=[model.tri_indices, model.tri_area, model.particle_pin, model.particle_world,
+                              model.wind_velocity, model.wind_density, model.wind_drag, x_normal, v_wind, dt],
                       outputs=[rhs])
         if model.handle_count:
             wp.launch(k.handles, model.handle_count, device=self.device,

@@ -35,12 +35,14 @@ class StepDiagnostics:
         hints = self.wind_hint() + self.mesh_hint()
         if np.all(np.isfinite(x)) and np.all(np.isfinite(v)):
             return SimulationError(
-                f"simulation diverged at step {step} (t = {t:.4g} s): particle {particle} moves at {speed:.4g} m/s, "
+                f"simulation diverged at step {step} (t = {t:.4g} s): {self.model.particle_name(particle)} moves at "
+                f"{speed:.4g} m/s, "
                 f"over SolverOptions.max_speed = {max_speed:g} m/s (x = {x.tolist()}); lower dt, raise damping, or "
                 "check the material and forces; if the motion really is this fast (a long free fall), raise "
                 "max_speed" + hints)
         return SimulationError(
-            f"simulation diverged at step {step} (t = {t:.4g} s): particle {particle} has x = {x.tolist()}, "
+            f"simulation diverged at step {step} (t = {t:.4g} s): {self.model.particle_name(particle)} has "
+            f"x = {x.tolist()}, "
             f"v = {v.tolist()}; lower dt, raise damping, or check the material and forces" + hints)
 
     def non_finite_cause(self, state_in: State, values: wp.array, rhs: wp.array) -> str | None:
@@ -52,7 +54,7 @@ class StepDiagnostics:
             bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1))
             if bad.size:
                 p = int(bad[0])
-                return f"particle {p} enters the step with a non-finite {what} {a[p].tolist()}"
+                return f"{model.particle_name(p)} enters the step with a non-finite {what} {a[p].tolist()}"
         b = rhs.numpy().reshape(model.particle_count, -1)
         blocks = values.numpy().reshape(len(values), -1)
         largest = float(np.abs(blocks).max()) if np.all(np.isfinite(blocks)) else math.inf
@@ -63,11 +65,12 @@ class StepDiagnostics:
         far = np.flatnonzero(np.abs(x).max(axis=1) > 1.0e6)
         if far.size:
             p = int(far[0])
-            return (f"particle {p} is at {x[p].tolist()}, more than 1e6 m from the origin: its edge vectors lose "
+            return (f"{model.particle_name(p)} is at {x[p].tolist()}, more than 1e6 m from the origin: its edge "
+                    "vectors lose "
                     f"their precision or overflow in {model.scalar.__name__}")
         bad = np.flatnonzero(~np.all(np.isfinite(b), axis=1))
         stiffest = float(np.abs(model.material_stretching.numpy()).max())
-        which = (f"the forces on particle {int(bad[0])} are not finite" if bad.size else
+        which = (f"the forces on {model.particle_name(int(bad[0]))} are not finite" if bad.size else
                  f"the implicit system's largest entry is {largest:.3g}")
         return (f"{which}: the material's stiffness (largest stretching entry {stiffest:.3g}) or the forces "
                 f"overflow {model.scalar.__name__}")
@@ -76,7 +79,7 @@ class StepDiagnostics:
         """Warn when the model is so light that its weight's impulse over a step, dt |g| |m|, is within ten times
         SolverOptions.cg_atol: every solve then stops at once on that absolute floor and the cloth never moves (a
         cloth at rest also skips its solves, rightly: its forces balance, so the test is on the model's scale)."""
-        g = max(float(np.linalg.norm(self.model.gravity.numpy())), 1.0)
+        g = max(float(np.max(np.linalg.norm(self.model.gravity.numpy(), axis=1))), 1.0)
         impulse = self.dt * g * float(np.linalg.norm(self.model.particle_mass()))
         if impulse <= 10.0 * cg_atol:
             warnings.warn(
@@ -94,8 +97,9 @@ class StepDiagnostics:
         model = self.model
         if model.wind_velocity is None:
             return ""
-        speed = float(np.linalg.norm(model.wind_velocity.numpy()[0]))
-        air, drag = float(model.wind_density.numpy()[0]), float(model.wind_drag.numpy()[0])
+        # the stiffest world's wind (worlds may differ)
+        speed = float(np.max(np.linalg.norm(model.wind_velocity.numpy(), axis=1)))
+        air, drag = float(np.max(model.wind_density.numpy())), float(np.max(model.wind_drag.numpy()))
         cloth = float(np.min(model.material_density.numpy() * model.material_thicken.numpy()))
         limits = {}
         if air * speed > 0.0:

@@ -55,8 +55,12 @@ class LinearSolver:
         if preconditioner == "auto":
             if backend != "sequential":
                 preconditioner = "block_jacobi"
-            else:  # a model whose particles are all pinned has nothing to coarsen
-                preconditioner = "multigrid" if (model.particle_pin.numpy() < 0).any() else "block_ssor"
+            else:  # a model whose particles are all pinned has nothing to coarsen; one hierarchy spans one world
+                free = (model.particle_pin.numpy() < 0).any()
+                preconditioner = "multigrid" if free and model.world_count == 1 else "block_ssor"
+        if preconditioner == "multigrid" and model.world_count > 1:
+            raise ValueError(f"SolverOptions.preconditioner 'multigrid' takes a model of one world (this one has "
+                             f"{model.world_count}); use 'block_ssor', which each world's solve runs on its own")
         if preconditioner in ("block_ssor", "multigrid") and backend != "sequential":
             raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' (its "
                              "sweeps are sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
@@ -78,9 +82,14 @@ class LinearSolver:
         # the block inverses of the diagonal: the particles', then (multigrid) every coarse level's
         self._precond = wp.empty(self._multigrid.b.shape[0] if self._multigrid.levels else n, dtype=mat33,
                                  device=self.device)
-        self._info = wp.zeros(3, dtype=wp.float64, device=self.device)
+        self._world_start = wp.array(model.world_particle_start.astype(np.int32), dtype=wp.int32, device=self.device)
+        self._info = wp.zeros((model.world_count, 3), dtype=wp.float64, device=self.device)
         # on the CPU the host view shares memory: reading it costs no copy and no launch
         self._info_host = self._info.numpy() if self.device.is_cpu else None
+        self.world_info: np.ndarray | None = None
+        """Per world, the last sequential solve's [iterations, relative residual, converged (0/1)], shape
+        (world_count, 3) (host); the SolveInfo it returns holds the most iterations, the largest residual and
+        whether every world converged. None before the first solve, and with the warp backend."""
         self._adjoint = wp.zeros(n, dtype=vec3, device=self.device)
         self._warp_matrix = None
         self._plain = self.kernels.BlockMatrix()
@@ -105,15 +114,20 @@ class LinearSolver:
                 return self._solve_warp(values, b, x, tol, guess, pairs)
         kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}[self.preconditioner]
         r, z, p, q = self._scratch
-        wp.launch(self.kernels.cg_sequential, 1, device=self.device,
+        wp.launch(self.kernels.cg_sequential, model.world_count, device=self.device,
                   inputs=[self.block_matrix(values, pairs), b,
                           float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
                           model.scalar(opt.ssor_omega), self._multigrid, int(guess is not None),
                           x if guess is None else guess,
-                          r, z, p, q, self._precond],
+                          r, z, p, q, self._precond, self._world_start],
                   outputs=[x, self._info], record_tape=False)
         info = self._info_host if self._info_host is not None else self._info.numpy()
-        return SolveInfo(int(info[0]), float(info[1]), bool(info[2]))
+        self.world_info = info
+        if model.world_count == 1:
+            return SolveInfo(int(info[0, 0]), float(info[0, 1]), bool(info[0, 2]))
+        residual = info[:, 1]
+        worst = float(np.nan) if not np.all(np.isfinite(residual)) else float(residual.max())
+        return SolveInfo(int(info[:, 0].max()), worst, bool(info[:, 2].all()))
 
     def solve_recorded(self, values: wp.array, rhs: wp.array, x: wp.array, *, step: int = 0,
                        guess: wp.array | None = None, adjoint_guess: wp.array | None = None,
@@ -172,21 +186,33 @@ class LinearSolver:
         non-finite residual."""
         iters, residual, converged = info
         opt = self.options
+        world = ""
+        if self.model.world_count > 1 and self.world_info is not None and not (converged and math.isfinite(residual)):
+            w = self._failed_world()
+            world = f" in world {w}"
+            iters, residual = int(self.world_info[w, 0]), float(self.world_info[w, 1])
         if not math.isfinite(residual):
-            raise SimulationError(f"{which} CG solve of step {step} produced a non-finite residual after {iters} "
-                                  "iterations; the system is not positive definite or the state is already invalid"
+            raise SimulationError(f"{which} CG solve of step {step}{world} produced a non-finite residual after "
+                                  f"{iters} iterations; the system is not positive definite or the state is already "
+                                  "invalid"
                                   + self.hint())
         if not converged:
             name, tol = "cg_tol", opt.cg_tol
             if which == "adjoint" and opt.adjoint_cg_tol is not None:
                 name, tol = "adjoint_cg_tol", opt.adjoint_cg_tol
-            msg = (f"{which} CG solve of step {step} did not converge: relative residual {residual:.3e} "
+            msg = (f"{which} CG solve of step {step}{world} did not converge: relative residual {residual:.3e} "
                    f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
                    "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
                    + self.hint())
             if opt.on_cg_failure == "raise":
                 raise SimulationError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=4)
+
+    def _failed_world(self) -> int:
+        """The world of the last solve with a non-finite residual, else the one with the largest residual."""
+        residual = self.world_info[:, 1]
+        bad = np.flatnonzero(~np.isfinite(residual))
+        return int(bad[0]) if bad.size else int(np.argmax(residual))
 
     def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None, pairs) -> SolveInfo:
         """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path), plus the pairs' cross blocks as a

@@ -1,0 +1,168 @@
+"""Many worlds in one model (issue 25): throughput in world-steps per second against the number of worlds.
+
+Scenes, each world a copy made with ``ModelBuilder.replicate``/``add_world``:
+- throw: the seed's throw scene (embedded ``basket-throw``: 8x8 cells, the basket, the wall, the ground; contact with
+  repulsion and friction), from its start, each world's four corners pushed by a constant random force (a 5 m/s^2
+  standard deviation per axis, numpy.random.default_rng(world)); the cloth falls onto the ground and slides;
+- hanging: a 16x16 hanging cloth in a 5 m/s wind (the seed's material-estimation scene made in code), the world's
+  material the seed's fabric number ``world mod 10``: a fabric library in one model. No contact.
+Forward: ``steps`` steps without a tape. Forward + backward: ``grad_steps`` steps on a wp.Tape and one backward pass
+of a random linear loss of the final positions (float32, the default). Every configuration solves with block SSOR
+(the preconditioner of several worlds; a single world's default is multigrid). Each configuration is timed after a
+warm-up (kernels compiled, two steps). World-steps per second = worlds x steps / wall time.
+
+Usage: python benchmarks/worlds.py [--quick] [--out PATH] [--worlds 1,4,16,64,256] [--steps 60] [--grad-steps 30]
+       [--device cpu]   (--quick: 1 and 4 worlds, 4 steps)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import common
+import numpy as np
+import warp as wp
+from common import wc
+
+from warpcloth.scene import load_scene
+from warpcloth.tasks import scenes as S
+
+TARGET_SPEEDUP = 10.0
+"""Issue 25: 64 throw worlds at >= 10x the world-steps per second of one world (this 2-core CPU)."""
+SAME_SOLVER = {"preconditioner": "block_ssor"}
+"""Every configuration solves with block SSOR: a model of several worlds cannot use the multigrid preconditioner
+(one hierarchy spans one world), which a single world gets by default (``"auto"``)."""
+PUSH_SIGMA = 5.0
+"""Standard deviation of the corners' push [m/s^2] (a force of the corner's mass times this)."""
+
+
+def throw_builder(world_count: int) -> tuple[wc.ModelBuilder, float, wc.SolverOptions, list[int]]:
+    scene = load_scene("basket-throw")
+    builder = wc.ModelBuilder()
+    builder.replicate(scene.model_builder, world_count)
+    return builder, scene.dt, dataclasses.replace(scene.solver_options, **SAME_SOLVER), list(scene.control.particles)
+
+
+def hanging_world(material: wc.Material) -> wc.ModelBuilder:
+    b = wc.ModelBuilder(gravity=S.GRAVITY)
+    res = S.GRID_RES
+    b.add_cloth_grid((res, res), (1.0, 1.0), material=material, rot=S.GRID_TO_YZ, pos=(0.0, -0.5, -1.0))
+    for p in (res * (res + 1), res * (res + 1) + res):  # the top corners
+        b.add_handle(p)
+    b.set_wind(S.WIND)
+    return b
+
+
+def hanging_builder(world_count: int) -> tuple[wc.ModelBuilder, float, wc.SolverOptions, list[int]]:
+    names = list(wc.PRESET_NAMES)
+    builder = wc.ModelBuilder()
+    for w in range(world_count):
+        builder.add_world(hanging_world(wc.preset(names[w % len(names)], thicken=S.THICKEN)))
+    return builder, 0.02, wc.SolverOptions(**SAME_SOLVER), []
+
+
+SCENES = {"throw": throw_builder, "hanging": hanging_builder}
+
+
+def control_for(model: wc.Model, pushed: list[int]) -> wc.Control | None:
+    """Constant random pushes on each world's ``pushed`` particles (None where nothing is pushed)."""
+    if not pushed:
+        return None
+    control = model.control(particle_force=True)
+    mass = model.particle_mass()
+    force = np.zeros((model.particle_count, 3))
+    for w in range(model.world_count):
+        rows = np.arange(model.world_slice(w).start, model.world_slice(w).stop)[pushed]
+        force[rows] = mass[rows, None] * np.random.default_rng(w).normal(0.0, PUSH_SIGMA, (len(pushed), 3))
+    control.particle_force.assign(force)
+    return control
+
+
+@wp.kernel
+def _weighted_sum(x: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.vec3), out: wp.array(dtype=float)):
+    i = wp.tid()
+    wp.atomic_add(out, 0, wp.dot(x[i], w[i]))
+
+
+def measure(scene: str, worlds: int, steps: int, grad_steps: int, device: str) -> dict:
+    builder, dt, options, pushed = SCENES[scene](worlds)
+    record = {"scene": scene, "worlds": worlds, "particles": builder.particle_count}
+
+    # forward
+    model = builder.finalize(device)
+    sim = wc.Simulator(model, dt, options=options)
+    control = control_for(model, pushed)
+    wc.rollout(sim, model.state(), control, steps=2)  # warm-up: kernels loaded, buffers made
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    wc.rollout(sim, model.state(), control, steps=steps)
+    wp.synchronize_device(device)
+    seconds = time.perf_counter() - t0
+    record.update(steps=steps, forward_s=seconds, forward_world_steps_per_s=worlds * steps / seconds,
+                  cg_iterations_per_step=sim.stats["cg_iterations"] / sim.stats["steps"])
+
+    # forward + backward
+    model = builder.finalize(device, requires_grad=True)
+    sim = wc.Simulator(model, dt, options=options)
+    control = control_for(model, pushed)
+    weights = wp.array(np.random.default_rng(99).standard_normal((model.particle_count, 3)), dtype=wp.vec3,
+                       device=device)
+
+    def forward_backward(n: int) -> None:
+        tape = wp.Tape()
+        with tape:
+            traj = wc.rollout(sim, model.state(), control, steps=n)
+            loss = wp.zeros(1, dtype=float, device=device, requires_grad=True)
+            wp.launch(_weighted_sum, model.particle_count, device=device, inputs=[traj[-1].particle_x, weights],
+                      outputs=[loss])
+        tape.backward(loss)
+        tape.zero()
+
+    forward_backward(2)
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    forward_backward(grad_steps)
+    wp.synchronize_device(device)
+    seconds = time.perf_counter() - t0
+    record.update(grad_steps=grad_steps, forward_backward_s=seconds,
+                  forward_backward_world_steps_per_s=worlds * grad_steps / seconds)
+    return record
+
+
+def main():
+    args = common.parse_args(__doc__, worlds="1,4,16,64,256", steps=60, grad_steps=30, device="cpu",
+                             quick={"worlds": "1,4", "steps": 4, "grad_steps": 4})
+    counts = [int(w) for w in args.worlds.split(",")]
+    wp.init()
+    records = []
+    for scene in SCENES:
+        for worlds in counts:
+            r = measure(scene, worlds, args.steps, args.grad_steps, args.device)
+            records.append(r)
+            print(f"{scene:8s} {worlds:4d} worlds: forward {r['forward_world_steps_per_s']:9.1f} world-steps/s, "
+                  f"forward+backward {r['forward_backward_world_steps_per_s']:9.1f}", flush=True)
+    for r in records:
+        one = next(o for o in records if o["scene"] == r["scene"] and o["worlds"] == counts[0])
+        r["forward_speedup"] = r["forward_world_steps_per_s"] / one["forward_world_steps_per_s"]
+        r["forward_backward_speedup"] = (r["forward_backward_world_steps_per_s"]
+                                         / one["forward_backward_world_steps_per_s"])
+    print(f"\nworld-steps per second against worlds ({args.device}, {common.cpu_model()}), speed-up over "
+          f"{counts[0]} world(s)")
+    common.print_table(
+        ["scene", "worlds", "particles", "forward", "speed-up", "fwd+bwd", "speed-up", "CG it/step"],
+        [[r["scene"], r["worlds"], r["particles"], r["forward_world_steps_per_s"], r["forward_speedup"],
+          r["forward_backward_world_steps_per_s"], r["forward_backward_speedup"], r["cg_iterations_per_step"]]
+         for r in records],
+        ["", "d", "d", ".1f", ".1f", ".1f", ".1f", ".1f"])
+    target = next((r for r in records if r["scene"] == "throw" and r["worlds"] == 64), None)
+    if target is not None and counts[0] == 1:
+        ok = target["forward_speedup"] >= TARGET_SPEEDUP
+        print(f"64 throw worlds >= {TARGET_SPEEDUP:g}x one world's world-steps/s (forward): "
+              f"{target['forward_speedup']:.1f}x {'ok' if ok else 'FAIL'}")
+    common.write_result(args, {"records": records, "target_speedup": TARGET_SPEEDUP, "push_sigma": PUSH_SIGMA},
+                        device=args.device)
+
+
+if __name__ == "__main__":
+    main()

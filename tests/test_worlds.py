@@ -1,0 +1,240 @@
+"""Many worlds in one model (ModelBuilder.add_world / replicate): N worlds simulated together give each world what a
+model of that world alone gives (states and gradients, with and without contact), worlds never touch each other
+even where they overlap in space, and a failing world is named."""
+
+import numpy as np
+import pytest
+import warp as wp
+from conftest import hanging_builder
+
+import warpcloth as wc
+
+# Each world's solve runs on its own; to compare with single-world runs both use the same preconditioner (a
+# single world's "auto" is multigrid, which spans one world).
+SSOR = dict(preconditioner="block_ssor", cg_tol=1e-10)
+
+
+@wp.kernel
+def weighted_sum(x: wp.array(dtype=wp.vec3d), weight: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], weight[i]))
+
+
+def loss_and_grads(model, sim, steps, weights, control=None, params=()):
+    """L = sum_i w_i . x_i after ``steps`` steps, and dL/d(each array in ``params``)."""
+    tape = wp.Tape()
+    with tape:
+        traj = wc.rollout(sim, model.state(), control, steps=steps)
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        wp.launch(weighted_sum, model.particle_count, inputs=[traj[-1].particle_x,
+                  wp.array(weights, dtype=wp.vec3d)], outputs=[loss])
+    tape.backward(loss)
+    grads = [p.grad.numpy().copy() for p in params]
+    tape.zero()
+    return traj[-1].particle_x.numpy(), grads
+
+
+def hanging_world(name, wind, gravity):
+    return hanging_builder(material=wc.preset(name, thicken=2), wind=wind, gravity=gravity)
+
+
+WORLDS = [("gray-interlock", (0.5, 2.0, 0.0), (0.0, 0.0, -2.0)),
+          ("11oz-black-denim", None, (0.0, 0.0, -9.8)),
+          ("tango-red-jet-set", (1.0, -1.0, 0.5), (0.3, 0.0, -5.0))]
+
+
+def test_worlds_without_contact_equal_single_runs_states_and_gradients():
+    """Per-world materials, wind and gravity: each world's state and gradients (its material, wind, gravity and
+    initial velocities) equal a single-world model's, bitwise: the same kernels, and each world's CG on its own."""
+    steps, rng = 8, np.random.default_rng(1)
+    composed = wc.ModelBuilder()
+    singles = []
+    for name, wind, gravity in WORLDS:
+        builder = hanging_world(name, wind, gravity)
+        composed.add_world(builder)
+        model = builder.finalize("cpu", requires_grad=True, dtype=wp.float64)
+        singles.append(model)
+    batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    assert batch.world_count == 3 and batch.material_count == 3
+    weights = rng.standard_normal((batch.particle_count, 3))
+    batch_sim = wc.Simulator(batch, 0.02, options=wc.SolverOptions(**SSOR))
+    x, (g_density, g_gravity, g_wind, g_v0) = loss_and_grads(
+        batch, batch_sim, steps, weights,
+        params=(batch.material_density, batch.gravity, batch.wind_velocity, batch.particle_v0))
+    assert batch_sim.linear_solver.world_info.shape == (3, 3)
+    for w, model in enumerate(singles):
+        part = batch.world_slice(w)
+        sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(**SSOR))
+        params = [model.material_density, model.gravity, model.particle_v0]
+        if model.wind_velocity is not None:
+            params.append(model.wind_velocity)
+        xs, grads = loss_and_grads(model, sim, steps, weights[part], params=params)
+        np.testing.assert_array_equal(x[part], xs)
+        np.testing.assert_array_equal(g_density[w], grads[0][0])
+        np.testing.assert_array_equal(g_gravity[w], grads[1][0])
+        np.testing.assert_array_equal(g_v0[part], grads[2])
+        if model.wind_velocity is not None:
+            np.testing.assert_array_equal(g_wind[w], grads[3][0])
+        else:
+            assert np.all(np.isfinite(g_wind[w]))  # a windless world: density and drag 0, the wind does nothing
+        assert np.abs(grads[0]).max() > 0.0
+
+
+def draped_builder():
+    """A 6x6 cloth dropped onto a sphere: contact (projection, repulsion and friction) within a few steps."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    b.add_cloth_grid((6, 6), (0.4, 0.4), material=wc.preset("gray-interlock", thicken=2), pos=(-0.2, -0.2, 0.01),
+                     vel=(0.0, 0.0, -1.0))
+    b.add_obstacle_sphere(0.12, name="ball", pos=(0.0, 0.0, -0.12))
+    return b
+
+
+def test_worlds_with_contact_equal_single_runs_states_and_gradients():
+    """A cloth dropped on a sphere (projection, repulsion, friction) replicated with a different push per world:
+    states and the pushes' gradients equal single-world runs (float64). Not bitwise: the projection solves every
+    world's contacts as one QP, to its tolerance (measured: gradients 3e-8 to 1.2e-7 apart, relative)."""
+    base, steps, worlds = draped_builder(), 30, 3
+    rng = np.random.default_rng(2)
+    pushed = [0, 6, 42, 48]
+    pushes = [rng.normal(0.0, 0.05, (len(pushed), 3)) for _ in range(worlds)]
+    composed = wc.ModelBuilder()
+    composed.replicate(base, worlds)
+    batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    weights = rng.standard_normal((batch.particle_count, 3))
+    options = wc.SolverOptions(**SSOR)
+
+    def run(model, forces, w):
+        control = model.control(particle_force=True)
+        control.particle_force.assign(forces)
+        sim = wc.Simulator(model, 0.01, options=options)
+        x, (grad,) = loss_and_grads(model, sim, steps, w, control, params=(control.particle_force,))
+        assert sim.collision.fail_safe_steps == 0 and sim.collision.start_gap_steps == 0
+        return x, grad, sim
+
+    forces = np.zeros((batch.particle_count, 3))
+    for w in range(worlds):
+        forces[batch.world_slice(w)][pushed] = pushes[w]
+    x, grad, sim = run(batch, forces, weights)
+    pairs = 0
+    for w in range(worlds):
+        model = base.finalize("cpu", requires_grad=True, dtype=wp.float64)
+        single = np.zeros((model.particle_count, 3))
+        single[pushed] = pushes[w]
+        part = batch.world_slice(w)
+        xs, gs, alone = run(model, single, weights[part])
+        pairs += alone.proximity.last_count
+        # the projection solves all worlds' contacts as one QP, to its tolerance (qp_tol): not bitwise
+        np.testing.assert_allclose(x[part], xs, rtol=0, atol=1e-8)
+        error = np.linalg.norm(grad[part] - gs) / np.linalg.norm(gs)
+        assert error <= 1e-6, f"world {w}: gradient differs from the single run's by {error:.2e} (relative)"
+    assert sim.proximity.last_count == pairs > 0  # the cloths rest on their spheres, each world's pairs its own
+
+
+def test_overlapping_worlds_do_not_collide():
+    """Two worlds in the same place with self-collision: a cloth falling through the place where the other world's
+    cloth is pinned falls as it does alone (it would land on it if worlds collided)."""
+    def falling():
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+        b.add_cloth_grid((4, 4), (0.4, 0.4), material=wc.preset("gray-interlock", thicken=2), pos=(0.0, 0.0, 0.1))
+        b.set_collision(self_collision=True)
+        return b
+
+    def resting():
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+        b.add_cloth_grid((4, 4), (0.4, 0.4), material=wc.preset("gray-interlock", thicken=2), pos=(-0.05, -0.05, 0.0))
+        for p in range(25):
+            b.add_pin(p)
+        b.set_collision(self_collision=True)
+        return b
+
+    composed = wc.ModelBuilder()
+    composed.add_world(falling())
+    composed.add_world(resting())
+    batch = composed.finalize("cpu", dtype=wp.float64)
+    options = wc.SolverOptions(**SSOR)
+    steps = 25
+    x = wc.rollout(wc.Simulator(batch, 0.01, options=options), batch.state(), steps=steps)[-1].particle_x.numpy()
+    alone = falling().finalize("cpu", dtype=wp.float64)
+    xs = wc.rollout(wc.Simulator(alone, 0.01, options=options), alone.state(), steps=steps)[-1].particle_x.numpy()
+    np.testing.assert_array_equal(x[batch.world_slice(0)], xs)
+    assert x[batch.world_slice(0)][:, 2].max() < -0.1  # fell through the pinned cloth's place at z = 0
+    # the same two cloths in one world collide: the falling one stops on the pinned one
+    both = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    mat = wc.preset("gray-interlock", thicken=2)
+    both.add_cloth_grid((4, 4), (0.4, 0.4), material=mat, pos=(0.0, 0.0, 0.1))
+    first = both.add_cloth_grid((4, 4), (0.4, 0.4), material=mat, pos=(-0.05, -0.05, 0.0))
+    for p in range(25):
+        both.add_pin(first + p)
+    both.set_collision(self_collision=True)
+    one = both.finalize("cpu", dtype=wp.float64)
+    x1 = wc.rollout(wc.Simulator(one, 0.01, options=options), one.state(), steps=steps)[-1].particle_x.numpy()
+    assert x1[:25, 2].min() > -0.01
+
+
+def test_failing_world_is_named():
+    """A world whose cloth starts far too fast trips the divergence guard; the error names its world."""
+    composed = wc.ModelBuilder()
+    composed.add_world(hanging_builder())
+    fast = wc.ModelBuilder(gravity=(0.0, 0.0, -2.0))
+    fast.add_cloth_grid((2, 2), (0.2, 0.2), material=wc.preset("gray-interlock", thicken=2), vel=(0.0, 0.0, -1.0e4))
+    composed.add_world(fast)
+    model = composed.finalize("cpu")
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(preconditioner="block_ssor"))
+    with pytest.raises(wc.SimulationError, match=r"step 1 .*world 1, its particle \d"):
+        sim.step(model.state(), model.empty_state())
+
+
+def test_replicate_scene_with_obstacles_and_handles():
+    """replicate copies cloths, handles, pins and obstacles (renamed per world) with their motions; per-world views
+    are views."""
+    base = hanging_builder(moving_pin=True)
+    base.add_obstacle_sphere(0.1, name="ball", pos=(0.0, 0.3, -0.3),
+                             motion=[(0.0, (0.0, 0.0, 0.0), (0, 0, 0, 1)), (1.0, (0.0, 0.1, 0.0), (0, 0, 0, 1))])
+    composed = wc.ModelBuilder()
+    assert list(composed.replicate(base, 3)) == [0, 1, 2]
+    model = composed.finalize("cpu")
+    n = base.particle_count
+    assert model.world_count == 3 and model.particle_count == 3 * n
+    assert model.world_particle_start.tolist() == [0, n, 2 * n, 3 * n]
+    assert model.particle_world.numpy().tolist() == [0] * n + [1] * n + [2] * n
+    assert model.obstacle_names == ["ball_0", "ball_1", "ball_2"]
+    assert model.obstacle_world.tolist() == [0, 1, 2]
+    assert all(m is not None for m in model.obstacle_motion)
+    single = base.finalize("cpu")
+    handles = single.handle_particle.numpy()
+    assert model.handle_particle.numpy().tolist() == [p + w * n for w in range(3) for p in handles]
+    assert model.pin_particle.numpy().tolist() == [p + w * n for w in range(3) for p in single.pin_particle.numpy()]
+    assert model.pin_motion[2] is single.pin_motion[0] or np.array_equal(model.pin_motion[2].offsets,
+                                                                           single.pin_motion[0].offsets)
+    state = model.state()
+    view = model.world_state(state, 1)
+    view.particle_x.fill_(0.0)
+    x = state.particle_x.numpy()
+    assert np.all(x[n:2 * n] == 0.0) and np.any(x[:n] != 0.0)
+    assert model.world_of(2 * n) == 2 and model.particle_name(n + 1) == f"particle {n + 1} (world 1, its particle 1)"
+
+
+def test_world_errors():
+    base = hanging_builder()
+    own = hanging_builder()
+    with pytest.raises(ValueError, match="has a cloth of its own"):
+        own.add_world(base)
+    composed = wc.ModelBuilder()
+    composed.add_world(base)
+    with pytest.raises(ValueError, match="add_handle: this builder holds worlds"):
+        composed.add_handle(0)
+    with pytest.raises(ValueError, match="set_wind: this builder holds worlds"):
+        composed.set_wind((1.0, 0.0, 0.0))
+    damped = hanging_builder()
+    damped.set_damping(mass=0.5)
+    with pytest.raises(ValueError, match=r"world 1 differs from world 0 .*damping mass 0.5 \(world 0: 0.0\)"):
+        composed.add_world(damped)
+    with pytest.raises(ValueError, match="count must be a positive integer"):
+        composed.replicate(base, 0)
+    with pytest.raises(ValueError, match="world 3 out of range"):
+        composed.finalize("cpu").world_slice(3)
+    composed.add_world(base)
+    with pytest.raises(ValueError, match="'multigrid' takes a model of one world"):
+        wc.Simulator(composed.finalize("cpu"), 0.01, options=wc.SolverOptions(preconditioner="multigrid"))
+    # "auto" picks block SSOR, which each world's solve runs on its own
+    assert wc.Simulator(composed.finalize("cpu"), 0.01).linear_solver.preconditioner == "block_ssor"
