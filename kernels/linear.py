@@ -34,6 +34,7 @@ def linear_kernels(scalar):
         diag_slot: wp.array(dtype=wp.int32)
         values: wp.array(dtype=mat33)
         pair_count: int
+        pair_world_start: wp.array(dtype=wp.int32)  # world w's pairs are [start[w], start[w + 1])
         pair_nodes: wp.array2d(dtype=wp.int32)
         pair_w: wp.array(dtype=vec4)
         pair_k: wp.array(dtype=mat33)
@@ -59,17 +60,11 @@ def linear_kernels(scalar):
 
     @wp.func
     def add_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar,
-                          lo: int, hi: int):
-        """q += sign * (the cross blocks of the pairs in particles [lo, hi), one world's) p; returns p . (that
-        product), in float64. A pair never spans worlds, so its first weighted node tells its world."""
+                          world: int):
+        """q += sign * (the cross blocks of ``world``'s pairs) p; returns p . (that product), in float64."""
         pq = wp.float64(0.0)
-        for k in range(A.pair_count):
-            node = int(-1)
-            for a in range(4):
-                if node < 0 and A.pair_w[k][a] != scalar(0.0):
-                    node = A.pair_nodes[k, a]
-            if node >= lo and node < hi:
-                pq += add_pair_product(A, k, p, q, sign)
+        for k in range(A.pair_world_start[world], A.pair_world_start[world + 1]):
+            pq += add_pair_product(A, k, p, q, sign)
         return pq
 
     @wp.func
@@ -349,7 +344,7 @@ def linear_kernels(scalar):
             r[i] = ri
             bb += wp.float64(wp.dot(b[i], b[i]))
         if warm_start != 0:
-            add_pair_products(A, x, r, scalar(-1.0), lo, hi)
+            add_pair_products(A, x, r, scalar(-1.0), w)
         for i in range(lo, hi):
             rr += wp.float64(wp.dot(r[i], r[i]))
         if multigrid:
@@ -387,7 +382,7 @@ def linear_kernels(scalar):
                     q[j] = q[j] + wp.transpose(a) * pi
                 q[i] = acc
                 pq += wp.float64(wp.dot(pi, acc))
-            pq += add_pair_products(A, p, q, scalar(1.0), lo, hi)
+            pq += add_pair_products(A, p, q, scalar(1.0), w)
             alpha = scalar(rz / pq)
             rr = wp.float64(0.0)
             rz_new = wp.float64(0.0)

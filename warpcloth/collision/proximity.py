@@ -40,6 +40,8 @@ class ProximityPairs:
     """Weight of each node, 0 where it is not a free cloth particle [-], (>= count,) vec4."""
     stiffness: wp.array
     """The pair's 3x3 block K (dt^2 h n n^T) [kg], (>= count,) mat33."""
+    world_start: wp.array
+    """First pair of each world, and the count [-], (world_count + 1,) int32: the pairs are sorted by world."""
     inputs: object = None
     """What the pair kernels read (kernels/proximity.py PairInputs): the friction impulses read it after the
     solve; None without pairs."""
@@ -69,7 +71,10 @@ class ProximityForces:
         self.capacity = int(capacity or 8 * (n + V))
         scalar = model.scalar
         worlds = node_worlds(model, obstacles)
+        self._node_world_host = worlds
         self._node_world = wp.array(worlds, dtype=wp.int32, device=dev)
+        self.pair_world_start = wp.zeros(model.world_count + 1, dtype=wp.int32, device=dev)
+        """First pair of each world of the last detection, and the count, (world_count + 1,) int32."""
         cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
         cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds)
         cloth_vertices = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=dev)
@@ -165,7 +170,24 @@ class ProximityForces:
                 f"proximity pair buffer overflow: {count} pairs found but the capacity is {self.capacity}; raise "
                 f"CollisionOptions.contact_capacity to at least {count}")
         self.last_count = count
+        self._sort_by_world(count)
         return count
+
+    def _sort_by_world(self, count: int) -> None:
+        """Order the pairs by world, keeping each world's in the order found (so a world's pairs are those a model
+        of that world alone finds, in the same order), and write each world's first pair to ``pair_world_start``:
+        each world's CG reads its own range. One world: nothing moves."""
+        W = self.model.world_count
+        if W == 1:
+            self.pair_world_start.assign(np.array([0, count], dtype=np.int32))
+            return
+        nodes, kind, area = (a.numpy() for a in (self._nodes, self._kind, self._pair_area))
+        world = self._node_world_host[nodes[:count, 0]]
+        order = np.argsort(world, kind="stable")
+        self._nodes.assign(np.concatenate([nodes[:count][order], nodes[count:]]))
+        self._kind.assign(np.concatenate([kind[:count][order], kind[count:]]))
+        self._pair_area.assign(np.concatenate([area[:count][order], area[count:]]))
+        self.pair_world_start.assign(np.searchsorted(world[order], np.arange(W + 1)).astype(np.int32))
 
     def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,
                  dv: wp.array, values: wp.array, rhs: wp.array, recording: bool,
@@ -193,7 +215,8 @@ class ProximityForces:
             nodes, kind, area = wp.clone(nodes[:count]), wp.clone(kind[:count]), wp.clone(area[:count])
             weights = wp.empty(max(count, 1), dtype=model.types.vec4, device=dev)
             stiffness = wp.empty(max(count, 1), dtype=model.types.mat33, device=dev)
-        pairs = ProximityPairs(count, nodes, weights, stiffness)
+        world_start = wp.clone(self.pair_world_start) if recording else self.pair_world_start
+        pairs = ProximityPairs(count, nodes, weights, stiffness, world_start)
         if count == 0:
             return pairs
         inputs = self.pair_inputs(x, velocity, nodes, kind, area, implicit_dt)

@@ -95,6 +95,7 @@ class LinearSolver:
         self._plain = self.kernels.BlockMatrix()
         self._plain.offsets, self._plain.columns = model.bsr_offsets, model.bsr_columns
         self._plain.diag_slot, self._plain.pair_count = model.particle_diag_slot, 0
+        self._plain.pair_world_start = wp.zeros(model.world_count + 1, dtype=wp.int32, device=self.device)
         self._plain.pair_nodes = wp.zeros((0, 4), dtype=wp.int32, device=self.device)
         self._plain.pair_w = wp.zeros(0, dtype=model.types.vec4, device=self.device)
         self._plain.pair_k = wp.zeros(0, dtype=mat33, device=self.device)
@@ -177,6 +178,7 @@ class LinearSolver:
             A = self.kernels.BlockMatrix()
             A.offsets, A.columns, A.diag_slot = self._plain.offsets, self._plain.columns, self._plain.diag_slot
             A.pair_count, A.pair_nodes, A.pair_w, A.pair_k = pairs.count, pairs.nodes, pairs.weights, pairs.stiffness
+            A.pair_world_start = pairs.world_start
         if A.values is not values:
             A.values = values
         return A
