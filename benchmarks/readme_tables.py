@@ -700,6 +700,21 @@ def worlds(d: dict) -> str:
         out += ["", f"Target from issue 25: 64 throw worlds at ≥ {d['target_speedup']:g}× the world-steps per second "
                 f"of one world: forward {target['forward_speedup']:.1f}×, forward + backward "
                 f"{target['forward_backward_speedup']:.1f}×: {met(target['forward_speedup'] >= d['target_speedup'])}."]
+    opt = d.get("optimisation")
+    if opt:
+        out += ["", f"The throw's open loop (Gauss-Newton, {opt['iters']} simulations a run, {opt['steps']} steps) "
+                f"from {opt['starts']} starts, one world at a time against batched (each point's three Jacobian "
+                "rows as one batch, the starts in lockstep: `optimize_open_loop_starts`):", "",
+                table(["mode", "wall time [s]", "world simulations run", "batches"],
+                      [[name, f"{opt[key]['wall_s']:.1f}", str(opt[key]["world_simulations"]),
+                        str(opt[key]["batches"])]
+                       for name, key in (("one world at a time", "one_world"), ("batched", "batched"))]),
+                "", "Each run's result (" + "; ".join(
+                    f"{r['start']}: {g(r['error_pct'], 3)} % after {r['simulations']} simulations"
+                    for r in opt["runs"]) + f") is the same batched, bitwise: {'yes' if opt['same_result'] else 'no'} "
+                f"({opt['batch_retries']} batches run again world by world). Target from issue 25: "
+                f"≥ {d['target_optimisation_speedup']:g}× faster, same result: {opt['speedup']:.2f}×, "
+                f"{met(opt['speedup'] >= d['target_optimisation_speedup'] and opt['same_result'])}."]
     out += ["", provenance(d)]
     return "\n".join(out)
 

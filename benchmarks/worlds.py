@@ -11,8 +11,15 @@ of a random linear loss of the final positions (float32, the default). Every con
 (the preconditioner of several worlds; a single world's default is multigrid). Each configuration is timed after a
 warm-up (kernels compiled, two steps). World-steps per second = worlds x steps / wall time.
 
+Optimisation (``--opt-iters``): the throw's open loop (Gauss-Newton, ``--opt-iters`` simulations a run, the full
+700 steps) from zero pushes and ``--opt-starts`` - 1 random starts (benchmarks/motion_control.py's), first one
+after another with one world (``batch=False``), then batched: each point's three Jacobian rows as one batch of
+worlds, and the starts in lockstep (``optimize_open_loop_starts``): wall time, world simulations run, and whether
+every run's result (pushes and history) is the same.
+
 Usage: python benchmarks/worlds.py [--quick] [--out PATH] [--worlds 1,4,16,64,256] [--steps 60] [--grad-steps 30]
-       [--device cpu]   (--quick: 1 and 4 worlds, 4 steps)
+       [--device cpu] [--opt-iters 50] [--opt-steps 700] [--opt-starts 3]
+       (--quick: 1 and 4 worlds, 4 steps; the optimisation 2 starts, 3 simulations, 10 steps)
 """
 
 from __future__ import annotations
@@ -24,15 +31,19 @@ import common
 import numpy as np
 import warp as wp
 from common import wc
+from motion_control import START_SIGMA
 
 from warpcloth.scene import load_scene
 from warpcloth.tasks import scenes as S
+from warpcloth.tasks import throw as C
 
 TARGET_SPEEDUP = 10.0
 """Issue 25: 64 throw worlds at >= 10x the world-steps per second of one world (this 2-core CPU)."""
 SAME_SOLVER = {"preconditioner": "block_ssor"}
 """Every configuration solves with block SSOR: a model of several worlds cannot use the multigrid preconditioner
 (one hierarchy spans one world), which a single world gets by default (``"auto"``)."""
+TARGET_OPT_SPEEDUP = 3.0
+"""Issue 25: one full throw optimisation (the open loop) >= 3x faster in wall time batched than not, same result."""
 PUSH_SIGMA = 5.0
 """Standard deviation of the corners' push [m/s^2] (a force of the corner's mass times this)."""
 
@@ -130,9 +141,37 @@ def measure(scene: str, worlds: int, steps: int, grad_steps: int, device: str) -
     return record
 
 
+def optimisation(steps: int, iters: int, starts: int, device: str) -> dict:
+    """The throw's open loop from ``starts`` starts, one world at a time and then batched (module docstring)."""
+    task = C.ThrowTask(S.basket_scene(device), steps=steps)
+    params = [None] + [np.random.default_rng(k).normal(scale=START_SIGMA, size=C.N_PARAMS) for k in range(1, starts)]
+    task.evaluate(np.zeros(C.N_PARAMS))  # warm-up: kernels compiled
+    task.evaluate_many([(np.zeros(C.N_PARAMS), k) for k in range(3)])
+    runs = {}
+    for batch in (False, True):
+        sims, batches, t0 = task.simulations, task.batches, time.perf_counter()
+        results = C.optimize_open_loop_starts(task, params, batch=batch, iters=iters)
+        runs[batch] = {"wall_s": time.perf_counter() - t0, "world_simulations": task.simulations - sims,
+                       "batches": task.batches - batches, "results": results}
+        print(f"open loop, {starts} starts, {'batched' if batch else 'one world at a time'}: "
+              f"{runs[batch]['wall_s']:.1f} s", flush=True)
+    alone, batched = runs[False]["results"], runs[True]["results"]
+    same = all(a.losses == b.losses and np.array_equal(a.params, b.params) for a, b in zip(alone, batched))
+    return {"steps": steps, "iters": iters, "starts": starts, "start_sigma": START_SIGMA, "same_result": same,
+            "batch_retries": task.batch_retries,
+            "runs": [{"start": "zero pushes" if k == 0 else f"random pushes (seed {k}, sigma {START_SIGMA:g})",
+                      "error_pct": r.error_pct, "simulations": r.simulations,
+                      "failed_trials": len(r.failed_trials)} for k, r in enumerate(alone)],
+            **{name: {k: v for k, v in runs[b].items() if k != "results"}
+               for name, b in (("one_world", False), ("batched", True))},
+            "speedup": runs[False]["wall_s"] / runs[True]["wall_s"]}
+
+
 def main():
     args = common.parse_args(__doc__, worlds="1,4,16,64,256", steps=60, grad_steps=30, device="cpu",
-                             quick={"worlds": "1,4", "steps": 4, "grad_steps": 4})
+                             opt_iters=50, opt_steps=C.STEPS, opt_starts=3,
+                             quick={"worlds": "1,4", "steps": 4, "grad_steps": 4, "opt_iters": 3, "opt_steps": 10,
+                                    "opt_starts": 2})
     counts = [int(w) for w in args.worlds.split(",")]
     wp.init()
     records = []
@@ -160,7 +199,21 @@ def main():
         ok = target["forward_speedup"] >= TARGET_SPEEDUP
         print(f"64 throw worlds >= {TARGET_SPEEDUP:g}x one world's world-steps/s (forward): "
               f"{target['forward_speedup']:.1f}x {'ok' if ok else 'FAIL'}")
-    common.write_result(args, {"records": records, "target_speedup": TARGET_SPEEDUP, "push_sigma": PUSH_SIGMA},
+    opt = optimisation(args.opt_steps, args.opt_iters, args.opt_starts, args.device)
+    print(f"\nthe throw's open loop (Gauss-Newton, {opt['iters']} simulations a run, {opt['steps']} steps), "
+          f"{opt['starts']} starts")
+    common.print_table(
+        ["mode", "wall s", "world simulations", "batches"],
+        [[name, opt[key]["wall_s"], opt[key]["world_simulations"], opt[key]["batches"]]
+         for name, key in (("one world at a time", "one_world"), ("batched", "batched"))], ["", ".1f", "d", "d"])
+    common.print_table(["start", "error %", "simulations", "failed trials"],
+                       [[r["start"], r["error_pct"], r["simulations"], r["failed_trials"]] for r in opt["runs"]],
+                       ["", ".1f", "d", "d"])
+    ok = opt["speedup"] >= TARGET_OPT_SPEEDUP and opt["same_result"]
+    print(f"batched >= {TARGET_OPT_SPEEDUP:g}x faster, same result: {opt['speedup']:.2f}x, same result "
+          f"{opt['same_result']} ({opt['batch_retries']} batches run again world by world) {'ok' if ok else 'FAIL'}")
+    common.write_result(args, {"records": records, "target_speedup": TARGET_SPEEDUP, "push_sigma": PUSH_SIGMA,
+                               "optimisation": opt, "target_optimisation_speedup": TARGET_OPT_SPEEDUP},
                         device=args.device)
 
 

@@ -147,5 +147,13 @@ def contact_kernels(scalar):
         x[i] = z[i]
         v[i] = v_hat[i] + (z[i] - x_hat[i]) * inv_dt
 
-    return SimpleNamespace(gather_nodes=gather_nodes, geometry=geometry, apply_projection=apply_projection)
+    @wp.kernel
+    def copy_positions(x: wp.array(dtype=vec3), out: wp.array(dtype=vec3)):
+        # the stage's result where it found no contact: a copy, so that the adjoint adds dL/dz to dL/dx^ as a
+        # projection that left a particle where it was does (a world without contacts among worlds with some)
+        i = wp.tid()
+        out[i] = x[i]
+
+    return SimpleNamespace(gather_nodes=gather_nodes, geometry=geometry, apply_projection=apply_projection,
+                           copy_positions=copy_positions)
 

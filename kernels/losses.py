@@ -3,7 +3,8 @@ and forces on chosen particles.
 
 Every kernel is differentiable (Warp's tape runs their adjoints), so a loss built from them back-propagates into
 the trajectory and a force built by ``push_forces`` into its parameters. Sums accumulate into ``loss[0]`` /
-``com[0]``: the caller zeroes them and may launch several times into the same array (one launch per compared frame).
+``com[0]``, or per world into ``loss[w]`` / ``com[w]``: the caller zeroes them and may launch several times into the
+same array (one launch per compared frame).
 """
 
 from types import SimpleNamespace
@@ -21,8 +22,9 @@ def loss_kernels(scalar):
         scalar: ``wp.float32`` or ``wp.float64``; vectors are ``types(scalar).vec3``.
 
     Returns:
-        A namespace with the kernels ``squared_distance``, ``centre_of_mass``, ``add_component``,
-        ``point_squared_distance`` and ``push_forces``.
+        A namespace with the kernels ``squared_distance``, ``world_squared_distance``, ``centre_of_mass``,
+        ``add_component``, ``point_squared_distance``, ``add_sum`` and ``push_forces`` (the ``world_`` kernels and
+        those after it sum each world of a model into its own entry).
     """
     vec3 = types(scalar).vec3
 
@@ -40,24 +42,45 @@ def loss_kernels(scalar):
         wp.atomic_add(loss, 0, scale * wp.dot(d, d))
 
     @wp.kernel
+    def world_squared_distance(
+        x: wp.array(dtype=vec3),
+        target: wp.array(dtype=vec3),
+        particle_world: wp.array(dtype=wp.int32),
+        first: wp.array(dtype=wp.int32),
+        scale: scalar,
+        # out:
+        loss: wp.array(dtype=scalar),
+    ):
+        """loss[w] += scale sum_i |x_i - target_(i - first[w])|^2 over world w's particles (one target for every
+        world, of one world's length); one thread per particle."""
+        i = wp.tid()
+        w = particle_world[i]
+        d = x[i] - target[i - first[w]]
+        wp.atomic_add(loss, w, scale * wp.dot(d, d))
+
+    @wp.kernel
     def centre_of_mass(
         x: wp.array(dtype=vec3),
+        particle_world: wp.array(dtype=wp.int32),
         inv_n: scalar,
         # out:
         com: wp.array(dtype=vec3),
     ):
-        """com[0] += inv_n sum_i x_i (the vertex mean for inv_n = 1/n); one thread per particle."""
-        wp.atomic_add(com, 0, inv_n * x[wp.tid()])
+        """com[w] += inv_n sum_i x_i over world w's particles (the vertex mean for inv_n = 1/n); one thread per
+        particle."""
+        i = wp.tid()
+        wp.atomic_add(com, particle_world[i], inv_n * x[i])
 
     @wp.kernel
     def add_component(
         com: wp.array(dtype=vec3),
-        k: int,
+        k: wp.array(dtype=wp.int32),
         # out:
         loss: wp.array(dtype=scalar),
     ):
-        """loss[0] += com[0][k]; one thread."""
-        loss[0] = loss[0] + com[0][k]
+        """loss[w] += com[w][k[w]]; one thread per world."""
+        w = wp.tid()
+        loss[w] = loss[w] + com[w][k[w]]
 
     @wp.kernel
     def point_squared_distance(
@@ -67,26 +90,48 @@ def loss_kernels(scalar):
         # out:
         loss: wp.array(dtype=scalar),
     ):
-        """loss[0] += scale |p[0] - target|^2 (e.g. scale 1/2 on the centre of mass); one thread."""
-        d = p[0] - target
-        loss[0] = loss[0] + scale * wp.dot(d, d)
+        """loss[w] += scale |p[w] - target|^2 (e.g. scale 1/2 on each world's centre of mass); one thread per
+        world."""
+        w = wp.tid()
+        d = p[w] - target
+        loss[w] = loss[w] + scale * wp.dot(d, d)
+
+    @wp.kernel
+    def add_sum(
+        values: wp.array(dtype=scalar),
+        # out:
+        total: wp.array(dtype=scalar),
+    ):
+        """total[0] += sum_w values[w], in order; one thread (the tape's loss of independent worlds' losses)."""
+        s = total[0]
+        for w in range(values.shape[0]):
+            s = s + values[w]
+        total[0] = s
 
     @wp.kernel
     def push_forces(
         push: wp.array(dtype=vec3),
         block: int,
+        blocks: int,
         particles: wp.array(dtype=wp.int32),
+        first: wp.array(dtype=wp.int32),
         scale: scalar,
         # out:
         force: wp.array(dtype=vec3),
     ):
-        """force[particles[j]] = scale push[block m + j], m = len(particles): block ``block`` of the pushes (one per
-        particle) as forces on those particles; one thread per particle of ``particles``."""
-        j = wp.tid()
-        force[particles[j]] = scale * push[block * particles.shape[0] + j]
+        """force[first[w] + particles[j]] = scale push[(w blocks + block) m + j], m = len(particles): block
+        ``block`` of world w's ``blocks`` blocks of pushes (one per particle) as forces on those particles of world
+        w; one thread per world and particle of ``particles``."""
+        t = wp.tid()
+        m = particles.shape[0]
+        w = t / m
+        j = t - w * m
+        force[first[w] + particles[j]] = scale * push[(w * blocks + block) * m + j]
 
     return SimpleNamespace(
         squared_distance=squared_distance,
+        world_squared_distance=world_squared_distance,
+        add_sum=add_sum,
         centre_of_mass=centre_of_mass,
         add_component=add_component,
         point_squared_distance=point_squared_distance,

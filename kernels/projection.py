@@ -6,16 +6,17 @@ free particles and h_j = delta - sum_{constant a} w_ja n_j . p_a, the constraint
 
     min_z 1/2 (z - x^)^T W (z - x^)  s.t.  c(z) >= 0,   z = x^ + W^-1 G^T lam,  lam >= 0,  lam_j c_j = 0.
 
-Solver (one thread: the CPU runs Warp kernels on one thread anyway): the dual, min 1/2 lam^T H lam - b^T lam over
-lam >= 0 (H = G W^-1 G^T applied matrix-free, b = h - G x^), by MPRGP (Dostal's modified proportioning with reduced
-gradient projections: conjugate gradient steps on the free multipliers, expansion steps by projected gradient when
-a step would cross the bound, proportioning steps that release multipliers whose gradient says they should grow),
-on the Jacobi-scaled variables x = D lam (D = sqrt(diag H)), which keeps the bounds. It converges where projected
-Gauss-Seidel stalls and where a primal-dual active set cycles: on the seed's crumpled 16x16 cloth, 205-1949
-iterations per round, 9-36 ms, against Gauss-Seidel still 1e-5 m off after 20000 sweeps and an active set cycling
-from anything short of a converged Gauss-Seidel iterate (measured on the dumped rounds). The dual's gradient
-H lam - b is c(z), so the stopping test is the projection's KKT test itself: max violation and max |c_j| over
-lam_j > 0 within ``tol``.
+Solver (one thread per world, on that world's contacts: worlds share no node, so each is its own QP, solved as a
+model of that world alone solves it, bit for bit; the CPU runs Warp kernels on one thread anyway): the dual, min 1/2
+lam^T H lam - b^T lam over lam >= 0 (H = G W^-1 G^T applied matrix-free, b = h - G x^), by MPRGP (Dostal's modified
+proportioning with reduced gradient projections: conjugate gradient steps on the free multipliers, expansion steps
+by projected gradient when a step would cross the bound, proportioning steps that release multipliers whose gradient
+says they should grow), on the Jacobi-scaled variables x = D lam (D = sqrt(diag H)), which keeps the bounds. It
+converges where projected Gauss-Seidel stalls and where a primal-dual active set cycles: on the seed's crumpled
+16x16 cloth, 205-1949 iterations per round, 9-36 ms, against Gauss-Seidel still 1e-5 m off after 20000 sweeps and an
+active set cycling from anything short of a converged Gauss-Seidel iterate (measured on the dumped rounds). The
+dual's gradient H lam - b is c(z), so the stopping test is the projection's KKT test itself: max violation and max
+|c_j| over lam_j > 0 within ``tol``.
 
 Adjoint (the same formulas as warpcloth/collision/adjoint.py): on the active set A, CG on H_AA d_lam = G_A W^-1 g
 (g = dL/dz), then d_z = W^-1 (g - G_A^T d_lam). A consistent singular H_AA (dependent contacts) is fine for CG
@@ -67,37 +68,84 @@ def merged_weight(nodes: wp.array2d(dtype=wp.int32), w: wp.array(dtype=wp.vec4d)
 
 @wp.struct
 class Rows:
-    # the contacts as the solver reads them
+    # the contacts as the solver reads them: sorted by world (each world's in the order they were found), so that
+    # world w owns the slots start[w] .. start[w + 1] and its solve is the one a model of that world alone runs
     count: int
-    nodes: wp.array2d(dtype=wp.int32)
-    fw: wp.array(dtype=wp.vec4d)  # merged weights of free nodes, 0 elsewhere
-    normal: wp.array(dtype=wp.vec3d)
-    h: wp.array(dtype=wp.float64)
-    diag: wp.array(dtype=wp.float64)  # H_jj
+    nodes: wp.array2d(dtype=wp.int32)  # sorted
+    fw: wp.array(dtype=wp.vec4d)  # merged weights of free nodes, 0 elsewhere (sorted)
+    normal: wp.array(dtype=wp.vec3d)  # sorted
+    h: wp.array(dtype=wp.float64)  # sorted
+    diag: wp.array(dtype=wp.float64)  # H_jj (sorted)
     inv_mass: wp.array(dtype=wp.float64)  # per node; 0 for constant nodes
+    order: wp.array(dtype=wp.int32)  # sorted slot -> the contact's index in the caller's lists
+    start: wp.array(dtype=wp.int32)  # (worlds + 1): world w's slots
+
+
+@wp.kernel(enable_backward=False)
+def sort_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(dtype=wp.int32), count: int,
+                  first_new: int, world_count: int, start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
+                  solve_world: wp.array(dtype=wp.int32)):
+    # one thread: a stable counting sort of the contacts by world (a contact's nodes are all of one world), and
+    # which worlds have a contact at or after first_new (the others keep their last solution)
+    for w in range(world_count + 1):
+        start[w] = 0
+    for w in range(world_count):
+        solve_world[w] = 0
+    for j in range(count):
+        w = node_world[nodes[j, 0]]
+        start[w + 1] = start[w + 1] + 1
+        if j >= first_new:
+            solve_world[w] = 1
+    for w in range(world_count):
+        start[w + 1] = start[w + 1] + start[w]
+    for j in range(count):  # start[w] walks world w's slots, then the shift below restores it
+        w = node_world[nodes[j, 0]]
+        order[start[w]] = j
+        start[w] = start[w] + 1
+    for w in range(world_count, 0, -1):
+        start[w] = start[w - 1]
+    start[0] = 0
+
+
+@wp.kernel(enable_backward=False)
+def gather(values: wp.array(dtype=wp.float64), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float64)):
+    k = wp.tid()
+    out[k] = values[order[k]]
+
+
+@wp.kernel(enable_backward=False)
+def scatter(values: wp.array(dtype=wp.float64), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float64)):
+    k = wp.tid()
+    out[order[k]] = values[k]
 
 
 @wp.kernel(enable_backward=False)
 def prepare_rows(nodes: wp.array2d(dtype=wp.int32), w: wp.array(dtype=wp.vec4d), normal: wp.array(dtype=wp.vec3d),
                  positions: wp.array(dtype=wp.vec3d), free: wp.array(dtype=wp.int32),
                  inv_mass: wp.array(dtype=wp.float64), target: wp.array(dtype=wp.float64),
-                 fw: wp.array(dtype=wp.vec4d), h: wp.array(dtype=wp.float64), diag: wp.array(dtype=wp.float64)):
-    # target: each contact's gap (the thickness, or less for a pair that started closer)
-    j = wp.tid()
+                 order: wp.array(dtype=wp.int32), sorted_nodes: wp.array2d(dtype=wp.int32),
+                 sorted_normal: wp.array(dtype=wp.vec3d), fw: wp.array(dtype=wp.vec4d), h: wp.array(dtype=wp.float64),
+                 diag: wp.array(dtype=wp.float64)):
+    # sorted slot k holds contact j = order[k]; target: each contact's gap (the thickness, or less for a pair that
+    # started closer)
+    k = wp.tid()
+    j = order[k]
     n = normal[j]
     hj = target[j]
     d = wp.float64(0.0)
     f = wp.vec4d()
     for a in range(4):
         node = nodes[j, a]
+        sorted_nodes[k, a] = node
         if free[node] == 0:
             hj -= w[j][a] * wp.dot(n, positions[node])
         m = merged_weight(nodes, w, free, j, a)
         f[a] = m
         d += m * m * inv_mass[node]
-    fw[j] = f
-    h[j] = hj
-    diag[j] = d
+    sorted_normal[k] = n
+    fw[k] = f
+    h[k] = hj
+    diag[k] = d
 
 
 @wp.func
@@ -125,44 +173,45 @@ def push(r: Rows, z: wp.array(dtype=wp.vec3d), j: int, amount: wp.float64):
 
 
 @wp.func
-def dual_product(r: Rows, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
+def dual_product(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
                  scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
     # out = H_MM v on the contacts with mask != 0 (0 elsewhere); scratch: per node, zeroed on return
-    for j in range(r.count):
+    for j in range(lo, hi):
         if mask[j] != 0:
             push(r, scratch, j, v[j])
-    for j in range(r.count):  # row_dot inlined: this loop is the solver's hot path, and a Rows argument is copied
+    for j in range(lo, hi):  # row_dot inlined: this loop is the solver's hot path, and a Rows argument is copied
         o = wp.float64(0.0)
         if mask[j] != 0:
             for a in range(4):
                 if r.fw[j][a] != wp.float64(0.0):
                     o += r.fw[j][a] * wp.dot(r.normal[j], scratch[r.nodes[j, a]])
         out[j] = o
-    for j in range(r.count):
+    for j in range(lo, hi):
         for a in range(4):
             scratch[r.nodes[j, a]] = wp.vec3d()
 
 
 @wp.func
-def shifted_product(r: Rows, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
+def shifted_product(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
                     scratch: wp.array(dtype=wp.vec3d), shift: wp.float64, out: wp.array(dtype=wp.float64)):
     # out = (H_MM + shift diag(H)_MM) v
-    dual_product(r, mask, v, scratch, out)
-    for j in range(r.count):
+    dual_product(r, lo, hi, mask, v, scratch, out)
+    for j in range(lo, hi):
         if mask[j] != 0:
             out[j] = out[j] + shift * r.diag[j] * v[j]
 
 
 @wp.func
-def masked_cg(r: Rows, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64),
-              res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
-              scratch: wp.array(dtype=wp.vec3d), rtol: wp.float64, max_iters: int, shift: wp.float64):
+def masked_cg(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.float64),
+              x: wp.array(dtype=wp.float64), res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64),
+              q: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), rtol: wp.float64, max_iters: int,
+              shift: wp.float64):
     """CG on (H_MM + shift diag(H)_MM) x = rhs_M from x (masked entries only; Jacobi preconditioned). Returns the
     iterations."""
-    shifted_product(r, mask, x, scratch, shift, q)
+    shifted_product(r, lo, hi, mask, x, scratch, shift, q)
     rz = wp.float64(0.0)
     bnorm = wp.float64(0.0)
-    for j in range(r.count):
+    for j in range(lo, hi):
         rj = wp.float64(0.0)
         if mask[j] != 0:
             rj = rhs[j] - q[j]
@@ -174,25 +223,25 @@ def masked_cg(r: Rows, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.fl
     it = int(0)
     while it < max_iters:
         rr = wp.float64(0.0)
-        for j in range(r.count):
+        for j in range(lo, hi):
             rr += res[j] * res[j]
         if rr <= limit or rz <= wp.float64(0.0):
             break
-        shifted_product(r, mask, p, scratch, shift, q)
+        shifted_product(r, lo, hi, mask, p, scratch, shift, q)
         pq = wp.float64(0.0)
-        for j in range(r.count):
+        for j in range(lo, hi):
             pq += p[j] * q[j]
         if pq <= wp.float64(0.0):
             break
         alpha = rz / pq
         rz_new = wp.float64(0.0)
-        for j in range(r.count):
+        for j in range(lo, hi):
             x[j] = x[j] + alpha * p[j]
             res[j] = res[j] - alpha * q[j]
             rz_new += res[j] * res[j] / wp.max(r.diag[j], wp.float64(1.0e-300))
         beta = rz_new / rz
         rz = rz_new
-        for j in range(r.count):
+        for j in range(lo, hi):
             p[j] = res[j] / wp.max(r.diag[j], wp.float64(1.0e-300)) + beta * p[j]
         it += 1
     return it
@@ -205,58 +254,70 @@ def scale(r: Rows, j: int):
 
 
 @wp.func
-def scaled_product(r: Rows, ones: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
+def scaled_product(r: Rows, lo: int, hi: int, ones: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
                    tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
     # out = D^-1 H D^-1 v (D = sqrt(diag H)): the Jacobi-scaled dual matrix
-    for j in range(r.count):
+    for j in range(lo, hi):
         tmp[j] = v[j] / scale(r, j)
-    dual_product(r, ones, tmp, scratch, out)
-    for j in range(r.count):
+    dual_product(r, lo, hi, ones, tmp, scratch, out)
+    for j in range(lo, hi):
         out[j] = out[j] / scale(r, j)
 
 
 @wp.func
-def dual_gradient(r: Rows, ones: wp.array(dtype=wp.int32), x_hat: wp.array(dtype=wp.vec3d),
+def dual_gradient(r: Rows, lo: int, hi: int, ones: wp.array(dtype=wp.int32), x_hat: wp.array(dtype=wp.vec3d),
                   x: wp.array(dtype=wp.float64), tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d),
                   g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64)):
     # g = Hs x - bs (bs_j = (h_j - g_j x^) / D_j), the scaled dual's gradient, and p its free part
-    scaled_product(r, ones, x, tmp, scratch, g)
-    for j in range(r.count):
+    scaled_product(r, lo, hi, ones, x, tmp, scratch, g)
+    for j in range(lo, hi):
         g[j] = g[j] - (r.h[j] - row_dot(r, x_hat, j)) / scale(r, j)
         p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
 
 
 @wp.kernel(enable_backward=False)
 def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: int, stall: int,
-          ones: wp.array(dtype=wp.int32),
+          ones: wp.array(dtype=wp.int32), solve_world: wp.array(dtype=wp.int32),
           lam: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.float64),
           g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), hp: wp.array(dtype=wp.float64),
-          tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
-    # MPRGP on the Jacobi-scaled dual min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1,
-    # bs = D^-1 (h - G x^)); its gradient g = Hs x - bs is D^-1 c(z), so the stopping test
-    # max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the projection's KKT test. Stops as NOT_CONVERGED when
-    # its residual has not halved in ``stall`` iterations (contacts that contradict each other stall it).
-    # On entry lam holds the warm start and z the positions of every node (x^ for free ones).
-    m = r.count
+          tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array2d(dtype=wp.float64)):
+    # One thread per world, on its own slots (its own QP: worlds share no node). MPRGP on the Jacobi-scaled dual
+    # min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1, bs = D^-1 (h - G x^)); its gradient
+    # g = Hs x - bs is D^-1 c(z), so the stopping test max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the
+    # projection's KKT test. Stops as NOT_CONVERGED when its residual has not halved in ``stall`` iterations
+    # (contacts that contradict each other stall it). On entry lam (sorted) holds the warm start and z every node's
+    # last positions; a world with solve_world 0 keeps them (it found nothing new), the others restart their
+    # contacts' nodes from x^.
+    world = wp.tid()
+    lo = r.start[world]
+    hi = r.start[world + 1]
+    for c in range(5):
+        info[world, c] = wp.float64(0.0)
+    if solve_world[world] == 0 or hi == lo:
+        return
+    for j in range(lo, hi):
+        for a in range(4):
+            node = r.nodes[j, a]
+            z[node] = x_hat[node]
     # the step of the expansions: 1.9 / ||Hs||, ||Hs|| by power iteration (x, g as scratch)
-    for j in range(m):
-        p[j] = wp.float64(1.0) + wp.float64(0.001) * wp.float64(j % 7)
+    for j in range(lo, hi):
+        p[j] = wp.float64(1.0) + wp.float64(0.001) * wp.float64((j - lo) % 7)
     norm = wp.float64(1.0)
     for _k in range(30):
-        scaled_product(r, ones, p, tmp, scratch, hp)
+        scaled_product(r, lo, hi, ones, p, tmp, scratch, hp)
         s = wp.float64(0.0)
-        for j in range(m):
+        for j in range(lo, hi):
             s += hp[j] * hp[j]
         norm = wp.sqrt(s)
         if norm <= wp.float64(0.0):
             break
-        for j in range(m):
+        for j in range(lo, hi):
             p[j] = hp[j] / norm
     step = wp.float64(1.9) / (wp.float64(1.05) * wp.max(norm, wp.float64(1.0e-300)))
     # start: x = D lam (projected)
-    for j in range(m):
+    for j in range(lo, hi):
         x[j] = wp.where(r.diag[j] > wp.float64(0.0), wp.max(lam[j] * scale(r, j), wp.float64(0.0)), wp.float64(0.0))
-    dual_gradient(r, ones, x_hat, x, tmp, scratch, g, p)
+    dual_gradient(r, lo, hi, ones, x_hat, x, tmp, scratch, g, p)
     status = int(NOT_CONVERGED)
     it = int(0)
     worst = wp.float64(0.0)
@@ -268,7 +329,7 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
         worst = wp.float64(0.0)
         bb = wp.float64(0.0)
         ff = wp.float64(0.0)
-        for j in range(m):
+        for j in range(lo, hi):
             if x[j] > wp.float64(0.0):
                 worst = wp.max(worst, wp.abs(g[j]) * scale(r, j))
                 ff += wp.min(x[j] / step, g[j]) * g[j]
@@ -292,11 +353,11 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
             break
         it += 1
         if bb <= ff:
-            scaled_product(r, ones, p, tmp, scratch, hp)
+            scaled_product(r, lo, hi, ones, p, tmp, scratch, hp)
             php = wp.float64(0.0)
             gp = wp.float64(0.0)
             feasible = wp.float64(1.0e300)
-            for j in range(m):
+            for j in range(lo, hi):
                 php += p[j] * hp[j]
                 gp += g[j] * p[j]
                 if p[j] > wp.float64(0.0):
@@ -304,94 +365,99 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
             a_cg = wp.where(php > wp.float64(0.0), gp / php, wp.float64(0.0))
             if a_cg <= feasible:  # conjugate gradient step
                 fhp = wp.float64(0.0)
-                for j in range(m):
+                for j in range(lo, hi):
                     x[j] = x[j] - a_cg * p[j]
                     g[j] = g[j] - a_cg * hp[j]
                     if x[j] > wp.float64(0.0):
                         fhp += g[j] * hp[j]
                 gamma = fhp / php
-                for j in range(m):
+                for j in range(lo, hi):
                     p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0)) - gamma * p[j]
             else:  # expansion: to the boundary, then a projected gradient step on the free set
-                for j in range(m):
+                for j in range(lo, hi):
                     x[j] = wp.max(x[j] - feasible * p[j], wp.float64(0.0))
                     g[j] = g[j] - feasible * hp[j]
-                for j in range(m):
+                for j in range(lo, hi):
                     if x[j] > wp.float64(0.0):
                         x[j] = wp.max(x[j] - step * g[j], wp.float64(0.0))
-                dual_gradient(r, ones, x_hat, x, tmp, scratch, g, p)
+                dual_gradient(r, lo, hi, ones, x_hat, x, tmp, scratch, g, p)
         else:  # proportioning: release the contacts whose multipliers should grow
-            for j in range(m):
+            for j in range(lo, hi):
                 chopped = wp.min(g[j], wp.float64(0.0))
                 tmp[j] = wp.where(x[j] > wp.float64(0.0) or r.diag[j] <= wp.float64(0.0), wp.float64(0.0), chopped)
-            for j in range(m):
+            for j in range(lo, hi):
                 p[j] = tmp[j]
-            scaled_product(r, ones, p, tmp, scratch, hp)
+            scaled_product(r, lo, hi, ones, p, tmp, scratch, hp)
             dhd = wp.float64(0.0)
             gd = wp.float64(0.0)
-            for j in range(m):
+            for j in range(lo, hi):
                 dhd += p[j] * hp[j]
                 gd += g[j] * p[j]
             if dhd <= wp.float64(0.0):  # H d = 0 while g.d < 0: the dual is unbounded below
                 status = UNBOUNDED
                 break
             a_p = gd / dhd
-            for j in range(m):
+            for j in range(lo, hi):
                 x[j] = x[j] - a_p * p[j]
                 g[j] = g[j] - a_p * hp[j]
-            for j in range(m):
+            for j in range(lo, hi):
                 p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
     # lam = D^-1 x and z = x^ + W^-1 G^T lam
-    for j in range(m):
+    for j in range(lo, hi):
         lam[j] = x[j] / scale(r, j)
         if lam[j] != wp.float64(0.0):
             push(r, z, j, lam[j])
     violated = wp.float64(0.0)
-    for j in range(m):
+    for j in range(lo, hi):
         violated = wp.max(violated, -constraint(r, z, j))
     if status == CONVERGED and not (violated <= FALSE_CONVERGENCE * tol):
         # the test above reads the gradient updated step by step, which drifts from c(z) where the multipliers grow
         # huge (contacts nearly contradicting each other): a contact violated by 4e-5 m passed it
         status = NOT_CONVERGED
-    info[0] = wp.float64(status)
-    info[1] = wp.float64(it)
-    info[2] = worst
-    info[3] = norm
-    info[4] = violated
+    info[world, 0] = wp.float64(status)
+    info[world, 1] = wp.float64(it)
+    info[world, 2] = worst
+    info[world, 3] = norm
+    info[world, 4] = violated
 
 
 @wp.kernel(enable_backward=False)
-def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64, max_iters: int,
+def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64,
             d_lam: wp.array(dtype=wp.float64), d_z: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.float64),
             res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
             correction: wp.array(dtype=wp.float64), remainder: wp.array(dtype=wp.float64),
-            scratch: wp.array(dtype=wp.vec3d), info: wp.array(dtype=wp.float64)):
-    # d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0 elsewhere; on return W^-1 (g - G_A^T d_lam)
+            scratch: wp.array(dtype=wp.vec3d), info: wp.array2d(dtype=wp.float64)):
+    # One thread per world, on its own slots. d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0
+    # elsewhere; on return W^-1 (g - G_A^T d_lam)
+    world = wp.tid()
+    lo = r.start[world]
+    hi = r.start[world + 1]
+    max_iters = 10 * (hi - lo) + 100
     shift = wp.float64(DEPENDENT_SHIFT)
-    for j in range(r.count):
+    for j in range(lo, hi):
         rhs[j] = wp.where(active[j] != 0, row_dot(r, d_z, j), wp.float64(0.0))
         d_lam[j] = wp.float64(0.0)
-    iters = masked_cg(r, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters, shift)
+    iters = masked_cg(r, lo, hi, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters, shift)
     # iterative refinement against the unshifted H_AA: it takes the shift's error off independent contacts (a
     # factor shift * cond(H_AA) a pass) and leaves dependent ones damped
     for _refine in range(REFINEMENTS):
-        dual_product(r, active, d_lam, scratch, q)
-        for j in range(r.count):
+        dual_product(r, lo, hi, active, d_lam, scratch, q)
+        for j in range(lo, hi):
             remainder[j] = rhs[j] - q[j]
             correction[j] = wp.float64(0.0)
-        iters += masked_cg(r, active, remainder, correction, res, p, q, scratch, rtol, max_iters, shift)
-        for j in range(r.count):
+        iters += masked_cg(r, lo, hi, active, remainder, correction, res, p, q, scratch, rtol, max_iters, shift)
+        for j in range(lo, hi):
             d_lam[j] = d_lam[j] + correction[j]
-    for j in range(r.count):
+    for j in range(lo, hi):
         if active[j] != 0:
             push(r, d_z, j, -d_lam[j])
     rr = wp.float64(0.0)
     bb = wp.float64(0.0)
-    for j in range(r.count):
+    for j in range(lo, hi):
         rr += res[j] * res[j]
         bb += rhs[j] * rhs[j]
-    info[0] = wp.float64(iters)
-    info[1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # the last solve's residual, relative to the rhs
+    info[world, 0] = wp.float64(iters)
+    info[world, 1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # the last solve's residual, relative to the rhs
 
 
 @wp.kernel(enable_backward=False)
@@ -484,17 +550,21 @@ def device_round_kernels(scalar):
 
     @wp.kernel(enable_backward=False)
     def position_gradients(grad_z: wp.array(dtype=vec3), d_z: wp.array(dtype=wp.vec3d),
-                           inv_mass: wp.array(dtype=wp.float64), grad_const: wp.array(dtype=wp.vec3d),
-                           z: wp.array(dtype=wp.vec3d), x_hat: wp.array(dtype=wp.vec3d), cloth_count: int,
+                           d_z_in: wp.array(dtype=wp.vec3d), inv_mass: wp.array(dtype=wp.float64),
+                           grad_const: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d),
+                           x_hat: wp.array(dtype=wp.vec3d), cloth_count: int,
                            x_hat_grad: wp.array(dtype=vec3), obstacle_grad: wp.array(dtype=vec3),
                            mass_grad: wp.array(dtype=scalar)):
-        # dL/dx^ (free: W d_z; pinned: dL/dz plus the push), dL/dobstacle, and dL/dm_i = -dL/dx^_i . (z_i - x^_i) / m_i
+        # dL/dx^ (free: W d_z; pinned: dL/dz plus the push), dL/dobstacle, dL/dm_i = -dL/dx^_i . (z_i - x^_i) / m_i.
+        # A free particle whose d_z the adjoint left as it was (d_z_in: in no active contact) passes dL/dz on exactly,
+        # as in a step, or a world, without contacts (W W^-1 g is g only up to rounding)
         i = wp.tid()
         if i < cloth_count:
             g = wp.vec3d(grad_z[i]) + grad_const[i]
             m = wp.float64(0.0)
             if inv_mass[i] > wp.float64(0.0):
-                g = d_z[i] / inv_mass[i]
+                if wp.length_sq(d_z[i] - d_z_in[i]) > wp.float64(0.0):
+                    g = d_z[i] / inv_mass[i]
                 m = -wp.dot(g, z[i] - x_hat[i]) * inv_mass[i]
             x_hat_grad[i] = x_hat_grad[i] + vec3(g)
             mass_grad[i] = mass_grad[i] + scalar(m)

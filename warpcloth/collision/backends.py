@@ -269,24 +269,27 @@ class DeviceBackend:
         model, dev = self.model, self.model.device
         total = self._total
         warm = self._rounds[-1][0]  # the contacts of earlier rounds, whose multipliers start the solve
-        if self._solver is None or self._solver.capacity < total:
-            self._solver = DeviceProjection(dev, self.node_count, max(2 * total, 1024))
-            warm = 0  # a new buffer: the previous multipliers are gone
+        if self._solver is None:
+            self._solver = DeviceProjection(dev, self.node_count, max(2 * total, 1024), self.detector.node_world,
+                                            model.world_count)
+        elif self._solver.capacity < total:  # grown in the step: its multipliers and positions go along
+            self._solver = self._solver.grown(max(2 * total, 1024))
         positions, free, inv_mass = self._constants
         solution = self._solver.project(
             positions, free, inv_mass, self._nodes, self._weights, self._normals, total, self._targets,
-            lam_init=None if self._solution is None or warm == 0 else self._solver.lam, warm=warm, tol=opt.qp_tol,
-            keep=self._recording)
+            lam_init=None if self._solution is None else self._solver.lam, warm=warm,
+            resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording)
         self._solution = solution
         self.solver_stats = {"iterations": solution.iterations, "violation": solution.violation}
+        where = _worlds(model, solution.failed_worlds())
         if solution.unbounded:
             raise CollisionError(
-                f"step {step}: no positions satisfy the {total} contacts of the device projection (its dual is "
+                f"step {step}{where}: no positions satisfy the {total} contacts of the device projection (its dual is "
                 "unbounded): cloth squeezed between obstacles closer than twice the thickness, or contacts that "
                 "contradict each other")
         if not solution.converged:
             raise CollisionError(
-                f"step {step}: the device projection of {total} contacts did not converge in "
+                f"step {step}{where}: the device projection of {total} contacts did not converge in "
                 f"{solution.iterations} iterations: a contact violated or an active one off by "
                 f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)")
         z = wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
@@ -320,14 +323,15 @@ class DeviceBackend:
         positions, free, inv_mass = self._constants
         rounds = list(self._rounds)
         count = solution.rows.count
-        nodes, normals = solution.rows.nodes, solution.rows.normal  # the solution's own copies
-        weights = wp.clone(self._weights[:count])
+        m = max(count, 1)  # the contacts in the step's order (the solution's rows are sorted by world)
+        nodes, normals, weights = (wp.clone(a[:m]) for a in (self._nodes, self._normals, self._weights))
         solver = self._solver
 
         def adjoint():
             with timed(self.timings, "adjoint"):
                 d_z = wp.empty(N, dtype=wp.vec3d, device=dev)
                 wp.launch(kr.scaled_gradient, N, device=dev, inputs=[z.grad, inv_mass, n], outputs=[d_z])
+                d_z_in = wp.clone(d_z)
                 d_lam = solver.adjoint_on_device(solution, d_z)
                 grad_w = wp.empty(max(count, 1), dtype=wp.vec4d, device=dev)
                 grad_n = wp.empty(max(count, 1), dtype=wp.vec3d, device=dev)
@@ -340,7 +344,7 @@ class DeviceBackend:
                     max(N - n, 1), dtype=model.types.vec3, device=dev)
                 mass_grad = mass.grad if mass.grad is not None else wp.zeros(n, dtype=model.scalar, device=dev)
                 wp.launch(kr.position_gradients, N, device=dev,
-                          inputs=[z.grad, d_z, inv_mass, grad_const, solution.z, positions, n],
+                          inputs=[z.grad, d_z, d_z_in, inv_mass, grad_const, solution.z, positions, n],
                           outputs=[x_hat.grad, obstacle_grad, mass_grad])
                 for offset, found, normal, weight, target in rounds:
                     if normal.grad is not None:
@@ -349,6 +353,13 @@ class DeviceBackend:
                                   outputs=[normal.grad, weight.grad, target.grad])
 
         record_adjoint(adjoint, arrays=[z])
+
+
+def _worlds(model: Model, worlds: list[int]) -> str:
+    """", world 2" / ", worlds 0, 3" for an error message; "" in a model of one world."""
+    if model.world_count == 1 or not worlds:
+        return ""
+    return f", world{'s' if len(worlds) > 1 else ''} {', '.join(map(str, worlds))}"
 
 
 def _accumulate(array: wp.array, grad: np.ndarray) -> None:

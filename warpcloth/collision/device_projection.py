@@ -26,52 +26,85 @@ class DeviceSolution:
     z: wp.array
     """Positions of every node (cloth particles, then obstacle vertices) [m], vec3d."""
     lam: wp.array
-    """Multiplier of every contact (the raw masses' scale) [kg m], float64."""
+    """Multiplier of every contact, in the caller's order (the raw masses' scale) [kg m], float64."""
     rows: object
-    """The contacts as the kernels read them (kernels/projection.py Rows)."""
-    converged: bool
-    unbounded: bool
-    """The dual fell without bound: no positions satisfy the contacts."""
+    """The contacts as the kernels read them, sorted by world (kernels/projection.py Rows)."""
+    sorted_lam: wp.array
+    """``lam`` in the order of ``rows``."""
+    world_status: np.ndarray
+    """Each world's solver status (kernels/projection.py CONVERGED, NOT_CONVERGED, UNBOUNDED)."""
     iterations: int
-    """MPRGP iterations taken."""
+    """MPRGP iterations taken (the most any world took)."""
     residual: float
-    """The KKT test's residual at the end [m]: largest violation, and |c_j| where λ_j > 0."""
+    """The KKT test's residual at the end [m]: largest violation, and |c_j| where λ_j > 0 (largest over worlds)."""
     violation: float
     """Largest violation of a contact at the end [m]."""
 
+    @property
+    def converged(self) -> bool:
+        return bool(np.all(self.world_status == kp.CONVERGED))
+
+    @property
+    def unbounded(self) -> bool:
+        """The dual fell without bound in some world: no positions satisfy its contacts."""
+        return bool(np.any(self.world_status == kp.UNBOUNDED))
+
+    def failed_worlds(self) -> list[int]:
+        return np.flatnonzero(self.world_status != kp.CONVERGED).tolist()
+
 
 class DeviceProjection:
-    """Buffers and launches of the device projection for up to ``capacity`` contacts among ``node_count`` nodes.
+    """Buffers and launches of the device projection for up to ``capacity`` contacts among ``node_count`` nodes,
+    the nodes in ``world_count`` worlds (each world's contacts are its own QP, solved by its own thread).
 
     Args:
         device: Warp device.
         node_count: cloth particles plus obstacle vertices.
         capacity: most contacts one call may hold.
+        node_world: the world of every node, (node_count,) int32 on the device (default: one world).
+        world_count: number of worlds.
     """
 
-    def __init__(self, device, node_count: int, capacity: int):
+    def __init__(self, device, node_count: int, capacity: int, node_world: wp.array | None = None,
+                 world_count: int = 1):
         self.device = device
         self.node_count = int(node_count)
         self.capacity = int(capacity)
+        self.world_count = int(world_count)
         f64 = wp.float64
         m, N = max(self.capacity, 1), max(self.node_count, 1)
+        self.node_world = node_world if node_world is not None else wp.zeros(N, dtype=wp.int32, device=device)
         self._fw = wp.zeros(m, dtype=wp.vec4d, device=device)
         self._h = wp.zeros(m, dtype=f64, device=device)
         self._diag = wp.zeros(m, dtype=f64, device=device)
-        self._lam = wp.zeros(m, dtype=f64, device=device)
+        self._sorted_nodes = wp.zeros((m, 4), dtype=wp.int32, device=device)
+        self._sorted_normals = wp.zeros(m, dtype=wp.vec3d, device=device)
+        self._order = wp.zeros(m, dtype=wp.int32, device=device)
+        self._start = wp.zeros(self.world_count + 1, dtype=wp.int32, device=device)
+        self._solve_world = wp.zeros(self.world_count, dtype=wp.int32, device=device)
+        self._lam = wp.zeros(m, dtype=f64, device=device)  # the caller's order
+        self._sorted_lam = wp.zeros(m, dtype=f64, device=device)
         self._ones = wp.ones(m, dtype=wp.int32, device=device)
         self._work = [wp.zeros(m, dtype=f64, device=device) for _ in range(5)]
         self._z = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._x_hat = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._scratch = wp.zeros(N, dtype=wp.vec3d, device=device)
-        self._info = wp.zeros(5, dtype=f64, device=device)
+        self._info = wp.zeros((self.world_count, 5), dtype=f64, device=device)
         self._rows = None
+
+    def grown(self, capacity: int) -> DeviceProjection:
+        """A projection of a larger capacity that resumes this one's step: its multipliers and positions kept."""
+        bigger = DeviceProjection(self.device, self.node_count, capacity, self.node_world, self.world_count)
+        wp.copy(bigger._lam, self._lam, count=min(self.capacity, capacity))
+        wp.copy(bigger._z, self._z)
+        return bigger
 
     def project(self, positions: wp.array, free: wp.array, inv_mass: wp.array, nodes: wp.array, weights: wp.array,
                 normals: wp.array, count: int, thickness: float | wp.array, *, lam_init: wp.array | None = None,
-                warm: int | None = None, tol: float = 1.0e-10, max_iters: int = 100000, stall: int = 5000,
-                keep: bool = False) -> DeviceSolution:
-        """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts.
+                warm: int | None = None, resume: bool = False, tol: float = 1.0e-10, max_iters: int = 100000,
+                stall: int = 5000, keep: bool = False) -> DeviceSolution:
+        """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts, each world's
+        contacts on their own.
 
         Args:
             positions: (node_count,) vec3d: x̂ for free particles, the constant position of every other node.
@@ -82,6 +115,9 @@ class DeviceProjection:
             thickness: δ [m], or each contact's target gap (>= count, float64).
             lam_init: warm start, or None (zeros); it may be this object's last solution's ``lam``.
             warm: how many leading entries of ``lam_init`` to use (default ``count``); the rest start at 0.
+            resume: a later round of the same step: the first ``warm`` contacts are the last call's, and a world
+                with no contact after them keeps the last call's solution without solving again (so each world
+                runs the rounds it would run alone).
             tol: KKT tolerance [m] (violation, and |c_j| where λ_j > 0).
             max_iters: most MPRGP iterations (each one product with the dual matrix).
             stall: stop (not converged) when the KKT residual has not halved in this many iterations.
@@ -90,38 +126,54 @@ class DeviceProjection:
         if count > self.capacity:
             raise ValueError(f"{count} contacts for a device projection of capacity {self.capacity}")
         dev = self.device
+        k = 0 if lam_init is None else min(count if warm is None else int(warm), count)
+        if k and lam_init is not self._lam:
+            wp.copy(self._lam, lam_init, count=k)
+        self._lam[k:].zero_()
+        if not resume:
+            wp.copy(self._z, positions)
+        wp.copy(self._x_hat, positions)
+        wp.launch(kp.sort_by_world, 1, device=dev,
+                  inputs=[nodes, self.node_world, count, k if resume else 0, self.world_count],
+                  outputs=[self._start, self._order, self._solve_world], record_tape=False)
         r = kp.Rows()
-        r.count, r.nodes, r.fw, r.normal, r.h, r.diag, r.inv_mass = (count, nodes, self._fw, normals, self._h,
-                                                                      self._diag, inv_mass)
+        r.count, r.nodes, r.fw, r.normal, r.h, r.diag, r.inv_mass = (count, self._sorted_nodes, self._fw,
+                                                                      self._sorted_normals, self._h, self._diag,
+                                                                      inv_mass)
+        r.order, r.start = self._order, self._start
         self._rows = r
         if not isinstance(thickness, wp.array):
             thickness = wp.full(max(count, 1), float(thickness), dtype=wp.float64, device=dev)
         if count:
             wp.launch(kp.prepare_rows, count, device=dev,
-                      inputs=[nodes, weights, normals, positions, free, inv_mass, thickness],
-                      outputs=[self._fw, self._h, self._diag], record_tape=False)
-        k = 0 if lam_init is None else min(count if warm is None else int(warm), count)
-        if k and lam_init is not self._lam:
-            wp.copy(self._lam, lam_init, count=k)
-        self._lam[k:].zero_()
-        wp.copy(self._z, positions)
-        wp.copy(self._x_hat, positions)
+                      inputs=[nodes, weights, normals, positions, free, inv_mass, thickness, self._order],
+                      outputs=[self._sorted_nodes, self._sorted_normals, self._fw, self._h, self._diag],
+                      record_tape=False)
+            wp.launch(kp.gather, count, device=dev, inputs=[self._lam, self._order], outputs=[self._sorted_lam],
+                      record_tape=False)
         x, g, p, hp, tmp = self._work
-        wp.launch(kp.solve, 1, device=dev,
-                  inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones],
-                  outputs=[self._lam, self._z, x, g, p, hp, tmp, self._scratch, self._info], record_tape=False)
-        status, iterations, residual, norm, violation = self._info.numpy()
-        z, lam = self._z, self._lam
-        status = int(status) if np.isfinite(residual) else kp.NOT_CONVERGED
+        wp.launch(kp.solve, self.world_count, device=dev,
+                  inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones, self._solve_world],
+                  outputs=[self._sorted_lam, self._z, x, g, p, hp, tmp, self._scratch, self._info],
+                  record_tape=False)
+        if count:
+            wp.launch(kp.scatter, count, device=dev, inputs=[self._sorted_lam, self._order], outputs=[self._lam],
+                      record_tape=False)
+        info = self._info.numpy()
+        status = np.where(np.isfinite(info[:, 2]), info[:, 0], kp.NOT_CONVERGED).astype(np.int64)
+        z, lam, sorted_lam = self._z, self._lam, self._sorted_lam
         if keep:
             kept = kp.Rows()
             kept.count = count
             m = max(count, 1)  # the buffers hold up to their capacity: keep the first count rows
-            kept.nodes, kept.fw, kept.normal = wp.clone(nodes[:m]), wp.clone(self._fw[:m]), wp.clone(normals[:m])
-            kept.h, kept.diag, kept.inv_mass = wp.clone(self._h[:m]), wp.clone(self._diag[:m]), wp.clone(inv_mass)
-            r, z, lam = kept, wp.clone(z), wp.clone(lam[:m])
-        return DeviceSolution(z=z, lam=lam, rows=r, converged=status == kp.CONVERGED, unbounded=status == kp.UNBOUNDED,
-                              iterations=int(iterations), residual=float(residual), violation=float(violation))
+            kept.nodes, kept.fw = wp.clone(self._sorted_nodes[:m]), wp.clone(self._fw[:m])
+            kept.normal, kept.h = wp.clone(self._sorted_normals[:m]), wp.clone(self._h[:m])
+            kept.diag, kept.inv_mass = wp.clone(self._diag[:m]), wp.clone(inv_mass)
+            kept.order, kept.start = wp.clone(self._order[:m]), wp.clone(self._start)
+            r, z, lam, sorted_lam = kept, wp.clone(z), wp.clone(lam[:m]), wp.clone(sorted_lam[:m])
+        return DeviceSolution(z=z, lam=lam, rows=r, sorted_lam=sorted_lam, world_status=status,
+                              iterations=int(info[:, 1].max()), residual=float(info[:, 2].max()),
+                              violation=float(info[:, 4].max()))
 
     @property
     def lam(self) -> wp.array:
@@ -131,7 +183,7 @@ class DeviceProjection:
     def adjoint_on_device(self, solution: DeviceSolution, d_z: wp.array, *, active_tol: float = 1.0e-9,
                           rtol: float = 1.0e-13) -> wp.array:
         """In place on the device: ``d_z`` (node_count,) vec3d holds W⁻¹ ∂L/∂z on entry (0 for constant nodes) and
-        W⁻¹(∂L/∂z − G_Aᵀd_λ) on return; returns the kernels' d_λ (count,) (the negative of
+        W⁻¹(∂L/∂z − G_Aᵀd_λ) on return; returns the kernels' d_λ (count,) in the caller's order (the negative of
         :mod:`warpcloth.collision.adjoint`'s)."""
         r = solution.rows
         dev = self.device
@@ -139,17 +191,25 @@ class DeviceProjection:
         active = wp.zeros(m, dtype=wp.int32, device=dev)
         if r.count:
             wp.launch(kp.active_set, r.count, device=dev,
-                      inputs=[r, solution.z, solution.lam, wp.float64(active_tol)], outputs=[active],
+                      inputs=[r, solution.z, solution.sorted_lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
-        d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
+        sorted_d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
         rhs, res, p, q, correction, remainder = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(6))
-        info = wp.zeros(2, dtype=wp.float64, device=dev)
-        wp.launch(kp.adjoint, 1, device=dev, inputs=[r, active, wp.float64(rtol), 10 * r.count + 100],
-                  outputs=[d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info], record_tape=False)
-        iterations, residual = info.numpy()
+        info = wp.zeros((self.world_count, 2), dtype=wp.float64, device=dev)
+        wp.launch(kp.adjoint, self.world_count, device=dev, inputs=[r, active, wp.float64(rtol)],
+                  outputs=[sorted_d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info],
+                  record_tape=False)
+        d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
+        if r.count:
+            wp.launch(kp.scatter, r.count, device=dev, inputs=[sorted_d_lam, r.order], outputs=[d_lam],
+                      record_tape=False)
+        info = info.numpy()
+        worst = int(np.argmax(np.where(np.isfinite(info[:, 1]), info[:, 1], np.inf)))
+        iterations, residual = info[worst]
         if not residual <= ADJOINT_WARN:
+            where = f" in world {worst}" if self.world_count > 1 else ""
             warnings.warn(f"the device projection's adjoint CG stopped at relative residual {residual:.2e} after "
-                          f"{int(iterations)} iterations ({r.count} contacts): its gradient is that inexact",
+                          f"{int(iterations)} iterations{where} ({r.count} contacts): its gradient is that inexact",
                           RuntimeWarning, stacklevel=3)
         return d_lam
 

@@ -71,7 +71,7 @@ class CollisionReport:
 
     def moved(self) -> np.ndarray:
         """Indices of the cloth particles whose positions the stage changed (reads the positions back)."""
-        if self.z is None or self.z is self.x_hat:
+        if self.z is None:
             return np.zeros(0, dtype=np.int64)
         return np.flatnonzero(np.any(self.z.numpy() != self.x_hat.numpy(), axis=1))
 
@@ -169,9 +169,13 @@ class CollisionStage:
             report.zones, report.projections = backend.zones, backend.projections
         else:
             report.device = backend.solver_stats
+        kernels = contact_kernels(model.scalar)
+        if z is x_hat:  # no contact: z a copy of x̂ all the same (kernels/contact.py copy_positions says why)
+            z = wp.empty_like(x_hat, requires_grad=recording)
+            wp.launch(kernels.copy_positions, model.particle_count, device=self.device, inputs=[x_hat], outputs=[z])
         report.z = z
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
-        wp.launch(contact_kernels(model.scalar).apply_projection, model.particle_count, device=self.device,
+        wp.launch(kernels.apply_projection, model.particle_count, device=self.device,
                   inputs=[x_hat, v_hat, z, inv_dt], outputs=[state_out.particle_x, state_out.particle_v])
         self.last = report
         return report

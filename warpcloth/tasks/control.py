@@ -15,8 +15,10 @@ O(sqrt(T)) stored states.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -48,26 +50,36 @@ class ControlTask:
     """Loss, gradient and trajectory of a cloth as functions of its pushes ``p[interval, particle, xyz]`` [m/s^2].
 
     Args:
-        model: The scene's model (with gradients: ``requires_grad=True``).
+        model: The scene's model (with gradients: ``requires_grad=True``): one world, or several equal worlds
+            (``ModelBuilder.replicate``), each simulated with its own pushes (:meth:`evaluate_worlds`).
         dt: Time step [s].
-        particles: The pushed particles, in the order of the pushes.
+        particles: The pushed particles (indices within a world), in the order of the pushes.
         interval_steps: Steps per push.
         intervals: Pushes per particle: the first ``intervals * interval_steps`` steps are controlled (pushes that
             begin at or after the horizon do nothing).
         steps: The horizon [steps].
         target_com: The centre of mass's target [m]; exactly one of it and ``target_positions``.
-        target_positions: Every particle's target [m], shape (particle_count, 3).
+        target_positions: Every particle's target [m], shape (particles of a world, 3).
         regularizer: Weight of ``1/2 |p|^2`` in the loss.
-        options: Solver options (default: SolverOptions()).
+        options: Solver options (default: SolverOptions()). An ``"auto"`` preconditioner is block SSOR here, so
+            that a batch of worlds solves each world as one world alone does (multigrid spans one world).
         segment_steps: Checkpoint segment length (default sqrt(steps)).
         controller, optimizer, iters: What :meth:`run` does when not told otherwise (a scene's choices).
+        template: The one-world builder ``model`` was finalised from (copies of ``model``); with it
+            :meth:`evaluate_many` runs several simulations as one batch of worlds (``ModelBuilder.replicate``).
     """
 
     def __init__(self, model: wc.Model, dt: float, *, particles, interval_steps: int, intervals: int, steps: int,
                  target_com=None, target_positions=None, regularizer: float = 0.0,
                  options: wc.SolverOptions | None = None, segment_steps: int | None = None,
-                 controller: str = "open-loop", optimizer: str | None = None, iters: int | None = None):
-        n = model.particle_count
+                 controller: str = "open-loop", optimizer: str | None = None, iters: int | None = None,
+                 template: wc.ModelBuilder | None = None):
+        starts = np.asarray(model.world_particle_start)
+        sizes = np.diff(starts)
+        if np.any(sizes != sizes[0]):
+            raise ValueError(f"a control task's worlds must be copies of one scene; their particle counts differ: "
+                             f"{sizes.tolist()}")
+        n = int(sizes[0])
         self.particles = tuple(int(p) for p in particles)
         if not self.particles or len(set(self.particles)) != len(self.particles):
             raise ValueError(f"particles must be distinct particle indices, got {list(particles)}")
@@ -87,7 +99,17 @@ class ControlTask:
             raise ValueError(f"regularizer must be finite and >= 0, got {regularizer!r}")
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        options = options or wc.SolverOptions()
+        if options.preconditioner == "auto":
+            options = dataclasses.replace(options, preconditioner="block_ssor")
+        self._args = dict(dt=dt, particles=self.particles, interval_steps=interval_steps, intervals=intervals,
+                          steps=steps, target_com=target_com, target_positions=target_positions,
+                          regularizer=regularizer, options=options, segment_steps=segment_steps,
+                          controller=controller, optimizer=optimizer, iters=iters, template=template)
         self.model, self.dt, self.steps = model, float(dt), int(steps)
+        self.world_count = model.world_count
+        self.world_particles = n
+        """Particles of one world."""
         self.interval_steps, self.intervals = int(interval_steps), int(intervals)
         self.target_com = None if target_com is None else np.asarray(target_com, dtype=np.float64).reshape(3)
         self.target_positions = target_positions
@@ -96,20 +118,30 @@ class ControlTask:
         self.controller = controller
         self.optimizer = optimizer or ("gauss-newton" if self.target_com is not None else "lbfgs")
         self.iters = iters
+        self.template = template
         self.sim = wc.Simulator(model, dt, options=options)
         self._kernels = loss_kernels(model.scalar)
         device = model.device
         self._particles = wp.array(self.particles, dtype=wp.int32, device=device)
-        self.push_mass = float(model.particle_mass().sum()) / len(self.particles)
+        self._first = wp.array(starts[:-1], dtype=wp.int32, device=device)
+        first_world = model.world_slice(0)
+        self.push_mass = float(model.particle_mass()[first_world].sum()) / len(self.particles)
         """The mass one push accelerates: F = push_mass * p [kg]."""
         if self.target_com is not None:
             self._target_com = model.types.vec3(*self.target_com)
         else:
             self._target_positions = wp.array(target_positions, dtype=model.types.vec3, device=device)
-        self.x_initial = model.particle_x0.numpy().astype(np.float64)
+        self.x_initial = model.particle_x0.numpy()[first_world].astype(np.float64)
         self.com_initial = self.x_initial.mean(axis=0)
         self.simulations = 0
+        """World simulations run (forward + backward), each world of a batch counted."""
+        self.batches = 0
+        """Simulations of several worlds at once."""
+        self.batch_retries = 0
+        """Batches run again world by world because one of their steps needed the collision stage's second try or
+        fail-safe, which act on every world of a step (so a batch would differ from its worlds run alone)."""
         self.seconds = 0.0
+        self._batched: dict[int, ControlTask] = {self.world_count: self}
 
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None,
@@ -132,7 +164,8 @@ class ControlTask:
         if spec is None:
             raise ValueError(f"scene {scene.name!r} ({scene.source}) has no [control] table")
         model = scene.finalize(device=device, requires_grad=True, dtype=dtype)
-        return cls(model, **scene_task_args(scene, steps=steps, options=options, segment_steps=segment_steps))
+        return cls(model, **scene_task_args(scene, steps=steps, options=options, segment_steps=segment_steps),
+                   template=scene.model_builder)
 
     @property
     def n_params(self) -> int:
@@ -155,13 +188,14 @@ class ControlTask:
                              / np.linalg.norm(self.x_initial - self.target_positions))
 
     def _forces(self, push: wp.array) -> list[wp.array]:
+        m = len(self.particles)
         forces = []
         for s in range(self.intervals):
             f = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
                          requires_grad=True)
-            wp.launch(self._kernels.push_forces, len(self.particles),
-                      inputs=[push, s, self._particles, self.model.scalar(self.push_mass)], outputs=[f],
-                      device=self.model.device)
+            wp.launch(self._kernels.push_forces, self.world_count * m,
+                      inputs=[push, s, self.intervals, self._particles, self._first,
+                              self.model.scalar(self.push_mass)], outputs=[f], device=self.model.device)
             forces.append(f)
         return forces
 
@@ -176,62 +210,145 @@ class ControlTask:
 
         return control
 
-    def _push_array(self, params: np.ndarray) -> wp.array:
-        params = np.asarray(params, dtype=np.float64).reshape(-1)
-        if params.shape != (self.n_params,) or not np.all(np.isfinite(params)):
-            raise ValueError(f"control parameters must be {self.n_params} finite numbers, got shape {params.shape}")
-        return wp.array(params.reshape(-1, 3), dtype=self.model.types.vec3, device=self.model.device,
+    def _push_array(self, params) -> wp.array:
+        """The pushes of every world: ``params`` holds world_count sets of n_params numbers."""
+        flat = [np.asarray(p, dtype=np.float64).reshape(-1) for p in params]
+        for w, p in enumerate(flat):
+            if p.shape != (self.n_params,) or not np.all(np.isfinite(p)):
+                where = f" (world {w})" if self.world_count > 1 else ""
+                raise ValueError(f"control parameters{where} must be {self.n_params} finite numbers, got shape "
+                                 f"{p.shape}")
+        return wp.array(np.concatenate(flat).reshape(-1, 3), dtype=self.model.types.vec3, device=self.model.device,
                         requires_grad=True)
 
-    def _loss_fn(self, component: int | None, final: dict):
-        model = self.model
-        com = wp.zeros(1, dtype=model.types.vec3, device=model.device, requires_grad=True)
-        n = model.particle_count
+    def _loss_fn(self, components: list[int | None], final: dict):
+        model, kernels = self.model, self._kernels
+        W = self.world_count
 
         def loss(i: int, state: wc.State, out: wp.array) -> None:
             if i != self.steps:
                 return
             final["positions"] = state.particle_x.numpy().astype(np.float64)
+            values = wp.zeros(W, dtype=model.scalar, device=model.device, requires_grad=True)
             if self.target_positions is not None:
-                wp.launch(self._kernels.squared_distance, n,
-                          inputs=[state.particle_x, self._target_positions, model.scalar(0.5 / n)], outputs=[out])
-                return
-            com.zero_()  # the loss squares the mean: accumulate the mean first, then square it
-            wp.launch(self._kernels.centre_of_mass, n, inputs=[state.particle_x, model.scalar(1.0 / n)],
-                      outputs=[com])
-            if component is None:
-                wp.launch(self._kernels.point_squared_distance, 1, inputs=[com, self._target_com, model.scalar(0.5)],
-                          outputs=[out])
-            else:
-                wp.launch(self._kernels.add_component, 1, inputs=[com, component], outputs=[out])
+                n = self.world_particles
+                wp.launch(kernels.world_squared_distance, model.particle_count,
+                          inputs=[state.particle_x, self._target_positions, model.particle_world, self._first,
+                                  model.scalar(0.5 / n)], outputs=[values])
+            else:  # the loss squares the mean: accumulate the mean first, then square it
+                com = wp.zeros(W, dtype=model.types.vec3, device=model.device, requires_grad=True)
+                wp.launch(kernels.centre_of_mass, model.particle_count,
+                          inputs=[state.particle_x, model.particle_world, model.scalar(1.0 / self.world_particles)],
+                          outputs=[com])
+                if components[0] is None:
+                    wp.launch(kernels.point_squared_distance, W, inputs=[com, self._target_com, model.scalar(0.5)],
+                              outputs=[values])
+                else:
+                    wp.launch(kernels.add_component, W, inputs=[com, wp.array(components, dtype=wp.int32)],
+                              outputs=[values])
+            wp.launch(kernels.add_sum, 1, inputs=[values], outputs=[out])
+            final["values"] = values.numpy().astype(np.float64)
 
         return loss
 
     def evaluate(self, params: np.ndarray, *, component: int | None = None) -> Evaluation:
         """One forward + backward simulation: the loss and its gradient at ``params`` (any shape of n_params
         numbers). With ``component`` (0, 1, 2; a centre-of-mass target only) the "loss" is that coordinate of the
-        final centre of mass instead, without the regulariser."""
-        if component is not None and self.target_com is None:
-            raise ValueError("component needs a centre-of-mass target")
+        final centre of mass instead, without the regulariser. On a task of one world."""
+        if self.world_count != 1:
+            raise ValueError(f"evaluate runs one world; this task has {self.world_count}: use evaluate_worlds")
+        return self.evaluate_worlds([params], [component])[0]
+
+    def evaluate_worlds(self, params: list, components: list | None = None) -> list[Evaluation]:
+        """One forward + backward simulation of every world, world w with ``params[w]`` (n_params numbers) and the
+        loss ``components[w]`` (as :meth:`evaluate`'s ``component``; all None or all coordinates). The worlds
+        are independent, so each gets what a model of that world alone gives (bitwise: tests/test_worlds.py),
+        except in a step that needed the collision stage's second try or fail-safe (:attr:`batch_retries`)."""
+        W = self.world_count
+        components = [None] * W if components is None else list(components)
+        if len(params) != W or len(components) != W:
+            raise ValueError(f"evaluate_worlds takes one parameter set and one component per world ({W}), got "
+                             f"{len(params)} and {len(components)}")
+        if any(c is not None for c in components):
+            if self.target_com is None:
+                raise ValueError("component needs a centre-of-mass target")
+            if any(c not in (0, 1, 2) for c in components):
+                raise ValueError(f"components must all be None or all 0, 1 or 2, got {components}")
         t0 = time.perf_counter()
         push = self._push_array(params)
         tape = wp.Tape()
         with tape:
             forces = self._forces(push)
         final: dict = {}
-        value, _ = wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
-                                            steps=self.steps, loss=self._loss_fn(component, final),
-                                            segment_steps=self.segment_steps)
+        wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
+                                 steps=self.steps, loss=self._loss_fn(components, final),
+                                 segment_steps=self.segment_steps)
         tape.backward(grads={f: f.grad for f in forces})
-        grad = push.grad.numpy().astype(np.float64).reshape(-1)
-        if self.regularizer and component is None:
-            p = np.asarray(params, dtype=np.float64).reshape(-1)
-            value += 0.5 * self.regularizer * float(p @ p)
-            grad = grad + self.regularizer * p
-        self.simulations += 1
+        grads = push.grad.numpy().astype(np.float64).reshape(W, -1)
+        self.simulations += W
+        self.batches += W > 1
         self.seconds += time.perf_counter() - t0
-        positions = final["positions"]
-        return Evaluation(loss=float(value), grad=grad, com=positions.mean(axis=0), positions=positions)
+        out = []
+        for w in range(W):
+            value, grad = float(final["values"][w]), grads[w]
+            if self.regularizer and components[w] is None:
+                p = np.asarray(params[w], dtype=np.float64).reshape(-1)
+                value += 0.5 * self.regularizer * float(p @ p)
+                grad = grad + self.regularizer * p
+            positions = final["positions"][self.model.world_slice(w)]
+            out.append(Evaluation(loss=value, grad=grad, com=positions.mean(axis=0), positions=positions))
+        return out
+
+    def worlds(self, count: int) -> ControlTask:
+        """This task over ``count`` copies of its scene (made once, then kept), or None without a ``template``."""
+        if count not in self._batched:
+            if self.template is None:
+                return None
+            builder = wc.ModelBuilder()
+            builder.replicate(self.template, count)
+            model = builder.finalize(device=self.model.device, requires_grad=True, dtype=self.model.scalar)
+            self._batched[count] = ControlTask(model, **self._args)
+        return self._batched[count]
+
+    def evaluate_many(self, requests: list[tuple[np.ndarray, int | None]]) -> list[Evaluation | Exception]:
+        """Forward + backward simulations of several ``(params, component)`` requests (as :meth:`evaluate`'s), run
+        as one batch of worlds (:meth:`worlds`, :meth:`evaluate_worlds`) where the task has a ``template``, one
+        after another otherwise. A request whose simulation raises (CollisionError, SimulationError) gets the
+        exception in its place. Each result is the one :meth:`evaluate` gives: a batch that raised, or whose step
+        needed the collision stage's second try or fail-safe, is run again request by request."""
+        if self.world_count != 1:
+            raise ValueError(f"evaluate_many runs on a task of one world; this one has {self.world_count}")
+        if not requests:
+            return []
+        batch = self.worlds(len(requests)) if len(requests) > 1 else None
+        if batch is not None:
+            stage = batch.sim.collision
+            retries = (stage.start_gap_steps, stage.fail_safe_steps) if stage is not None else None
+            try:
+                out = batch.evaluate_worlds([p for p, _ in requests], [c for _, c in requests])
+                if stage is None or retries == (stage.start_gap_steps, stage.fail_safe_steps):
+                    self._count(batch)
+                    return out
+            except (wc.CollisionError, wc.SimulationError):
+                batch.simulations += len(requests)
+            self._count(batch)
+            self.batch_retries += 1
+        out = []
+        for params, component in requests:
+            try:
+                out.append(self.evaluate(params, component=component))
+            except (wc.CollisionError, wc.SimulationError) as exc:
+                self.simulations += 1
+                out.append(exc)
+        return out
+
+    def _count(self, batch: ControlTask) -> None:
+        """Take a batch task's counters over into this task's."""
+        self.simulations += batch.simulations
+        self.batches += batch.batches
+        self.seconds += batch.seconds
+        batch.simulations = batch.batches = 0
+        batch.seconds = 0.0
 
     def loss_and_grad(self, params: np.ndarray, *, component: int | None = None
                       ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -241,7 +358,9 @@ class ControlTask:
 
     def trajectory(self, params: np.ndarray) -> list[np.ndarray]:
         """Positions (n, 3) of every step, from a forward pass only."""
-        control = self._control_fn(self._forces(self._push_array(params)))
+        if self.world_count != 1:
+            raise ValueError(f"trajectory replays one world; this task has {self.world_count}")
+        control = self._control_fn(self._forces(self._push_array([params])))
         state = self.model.state(requires_grad=False)
         frames = [state.particle_x.numpy()]
         for i in range(self.steps):
@@ -293,8 +412,8 @@ class ControlResult:
 
 
 def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
-                       start: np.ndarray | None = None, optimizer: str | None = None, progress: bool = False,
-                       callback=None) -> ControlResult:
+                       start: np.ndarray | None = None, optimizer: str | None = None, batch: bool = True,
+                       progress: bool = False, callback=None, _evaluate=None) -> ControlResult:
     """Optimise the pushes directly, from zero (the seed's start) or ``start`` (n_params pushes [m/s^2]).
     ``iters`` bounds the simulations (forward + backward) spent; returns the best iterate and the simulations spent
     to reach it. A start whose simulation raises is halved towards zero until one runs.
@@ -310,12 +429,20 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
     * ``"lbfgs"``: L-BFGS (``warpcloth.tasks.optim.lbfgs``) on the loss; one simulation per point.
 
     ``max_step`` [m/s^2] bounds how far one step moves any push.
+
+    ``batch``: run a point's three Gauss-Newton simulations as one batch of three worlds
+    (:meth:`ControlTask.evaluate_many`; the task needs a ``template``). The result is the same as one at a time,
+    bitwise, and so is the history (a point whose loss is worse counts one simulation, as when cut short); the two
+    simulations such a point did not need are counted in ``task.simulations`` only.
     """
     optimizer = optimizer or task.optimizer
     if optimizer not in OPEN_LOOP_OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; one of {', '.join(OPEN_LOOP_OPTIMIZERS)}")
     if optimizer == "gauss-newton" and task.target_com is None:
         raise ValueError("gauss-newton needs a centre-of-mass target; use lbfgs with target positions")
+    run = _evaluate or (task.evaluate_many if batch else lambda requests: [_evaluate_one(task, *r) for r in requests])
+    # ask for a point's three Jacobian rows at once where they run as one batch
+    together = (batch and task.template is not None) or _evaluate is not None
     result = ControlResult(params=np.zeros(task.params_shape))
     bar = progress_bar(iters, f"control (open-loop, {optimizer})", "sim") if progress else None
     t0 = time.perf_counter()
@@ -343,10 +470,9 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
     params = np.zeros(task.n_params) if start is None else np.array(start, dtype=np.float64).reshape(task.n_params)
     if optimizer == "lbfgs":
         def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
-            try:
-                e = task.evaluate(theta)
-            except (wc.CollisionError, wc.SimulationError) as exc:  # a rejected trial: an infinite loss
-                failed(exc)
+            e = run([(theta, None)])[0]
+            if isinstance(e, Exception):  # a rejected trial: an infinite loss
+                failed(e)
                 return math.inf, np.zeros(task.n_params)
             record(theta, e.loss, task.error_pct(e.positions))
             return e.loss, e.grad
@@ -367,13 +493,13 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
         step is rejected and halved."""
         jac = np.zeros((3, task.n_params))
         com = None
+        rows = run([(params, k) for k in range(3)]) if together else None
         for k in range(3):
             if len(result.losses) >= iters:
                 return math.inf, None, None
-            try:
-                e = task.evaluate(params, component=k)
-            except (wc.CollisionError, wc.SimulationError) as exc:
-                failed(exc)
+            e = rows[k] if together else run([(params, k)])[0]
+            if isinstance(e, Exception):
+                failed(e)
                 return math.inf, None, None
             jac[k] = e.grad
             if k == 0:
@@ -408,6 +534,90 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
         else:
             step = 0.5 * step
     return _finish(result, bar, t0)
+
+
+def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) -> Evaluation | Exception:
+    try:
+        return task.evaluate(params, component=component)
+    except (wc.CollisionError, wc.SimulationError) as exc:
+        return exc
+
+
+def optimize_open_loop_starts(task: ControlTask, starts: list, *, batch: bool = True, iters: int = 50,
+                              progress: bool = False, **kwargs) -> list[ControlResult]:
+    """:func:`optimize_open_loop` from each of ``starts`` (None: zero pushes), with ``batch`` in lockstep: every
+    round the simulations that all the runs ask for next go as one batch of worlds (:meth:`ControlTask.evaluate_many`),
+    so random restarts cost little more wall time than one run on a CPU whose launches, not its arithmetic, bound a
+    small cloth's step (benchmarks/worlds.py). Each run's result equals its run alone, bitwise. Without ``batch``
+    the runs go one after another."""
+    if not batch:
+        return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, **kwargs)
+                for s in starts]
+    lockstep = _Lockstep(task, len(starts))
+    results: list = [None] * len(starts)
+
+    def one(i: int) -> None:
+        try:
+            results[i] = optimize_open_loop(task, start=starts[i], iters=iters, progress=progress,
+                                            _evaluate=lambda requests: lockstep.evaluate(i, requests), **kwargs)
+        except BaseException as exc:  # handed to the caller below
+            results[i] = exc
+        finally:
+            lockstep.leave()
+
+    threads = [threading.Thread(target=one, args=(i,), daemon=True) for i in range(len(starts))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for r in results:
+        if isinstance(r, BaseException):
+            raise r
+    return results
+
+
+class _Lockstep:
+    """The evaluations that several optimisations (each in its own thread) ask for, run as one batch once every
+    optimisation still running is waiting for its own; requests go in the order of the runs, so the batches, and
+    the results, do not depend on the threads' timing."""
+
+    def __init__(self, task: ControlTask, runs: int):
+        self.task = task
+        self.running = runs
+        self.pending: dict[int, list] = {}
+        self.answers: dict[int, list] = {}
+        self.lock = threading.Condition()
+
+    def evaluate(self, run: int, requests: list) -> list:
+        with self.lock:
+            self.pending[run] = requests
+            self._dispatch()
+            while run not in self.answers:
+                self.lock.wait()
+            answer = self.answers.pop(run)
+        if isinstance(answer, BaseException):
+            raise answer
+        return answer
+
+    def leave(self) -> None:
+        with self.lock:
+            self.running -= 1
+            self._dispatch()
+
+    def _dispatch(self) -> None:
+        if not self.pending or len(self.pending) < self.running:
+            return
+        runs = sorted(self.pending)
+        try:
+            flat = self.task.evaluate_many([r for k in runs for r in self.pending[k]])
+        except BaseException as exc:  # every waiting run raises it (a bug, not a rejected trial)
+            self.answers.update(dict.fromkeys(runs, exc))
+        else:
+            for k in runs:
+                size = len(self.pending[k])
+                self.answers[k], flat = flat[:size], flat[size:]
+        self.pending.clear()
+        self.lock.notify_all()
 
 
 def _finish(result: ControlResult, bar, t0: float) -> ControlResult:

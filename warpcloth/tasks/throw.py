@@ -12,10 +12,18 @@ import warpcloth as wc
 from warpcloth.scene import load_scene
 
 # the optimisers (warpcloth.tasks.control), importable from here too
-from warpcloth.tasks.control import ControlResult, ControlTask, optimize_open_loop, scene_task_args, train_mlp
+from warpcloth.tasks.control import (
+    ControlResult,
+    ControlTask,
+    optimize_open_loop,
+    optimize_open_loop_starts,
+    scene_task_args,
+    train_mlp,
+)
 
 __all__ = ["CORNERS", "DT", "N_PARAMS", "SCENE", "SECONDS_CONTROLLED", "SEED_PUBLISHED", "STEPS", "STEPS_PER_SECOND",
-           "TARGET", "ControlResult", "ControlTask", "ThrowTask", "optimize_open_loop", "train_mlp"]
+           "TARGET", "ControlResult", "ControlTask", "ThrowTask", "optimize_open_loop", "optimize_open_loop_starts",
+           "train_mlp"]
 
 SCENE = "basket-throw"
 """The embedded scene of the throw."""
@@ -50,4 +58,5 @@ class ThrowTask(ControlTask):
     def __init__(self, model: wc.Model | None = None, *, steps: int = STEPS, options: wc.SolverOptions | None = None,
                  segment_steps: int | None = None):
         super().__init__(model or _SCENE.finalize(requires_grad=True),
-                         **scene_task_args(_SCENE, steps=steps, options=options, segment_steps=segment_steps))
+                         **scene_task_args(_SCENE, steps=steps, options=options, segment_steps=segment_steps),
+                         template=_SCENE.model_builder)
