@@ -91,7 +91,10 @@ def draped_builder():
 
 def test_worlds_with_contact_equal_single_runs_states_and_gradients():
     """A cloth dropped on a sphere (projection, repulsion, friction) replicated with a different push per world:
-    states and the pushes' gradients equal single-world runs (float64), bitwise: each world's contacts are projected
+    states and the gradients of every parameter (forces, density, stretching, bending, x0, v0, the sphere's
+    placement) equal single-world runs (float64), bitwise (the material, which the worlds share, to rounding: the
+    sum of theirs; single-world gradients are checked against central
+    differences in tests/test_contact_gradient_matrix.py): each world's contacts are projected
     by their own thread, a world without new contacts in a round keeps its solution, and one without contacts in a
     step passes its gradient on exactly, so steps where only some worlds touch the sphere (13 here) match too."""
     base, steps, worlds = draped_builder(), 30, 3
@@ -108,15 +111,17 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
         control = model.control(particle_force=True)
         control.particle_force.assign(forces)
         sim = wc.Simulator(model, 0.01, options=options)
-        x, (grad,) = loss_and_grads(model, sim, steps, w, control, params=(control.particle_force,))
+        x, grads = loss_and_grads(model, sim, steps, w, control, params=(
+            control.particle_force, model.material_density, model.material_stretching, model.material_bending,
+            model.particle_x0, model.particle_v0, control.obstacle_transform))
         assert sim.collision.fail_safe_steps == 0 and sim.collision.start_gap_steps == 0
-        return x, grad, sim
+        return x, grads, sim
 
     forces = np.zeros((batch.particle_count, 3))
     for w in range(worlds):
         forces[batch.world_slice(w)][pushed] = pushes[w]
     x, grad, sim = run(batch, forces, weights)
-    pairs = 0
+    pairs, material_sum = 0, {}
     for w in range(worlds):
         model = base.finalize("cpu", requires_grad=True, dtype=wp.float64)
         single = np.zeros((model.particle_count, 3))
@@ -125,7 +130,14 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
         xs, gs, alone = run(model, single, weights[part])
         pairs += alone.proximity.last_count
         np.testing.assert_array_equal(x[part], xs)
-        np.testing.assert_array_equal(grad[part], gs)
+        for k in (0, 4, 5):  # forces, x0, v0: per particle
+            np.testing.assert_array_equal(grad[k][part], gs[k])
+        np.testing.assert_array_equal(grad[6][w], gs[6][0])  # the world's sphere
+        for k in (1, 2, 3):  # the worlds share one material: its gradient is the sum of theirs
+            material_sum[k] = material_sum.get(k, 0.0) + gs[k]
+        assert all(np.abs(g).max() > 0.0 for g in gs)
+    for k, total in material_sum.items():  # summed in another order: to rounding
+        np.testing.assert_allclose(grad[k], total, rtol=1e-12, atol=1e-12 * np.abs(total).max())
     assert sim.proximity.last_count == pairs > 0  # the cloths rest on their spheres, each world's pairs its own
 
 

@@ -299,7 +299,7 @@ class ControlTask:
             out.append(Evaluation(loss=value, grad=grad, com=positions.mean(axis=0), positions=positions))
         return out
 
-    def worlds(self, count: int) -> ControlTask:
+    def worlds(self, count: int) -> ControlTask | None:
         """This task over ``count`` copies of its scene (made once, then kept), or None without a ``template``."""
         if count not in self._batched:
             if self.template is None:
