@@ -331,3 +331,14 @@ def test_a_control_task_refuses_worlds_of_different_sizes():
     model = composed.finalize("cpu", requires_grad=True)
     with pytest.raises(ValueError, match="particle counts differ"):
         ControlTask(model, 0.01, particles=(0,), interval_steps=1, intervals=1, steps=2, target_com=(0, 0, 0))
+
+
+def test_add_world_refuses_a_builder_with_obstacles_or_settings_of_its_own():
+    """What the outer builder would otherwise lose or mis-assign: an obstacle of no world, settings no world uses."""
+    with_obstacle = wc.ModelBuilder()
+    with_obstacle.add_obstacle_sphere(0.1, name="ball")
+    damped = wc.ModelBuilder()
+    damped.set_damping(mass=0.5)
+    for outer, what in ((with_obstacle, "obstacles"), (damped, "damping")):
+        with pytest.raises(ValueError, match=f"add_world: this builder has .*{what}"):
+            outer.add_world(draped_builder())

@@ -146,7 +146,9 @@ class ModelBuilder:
         gravity and wind) as a new world of this builder's model, and return the world's index.
 
         Worlds never interact: contact detection, proximity forces and the collision response pair nothing across
-        worlds, even where they overlap in space; each world's linear solve converges on its own. Gravity, wind,
+        worlds, even where they overlap in space; each world's linear solve converges on its own (with the
+        sequential CG backend, the CPU's; Warp's CG, CUDA's default, stops on the whole batch's residual). Gravity,
+        wind,
         materials and controls may differ between worlds (build each world's builder with its own); the scene-wide
         settings (damping, collision settings, the wind's lagged normals) must be the same in every world. A
         builder holds either its own scene or worlds added here, not both; its own ``gravity`` is not used once it
@@ -154,16 +156,22 @@ class ModelBuilder:
         worlds: each becomes a world here.
 
         Raises:
-            ValueError: this builder has a scene of its own, ``builder`` has no cloth, or a scene-wide setting of
+            ValueError: this builder has a scene of its own (a cloth, obstacles, wind, damping or collision
+                settings), ``builder`` has no cloth, or a scene-wide setting of
                 ``builder`` differs from the worlds added before (naming the setting).
         """
         if not isinstance(builder, ModelBuilder):
             raise TypeError(f"add_world: expected a ModelBuilder, got {type(builder).__name__}")
         if builder is self:
             raise ValueError("add_world: a builder cannot add itself as a world")
-        if self._particle_count and not self._worlds:
-            raise ValueError("add_world: this builder has a cloth of its own; a builder holds either its own scene "
-                             "or worlds added with add_world/replicate")
+        if not self._worlds:
+            own = "a cloth" if self._particle_count else "obstacles" if self._obstacles else None
+            changed = self.wind is not None or self._own_world().shared != ModelBuilder()._own_world().shared
+            if own is None and changed:
+                own = "wind, damping or collision settings (set them on each world's builder)"
+            if own is not None:
+                raise ValueError(f"add_world: this builder has {own} of its own; a builder holds either its own "
+                                 "scene or worlds added with add_world/replicate")
         if builder.particle_count == 0:
             raise ValueError("add_world: the builder has no cloth")
         self._check_size(builder.particle_count, f"world {len(self._worlds)}")

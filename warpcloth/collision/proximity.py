@@ -181,12 +181,13 @@ class ProximityForces:
         if W == 1:
             self.pair_world_start.assign(np.array([0, count], dtype=np.int32))
             return
-        nodes, kind, area = (a.numpy() for a in (self._nodes, self._kind, self._pair_area))
-        world = self._node_world_host[nodes[:count, 0]]
+        found = [a[:count] for a in (self._nodes, self._kind, self._pair_area)]  # the pairs found, not the capacity
+        nodes, kind, area = (a.numpy() for a in found)
+        world = self._node_world_host[nodes[:, 0]]
         order = np.argsort(world, kind="stable")
-        self._nodes.assign(np.concatenate([nodes[:count][order], nodes[count:]]))
-        self._kind.assign(np.concatenate([kind[:count][order], kind[count:]]))
-        self._pair_area.assign(np.concatenate([area[:count][order], area[count:]]))
+        for array, values in zip(found, (nodes, kind, area)):
+            if count:
+                array.assign(values[order])
         self.pair_world_start.assign(np.searchsorted(world[order], np.arange(W + 1)).astype(np.int32))
 
     def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,

@@ -234,19 +234,19 @@ class ControlTask:
                 n = self.world_particles
                 wp.launch(kernels.world_squared_distance, model.particle_count,
                           inputs=[state.particle_x, self._target_positions, model.particle_world, self._first,
-                                  model.scalar(0.5 / n)], outputs=[values])
+                                  model.scalar(0.5 / n)], outputs=[values], device=model.device)
             else:  # the loss squares the mean: accumulate the mean first, then square it
                 com = wp.zeros(W, dtype=model.types.vec3, device=model.device, requires_grad=True)
                 wp.launch(kernels.centre_of_mass, model.particle_count,
                           inputs=[state.particle_x, model.particle_world, model.scalar(1.0 / self.world_particles)],
-                          outputs=[com])
+                          outputs=[com], device=model.device)
                 if components[0] is None:
                     wp.launch(kernels.point_squared_distance, W, inputs=[com, self._target_com, model.scalar(0.5)],
-                              outputs=[values])
+                              outputs=[values], device=model.device)
                 else:
-                    wp.launch(kernels.add_component, W, inputs=[com, wp.array(components, dtype=wp.int32)],
-                              outputs=[values])
-            wp.launch(kernels.add_sum, 1, inputs=[values], outputs=[out])
+                    wp.launch(kernels.add_component, W, outputs=[values], device=model.device,
+                              inputs=[com, wp.array(components, dtype=wp.int32, device=model.device)])
+            wp.launch(kernels.add_sum, 1, inputs=[values], outputs=[out], device=model.device)
             final["values"] = values.numpy().astype(np.float64)
 
         return loss
