@@ -13,8 +13,11 @@ Several motions (``--multi``, issue 24): each fabric also fitted to three record
 (``scenes.shaken_cloth``, ``scenes.cloth_dropped_on_sphere``; dt 0.01, 100 steps each); its row's simulation error
 is on the wind scene alone, as the single fit's.
 
+The single-motion fits run as jobs (``warpcloth.tasks.jobs``, one per fabric) on ``--workers`` processes (more than
+one needs the ray extra); benchmarks/jobs.py times 1 against 2 workers.
+
 Usage: python benchmarks/material_estimation.py [--quick] [--out PATH] [--optimizers lbfgs,adam,seed-sgd]
-       [--iters 150] [--materials all|name,...] [--cross 1] [--steps 50] [--multi 1]
+       [--iters 150] [--materials all|name,...] [--cross 1] [--steps 50] [--multi 1] [--workers 1]
        (--quick: gray-interlock, 4 steps, 2 evaluations, no cross-check, no multi-motion fit)
 """
 
@@ -28,6 +31,7 @@ from common import wc
 
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
+from warpcloth.tasks.jobs import EstimateJob, run_jobs
 from warpcloth.tasks.scenes import hanging_cloth
 
 KEYS = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", "stretch_nonlinear_err_pct",
@@ -35,17 +39,25 @@ KEYS = ("runtime_s_per_step_iter", "density_err_pct", "stretch_linear_err_pct", 
 SEED_TARGETS = {"11oz": "11oz-black-denim", "gray": "gray-interlock", "tango": "tango-red-jet-set"}
 
 
-def fit_one(truth_name: str, optimizer: str, iters: int, steps: int = E.STEPS) -> dict:
-    truth = wc.preset(truth_name, thicken=S.THICKEN)
-    model = hanging_cloth(truth, mesh_path=common.seed_dir() / "meshes" / "demo_wind.obj")
-    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=steps), steps=steps)
-    result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
-    record = {"material": truth_name, "optimizer": optimizer, "iters": iters,
-              "runtime_s_per_step_iter": result.seconds_per_step_iter, **E.parameter_errors(result.material, truth),
-              "sim_err_pct": result.simulation_error_pct, "final_loss": min(result.losses),
-              "fitted": material_record(result.material)}
-    baseline = {"material": truth_name, "optimizer": "baseline (start)", "runtime_s_per_step_iter": float("nan"),
-                **E.parameter_errors(result.initial, truth), "sim_err_pct": result.initial_simulation_error_pct}
+def fit_jobs(names: list[str], optimizer: str, iters: int, steps: int = E.STEPS) -> list[EstimateJob]:
+    """One estimation job per fabric (warpcloth.tasks.jobs): the seed's hanging cloth on demo_wind.obj, its targets
+    simulated with the fabric."""
+    mesh = str(common.seed_dir() / "meshes" / "demo_wind.obj")
+    return [EstimateJob(mesh=mesh, material=name, optimizer=optimizer, iters=iters, steps=steps) for name in names]
+
+
+def fit_records(result) -> tuple[dict, dict]:
+    """(the fit's row, its start's row) from a job's result."""
+    job, r = result.job, result.result
+    if not result.ok:
+        raise RuntimeError(f"{job.material}: {result.error}")
+    truth = wc.preset(job.material, thicken=S.THICKEN)
+    record = {"material": job.material, "optimizer": job.optimizer, "iters": job.iters,
+              "runtime_s_per_step_iter": r["runtime_s_per_step_iter"],
+              **{k: r[k] for k in E.parameter_errors(truth, truth)}, "sim_err_pct": r["sim_err_pct"],
+              "final_loss": min(r["losses"]), "fitted": {**r["estimate"], "thicken": S.THICKEN}}
+    baseline = {"material": job.material, "optimizer": "baseline (start)", "runtime_s_per_step_iter": float("nan"),
+                **E.parameter_errors(E.initial_guess(), truth), "sim_err_pct": r["sim_err_pct_initial"]}
     return record, baseline
 
 
@@ -106,6 +118,7 @@ def cross_check(optimizer: str, iters: int) -> list[dict]:
 
 def main():
     args = common.parse_args(__doc__, optimizers="lbfgs", iters=150, materials="all", cross=1, steps=E.STEPS, multi=1,
+                             workers=1,
                              quick={"iters": 2, "materials": "gray-interlock", "cross": 0, "steps": 4, "multi": 0})
     names = list(wc.PRESET_NAMES) if args.materials == "all" else args.materials.split(",")
     optimizers = args.optimizers.split(",")
@@ -114,8 +127,9 @@ def main():
     t0 = time.perf_counter()
     for opt in optimizers:
         records = []
-        for name in names:
-            record, baseline = fit_one(name, opt, args.iters, args.steps)
+        for result in run_jobs(fit_jobs(names, opt, args.iters, args.steps), workers=args.workers):
+            record, baseline = fit_records(result)
+            name = record["material"]
             records.append(record)
             if opt == optimizers[0]:
                 baselines.append(baseline)

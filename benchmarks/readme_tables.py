@@ -719,7 +719,32 @@ def worlds(d: dict) -> str:
     return "\n".join(out)
 
 
+def jobs(d: dict) -> str:
+    counts = d["workers"]
+    header = ["jobs", "count"] + [f"{w} worker{'s' if w > 1 else ''} [s]" for w in counts]
+    multi = len(counts) > 1
+    if multi:
+        header += ["speed-up", "same results, bitwise"]
+    rows = []
+    for r in d["records"]:
+        row = [r["set"], str(r["jobs"])] + [f"{r[f'workers_{w}']['wall_s']:.1f}" for w in counts]
+        if multi:
+            row += [f"{r['speedup']:.2f}×", "yes" if r["same_results"] else "no"]
+        rows.append(row)
+    out = [f"Wall time of each set of jobs through `run_jobs` (`benchmarks/jobs.py`; Table 2: 10 fabrics, L-BFGS, "
+           f"{d['iters']} evaluations, {d['steps']} steps; the throw: the open loop from zero pushes and two random "
+           f"starts, {d['control_iters']} simulations each; Ray's start included):", "", table(header, rows)]
+    if multi:
+        t2 = d["records"][0]
+        out += ["", f"Target from issue 26: Table 2 with 2 workers ≥ {d['target_speedup']:g}× faster than with 1, "
+                f"same results: {t2['speedup']:.2f}×, {'same' if t2['same_results'] else 'different'}: "
+                f"{met(t2['speedup'] >= d['target_speedup'] and t2['same_results'])}."]
+    out += ["", provenance(d)]
+    return "\n".join(out)
+
+
 BLOCKS = {
+    "jobs": jobs,
     "presets": presets,
     "tradeoff_findings": tradeoff_findings,
     "step_time": step_time,

@@ -270,7 +270,7 @@ def test_cli_runs_a_scenes_tasks(tmp_path, capsys):
     assert record["free"] == ["density"] and len(record["losses"]) == 2 and "density_err_pct" in record
     assert "royal-target simulated by warpcloth" in record["source"]
     assert main(["estimate", str(path), "--target", str(tmp_path)]) == 2
-    assert "give a scene or --target, not both" in capsys.readouterr().err
+    assert "or --target, not both" in capsys.readouterr().err
 
 
 def test_cli_lists_the_scenes_tasks(capsys):

@@ -15,15 +15,12 @@ import sys
 import time
 from collections.abc import Sequence
 
+from warpcloth.tasks.jobs import CONTROL_SCENE, ESTIMATE_SCENE  # the scenes run when none is named
+
 __all__ = ["main"]
 
 _USAGE_ERROR = 2
 _RUNTIME_ERROR = 1
-
-ESTIMATE_SCENE = "material-estimation"
-"""The scene ``warpcloth estimate`` runs when none is named (the seed's hanging cloth in the wind)."""
-CONTROL_SCENE = "basket-throw"
-"""The scene ``warpcloth control`` runs when none is named (the seed's throw into a basket)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -50,19 +47,21 @@ def _parser() -> argparse.ArgumentParser:
     from warpcloth.scene import CONTROLLERS, ESTIMATION_OPTIMIZERS
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from how it moves (a scene's [estimate] task)")
-    est.add_argument("scene", nargs="?", default=None,
-                     help=f"a scene with an [estimate] table: embedded name or .toml path (default: {ESTIMATE_SCENE})")
-    what = est.add_mutually_exclusive_group()
-    what.add_argument("--material", default=None, choices=PRESET_NAMES, metavar="NAME",
-                      help="make the target by simulating the scene with this fabric instead of its own; "
-                      f"one of {', '.join(PRESET_NAMES)}")
-    what.add_argument("--target", metavar="DIR", default=None,
-                      help="instead of a scene, fit an OBJ sequence of the seed's hanging cloth (frame 0 = the start "
-                      "shape with vt coordinates, one frame per 0.04 s, such as the seed's targets)")
+    est.add_argument("scene", nargs="*", default=[],
+                     help="scenes with an [estimate] table: embedded names or .toml paths, one fit each (default: "
+                     f"{ESTIMATE_SCENE})")
+    est.add_argument("--material", action="append", default=None, choices=PRESET_NAMES, metavar="NAME",
+                     help="make the target by simulating the scene with this fabric instead of its own; repeat it "
+                     f"for one fit per fabric; one of {', '.join(PRESET_NAMES)}")
+    est.add_argument("--target", action="append", metavar="DIR", default=None,
+                     help="instead of a scene, fit an OBJ sequence of the seed's hanging cloth (frame 0 = the start "
+                     "shape with vt coordinates, one frame per 0.04 s, such as the seed's targets); repeat it for "
+                     "one fit per sequence")
     est.add_argument("--optimizer", default=None, choices=ESTIMATION_OPTIMIZERS, help="default: the scene's (lbfgs)")
     est.add_argument("--iters", type=int, default=None, help="forward+backward evaluations (default: the scene's)")
     est.add_argument("--steps", type=int, default=None, help="steps compared (default: the scene's)")
     est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
+    _add_workers(est)
     _add_outputs(est)
 
     ctl = sub.add_parser("control", help="find the pushes that move a cloth where a scene's [control] task says")
@@ -74,8 +73,21 @@ def _parser() -> argparse.ArgumentParser:
                      "cloth's state, trained with Adam through the simulator (needs the torch extra); default: the "
                      "scene's")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
+    ctl.add_argument("--starts", type=int, default=1,
+                     help="runs from K starts, one job each: the first from zero pushes (the seed's start), start k "
+                     "from random pushes of seed k (the MLP: its weights' seed k) (default: 1)")
+    _add_workers(ctl)
     _add_outputs(ctl)
     return parser
+
+
+def _add_workers(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workers", type=int, default=1,
+                        help="run the jobs on N Ray workers at once, one CPU each (default: 1, in this process; more "
+                        "needs the ray extra)")
+    parser.add_argument("--address", default=None,
+                        help="run the jobs on the Ray cluster at this address (default: RAY_ADDRESS where set, else "
+                        "this machine)")
 
 
 def _add_outputs(parser: argparse.ArgumentParser) -> None:
@@ -235,37 +247,41 @@ def _parse_handles(text: str) -> list[int]:
     return handles
 
 
+def _estimate_jobs(args: argparse.Namespace) -> list:
+    """One EstimateJob per --target, else per scene and --material."""
+    from warpcloth.tasks.jobs import EstimateJob
+
+    common = dict(optimizer=args.optimizer, iters=args.iters, steps=args.steps, device=args.device)
+    if args.target:
+        if args.scene or args.material:
+            raise ValueError("give scenes (and --material) or --target, not both")
+        handles = tuple(_parse_handles(args.handles))
+        return [EstimateJob(target=t, handles=handles, **common) for t in args.target]
+    return [EstimateJob(scene=scene, material=m, **common) for scene in args.scene or [None]
+            for m in args.material or [None]]
+
+
 def _cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from warpcloth.errors import SimulationError
-    from warpcloth.materials import preset
-    from warpcloth.mesh_io import load_obj_sequence, obj_sequence_files
-    from warpcloth.scene import load_scene
     from warpcloth.tasks import estimation as E
-    from warpcloth.tasks.scenes import hanging_cloth
     from warpcloth.usd import write_usd
 
     try:
-        if args.target is not None:
-            if args.scene is not None:
-                raise ValueError("give a scene or --target, not both")
-            files = obj_sequence_files(args.target)
-            frames = load_obj_sequence(files)
-            model = hanging_cloth(E.initial_guess(), mesh_path=files[0], handles=_parse_handles(args.handles),
-                                  device=args.device)
-            fit = E.TrajectoryFit(model, frames, steps=args.steps or E.STEPS)
-            task = E.EstimationTask(fit, source=args.target)
-        else:
-            scene = load_scene(args.scene or ESTIMATE_SCENE)
-            truth = None
-            if args.material is not None:
-                truth = preset(args.material, thicken=scene.cloth_material.thicken)
-            task = E.EstimationTask.from_scene(scene, device=args.device, truth=truth, steps=args.steps)
+        jobs = _estimate_jobs(args)
+    except ValueError as exc:
+        return _error(str(exc), _USAGE_ERROR)
+    if len(jobs) > 1 or args.workers > 1 or args.address:
+        return _run_many(args, jobs, ["sim error [%]", "density error [%]", "simulations"],
+                         lambda r: [r["sim_err_pct"], r.get("density_err_pct", "-"), len(r["losses"])])
+    job = jobs[0]
+    try:
+        task = job.task()
     except (ValueError, OSError, RuntimeError) as exc:
         return _error(str(exc), _USAGE_ERROR)
     fit, truth = task.fit, task.truth
-    optimizer, iters = args.optimizer or task.optimizer, args.iters or task.iters
+    optimizer, iters = job.settings(task)
     dt = fit.sim.dt
     print(f"estimating the material of {task.source}: {fit.steps} steps of {dt:g} s, optimizer {optimizer}, "
           f"{iters} forward+backward simulations, fitting {', '.join(task.free)}, start: {task.start.name}")
@@ -274,19 +290,13 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     except SimulationError as exc:
         return _error(str(exc), _RUNTIME_ERROR)
 
-    record = {"source": task.source, "optimizer": optimizer, "iters": iters, "steps": fit.steps,
-              "free": list(task.free), "runtime_s_per_step_iter": result.seconds_per_step_iter,
-              "sim_err_pct_initial": result.initial_simulation_error_pct,
-              "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
-              "estimate": {"density": result.material.density, "stretching": result.material.stretching.tolist(),
-                           "bending": result.material.bending.tolist()}}
+    record = job.record(task, result)
     seed = E.SEED_PUBLISHED
     rows = [["runtime [s/step/iter]", "-", result.seconds_per_step_iter, seed["runtime_s_per_step_iter"]]]
     if truth is not None:
-        before, after = E.parameter_errors(task.start, truth), E.parameter_errors(result.material, truth)
-        record.update(after)
+        before = E.parameter_errors(task.start, truth)
         for key, label in E.ERROR_LABELS.items():
-            rows.append([label, before[key], after[key], seed[key]])
+            rows.append([label, before[key], record[key], seed[key]])
     rows.append(["simulation error [%]", result.initial_simulation_error_pct, result.simulation_error_pct,
                  seed["sim_err_pct"]])
     print()
@@ -311,22 +321,74 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures) -> int:
+    """Run ``jobs`` (tasks/jobs.py) with --workers/--address, print one row per job (``figures(record)`` under
+    ``columns``) and write one JSON whose ``results`` has an entry per job; exit 1 when any failed, 130 on Ctrl-C
+    (after writing what finished)."""
+    from warpcloth.tasks.jobs import JobsInterrupted, run_jobs
+
+    if args.workers < 1:
+        return _error(f"--workers must be >= 1, got {args.workers}", _USAGE_ERROR)
+    if args.usd:
+        return _error(f"--usd writes one run's trajectory; this command runs {len(jobs)} jobs", _USAGE_ERROR)
+    where = f"the Ray cluster at {args.address}" if args.address else (
+        f"{args.workers} workers" if args.workers > 1 else "this process")
+    print(f"{args.command}: {len(jobs)} jobs on {where}")
+    t0 = time.perf_counter()
+    interrupted = False
+    try:
+        results = run_jobs(jobs, workers=args.workers, address=args.address, progress=True, device=args.device)
+    except ImportError as exc:
+        return _error(str(exc), _USAGE_ERROR)
+    except JobsInterrupted as exc:
+        results, interrupted = exc.results, True
+    wall = time.perf_counter() - t0
+    print()
+    rows = [[r.job.label()] + (figures(r.result) if r.ok else ["failed"] + ["-"] * (len(columns) - 1))
+            + [r.seconds if r.seconds == r.seconds else "-"] for r in results]  # "-": interrupted, never ran
+    _print_table(["job", *columns, "wall [s]"], rows)
+    failed = [r for r in results if not r.ok]
+    for r in failed:
+        print(f"{r.job.label()}: {r.error}")
+    print(f"{len(results) - len(failed)} of {len(results)} jobs finished in {wall:.1f} s wall time")
+    if args.json:
+        _write_json(args.json, {"command": args.command, "workers": args.workers, "address": args.address,
+                                "wall_s": wall, "interrupted": interrupted,
+                                "results": [r.to_json() for r in results]})
+        print(f"wrote {os.path.abspath(args.json)}")
+    if args.plot:
+        curves = {r.job.label(): r.result.get("errors_pct") or r.result["losses"] for r in results if r.ok}
+        _plot_losses(args.plot, curves, "loss" if args.command == "estimate" else "error [%]", args.command)
+        print(f"wrote {os.path.abspath(args.plot)}")
+    if interrupted:
+        return _error("interrupted; wrote the jobs that finished", 130)
+    return _RUNTIME_ERROR if failed else 0
+
+
 def _cmd_control(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
     from warpcloth.scene import load_scene
     from warpcloth.tasks import throw as C
     from warpcloth.tasks.control import ControlTask
+    from warpcloth.tasks.jobs import ControlJob
     from warpcloth.usd import write_usd
 
+    if args.starts < 1:
+        return _error(f"--starts must be >= 1, got {args.starts}", _USAGE_ERROR)
+    jobs = [ControlJob(scene=args.scene, controller=args.controller, iters=args.iters,
+                       seed=k or None, device=args.device)
+            for k in range(args.starts)]
+    if len(jobs) > 1 or args.workers > 1 or args.address:
+        return _run_many(args, jobs, ["error [%]", "simulations to reach it", "failed trials"],
+                         lambda r: [r["error_pct"], r["simulations"], len(r["failed_trials"])])
+    job = jobs[0]
     try:
         scene = load_scene(args.scene)
         task = ControlTask.from_scene(scene, device=args.device)
     except (ValueError, OSError, RuntimeError) as exc:
         return _error(str(exc), _USAGE_ERROR)
-    controller = args.controller or task.controller
-    iters = args.iters or (task.iters if controller == task.controller else None) or (
-        50 if controller == "open-loop" else 100)
+    controller, iters = job.settings(task)
     goal = "it to target positions"
     if task.target_com is not None:
         goal = f"its centre of mass to {task.target_com.tolist()}"
@@ -334,7 +396,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
           f"{task.dt:g} s, moving {goal}; controller {controller}"
           f"{' (' + task.optimizer + ')' if controller == 'open-loop' else ''}, {iters} simulations")
     try:
-        result = task.run(controller=controller, iters=iters, progress=True)
+        result = task.run(controller=controller, iters=iters, progress=True, **job.start(task))
     except ImportError as exc:
         return _error(str(exc), _USAGE_ERROR)
     except SimulationError as exc:
@@ -351,10 +413,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
     if result.failed_trials:
         print(f"{len(result.failed_trials)} trial(s) raised and were rejected as bad steps; the first: "
               f"{result.failed_trials[0]}")
-    record = {"scene": scene.name, "controller": controller, "error_pct": result.error_pct,
-              "simulations": result.simulations, "iters": iters, "seconds": result.seconds, "losses": result.losses,
-              "errors_pct": result.errors_pct, "failed_trials": result.failed_trials,
-              "params": result.params.tolist()}
+    record = job.record(task, result)
     if args.json:
         _write_json(args.json, record)
         print(f"wrote {os.path.abspath(args.json)}")

@@ -141,6 +141,8 @@ class ControlTask:
         """Batches run again world by world because one of their steps needed the collision stage's second try or
         fail-safe, which act on every world of a step (so a batch would differ from its worlds run alone)."""
         self.seconds = 0.0
+        self.name = ""
+        """The scene's name, where the task comes from one (:meth:`from_scene`)."""
         self._batched: dict[int, ControlTask] = {self.world_count: self}
 
     @classmethod
@@ -164,8 +166,10 @@ class ControlTask:
         if spec is None:
             raise ValueError(f"scene {scene.name!r} ({scene.source}) has no [control] table")
         model = scene.finalize(device=device, requires_grad=True, dtype=dtype)
-        return cls(model, **scene_task_args(scene, steps=steps, options=options, segment_steps=segment_steps),
+        task = cls(model, **scene_task_args(scene, steps=steps, options=options, segment_steps=segment_steps),
                    template=scene.model_builder)
+        task.name = scene.name
+        return task
 
     @property
     def n_params(self) -> int:

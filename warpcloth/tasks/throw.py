@@ -60,3 +60,4 @@ class ThrowTask(ControlTask):
         super().__init__(model or _SCENE.finalize(requires_grad=True),
                          **scene_task_args(_SCENE, steps=steps, options=options, segment_steps=segment_steps),
                          template=_SCENE.model_builder)
+        self.name = _SCENE.name
