@@ -21,6 +21,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from warpcloth.kernels.contact import WORLD_SKIPPED
 from warpcloth.kernels.geometry import segment_parameters, span_coordinates, world_root
 from warpcloth.kernels.types import per_precision, types
 
@@ -424,8 +425,8 @@ def collision_kernels(scalar):
         def query_contacts(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
                            x_ref: wp.array(dtype=vec3), queries: query_array, targets: wp.array2d(dtype=wp.int32),
                            query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
-                           same_cloth: int, thickness: wp.float64, keep_start_gaps: int, capacity: int,
-                           node_world: wp.array(dtype=wp.int32), grouped: int,
+                           same_cloth: int, thickness: wp.float64, world_mode: wp.array(dtype=wp.int32),
+                           capacity: int, node_world: wp.array(dtype=wp.int32), grouped: int,
                            # out:
                            count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
                            contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
@@ -439,6 +440,10 @@ def collision_kernels(scalar):
             else:
                 q0 = queries[i, 0]
                 q1 = queries[i, 1]
+            # the query's world's mode in this try of the step (WORLD_SKIPPED, 0, or WORLD_KEEPS_START_GAPS)
+            keep_start_gaps = world_mode[node_world[q0]]
+            if keep_start_gaps == WORLD_SKIPPED:
+                return
             root = world_root(bvh, grouped, node_world[q0])  # only the query's own world (ModelBuilder.add_world)
             if root == -2:
                 return

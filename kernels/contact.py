@@ -22,6 +22,11 @@ from warpcloth.kernels.types import per_precision, types
 VF_PLANE = 0
 EE_PLANE = 1
 EE_DIRECTION = 2  # the modes of kernels/collision.py
+WORLD_SKIPPED = wp.constant(-1)
+WORLD_KEEPS_START_GAPS = wp.constant(1)
+"""A world's mode in one try of the collision stage (an int32 per world, ``ContactDetector.world_mode``): 0 the
+full thickness; WORLD_KEEPS_START_GAPS the second try, where a pair that starts inside the thickness keeps its start
+gap; WORLD_SKIPPED no contacts (a world left to the fail-safe, or not the fail-safe's)."""
 GRAZING = 1.0e-6
 """|f'(t)| below this times |b - a| |c - a| |d - a| at the root: a grazing impact, whose t stays frozen."""
 
@@ -87,10 +92,11 @@ def contact_kernels(scalar):
     @wp.kernel
     def geometry(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), contact_nodes: wp.array2d(dtype=wp.int32),
                  contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
-                 contact_sign: wp.array(dtype=wp.float64), thickness: scalar, keep_start_gaps: int,
+                 contact_sign: wp.array(dtype=wp.float64), thickness: scalar, world_mode: wp.array(dtype=wp.int32),
+                 node_world: wp.array(dtype=wp.int32),
                  # out:
                  normal: wp.array(dtype=vec3), weight: wp.array(dtype=vec4), target: wp.array(dtype=scalar)):
-        # target: the gap the projection keeps, sum_a w_a n . p_a >= target: the thickness; with keep_start_gaps,
+        # target: the gap the projection keeps, sum_a w_a n . p_a >= target: the thickness; in the second try,
         # the gap the pair had at the start where that is less (a pair that starts inside the thickness may not come
         # closer; pushed a full thickness apart, such pairs contradict each other in a crumpled cloth)
         j = wp.tid()
@@ -133,7 +139,7 @@ def contact_kernels(scalar):
         normal[j] = n
         weight[j] = w
         target[j] = thickness
-        if keep_start_gaps != 0:
+        if world_mode[node_world[contact_nodes[j, 0]]] == WORLD_KEEPS_START_GAPS:
             target[j] = wp.min(thickness, start_distance(mode, x0[contact_nodes[j, 0]], x0[contact_nodes[j, 1]],
                                                          x0[contact_nodes[j, 2]], x0[contact_nodes[j, 3]]))
 

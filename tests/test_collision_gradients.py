@@ -295,19 +295,29 @@ def test_gradients_through_the_rigid_impact_zone_fail_safe_match_finite_differen
         assert density_grad[i] == pytest.approx(fd, rel=1e-5, abs=1e-9), f"material {i}: {density_grad[i]} vs {fd}"
 
 
+SANDWICH_THICKNESS = 5e-4
+
+
+def sandwich_builder() -> wc.ModelBuilder:
+    """A stretched sheet between two planes 0.8 thickness apart, every vertex inside the thickness of both: the
+    collision stage's first try (targets of a full thickness) is infeasible, its second, keeping start gaps, is not."""
+    delta = SANDWICH_THICKNESS
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    stretched_grid(b, 3, 0.2, pos=(-0.1, -0.1, 0.0))
+    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, -0.4 * delta))
+    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, 0.4 * delta), rot=(1.0, 0.0, 0.0, 0.0))  # facing down
+    b.set_collision(thickness=delta, repulsion_stiffness=0.0)
+    return b
+
+
 @pytest.mark.parametrize("solver", ["numpy", "device"])
 def test_gradients_of_the_second_try_keeping_start_gaps_match_finite_differences(solver):
     # A stretched sheet starting between two planes 0.8 thickness apart, every vertex inside the thickness of both:
     # the first try (targets of a full thickness) is infeasible, the second keeps each pair's start gap as its
     # target (kernels/contact.py start_distance, differentiated): gradients reach the start positions through the
     # targets, and the planes' placement.
-    delta = 5e-4
-    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
-    stretched_grid(b, 3, 0.2, pos=(-0.1, -0.1, 0.0))
-    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, -0.4 * delta))
-    b.add_obstacle_plane((1.0, 1.0), pos=(0.0, 0.0, 0.4 * delta), rot=(1.0, 0.0, 0.0, 0.0))  # facing down
-    b.set_collision(thickness=delta, repulsion_stiffness=0.0)
-    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    delta = SANDWICH_THICKNESS
+    model = sandwich_builder().finalize("cpu", requires_grad=True, dtype=wp.float64)
     sim, run = loss_fn(model, 2, 0.005, solver=solver)
     rng = np.random.default_rng(5)
     x0 = model.particle_x0.numpy() + [0.0, 0.0, 1.0] * rng.uniform(-0.15 * delta, 0.15 * delta, (model.particle_count,

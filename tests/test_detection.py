@@ -37,7 +37,7 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
     kernel = k.vertex_face if kind == "vf" else k.edge_edge
     query_index = q.flatten() if kind == "vf" else q
     wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, XR, query_index, tg, bounds[0][0], bounds[0][1], flag,
-                                          wp.float64(DELTA), keep_start_gaps, capacity,
+                                          wp.float64(DELTA), wp.array([keep_start_gaps], dtype=wp.int32), capacity,
                                           wp.zeros(len(x0), dtype=wp.int32), 0],
               outputs=[count, nodes, mode, t, sign])
     c = int(count.numpy()[0])
@@ -56,7 +56,8 @@ def _geometry(x0, x1, nodes, mode, t, sign, dtype=wp.float64, keep_start_gaps=0,
     wp.launch(k.geometry, m, inputs=[wp.array(x0, dtype=vec3), wp.array(x1, dtype=vec3),
                                      wp.array(nodes, dtype=wp.int32), wp.array(mode, dtype=wp.int32),
                                      wp.array(t, dtype=dtype), wp.array(sign, dtype=dtype), dtype(DELTA),
-                                     keep_start_gaps],
+                                     wp.array([keep_start_gaps], dtype=wp.int32),
+                                     wp.zeros(len(x0), dtype=wp.int32)],
               outputs=[n_out, w_out, target])
     if targets:
         return n_out.numpy(), w_out.numpy(), target.numpy()

@@ -141,6 +141,56 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
     assert sim.proximity.last_count == pairs > 0  # the cloths rest on their spheres, each world's pairs its own
 
 
+def test_second_try_and_fail_safe_act_on_their_worlds_alone():
+    """Worlds whose steps need the collision stage's second try (a sheet between two planes) or its fail-safe (a
+    cloth dropped on a sphere with a tight projection-strain limit), next to a world that needs neither: each world
+    goes through its own tries, so states and the gradients of forces, x0, v0 and the obstacles' placement equal
+    single-world runs, bitwise."""
+    from test_collision_gradients import SANDWICH_THICKNESS, sandwich_builder
+
+    pushed = [0, 6, 42, 48]
+    worlds = [(sandwich_builder(), None), (draped_builder(), (0.0, 0.0, 3.0)),  # pushed up: no fail-safe
+              (draped_builder(), (0.0, 0.0, -0.3)), (draped_builder(), (0.5, 0.0, -0.5))]
+    for builder, _ in worlds[1:]:  # the worlds of a model share their collision settings
+        builder.set_collision(thickness=SANDWICH_THICKNESS, repulsion_stiffness=0.0)
+    options = wc.SolverOptions(**SSOR, collision=wc.CollisionOptions(max_projection_strain=0.02))
+    steps = 12
+
+    def run(model, forces, weights):
+        control = model.control(particle_force=True)
+        control.particle_force.assign(forces)
+        sim = wc.Simulator(model, 0.005, options=options)
+        x, grads = loss_and_grads(model, sim, steps, weights, control, params=(
+            control.particle_force, model.particle_x0, model.particle_v0, control.obstacle_transform))
+        return x, grads, sim
+
+    composed = wc.ModelBuilder()
+    for builder, _ in worlds:
+        composed.add_world(builder)
+    batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    forces = np.zeros((batch.particle_count, 3))
+    weights = np.random.default_rng(4).standard_normal((batch.particle_count, 3))
+    for w, (_, push) in enumerate(worlds):
+        if push is not None:
+            forces[np.arange(batch.particle_count)[batch.world_slice(w)][pushed]] = push
+    x, grads, sim = run(batch, forces, weights)
+    tries = []
+    for w, (builder, _) in enumerate(worlds):
+        model = builder.finalize("cpu", requires_grad=True, dtype=wp.float64)
+        part = batch.world_slice(w)
+        xs, gs, alone = run(model, forces[part], weights[part])
+        tries.append((alone.collision.start_gap_steps, alone.collision.fail_safe_steps))
+        np.testing.assert_array_equal(x[part], xs)
+        for k in (0, 1, 2):  # forces, x0, v0: per particle
+            np.testing.assert_array_equal(grads[k][part], gs[k])
+        np.testing.assert_array_equal(grads[3][batch.obstacle_world == w], gs[3])  # the world's obstacles
+        assert np.abs(gs[1]).max() > 0.0
+    assert tries[0][0] >= 1 and tries[0][1] == 0  # the sandwich: resolved by the second try
+    assert tries[1] == (0, 0)  # pushed up: neither
+    assert tries[2][1] >= 1 and tries[3][1] >= 1  # dropped fast: the fail-safe
+    assert sim.collision.fail_safe_steps >= 1 and sim.collision.start_gap_steps >= 1
+
+
 def test_overlapping_worlds_do_not_collide():
     """Two worlds in the same place with self-collision: a cloth falling through the place where the other world's
     cloth is pinned falls as it does alone (it would land on it if worlds collided)."""

@@ -6,7 +6,14 @@ class SimulationError(RuntimeError):
 
 
 class CollisionError(SimulationError):
-    """The collision response could not make a step collision-free, or a contact buffer overflowed."""
+    """The collision response could not make a step collision-free, or a contact buffer overflowed.
+
+    ``worlds``: the worlds whose step failed, where the error knows (the collision stage retries those alone);
+    None: not known, every world."""
+
+    def __init__(self, message: str, worlds: list[int] | None = None):
+        super().__init__(message)
+        self.worlds = None if worlds is None else [int(w) for w in worlds]
 
 
 class ContactCapacityError(CollisionError):

@@ -50,11 +50,11 @@ def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recordin
     return out
 
 
-def contact_geometry(model: Model, start: wp.array, end: wp.array, contacts: Contacts, recording: bool,
-                     step: int, keep_start_gaps: bool = False) -> tuple[wp.array, wp.array, wp.array]:
+def contact_geometry(model: Model, detector: ContactDetector, start: wp.array, end: wp.array, contacts: Contacts,
+                     recording: bool, step: int) -> tuple[wp.array, wp.array, wp.array]:
     """Normals, weights and target gaps of host ``contacts`` at their time of impact, from the node positions they
-    were found at (taped; kernels/contact.py geometry); raises CollisionError naming a contact whose normal is
-    degenerate."""
+    were found at (taped; kernels/contact.py geometry; each world's target as ``detector.world_mode`` says); raises
+    CollisionError naming a contact whose normal is degenerate."""
     normal, weight, target = _geometry_arrays(model, len(contacts), recording)
     dev = model.device
     wp.launch(contact_kernels(model.scalar).geometry, len(contacts), device=dev,
@@ -62,11 +62,11 @@ def contact_geometry(model: Model, start: wp.array, end: wp.array, contacts: Con
                       wp.array(contacts.mode, dtype=wp.int32, device=dev),
                       wp.array(contacts.t, dtype=wp.float64, device=dev),
                       wp.array(contacts.sign, dtype=wp.float64, device=dev), model.scalar(model.collision.thickness),
-                      int(keep_start_gaps)],
+                      detector.world_mode, detector.node_world],
               outputs=[normal, weight, target])
     ok = np.all(np.isfinite(normal.numpy()), axis=1) & np.all(np.isfinite(weight.numpy()), axis=1)
     if not ok.all():
-        raise _degenerate(step, contacts.nodes[int(np.flatnonzero(~ok)[0])])
+        raise _degenerate(step, contacts.nodes[int(np.flatnonzero(~ok)[0])], detector)
     return normal, weight, target
 
 
@@ -78,9 +78,10 @@ def _geometry_arrays(model: Model, count: int, recording: bool) -> tuple[wp.arra
             wp.empty(count, dtype=model.scalar, device=dev, requires_grad=recording))
 
 
-def _degenerate(step: int, nodes: np.ndarray) -> CollisionError:
+def _degenerate(step: int, nodes: np.ndarray, detector: ContactDetector) -> CollisionError:
+    world = int(detector.node_world_host[nodes[0]])
     return CollisionError(f"step {step}: a contact between nodes {nodes.tolist()} has a degenerate normal; a triangle "
-                          "or edge of the cloth or of an obstacle collapsed")
+                          "or edge of the cloth or of an obstacle collapsed", worlds=[world])
 
 
 class ZoneBackend:
@@ -99,12 +100,10 @@ class ZoneBackend:
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
-              recording: bool, keep_start_gaps: bool = False) -> None:
-        """Start a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped ``mass``).
-        ``keep_start_gaps``: pairs that start inside the thickness keep their start gap as their target instead of
-        the thickness (kernels/contact.py; the stage's second try at a step)."""
+              recording: bool) -> None:
+        """Start a try at a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped
+        ``mass``); each world's contacts and targets as the detector's ``world_mode`` says (the stage sets it)."""
         self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
-        self.keep_start_gaps = keep_start_gaps
         self._contacts = Contacts.empty()  # every contact of the step so far
         self._geometry = []  # (normal, weight, target) of each round's new contacts, evaluated where found
         self._lam = np.zeros(0)  # the last round's multipliers: the next round starts from them
@@ -123,12 +122,16 @@ class ZoneBackend:
         # Every contact found is new: a pair found again is violated again (the projection leaves resolved pairs
         # exactly at the thickness, which proximity detection does not count), and its new linearisation joins
         # the old one.
-        self._found = self.detector.detect(start, end, reference, keep_start_gaps=self.keep_start_gaps)
+        self._found = self.detector.detect(start, end, reference)
         return len(self._found)
 
     def first_found(self) -> tuple[np.ndarray, int]:
         """(nodes, mode) of the first contact the last detection found (error messages)."""
         return self._found.nodes[0], int(self._found.mode[0])
+
+    def found_worlds(self) -> list[int]:
+        """The worlds of the contacts the last detection found."""
+        return np.unique(self.detector.node_world_host[self._found.nodes[:, 0]]).tolist()
 
     def contact_nodes(self) -> np.ndarray:
         """The nodes (m, 4) of every contact the step found so far, the last detection's included."""
@@ -136,8 +139,8 @@ class ZoneBackend:
 
     def add_found(self, start: wp.array, end: wp.array, step: int) -> None:
         """Evaluate the geometry of the contacts just found and add them to the step's projection."""
-        self._geometry.append(contact_geometry(self.model, start, end, self._found, self._recording, step,
-                                               self.keep_start_gaps))
+        self._geometry.append(contact_geometry(self.model, self.detector, start, end, self._found, self._recording,
+                                               step))
         self._contacts = Contacts.concatenate([self._contacts, self._found])
         self._found = Contacts.empty()
 
@@ -205,10 +208,9 @@ class DeviceBackend:
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
-              recording: bool, keep_start_gaps: bool = False) -> None:
-        """Start a step (as :meth:`ZoneBackend.begin`)."""
+              recording: bool) -> None:
+        """Start a try at a step (as :meth:`ZoneBackend.begin`)."""
         self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
-        self.keep_start_gaps = keep_start_gaps
         self._total = 0  # contacts in the lists
         self._found = 0  # contacts the last detection found (in the detector's buffers)
         self._rounds = []  # (offset, count, normal, weight, target) of each round's contacts
@@ -221,11 +223,14 @@ class DeviceBackend:
         return self._total
 
     def detect(self, start: wp.array, end: wp.array, reference: wp.array) -> int:
-        self._found = self.detector.detect_on_device(start, end, reference, keep_start_gaps=self.keep_start_gaps)
+        self._found = self.detector.detect_on_device(start, end, reference)
         return self._found
 
     def first_found(self) -> tuple[np.ndarray, int]:
         return self.detector.nodes.numpy()[0], int(self.detector.mode.numpy()[0])
+
+    def found_worlds(self) -> list[int]:
+        return np.unique(self.detector.node_world_host[self.detector.nodes.numpy()[:self._found, 0]]).tolist()
 
     def contact_nodes(self) -> np.ndarray:
         parts = [self._nodes.numpy()[:self._total]] if self._total else []
@@ -252,7 +257,7 @@ class DeviceBackend:
         if self._recording:  # the tape replays this launch after later detections reuse the buffers
             found_arrays = [wp.clone(a) for a in found_arrays]
         wp.launch(contact_kernels(model.scalar).geometry, found, device=dev,
-                  inputs=[start, end, *found_arrays, model.scalar(self.thickness), int(self.keep_start_gaps)],
+                  inputs=[start, end, *found_arrays, model.scalar(self.thickness), det.world_mode, det.node_world],
                   outputs=[normal, weight, target])
         wp.copy(self._nodes, det.nodes, dest_offset=4 * total, count=4 * found)
         bad = wp.full(1, found + 1, dtype=wp.int32, device=dev)
@@ -260,7 +265,7 @@ class DeviceBackend:
                   outputs=[self._normals, self._weights, self._targets, bad], record_tape=False)
         j = int(bad.numpy()[0]) - 1
         if j < found:
-            raise _degenerate(step, det.nodes.numpy()[j])
+            raise _degenerate(step, det.nodes.numpy()[j], det)
         self._rounds.append((total, found, normal, weight, target))
         self._total += found
         self._found = 0
@@ -281,17 +286,19 @@ class DeviceBackend:
             resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording)
         self._solution = solution
         self.solver_stats = {"iterations": solution.iterations, "violation": solution.violation}
-        where = _worlds(model, solution.failed_worlds())
+        failed = solution.failed_worlds()
+        where = _worlds(model, failed)
         if solution.unbounded:
             raise CollisionError(
                 f"step {step}{where}: no positions satisfy the {total} contacts of the device projection (its dual is "
                 "unbounded): cloth squeezed between obstacles closer than twice the thickness, or contacts that "
-                "contradict each other")
+                "contradict each other", worlds=failed or None)
         if not solution.converged:
             raise CollisionError(
                 f"step {step}{where}: the device projection of {total} contacts did not converge in "
                 f"{solution.iterations} iterations: a contact violated or an active one off by "
-                f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)")
+                f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)",
+                worlds=failed or None)
         z = wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
         wp.launch(device_round_kernels(model.scalar).cloth_positions, self.cloth_count, device=dev,
                   inputs=[solution.z], outputs=[z], record_tape=False)

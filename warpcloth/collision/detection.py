@@ -97,6 +97,8 @@ class ContactDetector:
         n = model.particle_count
         worlds = node_worlds(model, obstacles)
         self.node_world = wp.array(worlds, dtype=wp.int32, device=dev)
+        self.node_world_host = worlds
+        """The world of each node (cloth particles, then obstacle vertices), on the host (error messages)."""
         """The world of every node, (nodes,) int32."""
         self.grouped = int(model.world_count > 1)
         cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
@@ -115,25 +117,34 @@ class ContactDetector:
                               (cloth_edges, obst_edges, "ee", 0)]
         if self_collision:
             self._queries += [(cloth_vertices, cloth_tris, "vf", 1), (cloth_edges, cloth_edges, "ee", 1)]
+        self.world_mode = wp.zeros(model.world_count, dtype=wp.int32, device=dev)
+        """Each world's mode in the collision stage's current try (kernels/contact.py WORLD_SKIPPED...): set by
+        :meth:`set_world_modes`; every world at the full thickness until then."""
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._mode = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
         self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
 
-    def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
-               keep_start_gaps: bool = False) -> Contacts:
+    def set_world_modes(self, modes) -> None:
+        """Each world's mode for the detections that follow (kernels/contact.py): 0 the full thickness, 1 keep start
+        gaps (pairs that start inside the thickness are contacts only where they come closer than they started,
+        kernels/collision.py START_SLACK), -1 skip the world (no contacts)."""
+        # a new array, not assigned into the old one: the tape's contact-geometry launches keep the modes of their
+        # try for the backward pass
+        self.world_mode = wp.array(np.asarray(modes, dtype=np.int32), dtype=wp.int32, device=self.device)
+
+    def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> Contacts:
         """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host. ``reference``
         (default ``x1``): positions that give the side of a pair touching at the start (kernels/collision.py
         start_side); the collision stage passes the step's unprojected end in every round, so a pair keeps its side.
-        ``keep_start_gaps``: pairs that start inside the thickness are contacts only where they come closer than
-        they started (kernels/collision.py START_SLACK).
+        Each world as :attr:`world_mode` says.
 
         Raises:
             ContactCapacityError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
                 and the count needed).
         """
-        count = self.detect_on_device(x0, x1, reference, keep_start_gaps=keep_start_gaps)
+        count = self.detect_on_device(x0, x1, reference)
         return Contacts(nodes=self.nodes.numpy()[:count].copy(), mode=self.mode.numpy()[:count].copy(),
                         t=self.t.numpy()[:count].copy(), sign=self.sign.numpy()[:count].copy())
 
@@ -157,8 +168,7 @@ class ContactDetector:
         """... their normals' sides, (capacity,) float64."""
         return self._sign
 
-    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
-                         keep_start_gaps: bool = False) -> int:
+    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> int:
         """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
         :attr:`sign`); returns their count (the one value read back)."""
         k = self.kernels
@@ -181,7 +191,7 @@ class ContactDetector:
             query_index = query.indices if kind == "ee" else query.indices.flatten()
             wp.launch(kernel, query.count, device=self.device,
                       inputs=[target.bvh.id, x0, x1, reference, query_index, target.indices, query.lowers,
-                              query.uppers, flag, wp.float64(self.thickness), int(keep_start_gaps), self.capacity,
+                              query.uppers, flag, wp.float64(self.thickness), self.world_mode, self.capacity,
                               self.node_world, self.grouped],
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
         count = int(self._count.numpy()[0])

@@ -11,10 +11,10 @@ from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
 
 
 def rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarray, mode: int, start: wp.array,
-                 thickness: float) -> CollisionError:
-    """The round limit's error, naming an unresolved contact; and, where that contact's primitives started the step
-    inside the thickness (a cloth laid on an obstacle or on itself), saying so: from there the projection can have
-    no consistent side to push them to."""
+                 thickness: float, worlds: list[int] | None = None) -> CollisionError:
+    """The round limit's error, naming an unresolved contact (``worlds``: those with contacts still found); and,
+    where that contact's primitives started the step inside the thickness (a cloth laid on an obstacle or on
+    itself), saying so: from there the projection can have no consistent side to push them to."""
     gap = round(start_gap(start.numpy().astype(np.float64)[nodes], mode), 12)  # below a picometre: rounding
     inside = ""
     if gap < thickness:
@@ -24,7 +24,7 @@ def rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarr
     return CollisionError(
         f"step {step}: the collision response did not converge in {rounds} rounds: {found} new contacts (of "
         f"{total}) still found, e.g. nodes {nodes.tolist()}{inside}; raise CollisionOptions.rounds, lower dt, or "
-        "check for cloth trapped between obstacles")
+        "check for cloth trapped between obstacles", worlds=worlds)
 
 
 def start_gap(p: np.ndarray, mode: int) -> float:
@@ -40,9 +40,9 @@ def start_gap(p: np.ndarray, mode: int) -> float:
 
 
 def strain_error(step: int, x_hat: np.ndarray, z: np.ndarray, edge_ends: np.ndarray, edge_rest: np.ndarray,
-                 limit: float) -> CollisionError | None:
+                 limit: float, particle_world: np.ndarray | None = None) -> CollisionError | None:
     """The projection-strain guard's error naming the edge the projection lengthened most, if by more than ``limit``
-    of its rest length (None otherwise).
+    of its rest length (None otherwise); with ``particle_world``, it names every world with such an edge.
 
     The projection moves particles onto the contacts' linearised constraints; when a step carries the cloth further
     than an element past an obstacle's curvature (a coarse cloth wrapping a small sphere at speed), neighbours land
@@ -57,8 +57,9 @@ def strain_error(step: int, x_hat: np.ndarray, z: np.ndarray, edge_ends: np.ndar
     j = int(np.argmax(strain))
     if strain[j] <= limit:
         return None
+    worlds = None if particle_world is None else np.unique(particle_world[a[strain > limit]]).tolist()
     return CollisionError(
         f"step {step}: the collision response stretched the edge between particles {int(a[j])} and {int(b[j])} by "
         f"{strain[j]:.3g} of its rest length in one step (CollisionOptions.max_projection_strain {limit:g}): the "
         "cloth moves too far per step for the contacts' linearisation, which then pumps energy into it step after "
-        "step; lower dt")
+        "step; lower dt", worlds=worlds)

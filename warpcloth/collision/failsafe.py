@@ -144,7 +144,7 @@ class RigidImpactZones:
         found = self.detector.detect(start, end)
         if len(found) == 0:
             return found.nodes
-        normal, weight, target = contact_geometry(self.model, start, end, found, False, step)
+        normal, weight, target = contact_geometry(self.model, self.detector, start, end, found, False, step)
         x = end.numpy().astype(np.float64)[found.nodes]  # (m, 4, 3)
         gap = np.einsum("ma,mak,mk->m", weight.numpy().astype(np.float64), x, normal.numpy().astype(np.float64))
         return found.nodes[gap < target.numpy() - 1.0e-6 * self.thickness]

@@ -36,7 +36,7 @@ from warpcloth.collision.detection import ContactDetector
 from warpcloth.collision.diagnostics import rounds_error, strain_error
 from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
 from warpcloth.errors import CollisionError, ContactCapacityError
-from warpcloth.kernels.contact import contact_kernels
+from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import active_tape
@@ -64,6 +64,10 @@ class CollisionReport:
     """The device backend's last solve: MPRGP ``iterations`` and final ``violation`` [m]."""
     fail_safe: FailSafeReport | None = None
     """What the fail-safe did, where the projection gave up; else None."""
+    start_gap_worlds: list[int] = field(default_factory=list)
+    """The worlds whose step the second try resolved (keeping start gaps)."""
+    fail_safe_worlds: list[int] = field(default_factory=list)
+    """The worlds whose step the fail-safe resolved."""
     x_hat: wp.array | None = field(default=None, repr=False)
     """Positions before the stage."""
     z: wp.array | None = field(default=None, repr=False)
@@ -139,10 +143,17 @@ class CollisionStage:
         backend = self.backends[opt.solver]
         report = CollisionReport(solver=opt.solver, x_hat=x_hat)
         start = gather_nodes(model, state_in.particle_x, obstacle_start, recording)
-        reasons = []
-        z = None
-        for keep_start_gaps in (False, True):  # the second try only where the first fails
-            backend.begin(x_hat, obstacle_end, mass, recording, keep_start_gaps)
+        # Each world's way through the step: the full thickness; where that fails, the second try keeping start
+        # gaps; where that fails too, the fail-safe. A failure names its worlds, so only they move on: the others
+        # redo their tries unchanged (worlds never interact), and each world ends as it would alone.
+        W = model.world_count
+        tries = np.zeros(W, dtype=np.int32)  # 0 full thickness, 1 keeping start gaps, 2 left to the fail-safe
+        reasons: list[list[str]] = [[] for _ in range(W)]
+        fail_safe_rows = []  # the contacts of the worlds left to the fail-safe, as their last try found them
+        z = x_hat
+        while not np.all(tries == 2):
+            self.detector.set_world_modes(np.where(tries == 2, WORLD_SKIPPED, tries))
+            backend.begin(x_hat, obstacle_end, mass, recording)
             report.rounds = 0
             try:
                 z = self._rounds(backend, start, x_hat, obstacle_end, step, report, recording)
@@ -151,19 +162,30 @@ class CollisionStage:
             except ContactCapacityError:
                 raise
             except CollisionError as err:
-                reasons.append(str(err))
-                if opt.rounds == 0:  # no projection at all: straight to the fail-safe
-                    break
-        if z is None:  # the projection gave up twice: rigid impact zones
-            rows = backend.contact_nodes()
-            reason = "; keeping start gaps: ".join(reasons)
+                failed = [w for w in (range(W) if err.worlds is None else err.worlds) if tries[w] < 2]
+                if not failed:  # a failure of worlds already left to the fail-safe cannot happen: they are skipped
+                    raise
+                rows = backend.contact_nodes()
+                row_world = self.detector.node_world_host[rows[:, 0]] if len(rows) else np.zeros(0, dtype=np.int32)
+                for w in failed:
+                    reasons[w].append(str(err))
+                    tries[w] = 2 if tries[w] == 1 or opt.rounds == 0 else 1  # no projection at all: the fail-safe
+                    if tries[w] == 2:
+                        fail_safe_rows.append(rows[row_world == w])
+        report.start_gap_worlds = np.flatnonzero(tries == 1).tolist()
+        report.fail_safe_worlds = np.flatnonzero(tries == 2).tolist()
+        if report.fail_safe_worlds:  # rigid impact zones, on those worlds alone, from the others' projected positions
+            self.detector.set_world_modes(np.where(tries == 2, 0, WORLD_SKIPPED))
+            rows = np.concatenate(fail_safe_rows)
+            reason = " | ".join(_world_reason(model, w, reasons[w]) for w in report.fail_safe_worlds)
             with timed(self.phase_seconds, "fail_safe"):
-                z, report.fail_safe = self.fail_safe.resolve(state_in.particle_x, x_hat, obstacle_start, obstacle_end,
+                z, report.fail_safe = self.fail_safe.resolve(state_in.particle_x, z, obstacle_start, obstacle_end,
                                                              mass, rows, recording, reason, step)
-            report.contacts = len(rows)
+            report.contacts += len(rows)
             self.fail_safe_steps += 1
-        elif reasons:
-            report.kept_start_gaps = reasons[0]
+        if report.start_gap_worlds:
+            report.kept_start_gaps = " | ".join(_world_reason(model, w, reasons[w][:1])
+                                                for w in report.start_gap_worlds)
             self.start_gap_steps += 1
         if isinstance(backend, ZoneBackend):
             report.zones, report.projections = backend.zones, backend.projections
@@ -196,10 +218,11 @@ class CollisionStage:
             if found == 0:
                 break
             if opt.rounds == 0:
-                raise CollisionError(f"step {step}: CollisionOptions.rounds is 0: no projection, {found} contacts")
+                raise CollisionError(f"step {step}: CollisionOptions.rounds is 0: no projection, {found} contacts",
+                                     worlds=backend.found_worlds())
             if round_index == opt.rounds:
                 raise rounds_error(step, opt.rounds, found, backend.count + found, *backend.first_found(), start,
-                                   self.thickness)
+                                   self.thickness, backend.found_worlds())
             with timed(phases, "geometry"):
                 backend.add_found(start, end, step)
             with timed(phases, "projection"):
@@ -220,6 +243,12 @@ class CollisionStage:
                   record_tape=False)
         if float(largest.numpy()[0]) > limit:
             error = strain_error(step, x_hat.numpy().astype(np.float64), z.numpy().astype(np.float64),
-                                 self._edge_ends, self._edge_rest, limit)
+                                 self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
             if error is not None:
                 raise error
+
+
+def _world_reason(model: Model, world: int, reasons: list[str]) -> str:
+    """Why a world's tries failed, in one line ("; keeping start gaps: " between its first and second try)."""
+    text = "; keeping start gaps: ".join(reasons)
+    return text if model.world_count == 1 else f"world {world}: {text}"

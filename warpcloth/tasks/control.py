@@ -138,8 +138,7 @@ class ControlTask:
         self.batches = 0
         """Simulations of several worlds at once."""
         self.batch_retries = 0
-        """Batches run again world by world because one of their steps needed the collision stage's second try or
-        fail-safe, which act on every world of a step (so a batch would differ from its worlds run alone)."""
+        """Batches run again world by world because one of their simulations raised."""
         self.seconds = 0.0
         self.name = ""
         """The scene's name, where the task comes from one (:meth:`from_scene`)."""
@@ -266,8 +265,8 @@ class ControlTask:
     def evaluate_worlds(self, params: list, components: list | None = None) -> list[Evaluation]:
         """One forward + backward simulation of every world, world w with ``params[w]`` (n_params numbers) and the
         loss ``components[w]`` (as :meth:`evaluate`'s ``component``; all None or all coordinates). The worlds
-        are independent, so each gets what a model of that world alone gives (bitwise: tests/test_worlds.py),
-        except in a step that needed the collision stage's second try or fail-safe (:attr:`batch_retries`)."""
+        are independent, so each gets what a model of that world alone gives (bitwise: tests/test_worlds.py; the
+        collision stage's second try and fail-safe act on the worlds that need them alone)."""
         W = self.world_count
         components = [None] * W if components is None else list(components)
         if len(params) != W or len(components) != W:
@@ -318,21 +317,18 @@ class ControlTask:
         """Forward + backward simulations of several ``(params, component)`` requests (as :meth:`evaluate`'s), run
         as one batch of worlds (:meth:`worlds`, :meth:`evaluate_worlds`) where the task has a ``template``, one
         after another otherwise. A request whose simulation raises (CollisionError, SimulationError) gets the
-        exception in its place. Each result is the one :meth:`evaluate` gives: a batch that raised, or whose step
-        needed the collision stage's second try or fail-safe, is run again request by request."""
+        exception in its place. Each result is the one :meth:`evaluate` gives; a batch that raised is run again
+        request by request, so that the others' results are kept."""
         if self.world_count != 1:
             raise ValueError(f"evaluate_many runs on a task of one world; this one has {self.world_count}")
         if not requests:
             return []
         batch = self.worlds(len(requests)) if len(requests) > 1 else None
         if batch is not None:
-            stage = batch.sim.collision
-            retries = (stage.start_gap_steps, stage.fail_safe_steps) if stage is not None else None
             try:
                 out = batch.evaluate_worlds([p for p, _ in requests], [c for _, c in requests])
-                if stage is None or retries == (stage.start_gap_steps, stage.fail_safe_steps):
-                    self._count(batch)
-                    return out
+                self._count(batch)
+                return out
             except (wc.CollisionError, wc.SimulationError):
                 batch.simulations += len(requests)
             self._count(batch)
