@@ -76,6 +76,7 @@ def test_ctrl_c_keeps_the_jobs_that_finished():
 def test_bad_workers_and_missing_ray_are_named(monkeypatch):
     with pytest.raises(ValueError, match="workers"):
         run_jobs([RolloutJob(steps=1)], workers=0)
+    assert run_jobs([], workers=2) == []  # nothing to run: no Ray started
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     with pytest.raises(ImportError, match=r"warpcloth\[ray\]"):
         run_jobs([RolloutJob(steps=1)], workers=2)

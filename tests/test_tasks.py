@@ -213,7 +213,8 @@ BAD_CONTROL = [
 ]
 BAD_ESTIMATE = [
     ("free = ['density', 'wind']", r"estimate.free\[1\]: unknown value 'wind'; one of: density, stretching, bending"),
-    ("free = ['density', 'density']", r"estimate.free: names a part twice"),
+    ("free = ['density', 'density']", r"estimate.free\[1\]: names 'density' a second time"),
+    ("free = ['density']\noptimizer = 'seed-sgd'", r"estimate.optimizer: seed-sgd fits the whole material"),
     ("free = []", r"estimate.free: expected a non-empty array"),
     ("frame_stride = 5", r"estimate.frame_stride: the 12 steps compared are not a whole number of frames of 5"),
     ("targets = 'missing'", r"estimate.targets: sequence directory .* does not exist"),
@@ -271,6 +272,8 @@ def test_cli_runs_a_scenes_tasks(tmp_path, capsys):
     assert "royal-target simulated by warpcloth" in record["source"]
     assert main(["estimate", str(path), "--target", str(tmp_path)]) == 2
     assert "or --target, not both" in capsys.readouterr().err
+    assert main(["estimate", str(path), "--optimizer", "seed-sgd", "--iters", "1"]) == 2  # it fits every part
+    assert "seed-sgd optimiser fits the whole material" in capsys.readouterr().err
 
 
 def test_cli_lists_the_scenes_tasks(capsys):

@@ -289,6 +289,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         result = task.run(optimizer=optimizer, iters=iters, progress=True)
     except SimulationError as exc:
         return _error(str(exc), _RUNTIME_ERROR)
+    except ValueError as exc:  # an optimiser that cannot fit the task (checked before any simulation)
+        return _error(str(exc), _USAGE_ERROR)
 
     record = job.record(task, result)
     seed = E.SEED_PUBLISHED

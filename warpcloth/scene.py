@@ -1022,8 +1022,11 @@ def _parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _ma
         raise _err("estimate.free", f"expected a non-empty array of {', '.join(MATERIAL_PARTS)}")
     free = tuple(_choice(v, f"estimate.free[{k}]", MATERIAL_PARTS) for k, v in enumerate(free))
     if len(set(free)) != len(free):
-        raise _err("estimate.free", "names a part twice")
+        k = next(k for k in range(len(free)) if free[k] in free[:k])
+        raise _err(f"estimate.free[{k}]", f"names {free[k]!r} a second time")
     optimizer = _choice(table.get("optimizer", "lbfgs"), "estimate.optimizer", ESTIMATION_OPTIMIZERS)
+    if optimizer == "seed-sgd" and set(free) != set(MATERIAL_PARTS):
+        raise _err("estimate.optimizer", "seed-sgd fits the whole material; use lbfgs or adam to free only some of it")
     iters = _int(table.get("iters", 100), "estimate.iters", min_value=1)
     return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
                         free=free, optimizer=optimizer, iters=iters)

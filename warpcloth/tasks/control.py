@@ -373,13 +373,20 @@ class ControlTask:
     def run(self, *, controller: str | None = None, iters: int | None = None, progress: bool = False,
             **kwargs) -> ControlResult:
         """Optimise with the task's controller (or ``controller``): :func:`optimize_open_loop` or :func:`train_mlp`
-        (keyword arguments go to them); ``iters`` simulations (default: the task's, else 50 open-loop, 100 mlp)."""
+        (keyword arguments go to them); ``iters`` simulations (default: :meth:`default_iters`)."""
         controller = controller or self.controller
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        iters = iters or self.default_iters(controller)
         if controller == "open-loop":
-            return optimize_open_loop(self, iters=iters or self.iters or 50, progress=progress, **kwargs)
-        return train_mlp(self, iters=iters or self.iters or 100, progress=progress, **kwargs)
+            return optimize_open_loop(self, iters=iters, progress=progress, **kwargs)
+        return train_mlp(self, iters=iters, progress=progress, **kwargs)
+
+    def default_iters(self, controller: str) -> int:
+        """Simulations a run of ``controller`` spends unless told: the task's ``iters`` where it is the task's own
+        controller, else 50 for the open loop and 100 for the MLP."""
+        own = self.iters if controller == self.controller else None
+        return own or (50 if controller == "open-loop" else 100)
 
 
 def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.SolverOptions | None = None,

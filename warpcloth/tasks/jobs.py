@@ -142,10 +142,9 @@ class ControlJob:
         return ControlTask.from_scene(self.scene or CONTROL_SCENE, device=self.device, steps=self.steps)
 
     def settings(self, task) -> tuple[str, int]:
-        """(controller, iters) of the run: the job's, else the task's, else 50 open-loop and 100 MLP."""
+        """(controller, iters) of the run: the job's, else the task's (ControlTask.default_iters)."""
         controller = self.controller or task.controller
-        iters = self.iters or (task.iters if controller == task.controller else None)
-        return controller, iters or (50 if controller == "open-loop" else 100)
+        return controller, self.iters or task.default_iters(controller)
 
     def start(self, task) -> dict:
         """The optimiser's start arguments."""
@@ -279,6 +278,8 @@ def run_jobs(jobs: list, *, workers: int | None = 1, address: str | None = None,
     jobs = list(jobs)
     if workers is not None and (not isinstance(workers, int) or workers < 1):
         raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
+    if not jobs:
+        return []
     address = address or os.environ.get("RAY_ADDRESS") or None
     results: list[JobResult | None] = [None] * len(jobs)
     bar = None
