@@ -618,10 +618,13 @@ def material_estimation(d: dict) -> str:
                    f"{', '.join(worse) or 'none'}.")
     cross = d.get("cross_simulator") or []
     if cross:
-        out.append("Fitted to the seed's own trajectories (its C++ code, with self-collision and repulsion): "
+        each = all(c["sim_err_pct_fitted"] <= 1.0 for c in cross)
+        out.append("Fitted to the seed's own trajectories (its C++ code, with self-collision and repulsion), "
+                   "simulating as it did (self-collision, repulsion and friction, lagged wind normals): "
                    "simulation error " + "; ".join(
                        f"{c['target']} {g(c['sim_err_pct_start'], 2)} → {g(c['sim_err_pct_fitted'], 2)} % "
                        f"(the true fabric in warpcloth: {g(c['sim_err_pct_true_material'], 2)} %)" for c in cross)
+                   + f"; target ≤ 1 % each: {met(each)}"
                    + ".")
     out.append(provenance(d))
     return "\n".join(out)

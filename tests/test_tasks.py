@@ -282,3 +282,15 @@ def test_cli_lists_the_scenes_tasks(capsys):
     assert lines["basket-throw"].split()[1] == "control"
     assert lines["material-estimation"].split()[1] == "estimate"
     assert lines["free-fall"].split()[1] == "-"
+
+
+def test_estimation_targets_are_simulated_with_the_scenes_solver(tmp_path):
+    """A scene's solver options (here BDF2) make its targets too, so its own material fits them exactly."""
+    path = tmp_path / "bdf2.toml"
+    path.write_text(SMALL.format(extra='[estimate]\nfree = ["density"]\n').replace(
+        "cg_tol = 1e-12", 'cg_tol = 1e-12\nintegrator = "bdf2"'))
+    task = E.EstimationTask.from_scene(path, dtype=wp.float64)
+    assert task.fit.sim.options.integrator == "bdf2"
+    euler = E.TrajectoryFit.simulate_targets(task.fit.model, task.truth, steps=12, dt=0.02)  # another integrator
+    mismatch = sum(float(np.sum((a - b) ** 2)) for a, b in zip(euler, [t.numpy() for t in task.fit.targets]))
+    assert task.fit.loss(task.truth) < 1e-6 * mismatch

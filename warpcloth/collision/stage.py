@@ -15,8 +15,9 @@ past ``CollisionOptions.max_projection_strain``), the stage tries the step once 
 starts the step inside the thickness (a cloth crumpled or laid on itself or an obstacle) is only kept from coming
 closer than it started, where the first try pushed it a full thickness apart, which contradicts its neighbours'
 contacts when layers are stacked closer than the thickness. Where that fails too, the fail-safe
-(warpcloth/collision/failsafe.py: rigid impact zones) resolves the step. ``resolve`` returns a
-:class:`CollisionReport` of what happened.
+(warpcloth/collision/failsafe.py: rigid impact zones) resolves the step. In a model of several worlds each world
+goes through these tries on its own (a failure names its worlds: ``CollisionError.worlds``), so a world ends the
+step as it would alone. ``resolve`` returns a :class:`CollisionReport` of what happened.
 
 Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
 transforms of the Control) through n, w and the times of impact, and the masses in W (the Simulator's taped lumped

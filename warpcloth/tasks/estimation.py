@@ -15,7 +15,7 @@ import os
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import warp as wp
@@ -161,11 +161,13 @@ class TrajectoryFit:
 
     @staticmethod
     def simulate_targets(model: wc.Model, truth: wc.Material, *, steps: int = STEPS, frame_stride: int = FRAME_STRIDE,
-                         dt: float = DT) -> list[np.ndarray]:
-        """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout."""
+                         dt: float = DT, options: wc.SolverOptions | None = None) -> list[np.ndarray]:
+        """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout, with
+        ``options`` (the fit's: default SolverOptions()) but a CG tolerance of 1e-8, so that the targets are the
+        motion the fit's model makes, without its solve's error."""
         dummy = [np.zeros((model.particle_count, 3))] * (steps // frame_stride + 1)
         fit = TrajectoryFit(model, dummy, steps=steps, frame_stride=frame_stride, dt=dt,
-                            options=wc.SolverOptions(cg_tol=1e-8))
+                            options=replace(options or wc.SolverOptions(), cg_tol=1e-8))
         return fit.trajectory(truth)[::frame_stride]
 
     def set_material(self, m: wc.Material) -> None:
@@ -410,7 +412,7 @@ class EstimationTask:
             if steps % spec.frame_stride:  # checked here too, before simulating the targets
                 raise ValueError(f"steps ({steps}) must be a multiple of frame_stride ({spec.frame_stride})")
             targets = TrajectoryFit.simulate_targets(model, truth, steps=steps, frame_stride=spec.frame_stride,
-                                                     dt=scene.dt)
+                                                     dt=scene.dt, options=scene.solver_options)
             source = f"{truth.name} simulated by warpcloth"
         fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
                             options=scene.solver_options)
