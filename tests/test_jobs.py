@@ -160,3 +160,48 @@ def test_cli_gathers_one_json_of_every_job(ray_instance, tmp_path):
     assert status == 1  # some failed
     errors = [r["error"] for r in json.loads(bad.read_text())["results"]]
     assert "/no/such/sequence" in errors[0] and "/no/such/other" in errors[1]
+
+
+CTRL_C_SCRIPT = '''
+import json, pathlib, sys, time
+from warpcloth.tasks.jobs import JobsInterrupted, RolloutJob, run_jobs
+
+class Sleeper:
+    def __init__(self, flag):
+        self.flag = flag
+
+    def run(self):
+        pathlib.Path(self.flag).touch()  # tells the test this job is running
+        time.sleep(120)
+        return {}
+
+    def label(self):
+        return "sleeper"
+
+try:
+    run_jobs([RolloutJob(steps=2), Sleeper(sys.argv[1])], workers=2)
+except JobsInterrupted as exc:
+    print(json.dumps([r.error for r in exc.results]))
+    sys.exit(130)
+'''
+
+
+def test_ctrl_c_on_ray_stops_the_workers_and_keeps_what_finished(tmp_path):
+    pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[dev,ray]')")
+    import signal
+    import time
+
+    script, started = tmp_path / "ctrl_c.py", tmp_path / "started"
+    script.write_text(CTRL_C_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(started)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal
+    deadline = time.monotonic() + 120
+    while not started.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    assert started.exists(), proc.communicate()[1][-2000:]
+    time.sleep(5)  # the two-step rollout on the other worker finishes meanwhile
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)  # not the sleeper's 120 s: its worker is stopped
+    assert proc.returncode == 130, err[-2000:]
+    assert json.loads(out.strip().splitlines()[-1]) == [None, "interrupted"]
