@@ -144,8 +144,8 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
 def test_second_try_and_fail_safe_act_on_their_worlds_alone():
     """Worlds whose steps need the collision stage's second try (a sheet between two planes) or its fail-safe (a
     cloth dropped on a sphere with a tight projection-strain limit), next to a world that needs neither: each world
-    goes through its own tries, so states and the gradients of forces, x0, v0 and the obstacles' placement equal
-    single-world runs, bitwise."""
+    goes through its own tries, so states and the gradients of forces, x0, v0, the obstacles' placement and each
+    world's material equal single-world runs, bitwise."""
     from test_collision_gradients import SANDWICH_THICKNESS, sandwich_builder
 
     pushed = [0, 6, 42, 48]
@@ -161,7 +161,8 @@ def test_second_try_and_fail_safe_act_on_their_worlds_alone():
         control.particle_force.assign(forces)
         sim = wc.Simulator(model, 0.005, options=options)
         x, grads = loss_and_grads(model, sim, steps, weights, control, params=(
-            control.particle_force, model.particle_x0, model.particle_v0, control.obstacle_transform))
+            control.particle_force, model.particle_x0, model.particle_v0, control.obstacle_transform,
+            model.material_density, model.material_stretching, model.material_bending))
         return x, grads, sim
 
     composed = wc.ModelBuilder()
@@ -184,6 +185,8 @@ def test_second_try_and_fail_safe_act_on_their_worlds_alone():
         for k in (0, 1, 2):  # forces, x0, v0: per particle
             np.testing.assert_array_equal(grads[k][part], gs[k])
         np.testing.assert_array_equal(grads[3][batch.obstacle_world == w], gs[3])  # the world's obstacles
+        for k in (4, 5, 6):  # density, stretching, bending: each world's cloth its own material
+            np.testing.assert_array_equal(grads[k][w], gs[k][0])
         assert np.abs(gs[1]).max() > 0.0
     assert tries[0][0] >= 1 and tries[0][1] == 0  # the sandwich: resolved by the second try
     assert tries[1] == (0, 0)  # pushed up: neither
