@@ -408,9 +408,13 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
         if lam[j] != wp.float64(0.0):
             push(r, z, j, lam[j])
     violated = wp.float64(0.0)
+    finite = bool(True)  # wp.max drops a NaN, so the tests above and below cannot see one
     for j in range(lo, hi):
-        violated = wp.max(violated, -constraint(r, z, j))
-    if status == CONVERGED and not (violated <= FALSE_CONVERGENCE * tol):
+        gap = constraint(r, z, j)
+        if not (wp.isfinite(gap) and wp.isfinite(lam[j])):
+            finite = bool(False)
+        violated = wp.max(violated, -gap)
+    if status == CONVERGED and not (finite and violated <= FALSE_CONVERGENCE * tol):
         # the test above reads the gradient updated step by step, which drifts from c(z) where the multipliers grow
         # huge (contacts nearly contradicting each other): a contact violated by 4e-5 m passed it
         status = NOT_CONVERGED

@@ -327,8 +327,10 @@ def test_gradients_of_the_second_try_keeping_start_gaps_match_finite_differences
     loss, keys, g = tape_gradients(model, run, x0, v0, tf)
     assert sim.collision.start_gap_steps >= 1 and sim.collision.fail_safe_steps == 0
     assert sim.collision.last.kept_start_gaps is not None
-    for name, eps in (("x0", 1e-8), ("v0", 1e-5), ("transform", 1e-8)):
-        for scale in (1.0, 2.0):  # the same agreement at two step sizes: converged, not a coincidence
+    # the same agreement at two step sizes: converged, not a coincidence (v0's smaller one also runs a start whose
+    # first try once returned NaN positions as converged: the device projection now rejects non-finite results)
+    for name, eps, scales in (("x0", 1e-8, (1.0, 0.1)), ("v0", 1e-5, (1.0, 0.1)), ("transform", 1e-8, (1.0, 2.0))):
+        for scale in scales:
             fd_check(run, (x0, v0, tf), g, name, eps * scale, rng)
     # the materials, along a relative direction of each: density, stretching and bending tables
     arrays = (model.material_density, model.material_stretching, model.material_bending)
