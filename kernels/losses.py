@@ -62,14 +62,14 @@ def loss_kernels(scalar):
     def centre_of_mass(
         x: wp.array(dtype=vec3),
         particle_world: wp.array(dtype=wp.int32),
-        inv_n: scalar,
+        weight: wp.array(dtype=scalar),
         # out:
         com: wp.array(dtype=vec3),
     ):
-        """com[w] += inv_n sum_i x_i over world w's particles (the vertex mean for inv_n = 1/n); one thread per
-        particle."""
+        """com[w] += sum_i weight_i x_i over world w's particles (the centre of mass for weight_i = m_i / M_w, the
+        world's mass M_w); one thread per particle."""
         i = wp.tid()
-        wp.atomic_add(com, particle_world[i], inv_n * x[i])
+        wp.atomic_add(com, particle_world[i], weight[i] * x[i])
 
     @wp.kernel
     def add_component(

@@ -83,7 +83,7 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
     interval = 1.0                     # [s] per push, a whole number of sim.dt steps
     intervals = 3                      # pushes per particle: the first intervals * interval seconds are controlled
     steps = 700                        # optional horizon [steps], default sim.steps
-    loss = { com = [0.0, 0.0, -0.7] }  # 1/2 |centre of mass - com|^2 (vertex mean) at the horizon [m^2], or
+    loss = { com = [0.0, 0.0, -0.7] }  # 1/2 |centre of mass - com|^2 (mass-weighted) at the horizon [m^2], or
                                        #   { positions = "target.obj" }: 1/2 mean_i |x_i - target_i|^2, an OBJ with
                                        #   the cloth's vertex count, in world coordinates (relative to the scene file)
     regularizer = 0.0                  # optional: adds regularizer * 1/2 |pushes|^2 [pushes in m/s^2]
