@@ -1,5 +1,6 @@
 """Inverse problems: checkpointed gradients, the material parameterisation and fit, the throw task, their CLIs."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -187,6 +188,27 @@ def test_estimation_reduces_the_loss(optimizer):
     if optimizer == "lbfgs":  # density is the best-identified parameter
         before = E.parameter_errors(result.initial, truth)["density_err_pct"]
         assert E.parameter_errors(result.material, truth)["density_err_pct"] < 0.5 * before
+
+
+def test_the_stiffness_scan_starts_the_fit_from_the_factor_of_least_loss():
+    # targets made by the start with its warp and weft stretch x8: the scan must find 8 (loss 0 there), count its
+    # forward evaluations among iters, and leave coupling, shear, density and bending as they were
+    start = E.initial_guess()
+    stiff = start.stretching.copy()
+    stiff[:, [0, 2]] *= 8.0
+    truth = dataclasses.replace(start, stretching=stiff)
+    model = _small_hanging(truth)
+    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=6), steps=6, options=EXACT)
+    result = E.estimate_material(fit, iters=len(E.STIFFNESS_SCAN) * 2)
+    assert [f for f, _ in result.scan] == list(E.STIFFNESS_SCAN) and result.scan_factor == 8.0
+    assert len(result.losses) == 2 * len(E.STIFFNESS_SCAN) and result.losses[:len(result.scan)] == [
+        loss for _, loss in result.scan]
+    losses = dict(result.scan)
+    assert losses[8.0] < 1e-6 * min(v for f, v in losses.items() if f != 8.0)
+    assert result.simulation_error_pct < 1e-3
+    # no scan: too few evaluations for it, or asked for none
+    assert E.estimate_material(fit, iters=len(E.STIFFNESS_SCAN)).scan == []
+    assert E.estimate_material(fit, iters=2 * len(E.STIFFNESS_SCAN), scan=None).scan_factor == 1.0
 
 
 def test_fit_rejects_mismatched_targets(tmp_path):

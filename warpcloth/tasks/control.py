@@ -194,7 +194,8 @@ class ControlTask:
     def error_pct(self, positions: np.ndarray) -> float:
         """How far the cloth ends from its target, against how far it started, in %: ``|com_T - target| /
         |com_0 - target|`` for a centre-of-mass target, with com the vertex mean as the seed measures it (the loss
-        takes the mass-weighted centre: they differ by the cloth's shape, millimetres on the throw's cloth at rest),
+        takes the mass-weighted centre: they differ with the cloth's shape, by 6-12 mm on the throw's cloth at rest in
+        the basket),
         the same ratio of RMS distances for target positions.
         100 % ends as far as it started (on the seed's throw not "no better than doing nothing": with no pushes
         the cloth drops outside the wall, with no floor to stop it, to z = -238 m after the 7 s: 5508 %)."""
