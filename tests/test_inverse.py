@@ -190,25 +190,31 @@ def test_estimation_reduces_the_loss(optimizer):
         assert E.parameter_errors(result.material, truth)["density_err_pct"] < 0.5 * before
 
 
-def test_the_stiffness_scan_starts_the_fit_from_the_factor_of_least_loss():
-    # targets made by the start with its warp and weft stretch x8: the scan must find 8 (loss 0 there), count its
-    # forward evaluations among iters, and leave coupling, shear, density and bending as they were
+def test_the_start_scan_starts_the_fit_from_the_factors_of_least_loss():
+    # targets made by the start with its density x2^-1/2 and its warp and weft stretch x8: the scan must find both
+    # (loss 0 there), count its forward evaluations among iters, and leave coupling, shear and bending as they were
     start = E.initial_guess()
     stiff = start.stretching.copy()
     stiff[:, [0, 2]] *= 8.0
-    truth = dataclasses.replace(start, stretching=stiff)
+    truth = dataclasses.replace(start, stretching=stiff, density=start.density * 2.0**-0.5)
     model = _small_hanging(truth)
     fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=6), steps=6, options=EXACT)
-    result = E.estimate_material(fit, iters=len(E.STIFFNESS_SCAN) * 2)
-    assert [f for f, _ in result.scan] == list(E.STIFFNESS_SCAN) and result.scan_factor == 8.0
-    assert len(result.losses) == 2 * len(E.STIFFNESS_SCAN) and result.losses[:len(result.scan)] == [
-        loss for _, loss in result.scan]
-    losses = dict(result.scan)
-    assert losses[8.0] < 1e-6 * min(v for f, v in losses.items() if f != 8.0)
+    runs = len(E.START_SCAN["density"]) * len(E.START_SCAN["stretch"])
+    result = E.estimate_material(fit, iters=2 * runs)
+    assert [(d, f) for d, f, _ in result.scan] == [(d, f) for d in E.START_SCAN["density"]
+                                                  for f in E.START_SCAN["stretch"]]
+    assert result.scan_factors == {"density": 2.0**-0.5, "stretch": 8.0}
+    assert len(result.losses) == 2 * runs and result.losses[:runs] == [loss for *_, loss in result.scan]
+    losses = sorted(loss for *_, loss in result.scan)
+    assert losses[0] < 1e-6 * losses[1]
     assert result.simulation_error_pct < 1e-3
-    # no scan: too few evaluations for it, or asked for none
-    assert E.estimate_material(fit, iters=len(E.STIFFNESS_SCAN)).scan == []
-    assert E.estimate_material(fit, iters=2 * len(E.STIFFNESS_SCAN), scan=None).scan_factor == 1.0
+    # only free parts are scanned; no scan with too few evaluations for it, or with none asked for
+    only = E.estimate_material(fit, iters=40, free=("density", "bending"))
+    assert [f for _, f, _ in only.scan] == [1.0] * len(E.START_SCAN["density"])
+    assert E.estimate_material(fit, iters=2 * runs - 1).scan == []
+    assert E.estimate_material(fit, iters=2 * runs, scan=None).scan == []
+    with pytest.raises(ValueError, match="unknown part"):
+        E.estimate_material(fit, iters=2 * runs, scan={"bending": (2.0,)})
 
 
 def test_fit_rejects_mismatched_targets(tmp_path):

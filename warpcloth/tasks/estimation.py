@@ -263,10 +263,10 @@ def free_mask(free: Sequence[str]) -> np.ndarray:
 # -- one estimation --------------------------------------------------------------------------------------------------
 OPTIMIZERS = ESTIMATION_OPTIMIZERS
 
-STIFFNESS_SCAN = tuple(2.0**k for k in range(-2, 6))
-"""Factors on the start's warp and weft stretch tried before a fit (1/4 to 32): the measured fabrics span 0.18x to
-29x the seed's mean start in warp stretch, and a fit does not cross that range by gradient steps (README, Material
-estimation)."""
+START_SCAN = {"density": (0.5, 2.0**-0.5, 1.0, 2.0**0.5, 2.0), "stretch": tuple(2.0**k for k in range(-2, 6))}
+"""Factors tried on the start before a fit, every pair of them: on its density (1/2 to 2; the measured fabrics span
+0.49x to 1.41x the seed's mean start) and on its warp and weft stretch (1/4 to 32; the fabrics span 0.18x to 29x).
+A fit does not cross these ranges by gradient steps, and the two act together (README, Material estimation)."""
 
 
 @dataclass
@@ -283,10 +283,10 @@ class EstimationResult:
     initial_simulation_error_pct: float = math.nan
     diverged: list[str] = field(default_factory=list)
     """Messages of trial materials whose simulation diverged (rejected steps, counted as evaluations)."""
-    scan: list[tuple[float, float]] = field(default_factory=list)
-    """(factor on the start's warp and weft stretch, loss) of each forward evaluation of the stiffness scan."""
-    scan_factor: float = 1.0
-    """The factor the fit started from (the scan's best; 1 without a scan)."""
+    scan: list[tuple[float, float, float]] = field(default_factory=list)
+    """(density factor, stretch factor, loss) of each forward evaluation of the start scan (``START_SCAN``)."""
+    scan_factors: dict[str, float] = field(default_factory=dict)
+    """The factors of the scan's best material, where the fit started (empty without a scan)."""
 
     @property
     def seconds_per_step_iter(self) -> float:
@@ -295,7 +295,8 @@ class EstimationResult:
 
 def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
-                      scan: Sequence[float] | None = STIFFNESS_SCAN, progress: bool = False) -> EstimationResult:
+                      scan: dict[str, Sequence[float]] | None = START_SCAN, progress: bool = False
+                      ) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
     Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
@@ -304,11 +305,13 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     ``free`` names the parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others keep
     ``initial``'s values.
 
-    ``scan``: before ``lbfgs`` or ``adam`` fits the stretching, the loss (forward only) of ``initial`` with its warp
-    and weft stretch times each factor, and the fit starts from the best. Each counts as an evaluation, so the
-    optimiser gets ``iters - len(scan)``; no scan where ``iters < 2 len(scan)``, with ``seed-sgd``, or with ``None``.
-    A fit starting 30x too soft stays in a region where the motion is unstable (buckling), the loss jumps with 1e-4
-    relative changes of a parameter and the gradient steps stall (README, Material estimation).
+    ``scan`` (``{"density": factors, "stretch": factors}``, default ``START_SCAN``): before ``lbfgs`` or ``adam``, the
+    loss (forward only) of ``initial`` with its density and its warp and weft stretch times every pair of factors
+    (of the free parts; a part not free keeps factor 1), and the fit starts from the best. Each scanned material
+    counts as an evaluation, so the optimiser gets the rest of ``iters``; no scan where that would leave it fewer
+    than the scan's, with ``seed-sgd``, or with ``None``. A fit started 30x too soft stays where the soft cloth
+    buckles: the loss jumps under 1e-4 relative changes of a parameter and the gradient steps stall (README,
+    Material estimation).
     """
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
@@ -354,10 +357,17 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         return loss, g[mask]
 
     seconds0 = fit.seconds
-    if scan and optimizer != "seed-sgd" and "stretching" in free and iters >= 2 * len(scan):
-        initial = _scan_stiffness(fit, initial, scan, result, record)
+    scan = dict(scan or {})
+    unknown = set(scan) - {"density", "stretch"}
+    if unknown:
+        raise ValueError(f"scan: unknown part(s) {sorted(unknown)}; scan takes density and stretch")
+    densities = tuple(scan.get("density", (1.0,))) if "density" in free else (1.0,)
+    stretches = tuple(scan.get("stretch", (1.0,))) if "stretching" in free else (1.0,)
+    cost = len(densities) * len(stretches)
+    if cost > 1 and optimizer != "seed-sgd" and iters >= 2 * cost:
+        initial = _scan_start(fit, initial, densities, stretches, result, record)
         param = MaterialParameterization(initial)
-        iters -= len(scan)
+        iters -= cost
     theta0 = np.zeros(int(mask.sum()))
     if optimizer == "lbfgs":
         theta = np.zeros(N_PARAMS)
@@ -376,28 +386,30 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     return result
 
 
-def _scan_stiffness(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, factors: Sequence[float],
-                    result: EstimationResult, record) -> wc.Material:
-    """``start`` with its warp and weft stretch times the factor of least loss (forward only; a material whose
-    simulation diverges has an infinite loss)."""
-    best = (math.inf, 1.0, start)
-    for factor in factors:
-        stretching = start.stretching.copy()
-        stretching[:, list(_POSITIVE_COLUMNS)] *= factor
-        m = replace(start, stretching=stretching, name=f"{start.name} (stretch x{factor:g})")
-        t0 = time.perf_counter()
-        try:
-            loss = fit.loss(m)
-        except wc.SimulationError as exc:
-            result.diverged.append(str(exc))
-            loss = math.inf
-        result.seconds += time.perf_counter() - t0
-        result.scan.append((float(factor), loss))
-        record(loss, fit.steps)
-        if loss < best[0]:
-            best = (loss, float(factor), m)
-    result.scan_factor = best[1]
-    return best[2]
+def _scan_start(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, densities: Sequence[float],
+                stretches: Sequence[float], result: EstimationResult, record) -> wc.Material:
+    """``start`` with the pair of factors (density, warp and weft stretch) of least loss, forward only; a material
+    whose simulation diverges has an infinite loss."""
+    best = (math.inf, start)
+    for d in densities:
+        for f in stretches:
+            stretching = start.stretching.copy()
+            stretching[:, list(_POSITIVE_COLUMNS)] *= f
+            m = replace(start, density=start.density * d, stretching=stretching,
+                        name=f"{start.name}, density x{d:.3g}, stretch x{f:.3g}")
+            t0 = time.perf_counter()
+            try:
+                loss = fit.loss(m)
+            except wc.SimulationError as exc:
+                result.diverged.append(str(exc))
+                loss = math.inf
+            result.seconds += time.perf_counter() - t0
+            result.scan.append((float(d), float(f), loss))
+            record(loss, fit.steps)
+            if loss < best[0]:
+                best = (loss, m)
+                result.scan_factors = {"density": float(d), "stretch": float(f)}
+    return best[1]
 
 
 @dataclass

@@ -106,7 +106,7 @@ class EstimateJob:
                   "free": list(task.free), "runtime_s_per_step_iter": result.seconds_per_step_iter,
                   "sim_err_pct_initial": result.initial_simulation_error_pct,
                   "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
-                  "scan": [list(p) for p in result.scan], "scan_factor": result.scan_factor,
+                  "scan": [list(p) for p in result.scan], "scan_factors": result.scan_factors,
                   "estimate": {"density": m.density, "stretching": m.stretching.tolist(),
                                "bending": m.bending.tolist()}}
         if task.truth is not None:
