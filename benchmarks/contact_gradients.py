@@ -44,8 +44,8 @@ def throw_points(task: throw.ThrowTask, count: int) -> list[tuple[str, np.ndarra
     landing[0] = (2.0, -0.3, 12.8)
     landing = landing.reshape(-1) + np.random.default_rng(0).normal(0.0, 0.1, throw.N_PARAMS)
     points = [("no pushes", np.zeros(throw.N_PARAMS)), ("landing throw (issue 22)", landing)]
-    # the motion-control benchmark's random starts (benchmarks/motion_control.py START_SIGMA): the open loop stalls
-    # there
+    # the motion-control benchmark's random starts (benchmarks/motion_control.py START_SIGMA), where the open loop
+    # stalled while its loss took the vertex mean
     points += [(f"random start (seed {k}, sigma 5)", np.random.default_rng(k).normal(scale=5.0, size=throw.N_PARAMS))
                for k in (1, 2)]
     seen = []
@@ -56,7 +56,7 @@ def throw_points(task: throw.ThrowTask, count: int) -> list[tuple[str, np.ndarra
     if count > 2:
         throw.optimize_open_loop(task, iters=3 * (count - 2) + 1, callback=callback)
         for k, err, params in seen[1::3][: count - 2]:
-            points.append((f"open loop, simulation {k} ({err:.0f} %)", params))
+            points.append((f"open loop, simulation {k} ({err:.2g} %)", params))
     return points if count > 1 else points[:1]
 
 

@@ -613,9 +613,13 @@ def material_estimation(d: dict) -> str:
         better = [names[k] for k in keys[1:] if m[k] < s[k]]
         worse = [names[k] for k in keys[1:] if m[k] >= s[k]]
         rt = m["runtime_s_per_step_iter"]
+        fits = [r for r in d["per_material"] + d.get("per_material_multi", []) if r["optimizer"] == m["optimizer"]]
+        worst = max((r["sim_err_pct"] for r in fits), default=None)
         out.append(f"Targets ({m['optimizer']}, means over the fabrics): runtime ≤ 0.02 s/step/iter {met(rt <= 0.02)} "
                    f"({g(rt)}); below the seed's mean error: {', '.join(better) or 'none'}; not below it: "
-                   f"{', '.join(worse) or 'none'}.")
+                   f"{', '.join(worse) or 'none'}"
+                   + (f"; no fabric above 3 % simulation error {met(worst <= 3.0)} (largest {g(worst, 3)} %)"
+                      if worst is not None else "") + ".")
     cross = d.get("cross_simulator") or []
     if cross:
         each = all(c["sim_err_pct_fitted"] <= 1.0 for c in cross)

@@ -284,7 +284,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     optimizer, iters = job.settings(task)
     dt = fit.sim.dt
     print(f"estimating the material of {task.source}: {fit.steps} steps of {dt:g} s, optimizer {optimizer}, "
-          f"{iters} forward+backward simulations, fitting {', '.join(task.free)}, start: {task.start.name}")
+          f"{iters} simulations, fitting {', '.join(task.free)}, start: {task.start.name}")
     try:
         result = task.run(optimizer=optimizer, iters=iters, progress=True)
     except SimulationError as exc:
@@ -293,6 +293,11 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         return _error(str(exc), _USAGE_ERROR)
 
     record = job.record(task, result)
+    if result.scan:
+        f = result.scan_factors
+        print(f"start scan: {len(result.scan)} forward simulations; the fit started from density "
+              f"x{f.get('density', 1.0):.3g}, warp and weft stretch x{f.get('stretch', 1.0):.3g}, then "
+              f"{len(result.losses) - len(result.scan)} forward+backward")
     seed = E.SEED_PUBLISHED
     rows = [["runtime [s/step/iter]", "-", result.seconds_per_step_iter, seed["runtime_s_per_step_iter"]]]
     if truth is not None:
