@@ -194,9 +194,8 @@ class ControlTask:
     def error_pct(self, positions: np.ndarray) -> float:
         """How far the cloth ends from its target, against how far it started, in %: ``|com_T - target| /
         |com_0 - target|`` for a centre-of-mass target, with com the vertex mean as the seed measures it (the loss
-        takes the mass-weighted centre: they differ with the cloth's shape, by 6-12 mm on the throw's cloth at rest in
-        the basket),
-        the same ratio of RMS distances for target positions.
+        takes the mass-weighted centre: they differ with the cloth's shape, by 6-12 mm on the throw's cloth at rest
+        in the basket); the same ratio of RMS distances for target positions.
         100 % ends as far as it started (on the seed's throw not "no better than doing nothing": with no pushes
         the cloth drops outside the wall, with no floor to stop it, to z = -238 m after the 7 s: 5508 %)."""
         positions = np.asarray(positions, dtype=np.float64)
@@ -447,9 +446,9 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
       contact the centre of mass moves affinely with the pushes (they are external forces; the internal ones
       cancel, in the tape's tangent dynamics too), so a Gauss-Newton step lands where its model says and makes most
       of the way where first-order methods crawl; contacts make it nonlinear, and a step is halved until the loss
-      drops. Each point costs three simulations (one
-      reverse pass per coordinate of com_T: the 3 x n_params Jacobian), cut short when its loss is worse. The step
-      solves ``(J^T J + (w + mu) I) d = -(J^T r + w p)`` (w the regulariser, mu = damping * tr(J J^T) / 3).
+      drops. Each point costs three simulations (one reverse pass per coordinate of com_T: the 3 x n_params
+      Jacobian), cut short when its loss is worse. The step solves ``(J^T J + (w + mu) I) d = -(J^T r + w p)``
+      (w the regulariser, mu = damping * tr(J J^T) / 3).
     * ``"lbfgs"``: L-BFGS (``warpcloth.tasks.optim.lbfgs``) on the loss; one simulation per point.
 
     ``max_step`` [m/s^2] bounds how far one step moves any push.
