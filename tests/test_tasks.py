@@ -104,6 +104,17 @@ def test_the_throw_task_is_the_basket_scenes_control_table():
     assert a.loss == b.loss and np.array_equal(a.grad, b.grad)
 
 
+def test_a_throw_task_on_another_model_does_not_batch_copies_of_the_scene():
+    # batches copy the embedded scene: they must not stand in for a model that is not it
+    assert C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=4).worlds(2) is not None
+    builder = wc.ModelBuilder()  # the throw's cloth, higher up, without the basket and the wall
+    builder.add_cloth_grid((8, 8), (0.7, 0.7), material=wc.preset("gray-interlock", thicken=2), pos=(-3.7, 0.0, 2.5))
+    other = C.ThrowTask(builder.finalize("cpu", requires_grad=True), steps=4)
+    assert other.worlds(2) is None
+    results = other.evaluate_many([(np.zeros(36), None), (np.ones(36), None)])  # one after another
+    assert results[1].com[2] > results[0].com[2] and other.batches == 0 and other.simulations == 2  # pushed up
+
+
 # -- control tasks on a user's scene ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["com", "positions"])
 def test_control_gradient_matches_central_differences_for_every_push(tmp_path, kind):

@@ -8,6 +8,10 @@ is ``1/2 |com_T - (0, 0, -0.7)|^2`` after 700 steps of 0.01 s, with the cloth co
 
 from __future__ import annotations
 
+import functools
+
+import numpy as np
+
 import warpcloth as wc
 from warpcloth.scene import load_scene
 
@@ -49,7 +53,10 @@ class ThrowTask(ControlTask):
     """The throw (``ControlTask.from_scene("basket-throw")``) on a given model, horizon or solver options.
 
     Args:
-        model: The scene's model (default: the scene's, float32, Warp's default device; ``basket_scene``).
+        model: The scene's model (default: the scene's, float32, Warp's default device; ``basket_scene``). Batches of
+            worlds (``evaluate_many``) copy the embedded scene, so they are used only where ``model`` is that scene
+            (same particles, start positions and obstacles, any device or precision); another model runs its
+            simulations one after another.
         steps: The horizon (default 700).
         options: Solver options (default: the scene's: CG tolerance 1e-6, 50 projection rounds).
         segment_steps: Checkpoint segment length (default sqrt(steps)).
@@ -57,7 +64,21 @@ class ThrowTask(ControlTask):
 
     def __init__(self, model: wc.Model | None = None, *, steps: int = STEPS, options: wc.SolverOptions | None = None,
                  segment_steps: int | None = None):
-        super().__init__(model or _SCENE.finalize(requires_grad=True),
-                         **scene_task_args(_SCENE, steps=steps, options=options, segment_steps=segment_steps),
-                         template=_SCENE.model_builder)
+        model = model or _SCENE.finalize(requires_grad=True)
+        super().__init__(model, **scene_task_args(_SCENE, steps=steps, options=options, segment_steps=segment_steps),
+                         template=_SCENE.model_builder if _is_the_scene(model) else None)
         self.name = _SCENE.name
+
+
+def _is_the_scene(model: wc.Model) -> bool:
+    """Whether ``model`` is the embedded throw scene (one world of it), whatever its device and precision."""
+    x0, names = _scene_start()
+    return (model.world_count == 1 and model.particle_count == len(x0) and list(model.obstacle_names) == names
+            and np.allclose(model.particle_x0.numpy(), x0, rtol=0.0, atol=1e-6))
+
+
+@functools.cache
+def _scene_start() -> tuple[np.ndarray, list[str]]:
+    """The embedded scene's start positions and obstacle names (a model finalised once on the CPU)."""
+    model = _SCENE.finalize("cpu", requires_grad=False)
+    return model.particle_x0.numpy(), list(model.obstacle_names)
