@@ -191,8 +191,8 @@ def test_estimation_reduces_the_loss(optimizer):
 
 
 def test_the_start_scan_starts_the_fit_from_the_factors_of_least_loss():
-    # targets made by the start with its density x2^-1/2 and its warp and weft stretch x8: the scan must find both
-    # (loss 0 there), count its forward evaluations among iters, and leave coupling, shear and bending as they were
+    # targets made by the start with its density x2^-1/2 and its warp and weft stretch x8 (coupling, shear and
+    # bending as they were): the scan must find both (loss 0 there) and count its forward evaluations among iters
     start = E.initial_guess()
     stiff = start.stretching.copy()
     stiff[:, [0, 2]] *= 8.0
