@@ -222,6 +222,9 @@ def test_mesh_cloth_relative_to_scene_file(tmp_path):
     bad.write_text(bad.read_text().replace("grid = { res = [4, 3], size = [1.0, 0.5] }", 'mesh = "meshes/square.obj"'))
     with pytest.raises(ValueError, match=r"bad.toml: pins\[0\].grid_row: needs a grid cloth"):
         load_scene(bad)
+    bad.write_text(scene_path.read_text().replace("meshes/square.obj", "meshes/missing.obj"))
+    with pytest.raises(ValueError, match=r"bad.toml: cloth.mesh: file not found: .*missing.obj"):
+        load_scene(bad)
 
 
 def test_cli_simulate_writes_simulated_points(tmp_path):

@@ -249,6 +249,8 @@ BAD_CONTROL = [
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = {}", r"control.loss: give exactly one of 'com'"),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { positions = 'few.obj' }",
      r"control.loss.positions: few.obj has 3 vertices, the cloth has 25"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { positions = 'missing.obj' }",
+     r"control.loss.positions: file not found: .*missing.obj"),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\noptimizer = 'newton'",
      r"control.optimizer: unknown value 'newton'; one of: gauss-newton, lbfgs"),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nregularizer = -1",

@@ -418,6 +418,14 @@ def _rotation_xyz_deg(angles: tuple[float, float, float]) -> np.ndarray:
     return rz @ ry @ rx
 
 
+def _existing_file(base_dir: Path, value: Any, key: str, context: str) -> Path:
+    """``base_dir / value`` (a string at ``key``), which must be a file: a ValueError under ``context`` otherwise."""
+    file = base_dir / _str(value, key)
+    if not file.is_file():
+        raise _err(context, f"file not found: {file}")
+    return file
+
+
 class _Context:
     """Re-raises a ValueError from library code (materials, mesh loading, builder) under a key path."""
 
@@ -625,11 +633,9 @@ def _parse_cloth(builder, cloth: dict, base_dir: Path):
         else:
             mesh_table = _table(mesh_value, "cloth.mesh")
         _check_keys(mesh_table, "cloth.mesh", ("path", "scale"), required=("path",))
-        mesh_path = base_dir / _str(mesh_table["path"], "cloth.mesh.path")
+        mesh_path = _existing_file(base_dir, mesh_table["path"], "cloth.mesh.path", "cloth.mesh")
         scale = _float(mesh_table.get("scale", 1.0), "cloth.mesh.scale", min_value=0.0, strict=True)
         with _Context("cloth.mesh"):
-            if not mesh_path.is_file():
-                raise ValueError(f"file not found: {mesh_path}")
             if mesh_path.suffix.lower() == ".obj":
                 mesh = mesh_io.load_obj(mesh_path, scale=scale)
             elif mesh_path.suffix.lower() in (".usd", ".usda", ".usdc"):
@@ -665,12 +671,10 @@ def _parse_material(value: Any, path: str, thicken: float, base_dir: Path) -> _m
         raise _err(path, f"expected a string or a table, got {_type_name(value)}")
     if "file" in table:
         _check_keys(table, path, ("file", "stretching_mult", "bending_mult"))
-        file = base_dir / _str(table["file"], f"{path}.file")
+        file = _existing_file(base_dir, table["file"], f"{path}.file", path)
         smult = _float(table.get("stretching_mult", 1.0), f"{path}.stretching_mult", min_value=0.0)
         bmult = _float(table.get("bending_mult", 1.0), f"{path}.bending_mult", min_value=0.0)
         with _Context(path):
-            if not file.is_file():
-                raise ValueError(f"file not found: {file}")
             return _materials.load_material_json(file, stretching_mult=smult, bending_mult=bmult, thicken=thicken)
     if "mean" in table:
         _check_keys(table, path, ("mean",))
@@ -865,7 +869,7 @@ def _parse_obstacle(builder, path: str, entry: dict, base_dir: Path) -> None:
     mesh_value = entry["mesh"]
     mesh_table = {"path": mesh_value} if isinstance(mesh_value, str) else _table(mesh_value, f"{path}.mesh")
     _check_keys(mesh_table, f"{path}.mesh", ("path", "scale", "prim_path"), required=("path",))
-    mesh_path = base_dir / _str(mesh_table["path"], f"{path}.mesh.path")
+    mesh_path = _existing_file(base_dir, mesh_table["path"], f"{path}.mesh.path", f"{path}.mesh")
     scale = _float(mesh_table.get("scale", 1.0), f"{path}.mesh.scale", min_value=0.0, strict=True)
     suffix = mesh_path.suffix.lower()
     prim_path = None
@@ -874,8 +878,6 @@ def _parse_obstacle(builder, path: str, entry: dict, base_dir: Path) -> None:
         if suffix == ".obj":
             raise _err(f"{path}.mesh.prim_path", "only for USD meshes")
     with _Context(f"{path}.mesh"):
-        if not mesh_path.is_file():
-            raise ValueError(f"file not found: {mesh_path}")
         if suffix == ".obj":
             builder.add_obstacle_obj(mesh_path, scale=scale, **options)
         elif suffix in (".usd", ".usda", ".usdc"):
@@ -968,10 +970,8 @@ def _parse_control(table: dict, dt: float, sim_steps: int, first: int, count: in
     if "com" in loss:
         target_com = _vector(loss["com"], "control.loss.com")
     else:
-        file = base_dir / _str(loss["positions"], "control.loss.positions")
+        file = _existing_file(base_dir, loss["positions"], "control.loss.positions", "control.loss.positions")
         with _Context("control.loss.positions"):
-            if not file.is_file():
-                raise ValueError(f"file not found: {file}")
             target_positions = mesh_io.load_obj(file, validate=False).positions
         if len(target_positions) != count:
             raise _err("control.loss.positions", f"{file.name} has {len(target_positions)} vertices, the cloth has "
