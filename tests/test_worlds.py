@@ -34,6 +34,18 @@ def loss_and_grads(model, sim, steps, weights, control=None, params=()):
     return traj[-1].particle_x.numpy(), grads
 
 
+def pushed_gradients(model, forces, weights, *, dt, steps, options):
+    """A forced rollout's final positions and the gradients of ``sum_i w_i . x_i`` with respect to (0) the forces,
+    (1) x0, (2) v0, (3) the obstacles' placement, (4) density, (5) stretching, (6) bending; and its Simulator."""
+    control = model.control(particle_force=True)
+    control.particle_force.assign(forces)
+    sim = wc.Simulator(model, dt, options=options)
+    x, grads = loss_and_grads(model, sim, steps, weights, control, params=(
+        control.particle_force, model.particle_x0, model.particle_v0, control.obstacle_transform,
+        model.material_density, model.material_stretching, model.material_bending))
+    return x, grads, sim
+
+
 def hanging_world(name, wind, gravity):
     return hanging_builder(material=wc.preset(name, thicken=2), wind=wind, gravity=gravity)
 
@@ -108,12 +120,7 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
     options = wc.SolverOptions(**SSOR)
 
     def run(model, forces, w):
-        control = model.control(particle_force=True)
-        control.particle_force.assign(forces)
-        sim = wc.Simulator(model, 0.01, options=options)
-        x, grads = loss_and_grads(model, sim, steps, w, control, params=(
-            control.particle_force, model.material_density, model.material_stretching, model.material_bending,
-            model.particle_x0, model.particle_v0, control.obstacle_transform))
+        x, grads, sim = pushed_gradients(model, forces, w, dt=0.01, steps=steps, options=options)
         assert sim.collision.fail_safe_steps == 0 and sim.collision.start_gap_steps == 0
         return x, grads, sim
 
@@ -130,10 +137,10 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
         xs, gs, alone = run(model, single, weights[part])
         pairs += alone.proximity.last_count
         np.testing.assert_array_equal(x[part], xs)
-        for k in (0, 4, 5):  # forces, x0, v0: per particle
+        for k in (0, 1, 2):  # forces, x0, v0: per particle
             np.testing.assert_array_equal(grad[k][part], gs[k])
-        np.testing.assert_array_equal(grad[6][w], gs[6][0])  # the world's sphere
-        for k in (1, 2, 3):  # the worlds share one material: its gradient is the sum of theirs
+        np.testing.assert_array_equal(grad[3][w], gs[3][0])  # the world's sphere
+        for k in (4, 5, 6):  # the worlds share one material: its gradient is the sum of theirs
             material_sum[k] = material_sum.get(k, 0.0) + gs[k]
         assert all(np.abs(g).max() > 0.0 for g in gs)
     for k, total in material_sum.items():  # summed in another order: to rounding
@@ -157,13 +164,7 @@ def test_second_try_and_fail_safe_act_on_their_worlds_alone():
     steps = 12
 
     def run(model, forces, weights):
-        control = model.control(particle_force=True)
-        control.particle_force.assign(forces)
-        sim = wc.Simulator(model, 0.005, options=options)
-        x, grads = loss_and_grads(model, sim, steps, weights, control, params=(
-            control.particle_force, model.particle_x0, model.particle_v0, control.obstacle_transform,
-            model.material_density, model.material_stretching, model.material_bending))
-        return x, grads, sim
+        return pushed_gradients(model, forces, weights, dt=0.005, steps=steps, options=options)
 
     composed = wc.ModelBuilder()
     for builder, _ in worlds:
