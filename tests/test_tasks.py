@@ -124,12 +124,12 @@ def test_control_gradient_matches_central_differences_for_every_push(tmp_path, k
     assert task.n_params == 12 and task.steps == 12 and task.interval_steps == 5
     params = np.random.default_rng(1).normal(scale=2.0, size=task.n_params)
     value, grad, _ = task.loss_and_grad(params)
-    eps = 1e-5
     for k in range(task.n_params):  # every push; both intervals act within the 12-step horizon
-        e = np.zeros(task.n_params)
-        e[k] = eps
-        fd = (task.loss_and_grad(params + e)[0] - task.loss_and_grad(params - e)[0]) / (2 * eps)
-        assert grad[k] == pytest.approx(fd, rel=1e-5, abs=1e-12), k
+        for eps in (1e-4, 1e-5):  # central differences converge: the same slope at two step sizes
+            e = np.zeros(task.n_params)
+            e[k] = eps
+            fd = (task.loss_and_grad(params + e)[0] - task.loss_and_grad(params - e)[0]) / (2 * eps)
+            assert grad[k] == pytest.approx(fd, rel=1e-5, abs=1e-12), (k, eps)
     assert np.all(grad != 0.0)
 
 

@@ -97,9 +97,9 @@ class ContactDetector:
         n = model.particle_count
         worlds = node_worlds(model, obstacles)
         self.node_world = wp.array(worlds, dtype=wp.int32, device=dev)
+        """The world of every node (cloth particles, then obstacle vertices), (nodes,) int32."""
         self.node_world_host = worlds
-        """The world of each node (cloth particles, then obstacle vertices), on the host (error messages)."""
-        """The world of every node, (nodes,) int32."""
+        """:attr:`node_world` on the host (error messages)."""
         self.grouped = int(model.world_count > 1)
         cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
         cloth_vertices = PrimitiveSet(np.arange(n)[:, None], dev, worlds)
