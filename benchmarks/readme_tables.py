@@ -638,10 +638,11 @@ def motion_control(d: dict) -> str:
     out = []
     seed = d.get("seed", {})
     for key, seed_key, label in (("open_loop", "open-loop", "Open loop (Gauss–Newton)"),
-                                 ("mlp", "mlp", "MLP controller")):
+                                 ("mlp_gauss_newton", "mlp", "MLP controller (Gauss–Newton on its weights)"),
+                                 ("mlp", "mlp", "MLP controller (Adam)")):
         r = d.get(key)
         if not r:
-            out.append(f"- {label}: not run (torch not installed)." if key == "mlp" else f"- {label}: not run.")
+            out.append(f"- {label}: not run." + (" (torch not installed)" if key != "open_loop" else ""))
             continue
         runs = "; ".join(f"{run['start']}: {g(run['error_pct'], 3)} % after {run['simulations']}"
                          + (f" ({len(run['failed_trials'])} trials rejected)" if run["failed_trials"] else "")

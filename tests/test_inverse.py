@@ -13,6 +13,7 @@ from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
+from warpcloth.tasks.control import WHOLE_TAPE_PARTICLE_STEPS, scene_task_args
 
 EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
 
@@ -261,6 +262,18 @@ def test_throw_gradient_matches_finite_differences():
     assert np.all(grad[24:] == 0.0)
 
 
+def test_a_control_task_tapes_a_short_rollout_whole_and_checkpoints_a_long_one():
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=150, options=EXACT)
+    assert task.segment_steps == 150  # 81 particles x 150 steps: one taped pass
+    big = task.worlds(20)  # 1620 particles x 150 steps > WHOLE_TAPE_PARTICLE_STEPS
+    assert 1620 * 150 > WHOLE_TAPE_PARTICLE_STEPS and big.segment_steps == 13
+    segmented = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=150, options=EXACT, segment_steps=40)
+    params = np.random.default_rng(4).normal(scale=3.0, size=C.N_PARAMS)
+    whole, parts = task.evaluate(params), segmented.evaluate(params)
+    assert whole.loss == parts.loss
+    np.testing.assert_array_equal(whole.grad, parts.grad)
+
+
 def test_open_loop_optimisation_improves():
     task = C.ThrowTask(S.basket_scene("cpu"), steps=300)
     result = C.optimize_open_loop(task, iters=4)
@@ -271,9 +284,32 @@ def test_open_loop_optimisation_improves():
 def test_mlp_controller_trains():
     pytest.importorskip("torch")
     task = C.ThrowTask(S.basket_scene("cpu"), steps=300)
-    result = C.train_mlp(task, iters=3)
+    result = C.train_mlp(task, iters=3, optimizer="adam")
     assert len(result.errors_pct) == 3
     assert result.errors_pct[-1] < result.errors_pct[0]
+
+
+def test_mlp_gauss_newton_training_improves_at_three_simulations_a_point():
+    pytest.importorskip("torch")
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=300)
+    assert task.optimizer_for("mlp") == "gauss-newton"  # the throw's default: a com target, no regulariser
+    result = C.train_mlp(task, iters=7)
+    errors = result.errors_pct
+    assert len(errors) == 7 and task.simulations == 7
+    assert errors[0] == errors[1] == errors[2]  # the start's three Jacobian rows: three simulations of one point
+    assert result.error_pct < 0.5 * errors[0]
+
+
+def test_mlp_optimizers_are_checked():
+    pytest.importorskip("torch")
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=20)
+    with pytest.raises(ValueError, match="optimizer: unknown value 'lbfgs'; one of: gauss-newton, adam"):
+        C.train_mlp(task, iters=1, optimizer="lbfgs")
+    args = scene_task_args(wc.load_scene(C.SCENE), steps=20) | {"regularizer": 0.1}
+    regularised = C.ControlTask(S.basket_scene("cpu"), **args)
+    assert regularised.optimizer_for("mlp") == "adam"
+    with pytest.raises(ValueError, match="optimizer: gauss-newton trains the MLP without a regulariser"):
+        C.train_mlp(regularised, iters=1, optimizer="gauss-newton")
 
 
 # a divergence guard that the zero throw passes (it falls past the basket, reaching 29.4 m/s in 3 s) and big pushes
@@ -292,10 +328,20 @@ def test_open_loop_optimisation_goes_on_past_trials_that_raise():
 def test_mlp_training_goes_on_past_trials_that_raise():
     pytest.importorskip("torch")
     task = C.ThrowTask(S.basket_scene("cpu"), steps=300, options=FRAGILE)
-    result = C.train_mlp(task, iters=4, lr=1.0)  # a learning rate that throws the cloth far too hard
+    result = C.train_mlp(task, iters=4, optimizer="adam", lr=1.0)  # a learning rate that throws the cloth far too hard
     assert result.failed_trials and "SimulationError" in result.failed_trials[0]
     assert len(result.errors_pct) == 4 and np.isfinite(result.errors_pct[0])
     assert task.simulations == 4
+
+
+def test_mlp_gauss_newton_goes_on_past_a_start_that_raises():
+    pytest.importorskip("torch")
+    task = C.ThrowTask(S.basket_scene("cpu"), steps=300, options=FRAGILE)
+    # a random network whose pushes throw too hard for the divergence guard: its output layer is halved, then trained
+    result = C.train_mlp(task, iters=5, optimizer="gauss-newton", seed=2, zero_start=False)
+    assert result.failed_trials and "SimulationError" in result.failed_trials[0]
+    assert result.errors_pct[0] == np.inf and len(result.errors_pct) == 5
+    assert np.isfinite(result.error_pct) and result.error_pct < result.errors_pct[1]
 
 
 def test_mlp_controller_takes_the_models_dtype_and_device(monkeypatch):

@@ -253,6 +253,10 @@ BAD_CONTROL = [
      r"control.loss.positions: file not found: .*missing.obj"),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\noptimizer = 'newton'",
      r"control.optimizer: unknown value 'newton'; one of: gauss-newton, lbfgs"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\ncontroller = 'mlp'\n"
+     "optimizer = 'lbfgs'", r"control.optimizer: unknown value 'lbfgs'; one of: gauss-newton, adam"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\ncontroller = 'mlp'\n"
+     "regularizer = 0.1\noptimizer = 'gauss-newton'", r"control.optimizer: gauss-newton trains the MLP without a "),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nregularizer = -1",
      r"control.regularizer: must be >= 0"),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\ncontroller = 'ppo'",
@@ -289,6 +293,24 @@ def test_bad_task_keys_are_named(tmp_path, table, message):
     pin = "[[pins]]\nparticle = 5\n" if "particles = [5]" in table else ""
     with pytest.raises(ValueError, match=message):
         wc.load_scene(small_scene(tmp_path, pin + table))
+
+
+@pytest.mark.parametrize("controller, loss, regularizer, optimizer", [
+    ("open-loop", "com", 0.0, "gauss-newton"), ("open-loop", "com", 0.1, "gauss-newton"),
+    ("open-loop", "positions", 0.0, "lbfgs"), ("mlp", "com", 0.0, "gauss-newton"), ("mlp", "com", 0.1, "adam"),
+    ("mlp", "positions", 0.0, "adam")])
+def test_each_controller_gets_its_default_optimizer(tmp_path, controller, loss, regularizer, optimizer):
+    write_obj(tmp_path / "t.obj", np.zeros((25, 3)))
+    target = "{ com = [0, 0, 0] }" if loss == "com" else "{ positions = 't.obj' }"
+    table = (f"[control]\nparticles = [1]\ninterval = 0.1\nintervals = 2\nloss = {target}\n"
+             f"controller = '{controller}'\nregularizer = {regularizer}\n")
+    scene = wc.load_scene(small_scene(tmp_path, table))
+    assert scene.control.optimizer == optimizer
+    task = ControlTask.from_scene(scene, device="cpu")
+    assert task.optimizer == optimizer and task.optimizer_for(controller) == optimizer
+    other = "mlp" if controller == "open-loop" else "open-loop"  # run(controller=other) takes other's default
+    assert task.optimizer_for(other) == ("gauss-newton" if loss == "com" and (other == "open-loop" or not regularizer)
+                                         else "lbfgs" if other == "open-loop" else "adam")
 
 
 def test_gauss_newton_needs_a_com_target(tmp_path):

@@ -263,6 +263,46 @@ def test_bdf2_through_the_bridge(small):
 # -- 4. chained calls, releasing the tape -----------------------------------------------------------------------------
 
 
+def test_closed_loop_jacobian_rows_from_one_recording_match_finite_differences(small):
+    # what the MLP's Gauss-Newton training does: a network maps the state at the start of each interval to a force,
+    # and the three rows of d com_T / d weights come from three reverse passes through one recorded closed loop
+    m = small.model
+    sim = wc.Simulator(m, DT, options=OPTIONS)
+    n = m.particle_count
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(6 * n, 8), torch.nn.Tanh(), torch.nn.Linear(8, 3)).double()
+    weights = list(net.parameters())
+    x0, v0 = small.tensor(small.x0, False), small.tensor(small.v0, False)
+
+    def com_at_horizon():
+        x, v = x0, v0
+        for interval in range(2):
+            push = 1.0e-2 * net(torch.cat([x.reshape(-1), v.reshape(-1)]))  # the force depends on the state
+            force = torch.zeros((n, 3), dtype=torch.float64).index_put((torch.tensor([0, n - 1]),), push)
+            xs, vs = wct.simulate(sim, x, v, steps=2, particle_force=force, time=2 * interval * DT)
+            x, v = xs[-1], vs[-1]
+        return x.mean(dim=0)
+
+    com = com_at_horizon()
+    rows = [torch.cat([g.reshape(-1) for g in torch.autograd.grad(com[c], weights, retain_graph=c < 2)])
+            for c in range(3)]
+    theta = torch.nn.utils.parameters_to_vector(weights).detach().clone()
+    eps = 1.0e-3  # the forces are small: com_T is nearly linear in a weight, and smaller steps lose digits
+    for k in np.random.default_rng(2).choice(theta.numel(), size=6, replace=False).tolist() + [theta.numel() - 1]:
+        coms = []
+        for sign in (1.0, -1.0):
+            shifted = theta.clone()
+            shifted[k] += sign * eps
+            torch.nn.utils.vector_to_parameters(shifted, weights)
+            with torch.no_grad():
+                coms.append(com_at_horizon().numpy())
+        fd = (coms[0] - coms[1]) / (2 * eps)
+        tape = np.array([float(r[k]) for r in rows])
+        assert np.abs(fd).max() > 1e-9, k
+        np.testing.assert_allclose(tape, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max(), err_msg=f"weight {k}")
+    torch.nn.utils.vector_to_parameters(theta, weights)
+
+
 def test_chained_calls_equal_one_tape(problem):
     """Two calls with different stretching tables, then one backward: the full tape's gradients.
 

@@ -69,8 +69,9 @@ def _parser() -> argparse.ArgumentParser:
                      help=f"a scene with a [control] table: embedded name or .toml path (default: {CONTROL_SCENE}, "
                      "the seed's throw into a basket)")
     ctl.add_argument("--controller", default=None, choices=CONTROLLERS,
-                     help="open-loop: the pushes themselves (the scene's optimiser); mlp: a PyTorch MLP of the "
-                     "cloth's state, trained with Adam through the simulator (needs the torch extra); default: the "
+                     help="open-loop: the pushes themselves; mlp: a PyTorch MLP of the cloth's state, trained "
+                     "through the simulator (needs the torch extra); each with the scene's optimiser where it is the "
+                     "scene's controller, else its default (Gauss-Newton for a centre-of-mass target); default: the "
                      "scene's")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
     ctl.add_argument("--starts", type=int, default=1,
@@ -401,7 +402,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
         goal = f"its centre of mass to {task.target_com.tolist()}"
     print(f"{scene.name}: {len(task.particles)} particles pushed {task.intervals} times, {task.steps} steps of "
           f"{task.dt:g} s, moving {goal}; controller {controller}"
-          f"{' (' + task.optimizer + ')' if controller == 'open-loop' else ''}, {iters} simulations")
+          f" ({task.optimizer_for(controller)}), {iters} simulations")
     try:
         result = task.run(controller=controller, iters=iters, progress=True, **job.start(task))
     except ImportError as exc:

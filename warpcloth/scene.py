@@ -88,8 +88,8 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
                                        #   the cloth's vertex count, in world coordinates (relative to the scene file)
     regularizer = 0.0                  # optional: adds regularizer * 1/2 |pushes|^2 [pushes in m/s^2]
     controller = "open-loop"           # optional: "open-loop" (default) or "mlp" (a PyTorch MLP of the state)
-    optimizer = "gauss-newton"         # optional, open loop: "gauss-newton" (default with com) or "lbfgs" (default
-                                       #   with positions)
+    optimizer = "gauss-newton"         # optional: "gauss-newton" (default with com; for the MLP, without a
+                                       #   regularizer), else "lbfgs" (open loop) or "adam" (MLP)
     iters = 50                         # optional: simulations spent (default 50 open-loop, 100 mlp)
 
     [estimate]                         # optional: fit the cloth's material to a trajectory
@@ -156,7 +156,8 @@ class ControlSpec:
         target_positions: Every particle's target position [m] (particle_count, 3), or None; exactly one of the two.
         regularizer: Weight of ``1/2 |pushes|^2`` in the loss.
         controller: ``"open-loop"`` or ``"mlp"``.
-        optimizer: The open loop's optimiser, ``"gauss-newton"`` (a centre-of-mass target only) or ``"lbfgs"``.
+        optimizer: The controller's optimiser (``CONTROL_OPTIMIZERS``): ``"gauss-newton"`` (a centre-of-mass target
+            only; for the MLP, without a regulariser), ``"lbfgs"`` (open loop) or ``"adam"`` (MLP).
         iters: Simulations the optimisation may spend.
     """
 
@@ -904,8 +905,29 @@ def _parse_rigid_motion(value: Any, path: str) -> list:
 
 CONTROLLERS = ("open-loop", "mlp")
 """Controllers of a ``[control]`` task."""
-OPEN_LOOP_OPTIMIZERS = ("gauss-newton", "lbfgs")
-"""Optimisers of an open-loop ``[control]`` task (Gauss-Newton needs a centre-of-mass target)."""
+CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs"), "mlp": ("gauss-newton", "adam")}
+"""Optimisers of each controller of a ``[control]`` task (Gauss-Newton needs a centre-of-mass target, and for the MLP
+no regulariser)."""
+
+
+def default_control_optimizer(controller: str, target_com, regularizer: float) -> str:
+    """A controller's optimiser where a task names none: Gauss-Newton where it applies, else L-BFGS (open loop) or
+    Adam (MLP)."""
+    if target_com is not None and (controller == "open-loop" or not regularizer):
+        return "gauss-newton"
+    return "lbfgs" if controller == "open-loop" else "adam"
+
+
+def check_control_optimizer(optimizer: str, controller: str, target_com, regularizer: float) -> str | None:
+    """Why ``optimizer`` cannot run ``controller`` on this loss, or None where it can."""
+    if optimizer not in CONTROL_OPTIMIZERS[controller]:
+        return f"unknown value {optimizer!r}; one of: {', '.join(CONTROL_OPTIMIZERS[controller])}"
+    if optimizer == "gauss-newton" and target_com is None:
+        return "gauss-newton fits a centre-of-mass target (control.loss.com); use " \
+               f"{default_control_optimizer(controller, None, regularizer)} with target positions"
+    if optimizer == "gauss-newton" and controller == "mlp" and regularizer:
+        return "gauss-newton trains the MLP without a regulariser; use adam with control.regularizer"
+    return None
 ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
 """Optimisers of an ``[estimate]`` task."""
 MATERIAL_PARTS = ("density", "stretching", "bending")
@@ -980,11 +1002,11 @@ def _parse_control(table: dict, dt: float, sim_steps: int, first: int, count: in
             raise _err("control.loss.positions", f"{file.name} has non-finite positions")
     regularizer = _float(table.get("regularizer", 0.0), "control.regularizer", min_value=0.0)
     controller = _choice(table.get("controller", "open-loop"), "control.controller", CONTROLLERS)
-    default = "gauss-newton" if target_com is not None else "lbfgs"
-    optimizer = _choice(table.get("optimizer", default), "control.optimizer", OPEN_LOOP_OPTIMIZERS)
-    if optimizer == "gauss-newton" and target_com is None:
-        raise _err("control.optimizer", "gauss-newton fits a centre-of-mass target (control.loss.com); use lbfgs "
-                                        "with target positions")
+    optimizer = _str(table.get("optimizer", default_control_optimizer(controller, target_com, regularizer)),
+                     "control.optimizer")
+    problem = check_control_optimizer(optimizer, controller, target_com, regularizer)
+    if problem:
+        raise _err("control.optimizer", problem)
     iters = _int(table.get("iters", 50 if controller == "open-loop" else 100), "control.iters", min_value=1)
     return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
                        intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,

@@ -3,7 +3,8 @@
 A full ``wp.Tape`` over T steps keeps every step's intermediate arrays alive (assembled matrices, CG buffers,
 contacts): memory grows linearly with T. Here the forward pass runs untaped and keeps only the states at segment
 boundaries; the backward pass re-simulates one segment at a time on its own tape, seeded with the adjoint of the
-segment's end state, and hands the adjoint of its start state to the segment before it. A State carries everything
+segment's end state, and hands the adjoint of its start state to the segment before it. (The last segment is
+taped in the forward pass already: it is the first one the backward pass needs.) A State carries everything
 its next step reads (the solve's first guess, the lagged wind normals' positions), so the re-simulation repeats the
 forward pass bitwise, and each segment hands the adjoint solve of its first step to the segment before it as the
 first guess of that segment's last adjoint solve, as one tape would: the gradients equal the full tape's.
@@ -39,7 +40,8 @@ def checkpointed_backward(
     differentiable array the rollout reads (``state``'s arrays, the model's materials, the controls' arrays).
 
     Memory: about ``steps / segment_steps + segment_steps`` states' worth of arrays (``segment_steps`` defaults to
-    ceil(sqrt(steps)), the minimum). Time: two forward passes and one backward pass.
+    ceil(sqrt(steps)), the minimum). Time: one forward pass, a second one of every segment but the last, and one
+    backward pass; with ``segment_steps >= steps`` that is one taped forward pass, as a full tape's.
 
     Args:
         sim: the Simulator (its model should have ``requires_grad=True``).
@@ -64,7 +66,7 @@ def checkpointed_backward(
     starts = list(range(0, steps, int(seg)))
     out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
 
-    def advance(start: State, first: int, last: int, *, requires_grad: bool) -> State:
+    def advance(start: State, first: int, last: int, *, requires_grad: bool, out: wp.array) -> State:
         current = start
         for i in range(first, last):
             nxt = model.empty_state(requires_grad=requires_grad)
@@ -73,18 +75,31 @@ def checkpointed_backward(
             current = nxt
         return current
 
+    def taped(checkpoint: State, k: int, out: wp.array) -> tuple[State, wp.Tape, State]:
+        """Segment k from its checkpoint on a tape: (its start state, the tape, its end state)."""
+        start = checkpoint.clone(requires_grad=True)
+        start.solve_adjoint = wp.zeros_like(start.particle_x, requires_grad=False)  # receives its first step's
+        tape = wp.Tape()
+        with tape:
+            end = advance(start, starts[k], min(starts[k] + seg, steps), requires_grad=True, out=out)
+        return start, tape, end
+
     bar = progress_bar(2 * len(starts), "checkpointed rollout", "segment") if progress else None
 
-    # forward: untaped, keep the state at the start of every segment
+    # forward: untaped, keep the state at the start of every segment; the last segment, the first the backward
+    # pass needs, is taped right away instead of being simulated twice (a rollout of one segment runs once)
     checkpoints = []
     current = state
-    for first in starts:
+    for first in starts[:-1]:
         checkpoints.append(current.clone(requires_grad=False))
-        current = advance(current, first, min(first + seg, steps), requires_grad=False)
+        current = advance(current, first, min(first + seg, steps), requires_grad=False, out=out)
         if bar is not None:
             bar.update()
-    final = current
+    last = taped(current, len(starts) - 1, out)  # its loss terms go to ``out`` too, in the order of one pass
+    final = last[2]
     value = float(out.numpy()[0])
+    if bar is not None:
+        bar.update()
 
     # backward: re-simulate each segment on its own tape, last first, chaining the state adjoints. A segment's first
     # step may also read arrays of the step before the segment, whose adjoints go to the previous segment's end:
@@ -94,13 +109,12 @@ def checkpointed_backward(
     adj_x_previous = adj_x_last = adj_v_last = None
     handed_on = None  # the adjoint solve of the first step of the segment after this one
     for k in reversed(range(len(starts))):
-        first = starts[k]
-        start = checkpoints.pop().clone(requires_grad=True)
-        start.solve_adjoint = wp.zeros_like(start.particle_x, requires_grad=False)  # receives its first step's
-        out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
-        tape = wp.Tape()
-        with tape:
-            end = advance(start, first, min(first + seg, steps), requires_grad=True)
+        if k == len(starts) - 1:
+            start, tape, end = last
+            last = None
+        else:
+            out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
+            start, tape, end = taped(checkpoints.pop(), k, out)
         if handed_on is not None and end.solve_adjoint is not None:
             # the first guess of this segment's last adjoint solve, as on one tape over the whole rollout: the
             # gradients then equal the full tape's bitwise

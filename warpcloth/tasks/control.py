@@ -9,8 +9,8 @@ corner every step, a corner acceleration; this is a fixed linear rescaling of it
 scale of gravity.) The loss is taken at the horizon: ``1/2 |com_T - target|^2`` on the centre of mass (mass-weighted:
 see :class:`ControlTask`), or ``1/2 mean_i |x_i,T - target_i|^2`` on every particle, plus an optional
 ``regularizer * 1/2 |p|^2``.
-Gradients come from a checkpointed rollout (``wc.checkpointed_backward``), so long horizons back-propagate with
-O(sqrt(T)) stored states.
+Gradients come from ``wc.checkpointed_backward``: one taped pass where the tape stays small, else a checkpointed
+rollout, so long horizons and large batches back-propagate with O(sqrt(T)) stored states.
 """
 
 from __future__ import annotations
@@ -29,8 +29,19 @@ import warp as wp
 import warpcloth as wc
 from warpcloth.kernels.losses import loss_kernels
 from warpcloth.progress import progress_bar
-from warpcloth.scene import CONTROLLERS, OPEN_LOOP_OPTIMIZERS, Scene, load_scene
+from warpcloth.scene import (
+    CONTROLLERS,
+    Scene,
+    check_control_optimizer,
+    default_control_optimizer,
+    load_scene,
+)
 from warpcloth.tasks.optim import lbfgs
+
+WHOLE_TAPE_PARTICLE_STEPS = 200_000
+"""A control task tapes a rollout whole, without checkpoints, up to this many particle-steps (particles of all
+worlds times steps): the throw's full tape takes 164 MB for 81 particles and 700 steps, 2.9 kB a particle-step
+(README, checkpointing), so this is about 0.6 GB. Beyond it a rollout is checkpointed (``wc.checkpointed_backward``)."""
 
 
 @dataclass
@@ -70,7 +81,9 @@ class ControlTask:
         regularizer: Weight of ``1/2 |p|^2`` in the loss.
         options: Solver options (default: SolverOptions()). An ``"auto"`` preconditioner is block SSOR here, so
             that a batch of worlds solves each world as one world alone does (multigrid spans one world).
-        segment_steps: Checkpoint segment length (default sqrt(steps)).
+        segment_steps: Checkpoint segment length. By default the whole horizon (one taped forward pass, no
+            re-simulation) where the tape stays small, ``particle_count * steps <= WHOLE_TAPE_PARTICLE_STEPS``,
+            else ceil(sqrt(steps)) (O(sqrt(T)) stored states; each segment but the last simulated twice).
         controller, optimizer, iters: What :meth:`run` does when not told otherwise (a scene's choices).
         template: The one-world builder ``model`` was finalised from (copies of ``model``); with it
             :meth:`evaluate_many` runs several simulations as one batch of worlds (``ModelBuilder.replicate``).
@@ -121,9 +134,14 @@ class ControlTask:
         self.target_com = None if target_com is None else np.asarray(target_com, dtype=np.float64).reshape(3)
         self.target_positions = target_positions
         self.regularizer = float(regularizer)
-        self.segment_steps = segment_steps
+        whole = model.particle_count * self.steps <= WHOLE_TAPE_PARTICLE_STEPS
+        self.segment_steps = segment_steps or (self.steps if whole else math.ceil(math.sqrt(self.steps)))
+        """Checkpoint segment length of :meth:`evaluate_worlds`' rollouts."""
         self.controller = controller
-        self.optimizer = optimizer or ("gauss-newton" if self.target_com is not None else "lbfgs")
+        self.optimizer = optimizer or default_control_optimizer(controller, self.target_com, self.regularizer)
+        problem = check_control_optimizer(self.optimizer, controller, self.target_com, self.regularizer)
+        if problem:
+            raise ValueError(f"optimizer: {problem}")
         self.iters = iters
         self.template = template
         self.sim = wc.Simulator(model, dt, options=options)
@@ -393,9 +411,17 @@ class ControlTask:
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
         iters = iters or self.default_iters(controller)
+        kwargs.setdefault("optimizer", self.optimizer_for(controller))
         if controller == "open-loop":
             return optimize_open_loop(self, iters=iters, progress=progress, **kwargs)
         return train_mlp(self, iters=iters, progress=progress, **kwargs)
+
+    def optimizer_for(self, controller: str) -> str:
+        """The optimiser of ``controller``: the task's own where it is the task's controller, else that controller's
+        default for this loss."""
+        if controller == self.controller:
+            return self.optimizer
+        return default_control_optimizer(controller, self.target_com, self.regularizer)
 
     def default_iters(self, controller: str) -> int:
         """Simulations a run of ``controller`` spends unless told: the task's ``iters`` where it is the task's own
@@ -458,11 +484,10 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
     bitwise, and so is the history (a point whose loss is worse counts one simulation, as when cut short); the two
     simulations such a point did not need are counted in ``task.simulations`` only.
     """
-    optimizer = optimizer or task.optimizer
-    if optimizer not in OPEN_LOOP_OPTIMIZERS:
-        raise ValueError(f"unknown optimizer {optimizer!r}; one of {', '.join(OPEN_LOOP_OPTIMIZERS)}")
-    if optimizer == "gauss-newton" and task.target_com is None:
-        raise ValueError("gauss-newton needs a centre-of-mass target; use lbfgs with target positions")
+    optimizer = optimizer or task.optimizer_for("open-loop")
+    problem = check_control_optimizer(optimizer, "open-loop", task.target_com, task.regularizer)
+    if problem:
+        raise ValueError(f"optimizer: {problem}")
     run = _evaluate or (task.evaluate_many if batch else lambda requests: [_evaluate_one(task, *r) for r in requests])
     # ask for a point's three Jacobian rows at once where they run as one batch
     together = (batch and task.template is not None) or _evaluate is not None
@@ -650,14 +675,27 @@ def _finish(result: ControlResult, bar, t0: float) -> ControlResult:
     return result
 
 
-def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: int = 200, seed: int = 0,
-              zero_start: bool = True, progress: bool = False) -> ControlResult:
+def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = None, lr: float = 1e-3, hidden: int = 200,
+              seed: int = 0, zero_start: bool = True, damping: float = 1e-3, max_step: float = 20.0,
+              progress: bool = False) -> ControlResult:
     """Train a PyTorch MLP controller through the simulator (warpcloth.torch): at the start of every controlled
     interval the MLP maps the cloth's state (positions relative to the target and velocities of all particles) to
-    the interval's pushes (the seed's "Ours + FC": Linear -> ReLU -> Linear). Adam on the weights; each iteration is
-    one forward + backward simulation of the whole horizon. A simulation that raises (CollisionError,
-    SimulationError) is a rejected step: the weights go back to the last ones that simulated and the learning rate
-    halves (``ControlResult.failed_trials``); the run goes on.
+    the interval's pushes (the seed's "Ours + FC": Linear -> ReLU -> Linear).
+
+    ``optimizer``:
+
+    * ``"adam"``: Adam on the weights; each iteration is one forward + backward simulation of the whole horizon.
+    * ``"gauss-newton"`` (a centre-of-mass target, no regulariser): damped Gauss-Newton on the weights, as the open
+      loop's on the pushes (:func:`optimize_open_loop`). A point costs one forward pass and three reverse passes
+      through its recorded rollout (``retain_graph``: the 3 x n_weights Jacobian of com_T), counted as three
+      simulations, or one when its loss is worse (the step then halves). With more weights than residuals the step
+      is the smallest change of the weights that the damped linear model asks for,
+      ``d = -J^T (J J^T + mu I)^-1 r`` (mu = damping * tr(J J^T) / 3), scaled so that no push at the current
+      trajectory's states changes by more than ``max_step`` [m/s^2].
+
+    A simulation that raises (CollisionError, SimulationError) is a rejected step (``ControlResult.failed_trials``)
+    and the run goes on: Adam goes back to the last weights that simulated and halves its learning rate;
+    Gauss-Newton halves its step (and a start that raises, its output layer: its pushes, towards zero).
 
     The network and every tensor take the model's torch device and dtype (``warpcloth.torch.torch_device`` and
     ``torch_dtype``); the initial weights are drawn on the CPU in float32 whatever they are, so a seed gives the same
@@ -665,12 +703,14 @@ def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: 
 
     Args:
         task: The control task (its model, simulator, schedule, horizon and loss).
-        iters: Training iterations (one forward + backward simulation each).
+        iters: Simulations to spend (each Adam iteration is one).
+        optimizer: ``"adam"`` or ``"gauss-newton"`` (default: the task's, ``task.optimizer_for("mlp")``).
         lr: Adam's learning rate.
         hidden: Width of the hidden layer.
         seed: Seed of torch's generator for the initial weights.
         zero_start: Zero the output layer, so training starts from no pushes (as the open loop does); else it keeps
             PyTorch's random initialisation (a random start).
+        damping, max_step: Gauss-Newton's damping and step bound.
         progress: Show a progress bar (tqdm).
 
     Returns:
@@ -678,11 +718,16 @@ def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: 
 
     Raises:
         ImportError: When PyTorch is not installed.
+        ValueError: For an unknown optimizer, or Gauss-Newton without a centre-of-mass target or with a regulariser.
     """
     import torch
 
     from warpcloth.torch import simulate, torch_device, torch_dtype
 
+    optimizer = optimizer or task.optimizer_for("mlp")
+    problem = check_control_optimizer(optimizer, "mlp", task.target_com, task.regularizer)
+    if problem:
+        raise ValueError(f"optimizer: {problem}")
     torch.manual_seed(seed)
     model = task.model
     device, dtype = torch_device(model), torch_dtype(model)
@@ -693,7 +738,6 @@ def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: 
             net[2].weight.zero_()
             net[2].bias.zero_()
     net = net.to(device=device, dtype=dtype)
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
     x0 = torch.tensor(model.particle_x0.numpy(), dtype=dtype, device=device)
     v0 = torch.tensor(model.particle_v0.numpy(), dtype=dtype, device=device)
     if task.target_com is not None:
@@ -703,10 +747,30 @@ def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: 
     pushed = torch.tensor(task.particles, device=device)
     com_weights = torch.tensor(task.com_weights, dtype=dtype, device=device)
     push_scale = 10.0  # network outputs of order one -> pushes of order gravity [m/s^2]
+    controlled = min(task.intervals, -(-task.steps // task.interval_steps))
 
-    def policy(x, v):
-        features = torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
-        return push_scale * net(features).reshape(k, 3)
+    def features(x, v):
+        return torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
+
+    def rollout():
+        """The final positions, the pushes and the network's inputs of one closed-loop simulation."""
+        x, v = x0, v0
+        pushes, inputs = [], []
+        for s in range(controlled):
+            f = features(x, v)  # the push depends on the state: the gradient flows through it (closed loop)
+            inputs.append(f.detach())
+            push = push_scale * net(f).reshape(k, 3)
+            pushes.append(push)
+            steps = min(task.interval_steps, task.steps - s * task.interval_steps)
+            force = torch.zeros((n, 3), dtype=dtype, device=device).index_put((pushed,), task.push_mass * push)
+            xs, vs = simulate(task.sim, x, v, steps=steps, time=s * task.interval_steps * task.dt,
+                              particle_force=force)
+            x, v = xs[-1], vs[-1]
+        rest = task.steps - controlled * task.interval_steps
+        if rest > 0:
+            xs, _ = simulate(task.sim, x, v, steps=rest, time=controlled * task.interval_steps * task.dt)
+            x = xs[-1]
+        return x, pushes, inputs
 
     def loss_of(x, pushes):
         if task.target_com is not None:
@@ -718,55 +782,111 @@ def train_mlp(task: ControlTask, *, iters: int = 100, lr: float = 1e-3, hidden: 
         return loss
 
     result = ControlResult(params=np.zeros(task.params_shape))
-    best = math.inf
-    bar = progress_bar(iters, "control (mlp)", "sim") if progress else None
+    bar = progress_bar(iters, f"control (mlp, {optimizer})", "sim") if progress else None
     t0 = time.perf_counter()
-    last_good = copy.deepcopy(net.state_dict())  # the weights of the last simulation that ran through
-    controlled = min(task.intervals, -(-task.steps // task.interval_steps))
-    for it in range(1, iters + 1):
-        x, v = x0, v0
-        pushes = []
-        try:
-            for s in range(controlled):
-                push = policy(x, v)
-                pushes.append(push)
-                steps = min(task.interval_steps, task.steps - s * task.interval_steps)
-                force = torch.zeros((n, 3), dtype=dtype, device=device).index_put((pushed,), task.push_mass * push)
-                xs, vs = simulate(task.sim, x, v, steps=steps, time=s * task.interval_steps * task.dt,
-                                  particle_force=force)
-                x, v = xs[-1], vs[-1]
-            rest = task.steps - controlled * task.interval_steps
-            if rest > 0:
-                xs, vs = simulate(task.sim, x, v, steps=rest, time=controlled * task.interval_steps * task.dt)
-                x = xs[-1]
-            loss = loss_of(x, pushes)
-            opt.zero_grad()
-            loss.backward()
-        except (wc.CollisionError, wc.SimulationError) as exc:
-            # a rejected step: back to the last weights that simulated, with half the learning rate
-            task.simulations += 1
-            result.failed_trials.append(f"{type(exc).__name__}: {exc}")
-            result.losses.append(math.inf)
-            result.errors_pct.append(math.inf)
-            net.load_state_dict(last_good)
-            for group in opt.param_groups:
-                group["lr"] *= 0.5
-            if bar is not None:
-                bar.update()
-            continue
-        last_good = copy.deepcopy(net.state_dict())
-        opt.step()
+
+    def record(x, pushes, loss: float) -> None:
         task.simulations += 1
         err = task.error_pct(x.detach().cpu().numpy().astype(np.float64))
-        result.losses.append(float(loss.detach()))
+        result.losses.append(loss)
         result.errors_pct.append(err)
-        if err < best:
-            best = err
+        if not err >= result.error_pct:  # the first recorded point (error_pct is NaN until then) or a better one
             params = np.zeros(task.params_shape)
             params[: len(pushes)] = torch.stack(pushes).detach().cpu().numpy().astype(np.float64)
             result.params = params
-            result.simulations, result.error_pct = it, err
+            result.simulations, result.error_pct = len(result.losses), err
         if bar is not None:
             bar.update()
-            bar.set_postfix(loss=f"{float(loss):.3e}", err=f"{err:.1f}%")
+            bar.set_postfix(loss=f"{loss:.3e}", err=f"{err:.1f}%")
+
+    def failed(exc: Exception) -> None:
+        task.simulations += 1
+        result.failed_trials.append(f"{type(exc).__name__}: {exc}")
+        result.losses.append(math.inf)
+        result.errors_pct.append(math.inf)
+        if bar is not None:
+            bar.update()
+
+    if optimizer == "adam":
+        opt = torch.optim.Adam(net.parameters(), lr=lr)
+        last_good = copy.deepcopy(net.state_dict())  # the weights of the last simulation that ran through
+        while len(result.losses) < iters:
+            try:
+                x, pushes, _ = rollout()
+                loss = loss_of(x, pushes)
+                opt.zero_grad()
+                loss.backward()
+            except (wc.CollisionError, wc.SimulationError) as exc:
+                # a rejected step: back to the last weights that simulated, with half the learning rate
+                failed(exc)
+                net.load_state_dict(last_good)
+                for group in opt.param_groups:
+                    group["lr"] *= 0.5
+                continue
+            last_good = copy.deepcopy(net.state_dict())
+            opt.step()
+            record(x, pushes, float(loss.detach()))
+        return _finish(result, bar, t0)
+
+    weights = list(net.parameters())
+
+    def point(theta: torch.Tensor, best_loss: float):
+        """Loss, residual, Jacobian and the network's inputs at the weights theta; (loss, None, None, None) when
+        the loss is worse or the simulation raised (a rejected step) or the budget ran out."""
+        torch.nn.utils.vector_to_parameters(theta, weights)
+        try:
+            x, pushes, inputs = rollout()
+            com = com_weights @ x
+            r = com - target
+            loss = 0.5 * float(r.detach() @ r.detach())
+            record(x, pushes, loss)
+            if loss >= best_loss:
+                return loss, None, None, None
+            rows = []
+            for c in range(3):
+                if c > 0:  # the same point again: one simulation per row, as the open loop counts
+                    if len(result.losses) >= iters:
+                        return math.inf, None, None, None
+                    result.losses.append(loss)
+                    result.errors_pct.append(result.errors_pct[-1])
+                    task.simulations += 1
+                    if bar is not None:
+                        bar.update()
+                grads = torch.autograd.grad(com[c], weights, retain_graph=c < 2)
+                rows.append(torch.cat([g.reshape(-1) for g in grads]))
+        except (wc.CollisionError, wc.SimulationError) as exc:
+            failed(exc)
+            return math.inf, None, None, None
+        return loss, r.detach(), torch.stack(rows), inputs
+
+    def gn_step(theta, r, jac, inputs):
+        jjt = (jac @ jac.T).double()
+        mu = damping * float(torch.trace(jjt)) / 3
+        y = torch.linalg.solve(jjt + mu * torch.eye(3, dtype=jjt.dtype, device=jjt.device), r.double())
+        step = -(jac.T @ y.to(jac.dtype))
+        with torch.no_grad():  # the pushes this step would give at the current trajectory's states
+            torch.nn.utils.vector_to_parameters(theta, weights)
+            before = [net(f) for f in inputs]
+            torch.nn.utils.vector_to_parameters(theta + step, weights)
+            change = max(float((net(f) - b).abs().max()) for f, b in zip(inputs, before)) * push_scale
+        return step * min(1.0, max_step / max(change, 1e-30))
+
+    theta = torch.nn.utils.parameters_to_vector(weights).detach().clone()
+    best_loss, r, jac, inputs = point(theta, math.inf)
+    while jac is None and result.failed_trials and len(result.losses) < iters:  # the start raised: halve its pushes
+        with torch.no_grad():
+            torch.nn.utils.vector_to_parameters(theta, weights)
+            net[2].weight.mul_(0.5)
+            net[2].bias.mul_(0.5)
+            theta = torch.nn.utils.parameters_to_vector(weights).detach().clone()
+        best_loss, r, jac, inputs = point(theta, math.inf)
+    step = None
+    while jac is not None and len(result.losses) < iters:
+        if step is None:
+            step = gn_step(theta, r, jac, inputs)
+        trial_loss, trial_r, trial_jac, trial_inputs = point(theta + step, best_loss)
+        if trial_jac is not None:  # accepted: a lower loss with its Jacobian
+            theta, best_loss, r, jac, inputs, step = theta + step, trial_loss, trial_r, trial_jac, trial_inputs, None
+        else:
+            step = 0.5 * step
     return _finish(result, bar, t0)

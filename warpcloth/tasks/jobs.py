@@ -158,7 +158,8 @@ class ControlJob:
     def record(self, task, result) -> dict:
         """The run's figures (what ``warpcloth control --json`` writes)."""
         controller, iters = self.settings(task)
-        return {"scene": task.name, "controller": controller, "seed": self.seed,
+        return {"scene": task.name, "controller": controller, "optimizer": task.optimizer_for(controller),
+                "seed": self.seed,
                 "error_pct": result.error_pct, "simulations": result.simulations, "iters": iters,
                 "seconds": result.seconds, "losses": result.losses, "errors_pct": result.errors_pct,
                 "failed_trials": result.failed_trials, "params": result.params.tolist()}

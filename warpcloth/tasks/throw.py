@@ -59,7 +59,7 @@ class ThrowTask(ControlTask):
             simulations one after another.
         steps: The horizon (default 700).
         options: Solver options (default: the scene's: CG tolerance 1e-6, 50 projection rounds).
-        segment_steps: Checkpoint segment length (default sqrt(steps)).
+        segment_steps: Checkpoint segment length (default: ControlTask's, the whole horizon for one world).
     """
 
     def __init__(self, model: wc.Model | None = None, *, steps: int = STEPS, options: wc.SolverOptions | None = None,
