@@ -923,11 +923,13 @@ def check_control_optimizer(optimizer: str, controller: str, target_com, regular
     if optimizer not in CONTROL_OPTIMIZERS[controller]:
         return f"unknown value {optimizer!r}; one of: {', '.join(CONTROL_OPTIMIZERS[controller])}"
     if optimizer == "gauss-newton" and target_com is None:
-        return "gauss-newton fits a centre-of-mass target (control.loss.com); use " \
-               f"{default_control_optimizer(controller, None, regularizer)} with target positions"
+        return ("gauss-newton fits a centre-of-mass target (control.loss.com); use "
+                f"{default_control_optimizer(controller, None, regularizer)} with target positions")
     if optimizer == "gauss-newton" and controller == "mlp" and regularizer:
         return "gauss-newton trains the MLP without a regulariser; use adam with control.regularizer"
     return None
+
+
 ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
 """Optimisers of an ``[estimate]`` task."""
 MATERIAL_PARTS = ("density", "stretching", "bending")

@@ -75,14 +75,15 @@ def checkpointed_backward(
             current = nxt
         return current
 
-    def taped(checkpoint: State, k: int, out: wp.array) -> tuple[State, wp.Tape, State]:
-        """Segment k from its checkpoint on a tape: (its start state, the tape, its end state)."""
+    def taped(checkpoint: State, k: int, out: wp.array) -> tuple[State, wp.Tape, State, wp.array]:
+        """Segment k from its checkpoint on a tape, its loss terms added to ``out``: (its start state, the tape,
+        its end state, ``out``)."""
         start = checkpoint.clone(requires_grad=True)
         start.solve_adjoint = wp.zeros_like(start.particle_x, requires_grad=False)  # receives its first step's
         tape = wp.Tape()
         with tape:
             end = advance(start, starts[k], min(starts[k] + seg, steps), requires_grad=True, out=out)
-        return start, tape, end
+        return start, tape, end, out
 
     bar = progress_bar(2 * len(starts), "checkpointed rollout", "segment") if progress else None
 
@@ -110,11 +111,9 @@ def checkpointed_backward(
     handed_on = None  # the adjoint solve of the first step of the segment after this one
     for k in reversed(range(len(starts))):
         if k == len(starts) - 1:
-            start, tape, end = last
-            last = None
+            (start, tape, end, out), last = last, None
         else:
-            out = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
-            start, tape, end = taped(checkpoints.pop(), k, out)
+            start, tape, end, out = taped(checkpoints.pop(), k, wp.zeros_like(out, requires_grad=True))
         if handed_on is not None and end.solve_adjoint is not None:
             # the first guess of this segment's last adjoint solve, as on one tape over the whole rollout: the
             # gradients then equal the full tape's bitwise
