@@ -337,6 +337,31 @@ def test_control_batches_equal_single_evaluations_with_contact():
     assert stage.phase_seconds["projection"] > 0 and task.worlds(4).model.world_count == 4  # contact, batched
 
 
+def test_jacobian_rows_from_one_recording_equal_single_evaluations_with_contact():
+    """jacobian_worlds: one forward pass and three reverse passes give each centre-of-mass row that a forward +
+    backward simulation of its own gives, bitwise (the cloth on its sphere: contact throughout), for one world and a
+    batch; evaluate_many serves a point's three rows that way."""
+    task = draped_task()
+    rng = np.random.default_rng(5)
+    params = [rng.normal(0.0, 4.0, task.n_params) for _ in range(3)]
+    single = task.jacobian_worlds(params[:1])[0]
+    assert task.simulations == 1 and task.reverse_passes == 3
+    batched = task.worlds(3).jacobian_worlds(params)
+    requests = [(p, c) for p in params[1:] for c in range(3)]
+    served = task.evaluate_many(requests)
+    assert task.batch_retries == 0 and task.reverse_passes == 3 + 6
+    for p, rows, many in ((params[0], single, None), *zip(params[1:], batched[1:], (served[:3], served[3:]))):
+        for c in range(3):
+            alone = task.evaluate(p, component=c)
+            for e in (rows[c], None if many is None else many[c]):
+                if e is None:
+                    continue
+                assert e.loss == alone.loss
+                np.testing.assert_array_equal(e.grad, alone.grad)
+                np.testing.assert_array_equal(e.positions, alone.positions)
+    np.testing.assert_array_equal(batched[0][1].grad, single[1].grad)
+
+
 def throw_task(steps=60, **kw):
     from warpcloth.tasks import scenes as S
     from warpcloth.tasks.throw import ThrowTask
