@@ -711,8 +711,10 @@ def worlds(d: dict) -> str:
     opt = d.get("optimisation")
     if opt:
         out += ["", f"The throw's open loop (Gauss-Newton, {opt['iters']} simulations a run, {opt['steps']} steps) "
-                f"from {opt['starts']} starts, one world at a time against batched (each point's three Jacobian "
-                "rows as one batch, the starts in lockstep: `optimize_open_loop_starts`):", "",
+                f"from {opt['starts']} starts, one world at a time against batched (the starts in lockstep, "
+                "`optimize_open_loop_starts`: each round's points as one batch of worlds, several points' "
+                "Jacobians from one forward and three reverse passes, a lone point's three rows as three worlds; "
+                "world simulations count a forward pass shared by three rows once):", "",
                 table(["mode", "wall time [s]", "world simulations run", "batches"],
                       [[name, f"{opt[key]['wall_s']:.1f}", str(opt[key]["world_simulations"]),
                         str(opt[key]["batches"])]

@@ -9,13 +9,14 @@ Scenes, each world a copy made with ``ModelBuilder.replicate``/``add_world``:
 Forward: ``steps`` steps without a tape. Forward + backward: ``grad_steps`` steps on a wp.Tape and one backward pass
 of a random linear loss of the final positions (float32, the default). Every configuration solves with block SSOR
 (the preconditioner of several worlds; a single world's default is multigrid). Each configuration is timed after a
-warm-up (kernels compiled, two steps). World-steps per second = worlds x steps / wall time.
+warm-up (kernels compiled, two steps), the median of three runs. World-steps per second = worlds x steps / wall time.
 
 Optimisation (``--opt-iters``): the throw's open loop (Gauss-Newton, ``--opt-iters`` simulations a run, the full
 700 steps) from zero pushes and ``--opt-starts`` - 1 random starts (benchmarks/motion_control.py's), first one
-after another with one world (``batch=False``), then batched: each point's three Jacobian rows as one batch of
-worlds, and the starts in lockstep (``optimize_open_loop_starts``): wall time, world simulations run, and whether
-every run's result (pushes and history) is the same.
+after another with one world (``batch=False``), then batched: the starts in lockstep
+(``optimize_open_loop_starts``), each round's points as one batch of worlds (several points' whole Jacobians: one
+forward and three reverse passes a point, ``ControlTask.jacobian_worlds``): wall time, world simulations run, and
+whether every run's result (pushes and history) is the same.
 
 Usage: python benchmarks/worlds.py [--quick] [--out PATH] [--worlds 1,4,16,64,256] [--steps 60] [--grad-steps 30]
        [--device cpu] [--opt-iters 50] [--opt-steps 700] [--opt-starts 3]
@@ -96,6 +97,22 @@ def _weighted_sum(x: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.vec3), out: w
     wp.atomic_add(out, 0, wp.dot(x[i], w[i]))
 
 
+REPEATS = 3
+"""Each throughput is the median of this many timed runs (one world's 60 steps take under 0.1 s: a single run swung
+by 1.5x between benchmark runs)."""
+
+
+def median_seconds(run, device: str) -> float:
+    times = []
+    for _ in range(REPEATS):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        run()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
 def measure(scene: str, worlds: int, steps: int, grad_steps: int, device: str) -> dict:
     builder, dt, options, pushed = SCENES[scene](worlds)
     record = {"scene": scene, "worlds": worlds, "particles": builder.particle_count}
@@ -105,11 +122,11 @@ def measure(scene: str, worlds: int, steps: int, grad_steps: int, device: str) -
     sim = wc.Simulator(model, dt, options=options)
     control = control_for(model, pushed)
     wc.rollout(sim, model.state(), control, steps=2)  # warm-up: kernels loaded, buffers made
-    wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    wc.rollout(sim, model.state(), control, steps=steps)
-    wp.synchronize_device(device)
-    seconds = time.perf_counter() - t0
+
+    def rollout() -> None:
+        wc.rollout(sim, model.state(), control, steps=steps)
+
+    seconds = median_seconds(rollout, device)
     record.update(steps=steps, forward_s=seconds, forward_world_steps_per_s=worlds * steps / seconds,
                   cg_iterations_per_step=sim.stats["cg_iterations"] / sim.stats["steps"])
 
@@ -131,11 +148,7 @@ def measure(scene: str, worlds: int, steps: int, grad_steps: int, device: str) -
         tape.zero()
 
     forward_backward(2)
-    wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    forward_backward(grad_steps)
-    wp.synchronize_device(device)
-    seconds = time.perf_counter() - t0
+    seconds = median_seconds(lambda: forward_backward(grad_steps), device)
     record.update(grad_steps=grad_steps, forward_backward_s=seconds,
                   forward_backward_world_steps_per_s=worlds * grad_steps / seconds)
     return record
