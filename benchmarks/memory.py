@@ -19,6 +19,7 @@ Usage: python benchmarks/memory.py [--quick] [--out PATH] [--scale 1.0]   (--qui
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import time
@@ -74,7 +75,9 @@ def _build(scene: str) -> tuple[wc.Model, float]:
 
 def child(scene: str, mode: str, steps: int) -> None:
     """One forward + backward in this process; prints JSON: peak memory above the start, seconds, gradient."""
-    segment = steps if mode == "full" else None  # one segment is one tape over the whole rollout
+    # one segment is one tape over the whole rollout; checkpointed: sqrt(T) segments (a ControlTask's default tapes a
+    # rollout this short whole)
+    segment = steps if mode == "full" else math.ceil(math.sqrt(steps))
     if scene == "throw":
         model = basket_scene(dtype=wp.float64)
         throw.ThrowTask(model, steps=2).loss_and_grad(np.zeros(throw.N_PARAMS))  # loads every kernel module
