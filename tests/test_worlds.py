@@ -362,6 +362,22 @@ def test_jacobian_rows_from_one_recording_equal_single_evaluations_with_contact(
     np.testing.assert_array_equal(batched[0][1].grad, single[1].grad)
 
 
+def test_jacobian_rows_of_points_no_better_than_their_thresholds_skip_the_reverse_passes():
+    task = draped_task()
+    rng = np.random.default_rng(6)
+    params = [rng.normal(0.0, 4.0, task.n_params) for _ in range(2)]
+    coms = [task.evaluate(p).com - task.target_com for p in params]
+    losses = [0.5 * float(r @ r) for r in coms]  # as the open loop computes a point's loss (no regulariser here)
+    for worse_than, skipped in (([losses[0], losses[1]], True), ([losses[0], np.nextafter(losses[1], np.inf)], False)):
+        before = task.reverse_passes
+        out = task.evaluate_many([(p, c, t) for p, t in zip(params, worse_than) for c in range(3)])
+        assert task.reverse_passes - before == (0 if skipped else 6)
+        for p, rows in zip(params, (out[:3], out[3:])):
+            alone = task.evaluate(p, component=1)
+            assert rows[1].loss == alone.loss and np.array_equal(rows[1].positions, alone.positions)
+            assert (rows[1].grad is None) if skipped else np.array_equal(rows[1].grad, alone.grad)
+
+
 def throw_task(steps=60, **kw):
     from warpcloth.tasks import scenes as S
     from warpcloth.tasks.throw import ThrowTask

@@ -338,18 +338,24 @@ class ControlTask:
             out.append(Evaluation(loss=value, grad=grad, com=self.com_weights @ positions, positions=positions))
         return out
 
-    def jacobian_worlds(self, params: list) -> list[list[Evaluation]]:
+    def jacobian_worlds(self, params: list, worse_than: list | None = None) -> list[list[Evaluation]]:
         """The three centre-of-mass rows of every world, world w with ``params[w]``: ``out[w][c]`` is what
         :meth:`evaluate_worlds` gives with component c, bitwise, from one forward pass and three reverse passes
         through its recording (each adjoint solve's first guess is zeroed once read, so every pass repeats a lone
         one: ``LinearSolver.solve_recorded``). Needs a centre-of-mass target; a rollout that is not taped whole
         (``segment_steps < steps``) runs :meth:`evaluate_worlds` once per row instead. Counts one simulation per
-        world (``simulations``) and three reverse passes (``reverse_passes``)."""
+        world (``simulations``) and three reverse passes (``reverse_passes``).
+
+        ``worse_than`` (a loss per world): where every world's loss (1/2 |com_T - target|^2 plus the regulariser's
+        term, as an optimiser computes it from ``Evaluation.com``) is at least its threshold, the reverse passes are
+        skipped and the rows come back with ``grad=None``: a Gauss-Newton point that is rejected needs no Jacobian."""
         if self.target_com is None:
             raise ValueError("jacobian_worlds needs a centre-of-mass target")
         W = self.world_count
         if len(params) != W:
             raise ValueError(f"jacobian_worlds takes one parameter set per world ({W}), got {len(params)}")
+        if worse_than is not None and len(worse_than) != W:
+            raise ValueError(f"worse_than takes one loss per world ({W}), got {len(worse_than)}")
         if self.segment_steps < self.steps:
             rows = [self.evaluate_worlds(params, [c] * W) for c in range(3)]
             return [[rows[c][w] for c in range(3)] for w in range(W)]
@@ -375,6 +381,27 @@ class ControlTask:
                       device=model.device)
         positions = state.particle_x.numpy().astype(np.float64)
         coms = com.numpy().astype(np.float64)
+        centres = [self.com_weights @ positions[model.world_slice(w)] for w in range(W)]
+        if worse_than is not None and all(
+                self._loss_of_com(centres[w], params[w]) >= worse_than[w] for w in range(W)):
+            grads = [[None] * W] * 3
+        else:
+            grads = self._reverse_rows(tape, outer, com, forces, push)
+        self.simulations += W
+        self.batches += W > 1
+        self.seconds += time.perf_counter() - t0
+        return [[Evaluation(loss=float(coms[w, c]), grad=grads[c][w], com=centres[w],
+                            positions=positions[model.world_slice(w)]) for c in range(3)] for w in range(W)]
+
+    def _loss_of_com(self, com: np.ndarray, params) -> float:
+        """The loss of a centre-of-mass target, as an optimiser computes it on the host."""
+        r = com - self.target_com
+        p = np.asarray(params, dtype=np.float64).reshape(-1)
+        return 0.5 * float(r @ r) + 0.5 * self.regularizer * float(p @ p)
+
+    def _reverse_rows(self, tape: wp.Tape, outer: wp.Tape, com: wp.array, forces: list, push: wp.array) -> list:
+        """The three reverse passes of :meth:`jacobian_worlds`: d com_c / d params of every world, c = 0, 1, 2."""
+        W = self.world_count
         grads = []
         for c in range(3):
             tape.zero()
@@ -385,16 +412,8 @@ class ControlTask:
             tape.backward()
             outer.backward(grads={f: f.grad for f in forces})
             grads.append(push.grad.numpy().astype(np.float64).reshape(W, -1))
-        self.simulations += W
         self.reverse_passes += 3 * W
-        self.batches += W > 1
-        self.seconds += time.perf_counter() - t0
-        out = []
-        for w in range(W):
-            x = positions[model.world_slice(w)]
-            out.append([Evaluation(loss=float(coms[w, c]), grad=grads[c][w], com=self.com_weights @ x, positions=x)
-                        for c in range(3)])
-        return out
+        return grads
 
     def worlds(self, count: int) -> ControlTask | None:
         """This task over ``count`` copies of its scene (made once, then kept), or None without a ``template``."""
@@ -411,7 +430,10 @@ class ControlTask:
         """Forward + backward simulations of several ``(params, component)`` requests (as :meth:`evaluate`'s), run
         as one batch of worlds (:meth:`worlds`, :meth:`evaluate_worlds`) where the task has a ``template``, one
         after another otherwise; requests that are whole Jacobians, ``(p, 0), (p, 1), (p, 2)`` for each of several
-        points p (or of one point without a template), run as :meth:`jacobian_worlds`. A request whose simulation
+        points p (or of one point without a template, or where they carry a threshold), run as
+        :meth:`jacobian_worlds`. A request may carry a third entry, a loss threshold (``(p, c, worse_than)``, the
+        same for a point's three rows): where every point of such a batch is at least as bad, its rows come back
+        without gradients (``grad=None``). A request whose simulation
         raises (CollisionError, SimulationError) gets the exception in its place. Each result is the one
         :meth:`evaluate` gives; a batch that raised is run again request by request, so that the others' results are
         kept."""
@@ -423,13 +445,16 @@ class ControlTask:
         # where that is faster than a batch of a world per row: the throw's rows of three points took 5.3 s so
         # against 7.7 s as nine worlds, but one point's 3.3 s against 2.9 s as three worlds (2026-11-25).
         triples = self._row_triples(requests)
-        if triples is not None and (len(triples) > 1 or self.template is None):
-            batch = self.worlds(len(triples)) if len(triples) > 1 else None
-            groups = [(batch, triples)] if batch is not None else [(self, [p]) for p in triples]
+        if triples is not None and (len(triples[0]) > 1 or self.template is None or triples[1][0] is not None):
+            points, thresholds = triples
+            batch = self.worlds(len(points)) if len(points) > 1 else None
+            groups = ([(batch, points, thresholds)] if batch is not None
+                      else [(self, [p], [t]) for p, t in zip(points, thresholds)])
             out = []
             try:
-                for task, points in groups:
-                    out += [e for rows in task.jacobian_worlds(points) for e in rows]
+                for task, points, thresholds in groups:
+                    worse_than = None if any(t is None for t in thresholds) else thresholds
+                    out += [e for rows in task.jacobian_worlds(points, worse_than=worse_than) for e in rows]
                     if task is not self:
                         self._count(task)
                 return out
@@ -438,6 +463,7 @@ class ControlTask:
                 if task is not self:
                     self._count(task)
                 self.batch_retries += 1
+        requests = [(r[0], r[1]) for r in requests]  # thresholds only save reverse passes: every row is computed
         batch = self.worlds(len(requests)) if len(requests) > 1 else None
         if batch is not None:
             try:
@@ -457,18 +483,22 @@ class ControlTask:
                 out.append(exc)
         return out
 
-    def _row_triples(self, requests: list) -> list | None:
-        """The points of ``requests`` where they are whole Jacobians, (p, 0), (p, 1), (p, 2) for each point p in
-        turn, on a rollout taped whole (:meth:`jacobian_worlds`); else None."""
+    def _row_triples(self, requests: list) -> tuple[list, list] | None:
+        """(points, thresholds) of ``requests`` where they are whole Jacobians, (p, 0), (p, 1), (p, 2) for each point
+        p in turn (each with the same optional threshold), on a rollout taped whole (:meth:`jacobian_worlds`); else
+        None."""
         if self.target_com is None or self.segment_steps < self.steps or len(requests) % 3:
             return None
-        points = []
+        points, thresholds = [], []
         for k in range(0, len(requests), 3):
-            (p, c0), (p1, c1), (p2, c2) = requests[k:k + 3]
-            if (c0, c1, c2) != (0, 1, 2) or not (np.array_equal(p, p1) and np.array_equal(p, p2)):
+            rows = [(r[0], r[1], r[2] if len(r) > 2 else None) for r in requests[k:k + 3]]
+            p, _, worse_than = rows[0]
+            if [c for _, c, _ in rows] != [0, 1, 2] or any(not np.array_equal(p, q) or t != worse_than
+                                                           for q, _, t in rows[1:]):
                 return None
             points.append(p)
-        return points
+            thresholds.append(worse_than)
+        return points, thresholds
 
     def _count(self, batch: ControlTask) -> None:
         """Take a batch task's counters over into this task's."""
@@ -637,7 +667,8 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
         step is rejected and halved."""
         jac = np.zeros((3, task.n_params))
         com = None
-        rows = run([(params, k) for k in range(3)]) if together else None
+        # the rows at once, with the loss they are needed below (a worse point's batch may skip its reverse passes)
+        rows = run([(params, k, best_loss) for k in range(3)]) if together else None
         for k in range(3):
             if len(result.losses) >= iters:
                 return math.inf, None, None
@@ -645,15 +676,14 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
             if isinstance(e, Exception):
                 failed(e)
                 return math.inf, None, None
-            jac[k] = e.grad
             if k == 0:
                 com = e.com
-                r = com - task.target_com
-                trial_loss = 0.5 * float(r @ r) + 0.5 * w * float(params @ params)
+                trial_loss = task._loss_of_com(com, params)
                 record(params, trial_loss, task.error_pct(e.positions))
                 if trial_loss >= best_loss:
                     return trial_loss, None, None
-            else:  # the same point again: keep the per-simulation history aligned
+            jac[k] = e.grad
+            if k > 0:  # the same point again: keep the per-simulation history aligned
                 result.losses.append(result.losses[-1])
                 result.errors_pct.append(result.errors_pct[-1])
                 if bar is not None:
