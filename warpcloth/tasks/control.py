@@ -50,8 +50,9 @@ class Evaluation:
 
     loss: float
     """The loss (the regulariser included), or the chosen centre-of-mass coordinate with ``component``."""
-    grad: np.ndarray
-    """d loss / d params, flat."""
+    grad: np.ndarray | None
+    """d loss / d params, flat (None where a request's threshold let :meth:`ControlTask.jacobian_worlds` skip the
+    reverse passes)."""
     com: np.ndarray
     """The centre of mass (mass-weighted, as the loss takes it) at the horizon (3,)."""
     positions: np.ndarray
@@ -426,24 +427,24 @@ class ControlTask:
             self._batched[count] = ControlTask(model, **self._args)
         return self._batched[count]
 
-    def evaluate_many(self, requests: list[tuple[np.ndarray, int | None]]) -> list[Evaluation | Exception]:
+    def evaluate_many(self, requests: list[tuple]) -> list[Evaluation | Exception]:
         """Forward + backward simulations of several ``(params, component)`` requests (as :meth:`evaluate`'s), run
         as one batch of worlds (:meth:`worlds`, :meth:`evaluate_worlds`) where the task has a ``template``, one
-        after another otherwise; requests that are whole Jacobians, ``(p, 0), (p, 1), (p, 2)`` for each of several
-        points p (or of one point without a template, or where they carry a threshold), run as
-        :meth:`jacobian_worlds`. A request may carry a third entry, a loss threshold (``(p, c, worse_than)``, the
-        same for a point's three rows): where every point of such a batch is at least as bad, its rows come back
-        without gradients (``grad=None``). A request whose simulation
-        raises (CollisionError, SimulationError) gets the exception in its place. Each result is the one
-        :meth:`evaluate` gives; a batch that raised is run again request by request, so that the others' results are
-        kept."""
+        after another otherwise. Requests that are whole Jacobians, ``(p, 0), (p, 1), (p, 2)`` for each of several
+        points p (or of one point without a template, or carrying a threshold), run as :meth:`jacobian_worlds`. A
+        request may carry a third entry, a loss threshold (``(p, c, worse_than)``, the same for a point's three
+        rows): where every point of such a batch is at least as bad, its rows come back without gradients
+        (``grad=None``). A request whose simulation raises (CollisionError, SimulationError) gets the exception in
+        its place. Each result is the one :meth:`evaluate` gives; a batch that raised is run again request by
+        request, so that the others' results are kept."""
         if self.world_count != 1:
             raise ValueError(f"evaluate_many runs on a task of one world; this one has {self.world_count}")
         if not requests:
             return []
-        # Whole Jacobians (a point's three rows): one forward and three reverse passes a point, its worlds batched,
-        # where that is faster than a batch of a world per row: the throw's rows of three points took 5.3 s so
-        # against 7.7 s as nine worlds, but one point's 3.3 s against 2.9 s as three worlds (2026-11-25).
+        # Whole Jacobians (a point's three rows): one forward and three reverse passes a point, its worlds batched.
+        # The throw's rows of three points took 5.3 s so against 7.7 s as nine worlds, one point's 3.3 s against
+        # 2.9 s as three worlds (2026-11-25): a lone point goes this way only with a threshold, whose rejected
+        # points then cost the forward pass alone.
         triples = self._row_triples(requests)
         if triples is not None and (len(triples[0]) > 1 or self.template is None or triples[1][0] is not None):
             points, thresholds = triples
@@ -452,14 +453,14 @@ class ControlTask:
                       else [(self, [p], [t]) for p, t in zip(points, thresholds)])
             out = []
             try:
-                for task, points, thresholds in groups:
-                    worse_than = None if any(t is None for t in thresholds) else thresholds
-                    out += [e for rows in task.jacobian_worlds(points, worse_than=worse_than) for e in rows]
+                for task, part, limits in groups:
+                    worse_than = None if any(t is None for t in limits) else limits
+                    out += [e for rows in task.jacobian_worlds(part, worse_than=worse_than) for e in rows]
                     if task is not self:
                         self._count(task)
                 return out
             except (wc.CollisionError, wc.SimulationError):
-                task.simulations += len(points)
+                task.simulations += len(part)
                 if task is not self:
                     self._count(task)
                 self.batch_retries += 1
