@@ -397,8 +397,10 @@ def test_infeasible_zone():
     height = -constraint_values(prob, prob["x_hat"])[floor] + DELTA
     obs[-1] = prob["x_hat"][p] + (1.5 * DELTA - height) * up
     zi = next(zone.index for zone in res.zones if p in zone.nodes)
-    with pytest.raises(ProjectionError, match=rf"impact zone {zi} \(\d+ free particles, \d+ contacts\) is infeasible"):
+    with pytest.raises(ProjectionError, match=rf"impact zone {zi} \(\d+ free particles, \d+ contacts\) is infeasible") \
+            as err:
         solve(bad)
+    assert p in bad["nodes"][err.value.contact]  # a contact of the failing zone (a caller names its world)
     # separated by 2.5δ it is feasible
     obs[-1] = prob["x_hat"][p] + (2.5 * DELTA - height) * up
     check_kkt(bad, solve(bad), 1e-10)
@@ -410,8 +412,9 @@ def test_no_convergence():
     zone = max(res.zones, key=lambda zone: zone.stats["iterations"])
     assert zone.stats["iterations"] >= 2
     with pytest.raises(ProjectionError, match=rf"impact zone {zone.index} \({zone.stats['nodes']} free particles, "
-                                              rf"{zone.stats['ncon']} contacts\) did not converge in 1 "):
+                                              rf"{zone.stats['ncon']} contacts\) did not converge in 1 ") as err:
         solve(prob, max_iterations=1)
+    assert err.value.contact in zone.contacts
 
 
 def test_contact_without_free_weight():
@@ -424,8 +427,10 @@ def test_contact_without_free_weight():
     bad["weights"] = np.vstack([prob["weights"], [[0.0, -0.2, -0.3, -0.5]]])
     bad["normals"] = np.vstack([prob["normals"], -_plane_normal(prob)[None]])  # obstacle plane "above" itself
     zi = len(solve(prob).zones)  # the loose particle has the largest index: the last zone
-    with pytest.raises(ProjectionError, match=rf"impact zone {zi} \(1 free particles, 1 contacts\) is infeasible"):
+    with pytest.raises(ProjectionError, match=rf"impact zone {zi} \(1 free particles, 1 contacts\) is infeasible") \
+            as err:
         solve(bad)
+    assert err.value.contact == len(bad["nodes"]) - 1
 
 
 def test_dual_solvers_random_dense():

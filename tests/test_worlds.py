@@ -148,11 +148,13 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
     assert sim.proximity.last_count == pairs > 0  # the cloths rest on their spheres, each world's pairs its own
 
 
-def test_second_try_and_fail_safe_act_on_their_worlds_alone():
+@pytest.mark.parametrize("solver", ["device", "numpy"])
+def test_second_try_and_fail_safe_act_on_their_worlds_alone(solver):
     """Worlds whose steps need the collision stage's second try (a sheet between two planes) or its fail-safe (a
     cloth dropped on a sphere with a tight projection-strain limit), next to a world that needs neither: each world
     goes through its own tries, so states and the gradients of forces, x0, v0, the obstacles' placement and each
-    world's material equal single-world runs, bitwise."""
+    world's material equal single-world runs, bitwise. With either projection solver: each names the worlds whose
+    projection failed."""
     from test_collision_gradients import SANDWICH_THICKNESS, sandwich_builder
 
     pushed = [0, 6, 42, 48]
@@ -160,7 +162,7 @@ def test_second_try_and_fail_safe_act_on_their_worlds_alone():
               (draped_builder(), (0.0, 0.0, -0.3)), (draped_builder(), (0.5, 0.0, -0.5))]
     for builder, _ in worlds[1:]:  # the worlds of a model share their collision settings
         builder.set_collision(thickness=SANDWICH_THICKNESS, repulsion_stiffness=0.0)
-    options = wc.SolverOptions(**SSOR, collision=wc.CollisionOptions(max_projection_strain=0.02))
+    options = wc.SolverOptions(**SSOR, collision=wc.CollisionOptions(max_projection_strain=0.02, solver=solver))
     steps = 12
 
     def run(model, forces, weights):

@@ -157,7 +157,9 @@ class ZoneBackend:
                 weights, normals, targets, tol=opt.qp_tol,
                 lam_init=np.concatenate([self._lam, np.zeros(len(normals) - len(self._lam))]))
         except projection.ProjectionError as err:
-            raise CollisionError(f"step {step}: {err}") from err
+            worlds = None if err.contact is None else \
+                [int(self.detector.node_world_host[self._contacts.nodes[err.contact, 0]])]
+            raise CollisionError(f"step {step}{_worlds(self.model, worlds)}: {err}", worlds=worlds) from err
         self._lam = result.lam
         self.zones = result.zones_stats()
         z = wp.array(result.z, dtype=self.model.types.vec3, device=self.model.device,

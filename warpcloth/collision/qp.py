@@ -60,7 +60,10 @@ __all__ = ["ProjectionError", "ProjectionResult", "project"]
 
 
 class ProjectionError(RuntimeError):
-    """A zone is infeasible or its solve did not converge, or a contact with only constant nodes is violated."""
+    """A zone is infeasible or its solve did not converge, or a contact with only constant nodes is violated.
+
+    ``contact``: the violated contact, or one of the failing zone's (so a caller can name its world); ``zone``: the
+    failing impact zone, where a zone failed."""
 
     def __init__(self, message: str, *, zone: int | None = None, contact: int | None = None,
                  residual: float | None = None):
@@ -181,20 +184,20 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
                 if lam is None:
                     lam = solver.lawson_hanson(best)
         except ZoneInfeasible as err:
-            raise _infeasible(zi, znodes.size, k, err.residual, tol) from None
+            raise _infeasible(zi, znodes.size, k, err.residual, tol, int(zcons[0])) from None
         except ZoneNotConverged:
             res = solver.residual(solver.last, solver.last > 0.0)
             raise ProjectionError(
                 f"impact zone {zi} ({znodes.size} free particles, {k} contacts) did not converge in "
                 f"{max_iterations} active-set iterations; residual {res:.3e} m > tol {tol:.1e}",
-                zone=zi, residual=res) from None
+                zone=zi, contact=int(zcons[0]), residual=res) from None
         lam = np.maximum(lam, 0.0)
         disp = np.stack([np.bincount(s_node, weights=lam[s_con] * s_dir[:, d], minlength=znodes.size)
                          for d in range(3)], axis=1)
         zz = xz + invm[:, None] * disp
         c = h - np.bincount(s_con, weights=np.einsum("ij,ij->i", s_dir, zz[s_node]), minlength=k)
         pos_l = lam > 0.0
-        residual = _check_solution(zi, znodes.size, c, pos_l, tol)
+        residual = _check_solution(zi, znodes.size, c, pos_l, tol, int(zcons[0]))
         stat = mt[:, None] * (zz - xz) - disp  # W(z − x̂) + Gᵀλ
         z[znodes] = zz
         lam_all[zcons] = lam
@@ -220,20 +223,20 @@ def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, 
     return result
 
 
-def _infeasible(zi, nodes, k, residual, tol) -> ProjectionError:
+def _infeasible(zi, nodes, k, residual, tol, contact) -> ProjectionError:
     return ProjectionError(
         f"impact zone {zi} ({nodes} free particles, {k} contacts) is infeasible: the best working set leaves a "
         f"constraint residual of {residual:.3e} m > tol {tol:.1e} (cloth squeezed between constant nodes closer "
-        "than 2δ?)", zone=zi, residual=residual)
+        "than 2δ?)", zone=zi, contact=contact, residual=residual)
 
 
-def _check_solution(zi, nodes, c, positive, tol) -> float:
+def _check_solution(zi, nodes, c, positive, tol, contact) -> float:
     """KKT residual [m] of a zone's solution (violation, and |c_j| where λ_j > 0); raises beyond tol."""
     residual = max(float(np.max(c, initial=0.0)), float(np.max(np.abs(c[positive]), initial=0.0)))
     if residual > tol:
         raise ProjectionError(
             f"impact zone {zi} ({nodes} free particles, {c.size} contacts): the solution misses the KKT "
-            f"tolerance, residual {residual:.3e} m > tol {tol:.1e}", zone=zi, residual=residual)
+            f"tolerance, residual {residual:.3e} m > tol {tol:.1e}", zone=zi, contact=contact, residual=residual)
     return residual
 
 
@@ -258,7 +261,7 @@ def _solve_singles(ss, slot_j, slot_n, slot_w, zone_of_contact, x_hat, mass, nor
     bad = np.flatnonzero((bj > tol) & ~(Hj > 0.0))
     if bad.size:
         i = int(bad[0])
-        raise _infeasible(int(zone_of_contact[J[i]]), int(cnt[i]), 1, float(bj[i]), tol)
+        raise _infeasible(int(zone_of_contact[J[i]]), int(cnt[i]), 1, float(bj[i]), tol, int(J[i]))
     lam = np.where((bj > 0.5 * tol) & (Hj > 0.0), bj / np.where(Hj > 0.0, Hj, 1.0), 0.0)
     zz = x_hat[sn] + (lam[pos] / mt)[:, None] * sdir
     z[sn] = zz
@@ -269,7 +272,7 @@ def _solve_singles(ss, slot_j, slot_n, slot_w, zone_of_contact, x_hat, mass, nor
     viol[positive] = np.abs(c[positive])
     if nJ and np.max(viol) > tol:
         i = int(np.argmax(viol))
-        _check_solution(int(zone_of_contact[J[i]]), int(cnt[i]), c[i:i + 1], positive[i:i + 1], tol)
+        _check_solution(int(zone_of_contact[J[i]]), int(cnt[i]), c[i:i + 1], positive[i:i + 1], tol, int(J[i]))
     stat = np.abs(mt[:, None] * (zz - x_hat[sn]) - lam[pos, None] * sdir)
     stat = np.bincount(pos, weights=np.max(stat, axis=1), minlength=nJ)
     act = (np.abs(c) <= active_tol) | positive
