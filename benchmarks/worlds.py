@@ -18,9 +18,16 @@ after another with one world (``batch=False``), then batched: the starts in lock
 forward and three reverse passes a point, ``ControlTask.jacobian_worlds``): wall time, world simulations run, and
 whether every run's result (pushes and history) is the same.
 
+Material estimation (``--fit-iters``): the 10 fabrics of Table 2 fitted on the seed's scene (demo_wind.obj, 50
+steps; L-BFGS from the mean fabric, ``--fit-iters`` evaluations, no start scan), one fabric after another and then
+as one batch of 10 worlds (``estimation.estimate_materials``: the fits in lockstep, each evaluation one
+simulation of every world): wall time and whether every fit's history and material are the same.
+
 Usage: python benchmarks/worlds.py [--quick] [--out PATH] [--worlds 1,4,16,64,256] [--steps 60] [--grad-steps 30]
-       [--device cpu] [--opt-iters 50] [--opt-steps 700] [--opt-starts 3]
-       (--quick: 1 and 4 worlds, 4 steps; the optimisation 2 starts, 3 simulations, 10 steps)
+       [--device cpu] [--opt-iters 50] [--opt-steps 700] [--opt-starts 3] [--fit-iters 20]
+       [--fit-steps 50] [--fit-fabrics 10]
+       (--quick: 1 and 4 worlds, 4 steps; the optimisation 2 starts, 3 simulations, 10 steps; 2 fabrics fitted,
+       2 evaluations of 4 steps)
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from common import wc
 from motion_control import START_SIGMA
 
 from warpcloth.scene import load_scene
+from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
 
@@ -180,11 +188,46 @@ def optimisation(steps: int, iters: int, starts: int, device: str) -> dict:
             "speedup": runs[False]["wall_s"] / runs[True]["wall_s"]}
 
 
+def fabric_fits(iters: int, steps: int, fabrics: int, device: str) -> dict:
+    """The fabrics fitted one after another, then as one batch of worlds (module docstring)."""
+    names = list(wc.PRESET_NAMES)[:fabrics]
+    mesh = common.seed_dir() / "meshes" / "demo_wind.obj"
+    options = wc.SolverOptions(cg_tol=1e-6, **SAME_SOLVER)  # the fit's tolerance (TrajectoryFit's default)
+
+    def fit_of(builders, truths):
+        composed = wc.ModelBuilder()
+        for b in builders:
+            composed.add_world(b)
+        model = composed.finalize(device, requires_grad=True)
+        targets = E.TrajectoryFit.simulate_targets(model, truths, steps=steps, options=options)
+        return E.TrajectoryFit(model, targets, steps=steps, options=options)
+
+    truths = [wc.preset(name, thicken=S.THICKEN) for name in names]
+    alone_fits = [fit_of([S.hanging_cloth_builder(t, mesh_path=mesh)], [t]) for t in truths]
+    batch_fit = fit_of([S.hanging_cloth_builder(t, mesh_path=mesh) for t in truths], truths)
+    E.estimate_material(alone_fits[0], iters=1, scan=None)  # warm-up: kernels compiled
+    t0 = time.perf_counter()
+    alone = [E.estimate_material(f, iters=iters, scan=None) for f in alone_fits]
+    alone_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    batched = E.estimate_materials(batch_fit, iters=iters, scan=None)
+    batched_s = time.perf_counter() - t0
+    same = all(a.losses == b.losses and np.array_equal(a.material.stretching, b.material.stretching)
+               and np.array_equal(a.material.bending, b.material.bending) and a.material.density == b.material.density
+               for a, b in zip(alone, batched))
+    print(f"material estimation, {len(names)} fabrics, {iters} evaluations each: one at a time {alone_s:.1f} s, "
+          f"one batch {batched_s:.1f} s, same results {same}", flush=True)
+    return {"fabrics": names, "iters": iters, "steps": steps, "one_at_a_time_s": alone_s, "batched_s": batched_s,
+            "speedup": alone_s / batched_s, "same_result": same,
+            "sim_err_pct": [r.simulation_error_pct for r in batched]}
+
+
 def main():
     args = common.parse_args(__doc__, worlds="1,4,16,64,256", steps=60, grad_steps=30, device="cpu",
-                             opt_iters=50, opt_steps=C.STEPS, opt_starts=3,
+                             opt_iters=50, opt_steps=C.STEPS, opt_starts=3, fit_iters=20, fit_steps=E.STEPS,
+                             fit_fabrics=10,
                              quick={"worlds": "1,4", "steps": 4, "grad_steps": 4, "opt_iters": 3, "opt_steps": 10,
-                                    "opt_starts": 2})
+                                    "opt_starts": 2, "fit_iters": 2, "fit_steps": 4, "fit_fabrics": 2})
     counts = [int(w) for w in args.worlds.split(",")]
     wp.init()
     records = []
@@ -225,9 +268,10 @@ def main():
     ok = opt["speedup"] >= TARGET_OPT_SPEEDUP and opt["same_result"]
     print(f"batched >= {TARGET_OPT_SPEEDUP:g}x faster, same result: {opt['speedup']:.2f}x, same result "
           f"{opt['same_result']} ({opt['batch_retries']} batches run again world by world) {'ok' if ok else 'FAIL'}")
+    fits = fabric_fits(args.fit_iters, args.fit_steps, args.fit_fabrics, args.device)
     common.write_result(args, {"records": records, "target_speedup": TARGET_SPEEDUP, "push_sigma": PUSH_SIGMA,
-                               "optimisation": opt, "target_optimisation_speedup": TARGET_OPT_SPEEDUP},
-                        device=args.device)
+                               "optimisation": opt, "target_optimisation_speedup": TARGET_OPT_SPEEDUP,
+                               "material_estimation": fits}, device=args.device)
 
 
 if __name__ == "__main__":

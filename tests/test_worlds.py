@@ -247,8 +247,9 @@ def test_failing_world_is_named():
     composed.add_world(fast)
     model = composed.finalize("cpu")
     sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(preconditioner="block_ssor"))
-    with pytest.raises(wc.SimulationError, match=r"step 1 .*world 1, its particle \d"):
+    with pytest.raises(wc.SimulationError, match=r"step 1 .*world 1, its particle \d") as err:
         sim.step(model.state(), model.empty_state())
+    assert err.value.worlds == [1]
 
 
 def test_replicate_scene_with_obstacles_and_handles():

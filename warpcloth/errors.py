@@ -2,18 +2,18 @@
 
 
 class SimulationError(RuntimeError):
-    """The simulation diverged (NaN/inf or a speed beyond ``SolverOptions.max_speed``) or a solve failed."""
+    """The simulation diverged (NaN/inf or a speed beyond ``SolverOptions.max_speed``) or a solve failed.
 
-
-class CollisionError(SimulationError):
-    """The collision response could not make a step collision-free, or a contact buffer overflowed.
-
-    ``worlds``: the worlds whose step failed, where the error knows (the collision stage retries those alone);
-    None: not known, every world."""
+    ``worlds``: the worlds whose step failed, where the error knows (the collision stage retries those alone, a
+    batched fit rejects their trials alone); None: not known, every world."""
 
     def __init__(self, message: str, worlds: list[int] | None = None):
         super().__init__(message)
         self.worlds = None if worlds is None else [int(w) for w in worlds]
+
+
+class CollisionError(SimulationError):
+    """The collision response could not make a step collision-free, or a contact buffer overflowed."""
 
 
 class ContactCapacityError(CollisionError):

@@ -39,11 +39,12 @@ class StepDiagnostics:
                 f"{speed:.4g} m/s, "
                 f"over SolverOptions.max_speed = {max_speed:g} m/s (x = {x.tolist()}); lower dt, raise damping, or "
                 "check the material and forces; if the motion really is this fast (a long free fall), raise "
-                "max_speed" + hints)
+                "max_speed" + hints, worlds=[self.model.world_of(particle)])
         return SimulationError(
             f"simulation diverged at step {step} (t = {t:.4g} s): {self.model.particle_name(particle)} has "
             f"x = {x.tolist()}, "
-            f"v = {v.tolist()}; lower dt, raise damping, or check the material and forces" + hints)
+            f"v = {v.tolist()}; lower dt, raise damping, or check the material and forces" + hints,
+            worlds=[self.model.world_of(particle)])
 
     def non_finite_cause(self, state_in: State, values: wp.array, rhs: wp.array) -> str | None:
         """What made a solve's residual non-finite, naming the particle: a non-finite or overflowing input state,

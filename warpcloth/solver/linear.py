@@ -188,16 +188,16 @@ class LinearSolver:
         non-finite residual."""
         iters, residual, converged = info
         opt = self.options
-        world = ""
+        world, worlds = "", None
         if self.model.world_count > 1 and self.world_info is not None and not (converged and math.isfinite(residual)):
             w = self._failed_world()
-            world = f" in world {w}"
+            world, worlds = f" in world {w}", [w]
             iters, residual = int(self.world_info[w, 0]), float(self.world_info[w, 1])
         if not math.isfinite(residual):
             raise SimulationError(f"{which} CG solve of step {step}{world} produced a non-finite residual after "
                                   f"{iters} iterations; the system is not positive definite or the state is already "
                                   "invalid"
-                                  + self.hint())
+                                  + self.hint(), worlds=worlds)
         if not converged:
             name, tol = "cg_tol", opt.cg_tol
             if which == "adjoint" and opt.adjoint_cg_tol is not None:
@@ -207,7 +207,7 @@ class LinearSolver:
                    "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
                    + self.hint())
             if opt.on_cg_failure == "raise":
-                raise SimulationError(msg)
+                raise SimulationError(msg, worlds=worlds)
             warnings.warn(msg, RuntimeWarning, stacklevel=4)
 
     def _failed_world(self) -> int:

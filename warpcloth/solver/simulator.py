@@ -185,7 +185,7 @@ class Simulator:
             cause = self.diagnostics.non_finite_cause(state_in, s.values, s.rhs)
             if cause is None:
                 raise
-            raise SimulationError(f"step {s.number}: {cause} ({exc})") from None
+            raise SimulationError(f"step {s.number}: {cause} ({exc})", worlds=exc.worlds) from None
         if info.iterations == 0 and not self._atol_checked:
             self._atol_checked = True  # once per Simulator, at its first skipped solve
             self.diagnostics.warn_if_below_atol(s.number, self.options.cg_atol)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -135,12 +136,31 @@ class TrajectoryFit:
 
     loss = mean over compared frames of mean over vertices of |x_sim - x_target|^2 [m^2] (the seed's loss); frames
     are every ``frame_stride`` steps up to ``steps``.
+
+    A model of several equal worlds (``ModelBuilder.add_world``/``replicate``: the same particle count, each world's
+    cloth its own material) fits a material per world in one batch: each frame of ``targets`` holds every world's
+    particles (``simulate_targets`` with a material per world makes them), and :meth:`losses` /
+    :meth:`losses_and_grads` evaluate one material per world with one simulation (:func:`estimate_materials`).
     """
 
     def __init__(self, model: wc.Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
                  frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None):
-        if model.material_count != 1:
-            raise ValueError(f"TrajectoryFit estimates one material; the model has {model.material_count}")
+        worlds = model.world_count
+        if model.material_count != worlds:
+            raise ValueError(f"TrajectoryFit estimates one material per world; the model has {model.material_count} "
+                             f"materials in {worlds} world(s) (worlds built with one Material object share it: give "
+                             "each world's builder its own, material.copy())")
+        if worlds > 1:
+            sizes = np.diff(model.world_particle_start)
+            odd = np.flatnonzero(sizes != sizes[0])
+            if odd.size:
+                raise ValueError(f"TrajectoryFit: world {odd[0]} has {sizes[odd[0]]} particles, world 0 "
+                                 f"{sizes[0]}; a batched fit needs worlds of one size")
+            tri_world = model.particle_world.numpy()[model.triangles_np[:, 0]]
+            odd = np.flatnonzero(model.tri_material.numpy() != tri_world)
+            if odd.size:
+                raise ValueError(f"TrajectoryFit: triangle {odd[0]} of world {tri_world[odd[0]]} uses material "
+                                 f"{model.tri_material.numpy()[odd[0]]}; each world's cloth needs its own material")
         if steps % frame_stride:
             raise ValueError(f"steps ({steps}) must be a multiple of frame_stride ({frame_stride})")
         frames = steps // frame_stride
@@ -156,65 +176,98 @@ class TrajectoryFit:
         self.sim = wc.Simulator(model, dt, options=options or wc.SolverOptions(cg_tol=1e-6))
         self.targets = [wp.array(np.asarray(x, dtype=np.float64), dtype=model.types.vec3, device=model.device)
                         for x in targets[: frames + 1]]
+        self._first = wp.zeros(worlds, dtype=wp.int32, device=model.device)  # each world's targets are its own
         self.evaluations = 0
         self.seconds = 0.0
 
+    @property
+    def world_count(self) -> int:
+        return self.model.world_count
+
     @staticmethod
-    def simulate_targets(model: wc.Model, truth: wc.Material, *, steps: int = STEPS, frame_stride: int = FRAME_STRIDE,
-                         dt: float = DT, options: wc.SolverOptions | None = None) -> list[np.ndarray]:
-        """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout, with
-        ``options`` (the fit's: default SolverOptions()) but a CG tolerance of 1e-8, so that the targets are the
-        motion the fit's model makes, without its solve's error."""
+    def simulate_targets(model: wc.Model, truth: wc.Material | Sequence[wc.Material], *, steps: int = STEPS,
+                         frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None
+                         ) -> list[np.ndarray]:
+        """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout (one
+        material, or one per world), with ``options`` (the fit's: default SolverOptions()) but a CG tolerance of
+        1e-8, so that the targets are the motion the fit's model makes, without its solve's error."""
         dummy = [np.zeros((model.particle_count, 3))] * (steps // frame_stride + 1)
         fit = TrajectoryFit(model, dummy, steps=steps, frame_stride=frame_stride, dt=dt,
                             options=replace(options or wc.SolverOptions(), cg_tol=1e-8))
         return fit.trajectory(truth)[::frame_stride]
 
-    def set_material(self, m: wc.Material) -> None:
+    def set_material(self, m: wc.Material | Sequence[wc.Material]) -> None:
+        """Give every world ``m``, or world w ``m[w]``."""
         model = self.model
-        model.material_density.assign(np.array([m.density]))
-        model.material_stretching.assign(m.stretching[None])
-        model.material_bending.assign(m.bending[None])
+        ms = [m] * model.world_count if isinstance(m, wc.Material) else list(m)
+        if len(ms) != model.world_count:
+            raise ValueError(f"{len(ms)} materials for {model.world_count} world(s)")
+        model.material_density.assign(np.array([x.density for x in ms]))
+        model.material_stretching.assign(np.stack([x.stretching for x in ms]))
+        model.material_bending.assign(np.stack([x.bending for x in ms]))
 
     def _rollout_loss(self, steps: int):
         model = self.model
         frames = steps // self.frame_stride
-        loss = wp.zeros(1, dtype=model.types.scalar, device=model.device, requires_grad=True)
+        loss = wp.zeros(model.world_count, dtype=model.types.scalar, device=model.device, requires_grad=True)
         trajectory = wc.rollout(self.sim, model.state(), steps=steps)
-        scale = model.scalar(1.0 / (frames * model.particle_count))
+        scale = model.scalar(1.0 / (frames * (model.particle_count // model.world_count)))  # a world's particles
         for k in range(1, frames + 1):
-            wp.launch(self._kernels.squared_distance, model.particle_count,
-                      inputs=[trajectory[k * self.frame_stride].particle_x, self.targets[k], scale], outputs=[loss])
+            wp.launch(self._kernels.world_squared_distance, model.particle_count,
+                      inputs=[trajectory[k * self.frame_stride].particle_x, self.targets[k], model.particle_world,
+                              self._first, scale], outputs=[loss])
         return loss, trajectory
 
+    def _one_world(self, what: str) -> None:
+        if self.model.world_count != 1:
+            raise ValueError(f"TrajectoryFit.{what} fits one world; this fit has {self.model.world_count}: use "
+                             f"{what.replace('loss', 'losses').replace('_grad', '_grads')}")
+
     def loss(self, m: wc.Material, steps: int | None = None) -> float:
-        self.set_material(m)
+        self._one_world("loss")
+        return float(self.losses([m], steps)[0])
+
+    def losses(self, materials: Sequence[wc.Material], steps: int | None = None) -> np.ndarray:
+        """Each world's loss with its material ``materials[w]``, forward only, (world_count,)."""
+        self.set_material(materials)
+        t0 = time.perf_counter()
         loss, _ = self._rollout_loss(steps or self.steps)
-        return float(loss.numpy()[0])
+        out = loss.numpy().astype(np.float64)
+        self.seconds += time.perf_counter() - t0
+        return out
 
     def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
         """(loss, d/d density, d/d stretching (6, 4), d/d bending (3, 5)) in raw units."""
+        self._one_world("loss_and_grad")
+        return self.losses_and_grads([m], steps)[0]
+
+    def losses_and_grads(self, materials: Sequence[wc.Material], steps: int | None = None
+                         ) -> list[tuple[float, float, np.ndarray, np.ndarray]]:
+        """Each world's :meth:`loss_and_grad` with its material ``materials[w]``: one forward and one backward pass
+        (the worlds never interact, so the gradient of the losses' sum holds each world's own)."""
         model = self.model
-        self.set_material(m)
+        self.set_material(materials)
         t0 = time.perf_counter()
         tape = wp.Tape()
         with tape:
             loss, _ = self._rollout_loss(steps or self.steps)
-        tape.backward(loss)
-        grads = (float(model.material_density.grad.numpy()[0]), model.material_stretching.grad.numpy()[0].astype(float),
-                 model.material_bending.grad.numpy()[0].astype(float))
+        tape.backward(grads={loss: wp.ones(model.world_count, dtype=model.types.scalar, device=model.device)})
+        density, stretching, bending = (a.grad.numpy().astype(float) for a in
+                                        (model.material_density, model.material_stretching, model.material_bending))
         tape.zero()
         for arr in (model.material_density, model.material_stretching, model.material_bending):
             arr.grad.zero_()
         self.seconds += time.perf_counter() - t0
         self.evaluations += 1
-        return (float(loss.numpy()[0]), *grads)
+        values = loss.numpy()
+        return [(float(values[w]), float(density[w]), stretching[w], bending[w]) for w in range(model.world_count)]
 
     def simulation_error(self, m: wc.Material) -> float:
         """RMS vertex distance to the target over the compared frames, per metre of cloth side, in %."""
         return 100.0 * math.sqrt(self.loss(m))
 
-    def trajectory(self, m: wc.Material, steps: int | None = None) -> list[np.ndarray]:
+    def trajectory(self, m: wc.Material | Sequence[wc.Material], steps: int | None = None) -> list[np.ndarray]:
+        """Positions of every step with ``m`` (one material, or one per world)."""
         self.set_material(m)
         return [s.particle_x.numpy() for s in wc.rollout(self.sim, self.model.state(), steps=steps or self.steps)]
 
@@ -233,6 +286,7 @@ class MultiMotionFit:
 
     @property
     def seconds(self) -> float:
+        """Wall time of the evaluations so far (forward, and forward + backward)."""
         return sum(f.seconds for f in self.fits)
 
     def loss(self, m: wc.Material, steps: int | None = None) -> float:
@@ -278,7 +332,8 @@ class EstimationResult:
     horizons: list[int] = field(default_factory=list)
     """Steps simulated by each evaluation (the seed's curriculum grows them)."""
     seconds: float = 0.0
-    """Wall time of the forward + backward evaluations."""
+    """Wall time of the evaluations (the scan's forward ones included); in a batch (:func:`estimate_materials`),
+    this fit's share of each batch's."""
     simulation_error_pct: float = math.nan
     initial_simulation_error_pct: float = math.nan
     diverged: list[str] = field(default_factory=list)
@@ -397,19 +452,169 @@ def _scan_start(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, densiti
             stretching[:, list(_POSITIVE_COLUMNS)] *= f
             m = replace(start, density=start.density * d, stretching=stretching,
                         name=f"{start.name}, density x{d:.3g}, stretch x{f:.3g}")
-            t0 = time.perf_counter()
             try:
                 loss = fit.loss(m)
             except wc.SimulationError as exc:
                 result.diverged.append(str(exc))
                 loss = math.inf
-            result.seconds += time.perf_counter() - t0
             result.scan.append((float(d), float(f), loss))
             record(loss, fit.steps)
             if loss < best[0]:
                 best = (loss, m)
                 result.scan_factors = {"density": float(d), "stretch": float(f)}
     return best[1]
+
+
+def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc.Material] | None = None,
+                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
+                       scan: dict[str, Sequence[float]] | None = START_SCAN, progress: bool = False
+                       ) -> list[EstimationResult]:
+    """:func:`estimate_material` for every world of a batched ``fit`` at once (a fabric library, or several starts
+    of one fabric: a world per fit), each world from ``initial`` (one material, or one per world; default: the
+    seed's mean). The fits run in lockstep: each evaluation waits until every unfinished fit has asked for one, and
+    then all of them are one simulation of the batch (forward and backward where one of them needs a gradient).
+    Each world's result is the one its fit gives alone on a model of that world (the worlds never interact), where
+    the solver treats one world as several (``preconditioner="block_ssor"``: multigrid spans one world).
+
+    A trial whose simulation raises a SimulationError naming its worlds (``SimulationError.worlds``) is rejected
+    for those worlds alone, the batch simulated again without it; an error that names no world rejects every
+    trial of its batch. Not with ``seed-sgd``, whose curriculum gives each fit its own horizon.
+
+    Raises:
+        ValueError: for ``seed-sgd``, or a list of ``initial`` materials of another length than the worlds.
+        SimulationError: when a world's first evaluation fails (as :func:`estimate_material`), naming the world.
+    """
+    if optimizer == "seed-sgd":
+        raise ValueError("estimate_materials runs lbfgs or adam in lockstep; seed-sgd grows each fit's horizon")
+    worlds = fit.world_count
+    starts = [initial] * worlds if initial is None or isinstance(initial, wc.Material) else list(initial)
+    if len(starts) != worlds:
+        raise ValueError(f"initial: {len(starts)} materials for a fit of {worlds} worlds")
+    batch = _Lockstep(fit, progress_bar(iters, f"estimate {worlds} worlds ({optimizer})", "batch")
+                      if progress else None)
+    results: list[EstimationResult | None] = [None] * worlds
+    errors: dict[int, BaseException] = {}
+
+    def run(w: int) -> None:
+        try:
+            results[w] = estimate_material(_WorldFit(batch, w), initial=starts[w], optimizer=optimizer, iters=iters,
+                                           free=free, scan=scan)
+        except BaseException as exc:  # noqa: BLE001 -- raised below, naming the world
+            errors[w] = exc
+        finally:
+            batch.leave()
+
+    threads = [threading.Thread(target=run, args=(w,), name=f"estimate world {w}") for w in range(worlds)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if batch.bar is not None:
+        batch.bar.close()
+    if errors:
+        w, exc = min(errors.items())
+        if isinstance(exc, wc.SimulationError):
+            raise wc.SimulationError(f"world {w}'s fit: {exc}", worlds=sorted(errors)) from exc
+        raise exc
+    return results
+
+
+class _Lockstep:
+    """The batch of :func:`estimate_materials`: collects every unfinished fit's request (a material, forward only
+    or with the gradient) and, once all have asked, evaluates them as one simulation of ``fit``'s worlds; a world
+    without a request (its fit is done, or its trial failed) simulates its last material that did."""
+
+    def __init__(self, fit: TrajectoryFit, bar):
+        self.fit, self.bar = fit, bar
+        self.running = fit.world_count
+        self.pending: dict[int, tuple[wc.Material, bool]] = {}
+        self.answers: dict[int, object] = {}
+        self.seconds = [0.0] * fit.world_count
+        self.simulated: list[wc.Material | None] = [None] * fit.world_count
+        self.lock = threading.Condition()
+
+    def ask(self, world: int, material: wc.Material, grad: bool):
+        with self.lock:
+            self.pending[world] = (material, grad)
+            self._run_if_complete()
+            while world not in self.answers:
+                self.lock.wait()
+            answer = self.answers.pop(world)
+        if isinstance(answer, BaseException):
+            raise answer
+        return answer
+
+    def leave(self) -> None:
+        with self.lock:
+            self.running -= 1
+            self._run_if_complete()
+
+    def _run_if_complete(self) -> None:
+        """(Holding the lock.) Evaluate the requests once every unfinished fit has made one."""
+        if not self.pending or len(self.pending) < self.running:
+            return
+        requests, self.pending = self.pending, {}
+        try:
+            self.answers.update(self._evaluate(requests))
+        except BaseException as exc:  # noqa: BLE001 -- every waiting fit gets it, none waits forever
+            self.answers.update({w: exc for w in requests})
+        if self.bar is not None:
+            self.bar.update()
+        self.lock.notify_all()
+
+    def _evaluate(self, requests: dict[int, tuple[wc.Material, bool]]) -> dict[int, object]:
+        """Each request's answer: a loss, a (loss, gradients) tuple, or the SimulationError that rejected it."""
+        failed: dict[int, BaseException] = {}
+        answers: dict[int, object] = {}
+        while True:
+            live = [w for w in requests if w not in failed]
+            if not live:
+                break
+            fallback = requests[live[0]][0]
+            materials = [requests[w][0] if w in live else self.simulated[w] or fallback
+                         for w in range(self.fit.world_count)]
+            grad = any(requests[w][1] for w in live)
+            t0 = time.perf_counter()
+            try:
+                out = self.fit.losses_and_grads(materials) if grad else list(self.fit.losses(materials))
+            except wc.SimulationError as exc:
+                named = set(live) if exc.worlds is None else set(exc.worlds) & set(live)
+                if not named:  # a world simulating a material that simulated before: not expected
+                    raise
+                for w in named:
+                    failed[w] = exc
+                continue
+            finally:
+                share = (time.perf_counter() - t0) / len(live)
+                for w in live:
+                    self.seconds[w] += share
+            for w in live:
+                self.simulated[w] = requests[w][0]
+                answers[w] = out[w] if requests[w][1] or not grad else out[w][0]
+            break
+        answers.update(failed)
+        return answers
+
+
+class _WorldFit:
+    """One world of a :class:`_Lockstep` batch, in a TrajectoryFit's place for :func:`estimate_material`."""
+
+    def __init__(self, batch: _Lockstep, world: int):
+        self.batch, self.world = batch, world
+        self.steps = batch.fit.steps
+
+    @property
+    def seconds(self) -> float:
+        return self.batch.seconds[self.world]
+
+    def loss(self, m: wc.Material, steps: int | None = None) -> float:
+        return self.batch.ask(self.world, m, grad=False)
+
+    def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
+        return self.batch.ask(self.world, m, grad=True)
+
+    def simulation_error(self, m: wc.Material) -> float:
+        return 100.0 * math.sqrt(self.loss(m))
 
 
 @dataclass
