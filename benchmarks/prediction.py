@@ -7,14 +7,16 @@ Motions (16x16 cells, 1 m, float32, frames every 2 steps compared as in the fit)
 - drop on a sphere: the flat cloth dropped from 10 cm onto a 0.3 m sphere (repulsion and friction), dt 0.01,
   100 steps;
 - shake: the cloth hanging from its two top corners (no wind), the handles shaken 15 cm back and forth across the
-  sheet twice a second, dt 0.01, 100 steps.
+  sheet twice a second, dt 0.01, 100 steps;
+- stretch: the tensile test (``scenes.stretched_cloth``): the flat sheet held by soft handles on its border, pulled
+  to 1.2x along five directions in turn, dt 0.01, 100 steps.
 Simulation error: RMS vertex distance to the true fabric's trajectory over the compared frames, per metre of cloth
 (the fit's own measure, ``TrajectoryFit.simulation_error``), for the fitted material and for the fit's start (the
 mean fabric).
 
 Reads benchmarks/results/material_estimation.json (``--fits PATH``), which must hold the fitted materials; where it
-also holds the fits continued on two motions at once (its ``--multi``: the wind and the shake), their error in the
-10 m/s wind and in the drop, the motions here they were not fitted on.
+also holds the fits continued on more motions (its ``--multi``: the shake and the stretch, then those and the wind),
+their error in the 10 m/s wind and in the drop, the motions here they were not fitted on.
 
 Usage: python benchmarks/prediction.py [--quick] [--out PATH] [--fits PATH] [--steps 100]
        (--quick: 2 fabrics, 10 steps)
@@ -29,14 +31,16 @@ from pathlib import Path
 import common
 import numpy as np
 from common import wc
+from material_estimation import fitted_material
 
 from warpcloth.tasks import estimation as E
-from warpcloth.tasks.scenes import THICKEN, cloth_dropped_on_sphere, hanging_cloth, shaken_cloth
+from warpcloth.tasks.scenes import THICKEN, cloth_dropped_on_sphere, hanging_cloth, shaken_cloth, stretched_cloth
 
 DT = 0.01
-MOTIONS = ("wind 10 m/s", "drop on a sphere", "shake")
+MOTIONS = ("wind 10 m/s", "drop on a sphere", "shake", "stretch")
 UNFITTED_BY_MULTI = ("wind 10 m/s", "drop on a sphere")
-"""The motions the fits to the wind and the shake at once were not fitted on."""
+"""The motions the fits continued on the shake and the stretch (then with the wind) were not fitted on."""
+MULTI_KEY = "fitted_to_three_motions"
 
 
 def motion_model(motion: str, material: wc.Material) -> wc.Model:
@@ -47,18 +51,15 @@ def motion_model(motion: str, material: wc.Material) -> wc.Model:
         return model
     if motion == "drop on a sphere":
         return cloth_dropped_on_sphere(material, requires_grad=False)
-    return shaken_cloth(material, requires_grad=False)
-
-
-def fitted_material(name: str, record: dict) -> wc.Material:
-    return wc.Material(name=f"{name} (fitted)", density=record["density"],
-                       stretching=np.array(record["stretching"]), bending=np.array(record["bending"]),
-                       thicken=record["thicken"])
+    if motion == "shake":
+        return shaken_cloth(material, requires_grad=False)
+    return stretched_cloth(material, requires_grad=False)
 
 
 def predict(name: str, fitted: wc.Material, steps: int, multi: wc.Material | None = None) -> dict:
-    """Each motion's simulation error of ``fitted`` and of the start; with ``multi`` (the fabric fitted to the wind
-    and a shake at once) also its error on the motions it was not fitted on (``UNFITTED_BY_MULTI``)."""
+    """Each motion's simulation error of ``fitted`` and of the start; with ``multi`` (the fabric's fit continued on
+    the shake and the stretch, then with the wind) also its error on the motions it was not fitted on
+    (``UNFITTED_BY_MULTI``)."""
     truth = wc.preset(name, thicken=THICKEN)
     start = E.initial_guess()
     out = {}
@@ -68,7 +69,7 @@ def predict(name: str, fitted: wc.Material, steps: int, multi: wc.Material | Non
         fit = E.TrajectoryFit(model, targets, steps=steps, dt=DT)
         out[motion] = {"fitted": fit.simulation_error(fitted), "start": fit.simulation_error(start)}
         if multi is not None and motion in UNFITTED_BY_MULTI:
-            out[motion]["fitted_to_wind_and_shake"] = fit.simulation_error(multi)
+            out[motion][MULTI_KEY] = fit.simulation_error(multi)
     return out
 
 
@@ -91,7 +92,7 @@ def main():
         print(f"{r['material']:20s} fit {r['sim_err_pct']:.3g} %  " + "  ".join(
             f"{m}: {v['fitted']:.3g} % (start {v['start']:.3g} %)" for m, v in motions.items()), flush=True)
     means = {m: {k: statistics.fmean(rec["motions"][m][k] for rec in records)
-                 for k in ("fitted", "start", "fitted_to_wind_and_shake") if k in records[0]["motions"][m]}
+                 for k in ("fitted", "start", MULTI_KEY) if k in records[0]["motions"][m]}
              for m in MOTIONS}
     means["fit"] = statistics.fmean(rec["fit_sim_err_pct"] for rec in records)
     table = [[rec["material"], rec["fit_sim_err_pct"], *(rec["motions"][m][k] for m in MOTIONS

@@ -676,20 +676,21 @@ def memory(d: dict) -> str:
 
 def prediction(d: dict) -> str:
     motions = d["motions"]
-    multi = [m for m in motions if "fitted_to_wind_and_shake" in d["means"][m]]
+    multi = [m for m in motions if "fitted_to_three_motions" in d["means"][m]]
 
     def cells(v):
         return [*(f"{pct(v[m]['fitted'])} ({pct(v[m]['start'])})" for m in motions),
-                *(pct(v[m]["fitted_to_wind_and_shake"]) for m in multi)]
+                *(pct(v[m]["fitted_to_three_motions"]) for m in multi)]
 
     rows = [[r["material"], pct(r["fit_sim_err_pct"]), *cells(r["motions"])] for r in d["records"]]
     rows.append(["**mean**", pct(d["means"]["fit"]), *cells(d["means"])])
-    header = ["fabric", "fitted motion (wind 5 m/s)", *motions, *(f"{m}, fitted to wind + shake" for m in multi)]
+    header = ["fabric", "fitted motion (wind 5 m/s)", *motions,
+              *(f"{m}, fitted to wind, shake and stretch" for m in multi)]
     return "\n".join([table(header, rows), "",
                       "Simulation error of the fitted material against the true fabric; in brackets, the fit's start "
                       "(the mean fabric) on the same motion."
-                      + (" Last columns: the fit continued on two motions at once (the wind scene and the shake), "
-                         "on the motions it was not fitted on." if multi else ""), "", provenance(d)])
+                      + (" Last columns: the fit continued on the shake and the stretch, then on those and the wind "
+                         "scene, on the motions it was not fitted on." if multi else ""), "", provenance(d)])
 
 
 def worlds(d: dict) -> str:

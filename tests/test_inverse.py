@@ -164,19 +164,25 @@ def _small_fit(steps=6):
     return E.TrajectoryFit(model, targets, steps=steps, options=EXACT), truth
 
 
-def test_fit_gradient_matches_finite_differences():
-    fit, _ = _small_fit()
+def _assert_every_parameter_gradient(fit, seed: int) -> np.ndarray:
+    """The gradient of ``fit``'s loss in the fit's parameterisation (all 40: density, the 24 stretching and 15 bending
+    entries) at a random material near the seed's start, against central differences; returns it."""
     param = E.MaterialParameterization(E.initial_guess())
-    theta = np.random.default_rng(3).normal(scale=0.1, size=E.N_PARAMS)
+    theta = np.random.default_rng(seed).normal(scale=0.1, size=E.N_PARAMS)
     loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta))
     grad = param.chain(theta, gd, gs, gb)
     assert loss > 0
     eps = 1e-5
-    for k in (0, 1, 2, 4, 5, 8, 25, 39):  # density, stretching (log and linear columns, rows 0 and 1), bending
+    for k in range(E.N_PARAMS):
         e = np.zeros(E.N_PARAMS)
         e[k] = eps
         fd = (fit.loss(param.decode(theta + e)) - fit.loss(param.decode(theta - e))) / (2 * eps)
         assert grad[k] == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(grad).max()), k
+    return grad
+
+
+def test_fit_gradient_matches_finite_differences():
+    _assert_every_parameter_gradient(_small_fit()[0], seed=3)
 
 
 @pytest.mark.parametrize("optimizer", ["lbfgs", "adam", "seed-sgd"])
@@ -527,3 +533,49 @@ def test_multi_motion_fit_is_the_mean_of_its_motions_and_its_gradient_matches_ce
     assert multi.simulation_error(truth) < 1e-6 < multi.simulation_error(start)
     with pytest.raises(ValueError, match="seed-sgd"):
         E.estimate_material(multi, optimizer="seed-sgd", iters=1)
+
+
+def _principal_strains(model: wc.Model, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle's strain level on the stretching table's axis, (sqrt(largest eigenvalue of C) - 1) * 6 (1 where
+    rows 1-5 are sampled, SPEC §1.2), and the angle [deg, 0..90] of its direction in material space."""
+    tri = model.tri_indices.numpy()
+    inv_dm = model.tri_inv_dm.numpy().reshape(-1, 2, 2)
+    F = np.stack([x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]], axis=2) @ inv_dm
+    w, v = np.linalg.eigh(np.transpose(F, (0, 2, 1)) @ F)
+    angle = np.degrees(np.arctan2(np.abs(v[:, 1, 1]), np.abs(v[:, 0, 1])))
+    return (np.sqrt(w[:, 1]) - 1.0) * 6.0, angle
+
+
+def test_the_tensile_test_strains_the_sheet_along_every_direction_of_the_table():
+    # the hanging cloth strains its sheet by ~1 % (strain level ~0.06); the tensile test must reach the level of rows
+    # 1-5 and depend on each of them, or a fit could not tell them apart. (The strain's direction does not follow
+    # the pull exactly: an anisotropic fabric stretches more along its soft axis, gray-interlock pulled at 45 and
+    # 67.5 degrees strains at 39 and 53, so each row is checked by its effect on the motion.)
+    truth = wc.preset("gray-interlock", thicken=2)
+    model = S.stretched_cloth(truth, requires_grad=False)
+    sim = wc.Simulator(model, 0.01)
+    trajectory = wc.rollout(sim, model.state(), steps=100)
+    steps_per_pull = round(S.STRETCH_PERIOD / 0.01)
+    levels = [np.median(_principal_strains(model, s.particle_x.numpy())[0]) for s in trajectory]
+    for k in range(len(S.STRETCH_ANGLES)):  # each pull's peak (measured: 0.86, 0.89, 0.72, 0.61, 0.41)
+        assert max(levels[k * steps_per_pull:(k + 1) * steps_per_pull]) > 0.35, k
+    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=100, dt=0.01), steps=100,
+                          dt=0.01)
+    for row in range(1, 6):  # each of rows 1-5 x 1.5 moves the sheet by more than 0.5 mm RMS
+        stiffer = truth.copy()
+        stiffer.stretching[row] *= 1.5
+        assert fit.simulation_error(stiffer) > 0.05, row
+
+
+def test_multi_motion_fit_with_the_tensile_test_has_every_parameter_gradient_of_central_differences():
+    # the wind (rows 1-5 barely sampled) and the tensile test (each row sampled) as one fit, at a material off the
+    # truth: the gradient of all 40 parameters of the fit's parameterisation against central differences
+    truth = wc.preset("white-swim-solid", thicken=2)
+    fits = [_small_fit(steps=6)[0]]
+    model = S.stretched_cloth(truth, res=4, dtype=wp.float64)
+    targets = E.TrajectoryFit.simulate_targets(model, truth, steps=20, dt=0.05)
+    fits.append(E.TrajectoryFit(model, targets, steps=20, dt=0.05, options=EXACT))
+    grad = _assert_every_parameter_gradient(E.MultiMotionFit(fits), seed=5)
+    # rows 1-5 matter here: their gradient is not negligible next to row 0's
+    rows = np.abs(grad[1:25]).reshape(6, 4)  # theta = [density, 6x4 stretching, 3x5 bending]
+    assert rows[1:].max() > 0.1 * rows[0].max()

@@ -2,6 +2,8 @@
 
 * ``hanging_cloth``: material estimation (SPEC §5(b)), a 1 m cloth held at its two top corners by soft handles in a
   5 m/s wind, either a flat grid made in code or the seed's demo_wind.obj (or any OBJ with material coordinates).
+* ``shaken_cloth``, ``cloth_dropped_on_sphere``, ``stretched_cloth``: other motions of a fabric, for fits to several
+  motions at once and for predictions (a shake by the handles, a drop onto a sphere, a tensile test).
 * ``basket_scene``: motion control (SPEC §5(c)), a 0.7 m cloth flat above the ground, the seed's basket and the wall
   in front of it (the embedded scene ``basket-throw``, whose ``[control]`` table is the task).
 
@@ -33,6 +35,7 @@ __all__ = [
     "hanging_cloth",
     "hanging_cloth_builder",
     "shaken_cloth",
+    "stretched_cloth",
 ]
 
 GRAVITY = (0.0, 0.0, -9.8)
@@ -137,6 +140,47 @@ def shaken_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, dty
     top = res * (res + 1)
     for p in (top, top + res):
         b.add_handle(p, stiffness=DEFAULT_HANDLE_STIFFNESS, motion=list(SHAKE))
+    return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
+
+
+STRETCH = 1.2
+"""Peak stretch of :func:`stretched_cloth`'s border along each direction: principal stretch 1.2 is past the 7/6 at
+which the stretching table's rows 1-5 are sampled (SPEC §1.2), so the motion reaches them."""
+STRETCH_ANGLES = (0.0, 22.5, 45.0, 67.5, 90.0)
+"""Directions [degrees from the warp] of :func:`stretched_cloth`'s pulls: the five angles of the table's rows 1-5."""
+STRETCH_PERIOD = 0.2
+"""Seconds per pull of :func:`stretched_cloth` (out to ``STRETCH`` in half of it, back to rest in the other half)."""
+STRETCH_HANDLE_STIFFNESS = 50.0
+"""Stiffness [N/m] of each of :func:`stretched_cloth`'s border handles. Soft on purpose: the handles are the test's
+force gauge. As stiff as the default handles (1e3 N/m each, 64 of them) they would hold the border to the prescribed
+stretch whatever the fabric, and a homogeneous sheet whose border is stretched affinely rests in the same shape for
+any stiffness, so the motion would say little about the material."""
+
+
+def stretched_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, dtype=wp.float32,
+                    requires_grad: bool = True) -> wc.Model:
+    """A tensile test: a flat, horizontal 1 m square held by soft handles (``STRETCH_HANDLE_STIFFNESS``) on every
+    border vertex, whose targets stretch the sheet uniaxially to ``STRETCH`` and back along each of
+    ``STRETCH_ANGLES`` in turn (``STRETCH_PERIOD`` each: 1 s in all), under gravity.
+
+    The seed's hanging cloth strains its sheet by about 1 %, so its motion barely depends on the stretching table's
+    rows 1-5 (sampled at 1/6 strain) and a fit leaves them where it started (README, Material estimation); this
+    motion reaches them in every direction the table samples.
+    """
+    b = wc.ModelBuilder(gravity=GRAVITY)
+    b.add_cloth_grid((res, res), (1.0, 1.0), material=material, pos=(-0.5, -0.5, 0.0))
+    n = res + 1
+    times, maps = [0.0], [np.eye(3)]
+    for k, angle in enumerate(STRETCH_ANGLES):
+        d = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle)), 0.0])
+        times += [STRETCH_PERIOD * (k + 0.5), STRETCH_PERIOD * (k + 1)]
+        maps += [np.eye(3) + (STRETCH - 1.0) * np.outer(d, d), np.eye(3)]
+    for j in range(n):
+        for i in range(n):
+            if i in (0, res) or j in (0, res):
+                rest = np.array([i / res - 0.5, j / res - 0.5, 0.0])  # from the sheet's centre
+                offsets = [(t, tuple((A - np.eye(3)) @ rest)) for t, A in zip(times, maps)]
+                b.add_handle(j * n + i, stiffness=STRETCH_HANDLE_STIFFNESS, motion=offsets)
     return b.finalize(device, requires_grad=requires_grad, dtype=dtype)
 
 
