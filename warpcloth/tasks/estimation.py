@@ -3,9 +3,9 @@
 The scene is the seed's hanging cloth in the wind (``warpcloth.tasks.scenes.hanging_cloth``, also importable from
 here); the unknowns are the 40 numbers of a Material (1 density, 6x4 stretching, 3x5 bending). The optimiser works
 on an unconstrained vector ``theta`` (MaterialParameterization): density, warp/weft stretch and bending in log space
-(so they stay positive whatever the step), coupling and shear linearly (the model applies relu to the interpolated
-stiffness, so any value gives a valid, PSD-projected stretching force), every entry scaled to order one. Gradients
-come from Warp's tape through the whole rollout.
+(so they stay positive whatever the step; the stretch of rows 1-5 relative to row 0), coupling and shear linearly
+(the model applies relu to the interpolated stiffness, so any value gives a valid, PSD-projected stretching force),
+every entry scaled to order one. Gradients come from Warp's tape through the whole rollout.
 """
 
 from __future__ import annotations
@@ -57,9 +57,14 @@ N_PARAMS = 1 + STRETCHING_SHAPE[0] * STRETCHING_SHAPE[1] + BENDING_SHAPE[0] * BE
 class MaterialParameterization:
     """Maps a Material to an unconstrained vector ``theta`` (N_PARAMS = 40) and back, with the chain rule.
 
-    theta = [log(density/ref), stretching entries (log(k/ref) for warp/weft, (k - ref)/scale for coupling and
-    shear, scale = the rms of the reference row), log(bending/ref)]; theta = 0 is the reference material.
-    ``log_mask`` (6, 4) marks the stretching entries estimated in log space (the warp and weft columns).
+    theta = [log(density/ref), stretching entries, log(bending/ref)]; theta = 0 is the reference material. The
+    stretching table's warp and weft columns are in log space, rows 1-5 relative to row 0: row 0's entry is
+    log(k_0/ref_0) and row r's log((k_r/k_0) / (ref_r/ref_0)), so a step on row 0 scales the whole column and rows
+    1-5 keep the reference's ratios to it until the motion says otherwise (rows 1-5 are the same stiffness at 1/6
+    strain: a motion that barely strains the sheet determines row 0 and leaves them, README, Material estimation).
+    Coupling and shear are linear, (k - ref)/scale with scale the rms of the reference row (any value is a valid
+    material: the model applies relu to the interpolated stiffness). ``log_mask`` (6, 4) marks the stretching
+    entries estimated in log space (the warp and weft columns).
     """
 
     def __init__(self, reference: wc.Material):
@@ -77,6 +82,7 @@ class MaterialParameterization:
         lin = (m.stretching - ref.stretching) / self._row_scale
         with np.errstate(divide="raise"):
             logs = np.log(np.where(self.log_mask, m.stretching, 1.0) / np.where(self.log_mask, ref.stretching, 1.0))
+            logs[1:] -= logs[0]  # rows 1-5 relative to row 0
             return np.concatenate([[math.log(m.density / ref.density)],
                                    np.where(self.log_mask, logs, lin).ravel(),
                                    np.log(m.bending / ref.bending).ravel()])
@@ -93,15 +99,17 @@ class MaterialParameterization:
     def decode(self, theta: np.ndarray, name: str = "estimate") -> wc.Material:
         ref = self.reference
         td, ts, tb = self.split(theta)
-        stretching = np.where(self.log_mask, ref.stretching * np.exp(np.where(self.log_mask, ts, 0.0)),
-                              ref.stretching + ts * self._row_scale)
+        logs = np.where(self.log_mask, ts, 0.0)
+        logs[1:] += logs[0]
+        stretching = np.where(self.log_mask, ref.stretching * np.exp(logs), ref.stretching + ts * self._row_scale)
         return wc.Material(density=ref.density * math.exp(td), stretching=stretching,
-                        bending=ref.bending * np.exp(tb), thicken=ref.thicken, name=name)
+                           bending=ref.bending * np.exp(tb), thicken=ref.thicken, name=name)
 
     def chain(self, theta: np.ndarray, g_density: float, g_stretching: np.ndarray, g_bending: np.ndarray) -> np.ndarray:
         """d loss / d theta from the gradients with respect to the material's raw density and tables."""
         m = self.decode(theta)
         gs = np.where(self.log_mask, g_stretching * m.stretching, g_stretching * self._row_scale)
+        gs[0] += np.where(self.log_mask[0], gs[1:].sum(axis=0), 0.0)  # row 0's log entry scales its whole column
         return np.concatenate([[g_density * m.density], gs.ravel(), (g_bending * m.bending).ravel()])
 
 
