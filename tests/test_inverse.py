@@ -166,18 +166,19 @@ def _small_fit(steps=6):
 
 def _assert_every_parameter_gradient(fit, seed: int) -> np.ndarray:
     """The gradient of ``fit``'s loss in the fit's parameterisation (all 40: density, the 24 stretching and 15 bending
-    entries) at a random material near the seed's start, against central differences; returns it."""
+    entries) at a random material near the seed's start, against central differences at two step sizes; returns
+    it."""
     param = E.MaterialParameterization(E.initial_guess())
     theta = np.random.default_rng(seed).normal(scale=0.1, size=E.N_PARAMS)
     loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta))
     grad = param.chain(theta, gd, gs, gb)
     assert loss > 0
-    eps = 1e-5
-    for k in range(E.N_PARAMS):
-        e = np.zeros(E.N_PARAMS)
-        e[k] = eps
-        fd = (fit.loss(param.decode(theta + e)) - fit.loss(param.decode(theta - e))) / (2 * eps)
-        assert grad[k] == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(grad).max()), k
+    for eps in (1e-5, 3e-5):
+        for k in range(E.N_PARAMS):
+            e = np.zeros(E.N_PARAMS)
+            e[k] = eps
+            fd = (fit.loss(param.decode(theta + e)) - fit.loss(param.decode(theta - e))) / (2 * eps)
+            assert grad[k] == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(grad).max()), (eps, k)
     return grad
 
 
@@ -535,15 +536,13 @@ def test_multi_motion_fit_is_the_mean_of_its_motions_and_its_gradient_matches_ce
         E.estimate_material(multi, optimizer="seed-sgd", iters=1)
 
 
-def _principal_strains(model: wc.Model, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _strain_levels(model: wc.Model, x: np.ndarray) -> np.ndarray:
     """Each triangle's strain level on the stretching table's axis, (sqrt(largest eigenvalue of C) - 1) * 6 (1 where
-    rows 1-5 are sampled, SPEC §1.2), and the angle [deg, 0..90] of its direction in material space."""
+    rows 1-5 are sampled, SPEC §1.2)."""
     tri = model.tri_indices.numpy()
     inv_dm = model.tri_inv_dm.numpy().reshape(-1, 2, 2)
     F = np.stack([x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]], axis=2) @ inv_dm
-    w, v = np.linalg.eigh(np.transpose(F, (0, 2, 1)) @ F)
-    angle = np.degrees(np.arctan2(np.abs(v[:, 1, 1]), np.abs(v[:, 0, 1])))
-    return (np.sqrt(w[:, 1]) - 1.0) * 6.0, angle
+    return (np.sqrt(np.linalg.eigvalsh(np.transpose(F, (0, 2, 1)) @ F)[:, 1]) - 1.0) * 6.0
 
 
 def test_the_tensile_test_strains_the_sheet_along_every_direction_of_the_table():
@@ -556,7 +555,7 @@ def test_the_tensile_test_strains_the_sheet_along_every_direction_of_the_table()
     sim = wc.Simulator(model, 0.01)
     trajectory = wc.rollout(sim, model.state(), steps=100)
     steps_per_pull = round(S.STRETCH_PERIOD / 0.01)
-    levels = [np.median(_principal_strains(model, s.particle_x.numpy())[0]) for s in trajectory]
+    levels = [np.median(_strain_levels(model, s.particle_x.numpy())) for s in trajectory]
     for k in range(len(S.STRETCH_ANGLES)):  # each pull's peak (measured: 0.86, 0.89, 0.72, 0.61, 0.41)
         assert max(levels[k * steps_per_pull:(k + 1) * steps_per_pull]) > 0.35, k
     fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=100, dt=0.01), steps=100,
