@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from warpcloth.kernels.bending import bending_funcs
+from warpcloth.kernels.status import DIVERGED, ERROR, latch
 from warpcloth.kernels.stretching import stretching_funcs
 from warpcloth.kernels.types import per_precision, types
 
@@ -121,10 +122,10 @@ def implicit_kernels(scalar):
         return idx, theta, -ke * length * length / (scalar(4.0) * area)
 
     @wp.func
-    def flag_divergence(i: int, x: vec3, v: vec3, max_speed: scalar, status: wp.array(dtype=wp.int32)):
-        # status = first bad particle + 1: NaN/inf, or faster than max_speed
+    def flag_divergence(i: int, x: vec3, v: vec3, max_speed: scalar, step: int, record: wp.array(dtype=wp.int32)):
+        # a NaN/inf, or a particle faster than max_speed: latched in the failure record (kernels/status.py)
         if not (wp.isfinite(x) and wp.isfinite(v)) or wp.length(v) > max_speed:
-            wp.atomic_max(status, 0, i + 1)
+            latch(record, ERROR, step, DIVERGED, i)
 
     @wp.kernel
     def pin_rows(
@@ -373,10 +374,11 @@ def implicit_kernels(scalar):
         dv: wp.array(dtype=vec3),
         dt: scalar,
         max_speed: scalar,
+        step: int,
         # out:
         x_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
-        status: wp.array(dtype=wp.int32),
+        record: wp.array(dtype=wp.int32),
     ):
         # v <- v + dv; x <- x + dt v (ARCSim step_mesh)
         i = wp.tid()
@@ -385,7 +387,7 @@ def implicit_kernels(scalar):
         v_out[i] = v_new
         x_out[i] = x_new
         # the divergence guard, here rather than in a launch of its own (a launch is ~5 % of a 16x16 step)
-        flag_divergence(i, x_new, v_new, max_speed, status)
+        flag_divergence(i, x_new, v_new, max_speed, step, record)
 
     @wp.kernel
     def bdf2_blend(
@@ -441,12 +443,13 @@ def implicit_kernels(scalar):
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
         max_speed: scalar,
-        # out: [first bad particle + 1 (0 if none)]
-        status: wp.array(dtype=wp.int32),
+        step: int,
+        # out: the failure record (kernels/status.py)
+        record: wp.array(dtype=wp.int32),
     ):
         # the divergence guard alone (after the collision response has changed the state)
         i = wp.tid()
-        flag_divergence(i, x[i], v[i], max_speed, status)
+        flag_divergence(i, x[i], v[i], max_speed, step, record)
 
     @wp.kernel
     def lumped_mass(

@@ -3,7 +3,8 @@
 Why a whole CG in one launch: on the CPU Warp runs each kernel on one thread and a launch costs ~20 us, while
 ``warp.optim.linear.cg`` spends most of its time in tile-based dot products that are slow there (measured in
 ``benchmarks/cg_solvers.py``). One sequential launch that loops over rows and iterations avoids both costs.
-On CUDA the library solver (many threads, graph capture) is the right tool, and the host code uses it there.
+On CUDA the library solver (many threads, device-side convergence inside a graph) is the right tool, and the host
+code uses it there with the diagonal preconditioner kernels below.
 Block SSOR's Gauss-Seidel sweeps are natural on one thread (~3.5x fewer iterations than block Jacobi at 64x64).
 Eisenstat's trick (one product per iteration instead of three passes) was tried and measured 1.3x faster, but lost
 an order of magnitude of accuracy in float32 (error vs a float64 solve 7e-5 against 3e-6 at 64x64), so it is not used.
@@ -409,6 +410,40 @@ def linear_kernels(scalar):
         info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
 
     @wp.kernel
+    def diagonal_inverse(A: BlockMatrix, use_block: int, precond: wp.array(dtype=mat33)):
+        # the (block) Jacobi preconditioner of the warp backend, rebuilt from each system's diagonal blocks
+        i = wp.tid()
+        precond[i] = jacobi_inverse(A.values[A.diag_slot[i]], use_block)
+
+    @wp.kernel
+    def apply_diagonal(precond: wp.array(dtype=mat33), x: wp.array(dtype=vec3), y: wp.array(dtype=vec3),
+                       alpha: scalar, beta: scalar, z: wp.array(dtype=vec3)):
+        # z = alpha M^-1 x + beta y (warp.optim.linear's matvec contract)
+        i = wp.tid()
+        zi = alpha * (precond[i] * x[i])
+        if beta != scalar(0.0):
+            zi += beta * y[i]
+        z[i] = zi
+
+    @wp.kernel
+    def warp_cg_info(
+        iterations: wp.array(dtype=int),
+        r_norm_sq: wp.array(dtype=scalar),
+        atol_sq: wp.array(dtype=scalar),
+        rtol: wp.float64,
+        # out: per world [iterations, relative residual, converged (0/1)], as cg_sequential writes it
+        info: wp.array2d(dtype=wp.float64),
+    ):
+        # warp.optim.linear.cg leaves |r|^2 and its threshold max(rtol |b|, atol)^2 per world on the device; the
+        # relative residual |r| / |b| is |r| rtol / threshold where the relative tolerance sets the threshold
+        w = wp.tid()
+        r = wp.sqrt(wp.float64(r_norm_sq[w]))
+        threshold = wp.sqrt(wp.float64(atol_sq[w]))
+        info[w, 0] = wp.float64(iterations[0])
+        info[w, 1] = r * rtol / wp.max(threshold, wp.float64(1.0e-300))
+        info[w, 2] = wp.where(r <= threshold, wp.float64(1.0), wp.float64(0.0))
+
+    @wp.kernel
     def pair_product(A: BlockMatrix, x: wp.array(dtype=vec3), alpha: scalar, z: wp.array(dtype=vec3)):
         # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term)
         add_pair_product(A, wp.tid(), x, z, alpha)
@@ -432,6 +467,9 @@ def linear_kernels(scalar):
         BlockMatrix=BlockMatrix,
         Multigrid=Multigrid,
         cg_sequential=cg_sequential,
+        diagonal_inverse=diagonal_inverse,
+        apply_diagonal=apply_diagonal,
+        warp_cg_info=warp_cg_info,
         pair_product=pair_product,
         solve_adjoint_scatter=solve_adjoint_scatter,
     )

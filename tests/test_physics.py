@@ -174,7 +174,7 @@ def test_absent_components_launch_nothing(monkeypatch):
         launched.append(kernel.key)
         return real_launch(kernel, *args, **kwargs)
 
-    monkeypatch.setattr(simulator_module.wp, "launch", spy)
+    monkeypatch.setattr(simulator_module.wp, "launch", spy)  # the module object: every wp.launch
     b = wc.ModelBuilder()
     b.add_cloth_grid((3, 3), (0.3, 0.3), material=wc.preset("gray-interlock"))
     model = b.finalize("cpu")
@@ -183,8 +183,9 @@ def test_absent_components_launch_nothing(monkeypatch):
     names = " ".join(launched)
     for absent in ("wind", "handles", "pin_rows", "external_forces", "check_state"):
         assert absent not in names, f"{absent} launched for a scene without it: {launched}"
-    # the bare integrator and nothing else: assembly, the one-launch CG, the update (with the divergence guard)
-    per_step = ["faces", "hinges", "cg_sequential", "integrate"]
+    # the bare integrator and nothing else: assembly, the one-launch CG and its account in the failure record,
+    # the update (with the divergence guard)
+    per_step = ["faces", "hinges", "cg_sequential", "account_solve", "integrate"]
     assert [next((k for k in per_step if k in name), name) for name in launched] == per_step * 2, launched
     # and no buffers for what is absent
     assert sim.collision is None and model.collision is None and model.wind_velocity is None

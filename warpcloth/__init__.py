@@ -16,6 +16,7 @@ from warpcloth.obstacles import (
 from warpcloth.scene import SCENE_NAMES, Scene, load_scene
 from warpcloth.solver import (
     PRESET_SOLVER_NAMES,
+    CapturedRollout,
     CollisionOptions,
     LinearSolver,
     Simulator,
@@ -29,6 +30,7 @@ from warpcloth.solver import (
 from warpcloth.usd import read_usd_points, write_usd
 
 __all__ = [
+    "CapturedRollout",
     "CollisionError",
     "CollisionOptions",
     "CollisionSettings",

@@ -27,3 +27,12 @@ def untaped():
         yield
     finally:
         runtime.tape = tape
+
+
+def capturing(device) -> bool:
+    """Whether a graph is being captured on ``device`` (CUDA: a stream capture; CPU: Warp's APIC recording): its
+    launches are recorded, not run, so nothing may read the device back (1.19)."""
+    device = wp.get_device(device)
+    if device.is_cuda:
+        return device.is_capturing
+    return wp._src.context.runtime._apic_capture is not None

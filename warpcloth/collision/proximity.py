@@ -25,7 +25,7 @@ from warpcloth.collision.detection import PrimitiveSet, node_worlds
 from warpcloth.errors import ContactCapacityError
 from warpcloth.kernels.proximity import FRICTION_SWEEPS, proximity_kernels
 from warpcloth.model import Model, State
-from warpcloth.tape import record_adjoint
+from warpcloth.tape import active_tape, record_adjoint
 
 
 @dataclass
@@ -225,11 +225,15 @@ class ProximityForces:
         wp.launch(k.assemble_pairs, count, device=dev, inputs=[inputs, model.particle_diag_slot],
                   outputs=[values, rhs, weights, stiffness], record_tape=False)
         if recording:
+            # made when recorded, held by the closure (a captured backward pass replays these launches), and the
+            # recording tape's adjoint struct, so that tape.zero() zeroes the gradients it reaches
+            phi = wp.zeros(1, dtype=model.scalar, device=dev)
+            seed = wp.ones(1, dtype=model.scalar, device=dev)
+            adj_inputs = active_tape().get_adjoint(inputs)
+
             def adjoint():
-                phi = wp.zeros(1, dtype=model.scalar, device=dev)
-                seed = wp.ones(1, dtype=model.scalar, device=dev)
                 wp.launch(k.pairs_potential, count, device=dev, inputs=[inputs, rhs.grad, dv], outputs=[phi],
-                          adj_inputs=[wp.Tape().get_adjoint(inputs), None, None], adj_outputs=[seed],
+                          adj_inputs=[adj_inputs, None, None], adj_outputs=[seed],
                           adjoint=True, record_tape=False)
 
             record_adjoint(adjoint, arrays=[rhs, dv])

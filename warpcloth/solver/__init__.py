@@ -1,6 +1,7 @@
 """The step: options, the implicit Euler simulator, its linear solver, rollouts, checkpointed backward passes and
 the speed/accuracy presets."""
 
+from warpcloth.solver.capture import CapturedRollout
 from warpcloth.solver.checkpoint import checkpointed_backward
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import CollisionOptions, SolverOptions
@@ -9,6 +10,7 @@ from warpcloth.solver.rollout import ControlSchedule, rollout
 from warpcloth.solver.simulator import Simulator
 
 __all__ = [
+    "CapturedRollout",
     "PRESET_SOLVER_NAMES",
     "CollisionOptions",
     "ControlSchedule",

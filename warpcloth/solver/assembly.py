@@ -133,17 +133,24 @@ class SystemAssembler:
         def grad(a):
             return a.grad if isinstance(a, wp.array) and a.requires_grad else None
 
+        # Everything the adjoint launches read is made here, when the step is recorded, and held by the closure:
+        # a backward pass captured as a graph replays these launches long after a temporary would have been freed.
+        x, v = state_in.particle_x, state_in.particle_v
+        phi = wp.zeros(1, dtype=model.scalar, device=self.device)
+        seed = wp.ones(1, dtype=model.scalar, device=self.device)
+        element_state = self.element_state(x, v, pin_dv, rhs.grad, dv)
+        # lam and dv are constants of phi: no adjoint arrays for them
+        adj_state = self.kernels.ElementState()
+        adj_state.x, adj_state.v, adj_state.pin_dv = grad(x), grad(v), grad(pin_dv)
+        # the recording tape's own adjoint struct: tape.zero() then zeroes the materials' and gravity's gradients
+        tape = active_tape()
+        launches = [(kernel, dim, inputs, tape.get_adjoint(inputs[0])) for kernel, dim, inputs in
+                    self.element_launches((k.faces_potential, k.hinges_potential), element_state)]
+
         def adjoint():
-            x, v = state_in.particle_x, state_in.particle_v
-            phi = wp.zeros(1, dtype=model.scalar, device=self.device)
-            seed = wp.ones(1, dtype=model.scalar, device=self.device)
-            element_state = self.element_state(x, v, pin_dv, rhs.grad, dv)
-            # lam and dv are constants of phi: no adjoint arrays for them
-            adj_state = self.kernels.ElementState()
-            adj_state.x, adj_state.v, adj_state.pin_dv = grad(x), grad(v), grad(pin_dv)
-            for kernel, dim, inputs in self.element_launches((k.faces_potential, k.hinges_potential), element_state):
+            for kernel, dim, inputs, adj_data in launches:
                 wp.launch(kernel, dim, device=self.device, inputs=inputs, outputs=[None, None, phi],
-                          adj_inputs=[wp.Tape().get_adjoint(inputs[0]), adj_state], adj_outputs=[None, None, seed],
+                          adj_inputs=[adj_data, adj_state], adj_outputs=[None, None, seed],
                           adjoint=True, record_tape=False)
 
         record_adjoint(adjoint, arrays=[rhs, dv, pin_dv])

@@ -28,20 +28,27 @@ class StepDiagnostics:
 
     def divergence_error(self, state: State, particle: int, t: float, step: int, max_speed: float) -> SimulationError:
         """The error of a step whose result ``state`` (step number ``step``, time ``t``) the divergence guard
-        flagged at ``particle``."""
+        flagged at ``particle``; ``state`` may be None where the check came after the step's result was gone."""
+        hints = self.wind_hint() + self.mesh_hint()
+        when = f"step {step}" + (f" (t = {t:.4g} s)" if t is not None else "")
+        if state is None:
+            return SimulationError(
+                f"simulation diverged at {when}: {self.model.particle_name(particle)} became non-finite or faster "
+                f"than SolverOptions.max_speed = {max_speed:g} m/s; lower dt, raise damping, or check the material "
+                "and forces (check every step, SolverOptions.sync_every=1, or pass the trajectory to "
+                "Simulator.check, to see its position and velocity)" + hints, worlds=[self.model.world_of(particle)])
         x = state.particle_x.numpy()[particle]
         v = state.particle_v.numpy()[particle]
         speed = float(np.linalg.norm(v))
-        hints = self.wind_hint() + self.mesh_hint()
         if np.all(np.isfinite(x)) and np.all(np.isfinite(v)):
             return SimulationError(
-                f"simulation diverged at step {step} (t = {t:.4g} s): {self.model.particle_name(particle)} moves at "
+                f"simulation diverged at {when}: {self.model.particle_name(particle)} moves at "
                 f"{speed:.4g} m/s, "
                 f"over SolverOptions.max_speed = {max_speed:g} m/s (x = {x.tolist()}); lower dt, raise damping, or "
                 "check the material and forces; if the motion really is this fast (a long free fall), raise "
                 "max_speed" + hints, worlds=[self.model.world_of(particle)])
         return SimulationError(
-            f"simulation diverged at step {step} (t = {t:.4g} s): {self.model.particle_name(particle)} has "
+            f"simulation diverged at {when}: {self.model.particle_name(particle)} has "
             f"x = {x.tolist()}, "
             f"v = {v.tolist()}; lower dt, raise damping, or check the material and forces" + hints,
             worlds=[self.model.world_of(particle)])

@@ -1,22 +1,30 @@
 """The linear solve of the implicit step: preconditioned CG on the model's fixed 3x3 block pattern, and its
 implicit adjoint (one adjoint solve with the same matrix, SPEC.md §4.1) recorded on the tape instead of the CG
-iterations."""
+iterations.
+
+Inside a step nothing here reads the device: each solve leaves its per-world result on the device, and one small
+kernel adds its iterations to the running totals and latches a failed world in the step's failure record
+(warpcloth/solver/status.py), which the Simulator reads at its sync points. ``solve`` (the public, synchronous
+call) reads its result back."""
 
 from __future__ import annotations
 
 import math
 import warnings
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
 import warp as wp
 
 from warpcloth.errors import SimulationError
+from warpcloth.kernels import status as ks
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Model
 from warpcloth.solver.multigrid import Hierarchy
 from warpcloth.solver.options import SolverOptions
+from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
 
 
@@ -38,19 +46,30 @@ class LinearSolver:
         model: the Model whose block pattern the systems use.
         options: SolverOptions (tolerances, preconditioner, backend, what a failed solve does).
         hint: returns text appended to a failed solve's message (e.g. the most elongated triangle).
+        status: the failure record the recorded solves latch into (a Simulator shares its own; a new one if None).
+
+    A preconditioner the resolved backend cannot run is mapped to one it can when the backend was chosen by the
+    device (``cg_backend="auto"``): block SSOR and multigrid are sequential sweeps, so the warp backend (CUDA)
+    runs block Jacobi instead, and ``note`` says so. Asking for such a pair explicitly raises ValueError.
     """
 
-    def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None):
+    def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None,
+                 status: StepStatus | None = None):
         self.model = model
         self.options = options
         self.device = model.device
         self.hint = hint or (lambda: "")
+        self.status = status if status is not None else StepStatus(self.device)
+        """The failure record and iteration totals the recorded solves write."""
         self.kernels = linear_kernels(model.scalar)
         backend = options.cg_backend
-        if backend == "auto":
+        chosen_by_device = backend == "auto"
+        if chosen_by_device:
             backend = "sequential" if self.device.is_cpu else "warp"
         self.backend = backend
         """``"sequential"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
+        self.note = ""
+        """What was mapped to run on this device (empty if nothing was): the CLI prints it."""
         preconditioner = options.preconditioner
         if preconditioner == "auto":
             if backend != "sequential":
@@ -62,8 +81,12 @@ class LinearSolver:
             raise ValueError(f"SolverOptions.preconditioner 'multigrid' takes a model of one world (this one has "
                              f"{model.world_count}); use 'block_ssor', which each world's solve runs on its own")
         if preconditioner in ("block_ssor", "multigrid") and backend != "sequential":
-            raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' (its "
-                             "sweeps are sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
+            if not chosen_by_device:
+                raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' "
+                                 "(its sweeps are sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
+            self.note = (f"preconditioner {preconditioner!r} is a sequential sweep; the warp CG backend that "
+                         f"{self.device} runs uses 'block_jacobi' instead")
+            preconditioner = "block_jacobi"
         self.preconditioner = preconditioner
         """The preconditioner ``preconditioner`` resolved to."""
         n = model.particle_count
@@ -83,15 +106,12 @@ class LinearSolver:
         self._precond = wp.empty(self._multigrid.b.shape[0] if self._multigrid.levels else n, dtype=mat33,
                                  device=self.device)
         self._world_start = wp.array(model.world_particle_start.astype(np.int32), dtype=wp.int32, device=self.device)
-        self._info = wp.zeros((model.world_count, 3), dtype=wp.float64, device=self.device)
-        # on the CPU the host view shares memory: reading it costs no copy and no launch
-        self._info_host = self._info.numpy() if self.device.is_cpu else None
-        self.world_info: np.ndarray | None = None
-        """Per world, the last sequential solve's [iterations, relative residual, converged (0/1)], shape
-        (world_count, 3) (host); the SolveInfo it returns holds the most iterations, the largest residual and
-        whether every world converged. None before the first solve, and with the warp backend."""
+        # per world [iterations, relative residual, converged (0/1)] of the last forward and adjoint solves
+        self._info = {which: wp.zeros((model.world_count, 3), dtype=wp.float64, device=self.device)
+                      for which in (False, True)}
+        self._solved = False
         self._adjoint = wp.zeros(n, dtype=vec3, device=self.device)
-        self._warp_matrix = None
+        self._warp = None  # the warp backend's matrix, operators and CG functors (_warp_backend)
         self._plain = self.kernels.BlockMatrix()
         self._plain.offsets, self._plain.columns = model.bsr_offsets, model.bsr_columns
         self._plain.diag_slot, self._plain.pair_count = model.particle_diag_slot, 0
@@ -99,20 +119,31 @@ class LinearSolver:
         self._plain.pair_nodes = wp.zeros((0, 4), dtype=wp.int32, device=self.device)
         self._plain.pair_w = wp.zeros(0, dtype=model.types.vec4, device=self.device)
         self._plain.pair_k = wp.zeros(0, dtype=mat33, device=self.device)
+        if backend == "warp":  # made here, not at the first solve, which may be inside a graph capture
+            self._warp_backend(self._scratch[0], self._scratch[1])
 
+    # -- solves ------------------------------------------------------------------------------------------------------
     def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
               adjoint: bool = False, pairs=None) -> SolveInfo:
-        """Solve A x = b from the first guess ``guess`` (which may be ``x`` itself), or from zero. Not taped.
+        """Solve A x = b from the first guess ``guess`` (which may be ``x`` itself), or from zero, and return what
+        the solve did (a read-back: this is the synchronous call, for diagnostics and tests). Not taped.
 
         A is ``values`` on the model's block pattern plus the cross blocks of proximity ``pairs`` (if any);
         ``adjoint`` selects the adjoint tolerance (``SolverOptions.adjoint_cg_tol``).
         """
+        self._launch_solve(values, b, x, guess, adjoint, pairs)
+        return self.info(adjoint)
+
+    def _launch_solve(self, values, b, x, guess, adjoint: bool, pairs) -> None:
+        """Launch the solve; its per-world result stays on the device (``self._info[adjoint]``)."""
         opt = self.options
         tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
         model = self.model
+        self._solved = True
         if self.backend == "warp":
             with untaped():  # its adjoint is the one solve_recorded records
-                return self._solve_warp(values, b, x, tol, guess, pairs)
+                self._solve_warp(values, b, x, tol, guess, pairs, self._info[adjoint])
+            return
         kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}[self.preconditioner]
         r, z, p, q = self._scratch
         wp.launch(self.kernels.cg_sequential, model.world_count, device=self.device,
@@ -121,53 +152,67 @@ class LinearSolver:
                           model.scalar(opt.ssor_omega), self._multigrid, int(guess is not None),
                           x if guess is None else guess,
                           r, z, p, q, self._precond, self._world_start],
-                  outputs=[x, self._info], record_tape=False)
-        info = self._info_host if self._info_host is not None else self._info.numpy()
-        self.world_info = info
-        if model.world_count == 1:
-            return SolveInfo(int(info[0, 0]), float(info[0, 1]), bool(info[0, 2]))
+                  outputs=[x, self._info[adjoint]], record_tape=False)
+
+    def info(self, adjoint: bool = False) -> SolveInfo:
+        """The last forward (or adjoint) solve: the most iterations of any world, the largest relative residual
+        (nan if any is non-finite), and whether every world converged. Reads the device."""
+        info = self._info[adjoint].numpy()
         residual = info[:, 1]
         worst = float(np.nan) if not np.all(np.isfinite(residual)) else float(residual.max())
         return SolveInfo(int(info[:, 0].max()), worst, bool(info[:, 2].all()))
 
+    @property
+    def world_info(self) -> np.ndarray | None:
+        """Per world, the last forward solve's [iterations, relative residual, converged (0/1)], shape
+        (world_count, 3) (host copy); None before the first solve. Reads the device."""
+        return self._info[False].numpy() if self._solved else None
+
     def solve_recorded(self, values: wp.array, rhs: wp.array, x: wp.array, *, step: int = 0,
                        guess: wp.array | None = None, adjoint_guess: wp.array | None = None,
                        adjoint_result: wp.array | None = None,
-                       on_adjoint: Callable[[SolveInfo], None] | None = None, pairs=None) -> SolveInfo:
-        """Solve A x = b (as :meth:`solve`), check it, and on the active tape record the implicit adjoint:
-        A lam = dL/dx, dL/db += lam, dL/dA_ij -= lam_i x_j^T on the stored blocks.
+                       after_adjoint: Callable[[], None] | None = None, pairs=None) -> None:
+        """Solve A x = b (as :meth:`solve`, without reading the device: a failure is latched in ``status``), and
+        on the active tape record the implicit adjoint: A lam = dL/dx, dL/db += lam, dL/dA_ij -= lam_i x_j^T on
+        the stored blocks.
 
         Args:
-            step: the step number that a failed solve's message names.
+            step: the step number that a failed solve's record names.
             guess: first guess of the forward solve.
             adjoint_guess: first guess of the adjoint solve (read once, then zeroed, so a second backward pass
                 over the same tape repeats the first bitwise).
             adjoint_result: receives lam after the adjoint solve (the next adjoint solve's first guess).
-            on_adjoint: called with the adjoint solve's SolveInfo (statistics).
+            after_adjoint: called after the adjoint solve (the Simulator checks its record there when it syncs
+                every step).
             pairs: proximity pairs whose cross blocks A has (their adjoint is the pairs' own, proximity.py).
         """
-        info = self.solve(values, rhs, x, guess=guess, pairs=pairs)
-        self.check(info, "forward", step)
+        self._launch_solve(values, rhs, x, guess, False, pairs)
+        self._account(step, adjoint=False)
         if not (values.requires_grad and rhs.requires_grad and x.requires_grad):
-            return info
+            return
 
         def adjoint():
             lam = self._adjoint
             first = adjoint_guess if self.options.warm_start else None
-            result = self.solve(values, x.grad, lam, guess=first, adjoint=True, pairs=pairs)
+            self._launch_solve(values, x.grad, lam, first, True, pairs)
             if first is not None:
                 first.zero_()
-            if on_adjoint is not None:
-                on_adjoint(result)
-            self.check(result, "adjoint", step)
+            self._account(step, adjoint=True)
             wp.launch(self.kernels.solve_adjoint_scatter, self.model.particle_count, device=self.device,
                       inputs=[self.block_matrix(values), lam, x],
                       outputs=[values.grad, rhs.grad], record_tape=False)
             if adjoint_result is not None:
                 wp.copy(adjoint_result, lam)
+            if after_adjoint is not None:
+                after_adjoint()
 
         record_adjoint(adjoint, arrays=[values, rhs, x])
-        return info
+
+    def _account(self, step: int, adjoint: bool) -> None:
+        status = self.status
+        wp.launch(ks.account_solve, 1, device=self.device,
+                  inputs=[self._info[adjoint], int(step), int(adjoint), int(self.options.on_cg_failure == "raise")],
+                  outputs=[status.record, status.detail, status.totals], record_tape=False)
 
     def block_matrix(self, values: wp.array, pairs=None):
         """The matrix with blocks ``values`` on the model's pattern and the cross blocks of ``pairs`` (a
@@ -183,85 +228,129 @@ class LinearSolver:
             A.values = values
         return A
 
-    def check(self, info: SolveInfo, which: str, step: int) -> None:
+    # -- failures ----------------------------------------------------------------------------------------------------
+    def check(self, info: SolveInfo, which: str, step: int, world: int | None = None) -> None:
         """Warn or raise (``SolverOptions.on_cg_failure``) when a solve missed its tolerance; always raise on a
-        non-finite residual."""
+        non-finite residual. ``world`` names the failing world of a model of several."""
+        message, fatal = self.failure_message(info, which, step, world)
+        if message is None:
+            return
+        worlds = [world] if world is not None and self.model.world_count > 1 else None
+        if fatal:
+            raise SimulationError(message, worlds=worlds)
+        warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+    def check_failure(self, failure: Failure, *, cause: str | None = None) -> None:
+        """Warn or raise for a failed solve latched in the failure record (``cause``: what made it non-finite,
+        when the caller can still tell)."""
+        info = SolveInfo(failure.iterations, failure.residual, False)
+        which = "adjoint" if failure.adjoint else "forward"
+        message, fatal = self.failure_message(info, which, failure.step, failure.index)
+        if cause is not None and failure.non_finite:
+            message = f"step {failure.step}: {cause} ({message})"
+        if failure.count > 1:
+            message += f" ({failure.count - 1} more solves missed their tolerance since the last check)"
+        worlds = [failure.index] if self.model.world_count > 1 else None
+        if fatal:
+            raise SimulationError(message, worlds=worlds)
+        warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+    def failure_message(self, info: SolveInfo, which: str, step: int, world: int | None) -> tuple[str | None, bool]:
+        """(message, whether it raises) for a solve's result, or (None, False) when it succeeded."""
         iters, residual, converged = info
         opt = self.options
-        world, worlds = "", None
-        if self.model.world_count > 1 and self.world_info is not None and not (converged and math.isfinite(residual)):
-            w = self._failed_world()
-            world, worlds = f" in world {w}", [w]
-            iters, residual = int(self.world_info[w, 0]), float(self.world_info[w, 1])
+        if converged and math.isfinite(residual):
+            return None, False
+        where = f" in world {world}" if world is not None and self.model.world_count > 1 else ""
         if not math.isfinite(residual):
-            raise SimulationError(f"{which} CG solve of step {step}{world} produced a non-finite residual after "
-                                  f"{iters} iterations; the system is not positive definite or the state is already "
-                                  "invalid"
-                                  + self.hint(), worlds=worlds)
-        if not converged:
-            name, tol = "cg_tol", opt.cg_tol
-            if which == "adjoint" and opt.adjoint_cg_tol is not None:
-                name, tol = "adjoint_cg_tol", opt.adjoint_cg_tol
-            msg = (f"{which} CG solve of step {step}{world} did not converge: relative residual {residual:.3e} "
-                   f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
-                   "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
-                   + self.hint())
-            if opt.on_cg_failure == "raise":
-                raise SimulationError(msg, worlds=worlds)
-            warnings.warn(msg, RuntimeWarning, stacklevel=4)
+            return (f"{which} CG solve of step {step}{where} produced a non-finite residual after {iters} "
+                    "iterations; the system is not positive definite or the state is already invalid"
+                    + self.hint(), True)
+        name, tol = "cg_tol", opt.cg_tol
+        if which == "adjoint" and opt.adjoint_cg_tol is not None:
+            name, tol = "adjoint_cg_tol", opt.adjoint_cg_tol
+        return (f"{which} CG solve of step {step}{where} did not converge: relative residual {residual:.3e} "
+                f"after {iters} iterations ({name} {tol:g}); raise cg_max_iters or lower dt, or loosen {name} or "
+                "use dtype=wp.float64 if float32 rounding is the floor (around 1e-6 on large meshes)"
+                + self.hint(), opt.on_cg_failure == "raise")
 
-    def _failed_world(self) -> int:
-        """The world of the last solve with a non-finite residual, else the one with the largest residual."""
-        residual = self.world_info[:, 1]
-        bad = np.flatnonzero(~np.isfinite(residual))
-        return int(bad[0]) if bad.size else int(np.argmax(residual))
-
-    def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None, pairs) -> SolveInfo:
-        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path), plus the pairs' cross blocks as a
-        matrix-free term of the operator (one launch per product, a thread per pair)."""
+    # -- the warp backend --------------------------------------------------------------------------------------------
+    def _warp_backend(self, b: wp.array, x: wp.array) -> SimpleNamespace:
+        """The warp backend's objects, made at its first solve: a BSR view of the model's block pattern, the
+        operator (batched per world, so each world's CG has its own step sizes and convergence test), the diagonal
+        preconditioner, and a CG functor per tolerance (preallocated: a solve allocates nothing)."""
+        if self._warp is not None:
+            return self._warp
         import warp.optim.linear as wl
         import warp.sparse as ws
 
-        model = self.model
-        if self._warp_matrix is None:
-            A = ws.bsr_zeros(model.particle_count, model.particle_count, model.types.mat33, device=self.device)
-            rows = np.repeat(np.arange(model.particle_count, dtype=np.int32), np.diff(model.bsr_offsets.numpy()))
-            ws.bsr_set_from_triplets(
-                A, wp.array(rows, dtype=wp.int32, device=self.device), model.bsr_columns,
-                wp.zeros(model.bsr_nnz, dtype=model.types.mat33, device=self.device), prune_numerical_zeros=False)
-            if not np.array_equal(A.columns.numpy()[: model.bsr_nnz], model.bsr_columns.numpy()):
-                raise RuntimeError("warp.sparse reordered the block structure; the slot map would be wrong")
-            self._warp_matrix = A
-        A = self._warp_matrix
-        A.values = values
+        model, device = self.model, self.device
+        n = model.particle_count
+        bsr = ws.bsr_zeros(n, n, model.types.mat33, device=device)
+        rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(model.bsr_offsets.numpy()))
+        ws.bsr_set_from_triplets(
+            bsr, wp.array(rows, dtype=wp.int32, device=device), model.bsr_columns,
+            wp.zeros(model.bsr_nnz, dtype=model.types.mat33, device=device), prune_numerical_zeros=False)
+        if not np.array_equal(bsr.columns.numpy()[: model.bsr_nnz], model.bsr_columns.numpy()):
+            raise RuntimeError("warp.sparse reordered the block structure; the slot map would be wrong")
+        starts = model.world_particle_start.astype(np.int32)
+        batch = None
+        if model.world_count > 1:
+            batch = dict(batch_offsets=wp.array(3 * starts, dtype=int, device=device),
+                         max_batch_length=int(3 * np.diff(starts).max()))
+        w = SimpleNamespace(bsr=bsr, batch=batch or {}, functors={}, pairs=None)
+        scalar, kernels = model.scalar, self.kernels
+
+        def matvec(x, y, z, alpha, beta):  # z = alpha A x + beta y, plus the pairs' cross blocks
+            if beta != 0.0 and z.ptr != y.ptr:
+                wp.copy(z, y)
+            ws.bsr_mv(bsr, x, z, alpha=alpha, beta=beta)
+            if w.pairs is not None:
+                wp.launch(kernels.pair_product, w.pairs.pair_count, device=device,
+                          inputs=[w.pairs, x, scalar(alpha)], outputs=[z], record_tape=False)
+
+        def precondition(x, y, z, alpha, beta):
+            wp.launch(kernels.apply_diagonal, n, device=device,
+                      inputs=[self._precond, x, y, scalar(alpha), scalar(beta)], outputs=[z], record_tape=False)
+
+        w.A = wl.LinearOperator(bsr.shape, bsr.dtype, device, matvec, **w.batch)
+        w.M = wl.LinearOperator(bsr.shape, bsr.dtype, device, precondition, **w.batch)
+        w.template = (b, x)
+        self._warp = w
+        return w
+
+    def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None, pairs, info: wp.array) -> None:
+        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path), plus the pairs' cross blocks as a
+        matrix-free term of the operator (one launch per product, a thread per pair). On CUDA it tests
+        convergence on the device (``check_every=0``: a conditional loop inside a graph, nested in the caller's
+        capture if there is one), so a solve never waits for the host; on the CPU it checks on the host every
+        iteration, and every world reports the worst world's residual."""
+        import warp.optim.linear as wl
+
+        model, opt = self.model, self.options
+        w = self._warp_backend(b, x)
+        w.bsr.values = values
+        matrix = self.block_matrix(values, pairs)
+        w.pairs = matrix if matrix.pair_count else None
         if guess is None:
             x.zero_()
         elif guess is not x:
             wp.copy(x, guess)
-        # the pairs' own blocks are on the diagonal: the preconditioner of the BSR part is theirs too
-        M = wl.preconditioner(A, "block_jacobi_direct" if self.preconditioner == "block_jacobi" else "diag")
-        if pairs is not None and pairs.count:
-            A = self._with_pairs(A, self.block_matrix(values, pairs), pairs.count)
-        opt = self.options
-        # warp's cg tests |r| <= max(tol |b|, atol); check_every=1 reports the exact iteration count
-        iters, residual, threshold = wl.cg(A, b, x, tol=tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters,
-                                           M=M, check_every=1, use_cuda_graph=False)
-        bnorm = float(np.linalg.norm(b.numpy()))
-        return SolveInfo(int(iters), float(residual) / max(bnorm, 1e-300), bool(residual <= threshold))
-
-    def _with_pairs(self, bsr, matrix, count: int):
-        """A warp LinearOperator for the BSR blocks plus the ``count`` pairs' cross blocks of ``matrix``."""
-        import warp.optim.linear as wl
-        import warp.sparse as ws
-
-        kernel, device, scalar = self.kernels.pair_product, self.device, self.model.scalar
-
-        def matvec(x, y, z, alpha, beta):
-            # z = alpha A x + beta y
-            if beta != 0.0 and z.ptr != y.ptr:
-                wp.copy(z, y)
-            ws.bsr_mv(bsr, x, z, alpha=alpha, beta=beta)
-            wp.launch(kernel, count, device=device, inputs=[matrix, x, scalar(alpha)], outputs=[z],
-                      record_tape=False)
-
-        return wl.LinearOperator(bsr.shape, bsr.dtype, device, matvec)
+        wp.launch(self.kernels.diagonal_inverse, model.particle_count, device=self.device,
+                  inputs=[matrix, int(self.preconditioner != "jacobi")],
+                  outputs=[self._precond], record_tape=False)
+        device_side = self.device.is_cuda
+        key = (tol, opt.cg_atol, opt.cg_max_iters)
+        if key not in w.functors:
+            w.functors[key] = wl.cg(w.A, *w.template, tol=tol, atol=opt.cg_atol, maxiter=opt.cg_max_iters, M=w.M,
+                                    check_every=0 if device_side else 1, use_cuda_graph=True, run=False)
+        result = w.functors[key](b=b, x=x)
+        if device_side:
+            iterations, r_norm_sq, atol_sq = result
+            wp.launch(self.kernels.warp_cg_info, model.world_count, device=self.device,
+                      inputs=[iterations, r_norm_sq, atol_sq, float(tol)], outputs=[info], record_tape=False)
+        else:  # host results: the worst world's residual and threshold
+            iterations, residual, threshold = result
+            relative = float(residual) * tol / max(float(threshold), 1e-300)
+            row = [float(iterations), relative, float(residual <= threshold)]
+            info.assign(np.tile(np.array(row, dtype=np.float64), (model.world_count, 1)))

@@ -129,6 +129,13 @@ class SolverOptions:
     second gains at most 1.4x in error (1.01 % against 1.36 % for two solves at 1/200 against one at 1/400), and
     on the hanging sheet in the wind it loses (2.20 % against 1.78 %); fully converged (three corrections),
     BDF2 itself is still at 1.42 % at dt 1/100 there."""
+    sync_every: int = 1
+    """How often, in steps, a step reads the device's failure record (warpcloth/solver/status.py) and raises or
+    warns: 1 every step (the error comes from the step that failed, with its state), N every N-th step, 0 only at
+    ``Simulator.check`` (``wc.rollout`` and captured replays check at their end). Errors name the step, world and
+    particle whichever is chosen. On the CPU a read costs nothing; on CUDA it waits for the device, so a rollout that
+    should run ahead of the host uses 0 (graph capture never reads, whatever this says). Scenes with a collision
+    stage check after every step's integration regardless: that stage is still driven from the host."""
     collision: CollisionOptions = field(default_factory=CollisionOptions)
     """Options of the collision stage (used only by scenes with collisions)."""
 
@@ -140,7 +147,7 @@ class SolverOptions:
         _check_positive("SolverOptions", self, ("cg_tol", "adjoint_cg_tol", "cg_atol", "max_speed"))
         if not 0.0 < self.ssor_omega < 2.0:
             raise ValueError(f"SolverOptions.ssor_omega must be in (0, 2), got {self.ssor_omega}")
-        _check_int("SolverOptions", self, {"cg_max_iters": 1})
+        _check_int("SolverOptions", self, {"cg_max_iters": 1, "sync_every": 0})
         if not isinstance(self.warm_start, bool):
             raise ValueError(f"SolverOptions.warm_start must be True or False, got {self.warm_start!r}")
         _check_choice("SolverOptions", self, {

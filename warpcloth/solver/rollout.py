@@ -7,6 +7,7 @@ from collections.abc import Callable, Sequence
 from warpcloth.model import Control, State
 from warpcloth.progress import progress_bar
 from warpcloth.solver.simulator import Simulator
+from warpcloth.tape import capturing
 
 ControlSchedule = Control | Sequence[Control] | Callable[[int], Control] | None
 """One Control for every step, a sequence with one per step, or a function of the step index."""
@@ -61,4 +62,6 @@ def rollout(
     finally:
         if bar is not None:
             bar.close()
+    if not capturing(sim.device):
+        sim.check(trajectory)  # what steps that did not check themselves (SolverOptions.sync_every) latched
     return trajectory

@@ -22,7 +22,6 @@ import warp as wp
 from warpcloth.collision import CollisionStage
 from warpcloth.collision.proximity import ProximityForces, ProximityPairs
 from warpcloth.collision.stage import CollisionReport
-from warpcloth.errors import SimulationError
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.model import Control, Model, State
 from warpcloth.obstacles import obstacle_points
@@ -30,7 +29,8 @@ from warpcloth.solver.assembly import SystemAssembler
 from warpcloth.solver.diagnostics import StepDiagnostics
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import SolverOptions
-from warpcloth.tape import active_tape
+from warpcloth.solver.status import StepStatus
+from warpcloth.tape import active_tape, capturing
 
 
 class Simulator:
@@ -57,16 +57,12 @@ class Simulator:
         self._options.validate()
         self.device = model.device
         self.kernels = implicit_kernels(model.scalar)
-        self.last_solve = SolveInfo(0, 0.0, True)
-        """The forward CG solve of the last step (diagnostics only: no step reads it)."""
-        self.stats = {"steps": 0, "cg_iterations": 0, "adjoint_cg_iterations": 0}
-        """Counters over this simulator's life (diagnostics only: no step reads them)."""
+        self.status = StepStatus(self.device)
+        """The failure record the step's kernels latch into, and the CG iteration totals (read at sync points)."""
+        self._steps = 0
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
         measures launch, not execution, unless the device synchronises)."""
-        self._status = wp.zeros(1, dtype=wp.int32, device=self.device)
-        # host view of the divergence flag read every step (on the CPU it shares memory: no copy, no launch)
-        self._status_host = self._status.numpy() if self.device.is_cpu else None
         self.notify_model_changed()
 
     # -- public ------------------------------------------------------------------------------------------------------
@@ -81,7 +77,7 @@ class Simulator:
         self.assembler = SystemAssembler(model, self.dt)
         """Launches the step's force and Hessian kernels into the system."""
         self._assembler_bdf2: SystemAssembler | None = None  # made at the first BDF2 step
-        self.linear_solver = LinearSolver(model, self.options, hint=self.diagnostics.mesh_hint)
+        self.linear_solver = LinearSolver(model, self.options, hint=self.diagnostics.mesh_hint, status=self.status)
         """The CG solver of the implicit system (and of its adjoint)."""
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
@@ -121,6 +117,30 @@ class Simulator:
         if self.collision is not None:
             self.collision.options = options
 
+    @property
+    def stats(self) -> dict:
+        """Counters over this simulator's life: steps, and forward and adjoint CG iterations (the most of any
+        world, summed over solves). Diagnostics only: reading them reads the device."""
+        forward, adjoint = self.status.iterations()
+        return {"steps": self._steps, "cg_iterations": forward, "adjoint_cg_iterations": adjoint}
+
+    @property
+    def last_solve(self) -> SolveInfo:
+        """The last forward CG solve (diagnostics only: reading it reads the device)."""
+        return self.linear_solver.info() if self._steps else SolveInfo(0, 0.0, True)
+
+    def check(self, states=()) -> None:
+        """Read the failure record the steps latched on the device since the last check, and raise
+        SimulationError for an error (a diverged particle, a non-finite or, with ``on_cg_failure="raise"``, an
+        unconverged CG solve) or warn for solves that missed their tolerance. The message names the step, the
+        particle or world, and, where ``states`` (e.g. the trajectory) holds the failing step's result, its
+        position and velocity.
+
+        A step checks by itself every ``SolverOptions.sync_every`` steps (every step by default) and never while a
+        graph is being captured; ``wc.rollout`` and captured replays check at their end.
+        """
+        self._check(states)
+
     def step(self, state_in: State, state_out: State, control: Control | None = None) -> None:
         """Advance ``state_in`` by one time step into ``state_out`` (records on the active tape, if any).
 
@@ -142,6 +162,10 @@ class Simulator:
         for phase, stage in self._stages:
             stage(s)
             clock.lap(phase)
+        self._steps += 1
+        every = self.options.sync_every
+        if every and s.number % every == 0 and not capturing(self.device):
+            self._check((state_out,), s)
 
     # -- the stages of a step ----------------------------------------------------------------------------------------
     def _assemble(self, s: _Step) -> None:
@@ -173,24 +197,15 @@ class Simulator:
         if recording:
             state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
 
-        def count_adjoint(info: SolveInfo) -> None:
-            self.stats["adjoint_cg_iterations"] += info.iterations
+        def after_adjoint() -> None:
+            every = self.options.sync_every
+            if every and s.number % every == 0 and not capturing(self.device):
+                self._check()
 
-        try:
-            info = self.linear_solver.solve_recorded(
-                s.values, s.rhs, dv, step=s.number, guess=guess if warm else None,
-                adjoint_guess=state_out.solve_adjoint if recording else None,
-                adjoint_result=state_in.solve_adjoint, on_adjoint=count_adjoint, pairs=s.pairs)
-        except SimulationError as exc:
-            cause = self.diagnostics.non_finite_cause(state_in, s.values, s.rhs)
-            if cause is None:
-                raise
-            raise SimulationError(f"step {s.number}: {cause} ({exc})", worlds=exc.worlds) from None
-        if info.iterations == 0 and not self._atol_checked:
-            self._atol_checked = True  # once per Simulator, at its first skipped solve
-            self.diagnostics.warn_if_below_atol(s.number, self.options.cg_atol)
-        self.last_solve = info
-        self.stats["cg_iterations"] += info.iterations
+        self.linear_solver.solve_recorded(
+            s.values, s.rhs, dv, step=s.number, guess=guess if warm else None,
+            adjoint_guess=state_out.solve_adjoint if recording else None,
+            adjoint_result=state_in.solve_adjoint, after_adjoint=after_adjoint, pairs=s.pairs)
         s.velocity_change = dv
 
     def _friction(self, s: _Step) -> None:
@@ -202,20 +217,17 @@ class Simulator:
     def _integrate(self, s: _Step) -> None:
         """x = start + dt (v + dv): the step's result, or, with a collision stage, its candidate x̂, v̂."""
         model = self.model
-        if self._status_host is not None:
-            self._status_host[0] = 0
-        else:
-            self._status.zero_()
         if self.collision is None:
             out = s.state_out
         else:
             out = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
         wp.launch(self.kernels.integrate, model.particle_count, device=self.device,
                   inputs=[s.start.particle_x, s.start.particle_v, s.velocity_change, model.scalar(s.assembler.dt),
-                          model.scalar(self.options.max_speed)],
-                  outputs=[out.particle_x, out.particle_v, self._status])
+                          model.scalar(self.options.max_speed), s.number],
+                  outputs=[out.particle_x, out.particle_v, self.status.record])
         if self.collision is not None:
-            self._raise_if_diverged(out, s.t_next, s.number)  # no NaN or runaway particle reaches the stage
+            # the collision stage is driven from the host: no NaN or runaway particle may reach it
+            self._check((out,), s)
             s.x_hat, s.v_hat = out.particle_x, out.particle_v
 
     def _collide(self, s: _Step) -> None:
@@ -226,8 +238,9 @@ class Simulator:
         s.report = self.collision.resolve(s.state_in, s.x_hat, s.v_hat, *s.obstacles, s.state_out, s.number, s.mass,
                                           implicit_dt=s.assembler.dt)
         wp.launch(self.kernels.check_state, self.model.particle_count, device=self.device,
-                  inputs=[s.state_out.particle_x, s.state_out.particle_v, self.model.scalar(self.options.max_speed)],
-                  outputs=[self._status], record_tape=False)  # the projection's velocity change too
+                  inputs=[s.state_out.particle_x, s.state_out.particle_v, self.model.scalar(self.options.max_speed),
+                          s.number],
+                  outputs=[self.status.record], record_tape=False)  # the projection's velocity change too
 
     def _hand_on(self, s: _Step) -> None:
         """What the next step reads from ``state_out`` (time, step number, BDF2's history, the wind's lagged
@@ -251,8 +264,6 @@ class Simulator:
             # ARCSim's face normals lag a step, except after a collision response that moved the cloth: it
             # recomputes them then (SPEC §2), so the next step's wind sees the current positions
             state_out.particle_x_previous = state_out.particle_x if moved else state_in.particle_x
-        self.stats["steps"] += 1
-        self._raise_if_diverged(state_out, s.t_next, s.number)
 
     def _lumped_mass(self, recording: bool) -> wp.array:
         """The particles' lumped masses from the model's densities (one taped launch a step: the contact stages'
@@ -419,12 +430,28 @@ class Simulator:
             state_out.particle_dv = dv
         return dv
 
-    def _raise_if_diverged(self, state: State, t: float, step: int) -> None:
-        """Raise SimulationError if the divergence guard (``self._status``) flagged a particle of ``state``, the
-        result of step number ``step`` at time ``t``."""
-        bad = int((self._status_host if self._status_host is not None else self._status.numpy())[0])
-        if bad:
-            raise self.diagnostics.divergence_error(state, bad - 1, t, step, self.options.max_speed)
+    def _check(self, states=(), s: _Step | None = None) -> None:
+        """Read the failure record (Simulator.check); ``s``: the step being taken, whose inputs can still tell
+        why a solve went non-finite."""
+        error, warning, skipped = self.status.take()
+        if skipped and not self._atol_checked:
+            self._atol_checked = True  # once per Simulator, at its first skipped solve
+            self.diagnostics.warn_if_below_atol(skipped, self.options.cg_atol)
+        if warning is not None:
+            self.linear_solver.check_failure(warning)
+        if error is None:
+            return
+        if error.diverged:
+            state = next((st for st in states if st is not None and st.step == error.step), None)
+            if state is None and s is not None and error.step == s.number:
+                state = states[0] if states else None  # the step's own (still unnumbered) result
+            t = state.time if state is not None and state.step == error.step else (
+                s.t_next if s is not None and error.step == s.number else None)
+            raise self.diagnostics.divergence_error(state, error.index, t, error.step, self.options.max_speed)
+        cause = None
+        if s is not None and error.step == s.number and not error.adjoint and error.non_finite:
+            cause = self.diagnostics.non_finite_cause(s.start, s.values, s.rhs)
+        self.linear_solver.check_failure(error, cause=cause)
 
 
 @dataclass

@@ -1,0 +1,161 @@
+"""Step time of the hanging cloth with and without graph capture, on the CPU or CUDA (issue #37).
+
+Scene: the seed's hanging cloth in the wind (benchmarks/common.py hanging_cloth: 1 m sheet, soft handles on the
+top corners, 5 m/s wind, gray-interlock thicken 2), dt 0.02, float32, default SolverOptions (on the CPU the
+sequential one-launch CG with the multigrid preconditioner, or block SSOR for several worlds; on CUDA the warp
+backend with block Jacobi and device-side convergence), after a spin-up of SPINUP steps. Worlds: copies of the
+sheet in one model (``ModelBuilder.replicate``).
+
+    step_ms              wc.rollout per step, checking the failure record every step (sync_every=1, the default)
+    step_ms_sync0        the same with SolverOptions(sync_every=0): the record read once, at the rollout's end
+    captured_ms          wc.CapturedRollout.run per step (one graph for the rollout)
+    world_steps_per_s    worlds x steps per second of the captured rollout
+    cg_iters             mean forward CG iterations per step (the most of any world)
+    launches_per_step    kernel launches of an uncaptured step (warp.optim's included)
+    allocs_per_step      Warp array allocations of an untaped step between two preallocated States (CPU only)
+    fwd_bwd_s            a taped rollout and its backward pass, uncaptured and captured (single world only)
+    max_diff             largest difference between the captured and the uncaptured final positions [m] (and
+                         wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
+                         the assembly's atomic additions make any two runs differ in the last bits
+
+Each time is the median of --reps repetitions.
+
+Usage: python benchmarks/graph_step.py [--quick] [--device cuda:0] [--sizes 16,64] [--worlds 1,64] [--steps 50]
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import common
+import numpy as np
+import warp as wp
+from common import wc
+
+from warpcloth.tasks import scenes
+
+SPINUP = 10
+
+
+@wp.kernel
+def _height(x: wp.array(dtype=wp.vec3), loss: wp.array(dtype=float)):
+    wp.atomic_add(loss, 0, x[wp.tid()][2])
+
+
+def _loss(trajectory):
+    loss = wp.zeros(1, dtype=float, requires_grad=True)
+    wp.launch(_height, trajectory[-1].particle_x.shape[0], inputs=[trajectory[-1].particle_x], outputs=[loss])
+    return loss
+
+
+def model_of(res: int, worlds: int, device: str, requires_grad: bool = False) -> wc.Model:
+    """The hanging sheet, or ``worlds`` copies of it in one model."""
+    builder = scenes.hanging_cloth_builder(wc.preset("gray-interlock", thicken=common.THICKEN), res=res)
+    if worlds > 1:
+        many = wc.ModelBuilder(gravity=tuple(common.GRAVITY))
+        many.replicate(builder, worlds)
+        builder = many
+    return builder.finalize(device, requires_grad=requires_grad)
+
+
+def spun_up(sim: wc.Simulator, steps: int) -> wc.State:
+    """A flapping cloth's positions and velocities, as a State with no first guess (a cold first solve)."""
+    state = common.advance(sim, sim.model.state(), steps)
+    return wc.State(wp.clone(state.particle_x), wp.clone(state.particle_v), state.time)
+
+
+def case(res: int, worlds: int, device: str, steps: int, reps: int) -> dict:
+    model = model_of(res, worlds, device)
+    out = {"res": res, "worlds": worlds, "particles": model.particle_count, "steps": steps}
+    sim = wc.Simulator(model, common.DT)
+    out["backend"], out["preconditioner"] = sim.linear_solver.backend, sim.linear_solver.preconditioner
+    start = spun_up(sim, SPINUP)
+
+    def rollout():
+        return wc.rollout(sim, start, steps=steps)
+
+    before = sim.stats["cg_iterations"]
+    reference = rollout()[-1].particle_x.numpy().copy()
+    out["cg_iters"] = (sim.stats["cg_iterations"] - before) / steps
+    out["step_ms"] = 1e3 * common.median_time(rollout, reps=reps) / steps
+    with common.launch_profile() as launches:
+        rollout()
+    out["launches_per_step"] = sum(calls for calls, _ in launches.values()) / steps
+
+    sim0 = wc.Simulator(model, common.DT, options=wc.SolverOptions(sync_every=0))
+    out["step_ms_sync0"] = 1e3 * common.median_time(lambda: wc.rollout(sim0, start, steps=steps), reps=reps) / steps
+
+    captured = wc.CapturedRollout(sim, start, steps=steps)
+    out["captured_ms"] = 1e3 * common.median_time(captured.run, reps=reps) / steps
+    out["world_steps_per_s"] = worlds * 1e3 / out["captured_ms"]
+    out["max_diff"] = float(np.abs(captured.run()[-1].particle_x.numpy() - reference).max())
+
+    if wp.get_device(device).is_cpu:  # untaped steps between two preallocated States
+        a, b = wc.State(wp.clone(start.particle_x), wp.clone(start.particle_v), start.time), model.empty_state()
+        sim.step(a, b)
+        sim.step(b, a)
+        with common.alloc_profile() as allocs:
+            for _ in range(5):
+                sim.step(a, b)
+                sim.step(b, a)
+        out["allocs_per_step"] = None if allocs["count"] is None else allocs["count"] / 10
+    return out
+
+
+def gradient_case(res: int, device: str, steps: int, reps: int) -> dict:
+    model = model_of(res, 1, device, requires_grad=True)
+    sim = wc.Simulator(model, common.DT)
+    start = spun_up(sim, SPINUP)
+
+    def uncaptured():
+        tape = wp.Tape()
+        with wp.ScopedDevice(device), tape:
+            loss = _loss(wc.rollout(sim, start, steps=steps))
+        tape.backward(loss)
+        grad = model.wind_velocity.grad.numpy().copy()
+        tape.zero()
+        return grad
+
+    grad = uncaptured()
+    out = {"res": res, "steps": steps,
+           "fwd_bwd_s": common.median_time(uncaptured, reps=reps)}
+    captured = wc.CapturedRollout(sim, start, steps=steps, loss=_loss)
+    out["fwd_bwd_captured_s"] = common.median_time(captured.run, reps=reps)
+    captured.run()
+    out["max_diff"] = float(np.abs(model.wind_velocity.grad.numpy() - grad).max())
+    return out
+
+
+def main():
+    args = common.parse_args(__doc__, quick={"sizes": "8", "worlds": "1,4", "steps": 5, "reps": 2},
+                             device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3)
+    sizes = [int(s) for s in args.sizes.split(",")]
+    world_counts = [int(w) for w in args.worlds.split(",")]
+    common.print_machine(common.machine_info(args.device))
+    warnings.simplefilter("ignore", RuntimeWarning)  # tolerance warnings of the 1024-world float32 solves
+    rows = []
+    for res in sizes:
+        for worlds in world_counts:
+            if worlds > 1 and res > 16:
+                continue  # many worlds: the 16x16 sheet only
+            r = case(res, worlds, args.device, args.steps, args.reps)
+            rows.append(r)
+            print(f"  {res}x{res} x{worlds}: {r['step_ms']:.3f} ms/step, captured {r['captured_ms']:.3f}", flush=True)
+    common.print_table(
+        ["grid", "worlds", "backend", "precond", "CG it", "launches", "allocs", "step ms", "sync0 ms", "captured ms",
+         "world-steps/s", "max diff"],
+        [[f"{r['res']}x{r['res']}", r["worlds"], r["backend"], r["preconditioner"], r["cg_iters"],
+          r["launches_per_step"], r.get("allocs_per_step"), r["step_ms"], r["step_ms_sync0"], r["captured_ms"],
+          r["world_steps_per_s"], r["max_diff"]] for r in rows],
+        ["", "", "", "", ".1f", ".1f", ".1f", ".3f", ".3f", ".3f", ",.0f", ".1e"],
+        title=f"per step on {args.device} ({args.steps} steps a rollout, median of {args.reps})")
+    gradients = [gradient_case(res, args.device, args.steps, args.reps) for res in sizes[:1]]
+    common.print_table(
+        ["grid", "steps", "fwd+bwd s", "captured s", "max diff"],
+        [[f"{g['res']}x{g['res']}", g["steps"], g["fwd_bwd_s"], g["fwd_bwd_captured_s"], g["max_diff"]]
+         for g in gradients], ["", "", ".4f", ".4f", ".1e"], title="a taped rollout and its backward pass")
+    common.write_result(args, {"cases": rows, "gradients": gradients}, device=args.device)
+
+
+if __name__ == "__main__":
+    main()
