@@ -409,6 +409,144 @@ def linear_kernels(scalar):
         info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
         info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
 
+    @wp.func
+    def block_sum(value: wp.float64):
+        """The sum of ``value`` over the threads of the block, returned to every thread. A tile reduction, so it is
+        also a barrier: what the block's threads wrote before it, every thread reads after it. (On the CPU a
+        block is one thread.)"""
+        return wp.tile_sum(wp.tile(value))[0]
+
+    @wp.func
+    def add_row_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), lo: int, hi: int,
+                         lane: int, stride: int):
+        """q = (A p) on rows [lo, hi) from full rows (no scatter, so no two threads write one row), the rows
+        ``lane, lane + stride, ...``; returns this thread's share of p . q (float64)."""
+        pq = wp.float64(0.0)
+        i = lo + lane
+        while i < hi:
+            acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+            for k in range(A.offsets[i], A.offsets[i + 1]):
+                acc += A.values[k] * p[A.columns[k]]
+            q[i] = acc
+            pq += wp.float64(wp.dot(p[i], acc))
+            i += stride
+        return pq
+
+    @wp.func
+    def add_world_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar,
+                                world: int, lane: int, stride: int):
+        """q += sign (the cross blocks of ``world``'s pairs) p, a pair per thread (atomic adds); returns this
+        thread's share of p . (that product)."""
+        pq = wp.float64(0.0)
+        k = A.pair_world_start[world] + lane
+        while k < A.pair_world_start[world + 1]:
+            pq += add_pair_product(A, k, p, q, sign)
+            k += stride
+        return pq
+
+    @wp.kernel
+    def cg_tiled(
+        A: BlockMatrix,
+        b: wp.array(dtype=vec3),
+        rtol: wp.float64,
+        atol: wp.float64,
+        max_iters: int,
+        use_block: int,
+        warm_start: int,
+        guess: wp.array(dtype=vec3),
+        # scratch:
+        r: wp.array(dtype=vec3),
+        z: wp.array(dtype=vec3),
+        p: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        precond: wp.array(dtype=mat33),
+        world_start: wp.array(dtype=wp.int32),
+        # out: per world [iterations, relative (recursive) residual, converged (0/1)]
+        x: wp.array(dtype=vec3),
+        info: wp.array2d(dtype=wp.float64),
+    ):
+        # The whole (block) Jacobi-preconditioned CG of one world in one thread block (launch_tiled, one block per
+        # world): its threads share the rows, and the dot products are tile reductions, which double as the
+        # barriers between the phases of an iteration. One launch a solve and no host round trip: the parallel
+        # form of cg_sequential, for CUDA. Each world stops when it converges, as with cg_sequential, and the
+        # reductions run in a fixed order, so a world's result does not depend on the other worlds.
+        w, lane = wp.tid()
+        stride = wp.block_dim()
+        lo = world_start[w]
+        hi = world_start[w + 1]
+        zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        pairs = A.pair_count > 0
+        bb = wp.float64(0.0)
+        i = lo + lane
+        while i < hi:
+            precond[i] = jacobi_inverse(A.values[A.diag_slot[i]], use_block)
+            if warm_start != 0:
+                x[i] = guess[i]
+            else:
+                x[i] = zero
+            bb += wp.float64(wp.dot(b[i], b[i]))
+            i += stride
+        bb = block_sum(bb)
+        if warm_start != 0:
+            add_row_products(A, x, r, lo, hi, lane, stride)  # r = A x0 for now
+            if pairs:
+                block_sum(wp.float64(0.0))
+                add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
+            block_sum(wp.float64(0.0))
+        rr = wp.float64(0.0)
+        rz = wp.float64(0.0)
+        i = lo + lane
+        while i < hi:
+            ri = b[i]
+            if warm_start != 0:
+                ri = ri - r[i]
+            r[i] = ri
+            zi = precond[i] * ri
+            p[i] = zi
+            rr += wp.float64(wp.dot(ri, ri))
+            rz += wp.float64(wp.dot(ri, zi))
+            i += stride
+        rr = block_sum(rr)
+        rz = block_sum(rz)
+        threshold = wp.max(rtol * wp.sqrt(bb), atol)
+        rnorm = wp.sqrt(rr)
+        it = int(0)
+        while it < max_iters and rnorm > threshold:  # the same on every thread: reduced values only
+            pq = add_row_products(A, p, q, lo, hi, lane, stride)
+            if pairs:
+                block_sum(wp.float64(0.0))
+                pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
+            pq = block_sum(pq)
+            alpha = scalar(rz / pq)
+            rr = wp.float64(0.0)
+            rz_new = wp.float64(0.0)
+            i = lo + lane
+            while i < hi:
+                xi = x[i] + alpha * p[i]
+                ri = r[i] - alpha * q[i]
+                zi = precond[i] * ri
+                x[i] = xi
+                r[i] = ri
+                z[i] = zi
+                rr += wp.float64(wp.dot(ri, ri))
+                rz_new += wp.float64(wp.dot(ri, zi))
+                i += stride
+            rr = block_sum(rr)
+            rz_new = block_sum(rz_new)
+            beta = scalar(rz_new / rz)
+            rz = rz_new
+            i = lo + lane
+            while i < hi:
+                p[i] = z[i] + beta * p[i]
+                i += stride
+            block_sum(wp.float64(0.0))  # every p written before the next product reads it
+            rnorm = wp.sqrt(rr)
+            it += 1
+        if lane == 0:
+            info[w, 0] = wp.float64(it)
+            info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
+            info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
+
     @wp.kernel
     def diagonal_inverse(A: BlockMatrix, use_block: int, precond: wp.array(dtype=mat33)):
         # the (block) Jacobi preconditioner of the warp backend, rebuilt from each system's diagonal blocks
@@ -467,6 +605,7 @@ def linear_kernels(scalar):
         BlockMatrix=BlockMatrix,
         Multigrid=Multigrid,
         cg_sequential=cg_sequential,
+        cg_tiled=cg_tiled,
         diagonal_inverse=diagonal_inverse,
         apply_diagonal=apply_diagonal,
         warp_cg_info=warp_cg_info,

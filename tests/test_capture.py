@@ -71,7 +71,12 @@ def test_captured_gradients_equal_uncaptured_for_every_parameter(device):
     assert all(not np.any(a.grad.numpy()) for a in arrays.values()), "tape.zero() left a gradient"
     assert all(np.abs(g).max() > 0 for g in expected.values()), {k: np.abs(g).max() for k, g in expected.items()}
 
-    captured = wc.CapturedRollout(sim, state, control, steps=STEPS, loss=loss_of)
+    if wp.get_device(device).is_cuda:  # not captured there yet (Warp 1.19): run afresh each time, and say so
+        with pytest.warns(RuntimeWarning, match="not captured on CUDA"):
+            captured = wc.CapturedRollout(sim, state, control, steps=STEPS, loss=loss_of)
+    else:
+        captured = wc.CapturedRollout(sim, state, control, steps=STEPS, loss=loss_of)
+        assert len(captured.graphs) == 3
     same = exact_or_close(device)
     for _ in range(2):  # a second replay starts from zeroed gradients: it does not add to the first
         captured.run()

@@ -12,6 +12,8 @@ import warpcloth as wc
 # Each world's solve runs on its own; to compare with single-world runs both use the same preconditioner (a
 # single world's "auto" is multigrid, which spans one world).
 SSOR = dict(preconditioner="block_ssor", cg_tol=1e-10)
+TILED = {**SSOR, "preconditioner": "block_jacobi", "cg_backend": "tiled"}
+"""The GPU's CG backend (one thread block per world; one thread on the CPU): the same per-world independence."""
 
 
 @wp.kernel
@@ -55,7 +57,8 @@ WORLDS = [("gray-interlock", (0.5, 2.0, 0.0), (0.0, 0.0, -2.0)),
           ("tango-red-jet-set", (1.0, -1.0, 0.5), (0.3, 0.0, -5.0))]
 
 
-def test_worlds_without_contact_equal_single_runs_states_and_gradients():
+@pytest.mark.parametrize("solve", [SSOR, TILED], ids=["sequential", "tiled"])
+def test_worlds_without_contact_equal_single_runs_states_and_gradients(solve):
     """Per-world materials, wind and gravity: each world's state and gradients (its material, wind, gravity and
     initial velocities) equal a single-world model's, bitwise: the same kernels, and each world's CG on its own."""
     steps, rng = 8, np.random.default_rng(1)
@@ -69,14 +72,14 @@ def test_worlds_without_contact_equal_single_runs_states_and_gradients():
     batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
     assert batch.world_count == 3 and batch.material_count == 3
     weights = rng.standard_normal((batch.particle_count, 3))
-    batch_sim = wc.Simulator(batch, 0.02, options=wc.SolverOptions(**SSOR))
+    batch_sim = wc.Simulator(batch, 0.02, options=wc.SolverOptions(**solve))
     x, (g_density, g_gravity, g_wind, g_v0) = loss_and_grads(
         batch, batch_sim, steps, weights,
         params=(batch.material_density, batch.gravity, batch.wind_velocity, batch.particle_v0))
     assert batch_sim.linear_solver.world_info.shape == (3, 3)
     for w, model in enumerate(singles):
         part = batch.world_slice(w)
-        sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(**SSOR))
+        sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(**solve))
         params = [model.material_density, model.gravity, model.particle_v0]
         if model.wind_velocity is not None:
             params.append(model.wind_velocity)
@@ -101,7 +104,8 @@ def draped_builder():
     return b
 
 
-def test_worlds_with_contact_equal_single_runs_states_and_gradients():
+@pytest.mark.parametrize("solve", [SSOR, TILED], ids=["sequential", "tiled"])
+def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve):
     """A cloth dropped on a sphere (projection, repulsion, friction) replicated with a different push per world:
     states and the gradients of every parameter (forces, density, stretching, bending, x0, v0, the sphere's
     placement) equal single-world runs (float64), bitwise (the material, which the worlds share, to rounding: the
@@ -117,7 +121,7 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients():
     composed.replicate(base, worlds)
     batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
     weights = rng.standard_normal((batch.particle_count, 3))
-    options = wc.SolverOptions(**SSOR)
+    options = wc.SolverOptions(**solve)
 
     def run(model, forces, w):
         x, grads, sim = pushed_gradients(model, forces, w, dt=0.01, steps=steps, options=options)

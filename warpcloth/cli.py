@@ -98,6 +98,13 @@ def _add_outputs(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
 
+def _print_solver_note(sim) -> None:
+    """Say what the linear solver mapped to run on this device (a preconditioner its CG backend cannot run)."""
+    solver = sim.linear_solver
+    if solver.note:
+        print(f"note: {solver.note} (CG backend {solver.backend}, preconditioner {solver.preconditioner})")
+
+
 def _error(message: str, status: int) -> int:
     print(f"warpcloth: error: {message}", file=sys.stderr)
     return status
@@ -180,6 +187,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     total_cg = sim.stats["cg_iterations"]
     print(f"{scene.name}: {scene.steps} steps of {scene.dt:g} s on {model.device} in {wall:.2f} s wall time")
+    _print_solver_note(sim)
     print(f"CG iterations: {total_cg} total, {total_cg / scene.steps:.1f} per step")
     print(f"wrote {os.path.abspath(usd_path)} ({len(frames)} frames)")
     return 0
@@ -286,6 +294,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     dt = fit.sim.dt
     print(f"estimating the material of {task.source}: {fit.steps} steps of {dt:g} s, optimizer {optimizer}, "
           f"{iters} simulations, fitting {', '.join(task.free)}, start: {task.start.name}")
+    _print_solver_note(fit.sim)
     try:
         result = task.run(optimizer=optimizer, iters=iters, progress=True)
     except SimulationError as exc:
@@ -403,6 +412,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
     print(f"{scene.name}: {len(task.particles)} particles pushed {task.intervals} times, {task.steps} steps of "
           f"{task.dt:g} s, moving {goal}; controller {controller}"
           f" ({task.optimizer_for(controller)}), {iters} simulations")
+    _print_solver_note(task.sim)
     try:
         result = task.run(controller=controller, iters=iters, progress=True, **job.start(task))
     except ImportError as exc:

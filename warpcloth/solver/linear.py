@@ -27,6 +27,13 @@ from warpcloth.solver.options import SolverOptions
 from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
 
+TILED_MAX_PARTICLES = 1024
+"""The largest world the "auto" backend gives the tiled CG on CUDA (one thread block a world); larger worlds get
+warp.optim's CG, whose every operation spans the GPU. Measured on an H200 (benchmarks/results/gpu/, hanging sheet,
+block Jacobi, captured steps): 16x16 (289 particles) 0.77 ms a step tiled against 2.0 ms with warp.optim's CG;
+64x64 (4225) 28.3 ms against 7.3 ms. A tiled CG iteration costs about 10 us at 289 rows and 110 us at 4225 (a
+block of 256 threads), warp.optim's about 27 us at both (its launches): they cross near 1000 particles."""
+
 
 class SolveInfo(NamedTuple):
     """What one CG solve did."""
@@ -64,10 +71,14 @@ class LinearSolver:
         self.kernels = linear_kernels(model.scalar)
         backend = options.cg_backend
         chosen_by_device = backend == "auto"
+        largest = int(np.diff(model.world_particle_start).max())
         if chosen_by_device:
-            backend = "sequential" if self.device.is_cpu else "warp"
+            if self.device.is_cpu:
+                backend = "sequential"
+            else:  # a thread block per world while a world fits one well; else the many-block warp.optim CG
+                backend = "tiled" if largest <= TILED_MAX_PARTICLES else "warp"
         self.backend = backend
-        """``"sequential"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
+        """``"sequential"``, ``"tiled"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
         self.note = ""
         """What was mapped to run on this device (empty if nothing was): the CLI prints it."""
         preconditioner = options.preconditioner
@@ -83,8 +94,9 @@ class LinearSolver:
         if preconditioner in ("block_ssor", "multigrid") and backend != "sequential":
             if not chosen_by_device:
                 raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' "
-                                 "(its sweeps are sequential); use 'block_jacobi' or 'jacobi' with the warp backend")
-            self.note = (f"preconditioner {preconditioner!r} is a sequential sweep; the warp CG backend that "
+                                 f"(its sweeps are sequential); use 'block_jacobi' or 'jacobi' with the {backend} "
+                                 "backend")
+            self.note = (f"preconditioner {preconditioner!r} is a sequential sweep; the {backend} CG backend that "
                          f"{self.device} runs uses 'block_jacobi' instead")
             preconditioner = "block_jacobi"
         self.preconditioner = preconditioner
@@ -121,6 +133,8 @@ class LinearSolver:
         self._plain.pair_k = wp.zeros(0, dtype=mat33, device=self.device)
         if backend == "warp":  # made here, not at the first solve, which may be inside a graph capture
             self._warp_backend(self._scratch[0], self._scratch[1])
+        self.block_dim = options.cg_block_dim or _block_dim(largest, model.world_count)
+        """Threads per world of the tiled backend (SolverOptions.cg_block_dim, or chosen from the worlds' sizes)."""
 
     # -- solves ------------------------------------------------------------------------------------------------------
     def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
@@ -144,8 +158,17 @@ class LinearSolver:
             with untaped():  # its adjoint is the one solve_recorded records
                 self._solve_warp(values, b, x, tol, guess, pairs, self._info[adjoint])
             return
-        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}[self.preconditioner]
         r, z, p, q = self._scratch
+        if self.backend == "tiled":
+            wp.launch_tiled(self.kernels.cg_tiled, dim=[model.world_count], block_dim=self.block_dim,
+                            device=self.device,
+                            inputs=[self.block_matrix(values, pairs), b, float(tol), float(opt.cg_atol),
+                                    int(opt.cg_max_iters), int(self.preconditioner != "jacobi"),
+                                    int(guess is not None), x if guess is None else guess,
+                                    r, z, p, q, self._precond, self._world_start],
+                            outputs=[x, self._info[adjoint]], record_tape=False)
+            return
+        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}[self.preconditioner]
         wp.launch(self.kernels.cg_sequential, model.world_count, device=self.device,
                   inputs=[self.block_matrix(values, pairs), b,
                           float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
@@ -354,3 +377,11 @@ class LinearSolver:
             relative = float(residual) * tol / max(float(threshold), 1e-300)
             row = [float(iterations), relative, float(residual <= threshold)]
             info.assign(np.tile(np.array(row, dtype=np.float64), (model.world_count, 1)))
+
+
+def _block_dim(largest_world: int, worlds: int) -> int:
+    """Threads per world of the tiled CG, a power of two: about two rows a thread for a lone world, and one where
+    there are enough worlds to fill a GPU's multiprocessors; from 64 (two warps, so that every reduction
+    synchronises the whole block) to 256 (the kernel's registers: 1024 threads asked for too many on an H200)."""
+    rows = largest_world if worlds >= 128 else (largest_world + 1) // 2
+    return int(min(256, max(64, 1 << max(0, rows - 1).bit_length())))

@@ -88,7 +88,8 @@ class SolverOptions:
     block SSOR's 84 on the 64x64 hanging sheet at dt 0.02, 1.8x faster per step, benchmarks/step_time.py),
     ``"block_ssor"`` (symmetric block Gauss-Seidel sweeps; sequential backend only: ~3x fewer iterations than block
     Jacobi at 64x64, benchmarks/cg_solvers.py), ``"block_jacobi"`` (inverse 3x3 diagonal blocks), ``"jacobi"``
-    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential backend, block_jacobi with warp's).
+    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential backend, block_jacobi with the tiled and
+    warp ones).
     Where the mass dominates the system (small dt), block SSOR is the faster one: measured on warm solves of the
     hanging sheet in the wind and of benchmarks/peers.py's pinned sheet, 16x16 to 128x128, dt 1/50 to 1/4000, the
     multigrid won every system that block SSOR needed more than 23 iterations for (by up to 2.1x: 128x128 at
@@ -104,8 +105,15 @@ class SolverOptions:
     ssor_omega: float = 1.5
     """Relaxation factor of the block SSOR preconditioner, in (0, 2)."""
     cg_backend: str = "auto"
-    """``"sequential"`` (whole CG in one launch: fastest on the CPU), ``"warp"`` (``warp.optim.linear.cg``:
-    for CUDA), or ``"auto"`` (sequential on the CPU, warp on CUDA). See benchmarks/cg_solvers.py."""
+    """``"sequential"`` (the whole CG of a world on one thread, in one launch: fastest on the CPU, and the only
+    one with the block SSOR and multigrid preconditioners), ``"tiled"`` (the whole CG of a world on one thread
+    block, in one launch, with tile reductions: the GPU's form of the sequential one), ``"warp"``
+    (``warp.optim.linear.cg``, a launch per operation, convergence tested on the device on CUDA), or ``"auto"``
+    (sequential on the CPU; on CUDA tiled for worlds of up to ``linear.TILED_MAX_PARTICLES`` particles, warp for
+    larger ones). See benchmarks/cg_solvers.py and benchmarks/graph_step.py."""
+    cg_block_dim: int = 0
+    """Threads per world of the tiled backend (a power of two up to 256: the kernel's registers allow no more; 0:
+    chosen from the worlds' sizes and count)."""
     on_cg_failure: str = "warn"
     """What a solve that misses its tolerance does: ``"warn"`` (with the residual) or ``"raise"``."""
     warm_start: bool = True
@@ -147,12 +155,15 @@ class SolverOptions:
         _check_positive("SolverOptions", self, ("cg_tol", "adjoint_cg_tol", "cg_atol", "max_speed"))
         if not 0.0 < self.ssor_omega < 2.0:
             raise ValueError(f"SolverOptions.ssor_omega must be in (0, 2), got {self.ssor_omega}")
-        _check_int("SolverOptions", self, {"cg_max_iters": 1, "sync_every": 0})
+        _check_int("SolverOptions", self, {"cg_max_iters": 1, "sync_every": 0, "cg_block_dim": 0})
+        if self.cg_block_dim & (self.cg_block_dim - 1) or self.cg_block_dim > 256:
+            raise ValueError(f"SolverOptions.cg_block_dim must be 0 or a power of two up to 256, got "
+                             f"{self.cg_block_dim!r}")
         if not isinstance(self.warm_start, bool):
             raise ValueError(f"SolverOptions.warm_start must be True or False, got {self.warm_start!r}")
         _check_choice("SolverOptions", self, {
             "preconditioner": ("auto", "block_jacobi", "jacobi", "block_ssor", "multigrid"),
-            "cg_backend": ("auto", "sequential", "warp"),
+            "cg_backend": ("auto", "sequential", "tiled", "warp"),
             "on_cg_failure": ("warn", "raise"),
             "integrator": ("euler", "bdf2"),
         })
