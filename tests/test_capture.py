@@ -147,3 +147,14 @@ def test_an_untaped_step_allocates_nothing():
     finally:
         wp.array.__init__ = original
     assert not made, f"{len(made)} arrays made in 6 untaped steps: {made}"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_scripted_motions_replay_their_targets(device):
+    # a moving pin's targets are made on the host per step time: a replay must read the ones of its own steps
+    model = hanging_builder(res=4, moving_pin=True).finalize(device)
+    sim = wc.Simulator(model, 0.02)
+    expected = wc.rollout(sim, model.state(), steps=STEPS)[-1].particle_x.numpy()
+    captured = wc.CapturedRollout(sim, model.state(), steps=STEPS)
+    captured.trajectory[-1].particle_x.zero_()
+    exact_or_close(device)(captured.run()[-1].particle_x.numpy(), expected)

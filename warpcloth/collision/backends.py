@@ -24,6 +24,7 @@ import warp as wp
 from warpcloth.collision import projection
 from warpcloth.collision.detection import ContactDetector, Contacts
 from warpcloth.collision.device_projection import DeviceProjection
+from warpcloth.collision.linalg import small_blas
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.contact import contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
@@ -150,12 +151,14 @@ class ZoneBackend:
         x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass, self._geometry
         normals, weights, targets = (np.concatenate([g[k].numpy() for g in geometry]).astype(np.float64)
                                      for k in range(3))
+        unknowns = 3 * np.unique(self._contacts.nodes).size  # the zones' sizes add up to at most this
         try:
-            result = projection.project(
-                x_hat.numpy().astype(np.float64), mass.numpy().astype(np.float64), self._fixed,
-                obstacle_end.numpy().astype(np.float64).reshape(-1, 3), self._contacts.nodes.astype(np.int64),
-                weights, normals, targets, tol=opt.qp_tol,
-                lam_init=np.concatenate([self._lam, np.zeros(len(normals) - len(self._lam))]))
+            with small_blas(unknowns):
+                result = projection.project(
+                    x_hat.numpy().astype(np.float64), mass.numpy().astype(np.float64), self._fixed,
+                    obstacle_end.numpy().astype(np.float64).reshape(-1, 3), self._contacts.nodes.astype(np.int64),
+                    weights, normals, targets, tol=opt.qp_tol,
+                    lam_init=np.concatenate([self._lam, np.zeros(len(normals) - len(self._lam))]))
         except projection.ProjectionError as err:
             worlds = None if err.contact is None else \
                 [int(self.detector.node_world_host[self._contacts.nodes[err.contact, 0]])]
@@ -166,10 +169,10 @@ class ZoneBackend:
                      requires_grad=self._recording)
         self.projections.append((result, z))
         if self._recording:
-            self._record_adjoint(result, z, list(geometry), opt.adjoint)
+            self._record_adjoint(result, z, list(geometry), opt.adjoint, unknowns)
         return z
 
-    def _record_adjoint(self, result, z, geometry, mode) -> None:
+    def _record_adjoint(self, result, z, geometry, mode, unknowns: int) -> None:
         x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
         sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
 
@@ -177,7 +180,7 @@ class ZoneBackend:
             grad_z = z.grad.numpy().astype(np.float64)
             if not np.any(grad_z):  # a round whose z a later round or the fail-safe replaced
                 return
-            with timed(self.timings, "adjoint"):
+            with timed(self.timings, "adjoint"), small_blas(unknowns):
                 gx, gw, gn, gob, gt = projection.backward(result, grad_z, mode=mode)
             _accumulate(x_hat, gx)
             _accumulate(mass, projection.mass_gradient(result, gx))

@@ -1,10 +1,13 @@
 """Dense linear algebra for the projection (float64 NumPy): blocked triangular solves, a semidefinite solve with
 iterative refinement, and the Cholesky factor of a Gram matrix that drops dependent columns (the adjoint's R without
-Q). NumPy has no triangular solve."""
+Q). NumPy has no triangular solve. Small problems run on one BLAS thread (:func:`small_blas`)."""
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 BLOCK = 128
 """Block size of the blocked triangular solves."""
@@ -14,6 +17,24 @@ onto the ones kept before it, relative to its squared norm: an angle under 1e-5 
 :func:`gram_cholesky`; cancellation leaves about k·1e-16 there for a column that is exactly dependent."""
 SHIFT = 1.0e-12
 """Relative diagonal shift of the Cholesky factorisations of :func:`spd_solve`."""
+SINGLE_THREAD_UNKNOWNS = 1500
+"""Dense problems of at most this many unknowns run on one BLAS thread (:func:`small_blas`). A multi-threaded BLAS
+spin-waits for its threads on every small call, which on a busy machine costs more than the work: the float64
+multigrid strip of tests/test_collision.py (NumPy zones) took 45.8 s with OpenBLAS's 2 threads against 16.1 s with
+one, beside the test suite on this 2-core machine (once over 600 s), the issue #37 report 127 s against 47 s."""
+
+_controller: ThreadpoolController | None = None
+
+
+def small_blas(unknowns: int):
+    """A context in which BLAS runs on one thread, where ``unknowns`` is at most SINGLE_THREAD_UNKNOWNS (else it
+    changes nothing)."""
+    global _controller
+    if unknowns > SINGLE_THREAD_UNKNOWNS:
+        return contextlib.nullcontext()
+    if _controller is None:  # scanning the loaded libraries costs about 1 ms: once
+        _controller = ThreadpoolController()
+    return _controller.limit(limits=1, user_api="blas")
 
 
 def tri_solve(T: np.ndarray, B: np.ndarray, *, lower: bool) -> np.ndarray:

@@ -48,6 +48,7 @@ class SystemAssembler:
             setattr(self.hinge_data, name, array)
         vec3 = model.types.vec3
         self._none = wp.empty(0, dtype=vec3, device=self.device)
+        self._motion_offsets: dict[tuple[str, float], wp.array] = {}  # offsets() of scripted motions
         self._zero_offsets = {
             "handle": wp.zeros(model.handle_count, dtype=vec3, device=self.device),
             "pin": wp.zeros(model.pin_count, dtype=vec3, device=self.device),
@@ -175,5 +176,10 @@ class SystemAssembler:
         motions = self.model.handle_motion if kind == "handle" else self.model.pin_motion
         if not any(m is not None for m in motions):
             return self._zero_offsets[kind]
-        values = np.array([np.zeros(3) if m is None else m.at(t) for m in motions])
-        return wp.array(values, dtype=self.model.types.vec3, device=self.device)
+        # kept per time: a step recorded in a graph reads its offsets from an array made before the capture (by
+        # the ordinary run before it), never from host memory the capture would copy from after it is gone
+        key = (kind, float(t))
+        if key not in self._motion_offsets:
+            values = np.array([np.zeros(3) if m is None else m.at(t) for m in motions])
+            self._motion_offsets[key] = wp.array(values, dtype=self.model.types.vec3, device=self.device)
+        return self._motion_offsets[key]

@@ -29,10 +29,10 @@ class CapturedRollout:
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
             its arrays, the model's and ``state``'s are read in place at every replay.
         steps: number of steps.
-        loss: optional ``loss(trajectory) -> wp.array`` (one element) that launches kernels on the trajectory.
-            With it, each replay also runs the backward pass: gradients land in the ``.grad`` of the model's,
-            the control's and ``state``'s arrays (zeroed at the start of each replay), and :attr:`loss` holds
-            the value.
+        loss: optional ``loss(trajectory) -> wp.array`` that launches kernels on the trajectory. With it, each
+            replay also runs the backward pass (of the sum of the loss array's entries, e.g. one loss per world):
+            gradients land in the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed at the
+            start of each replay), and :attr:`loss` holds the value.
 
     The first run is an ordinary one (it loads the kernels and makes the arrays the step keeps), then the same
     rollout is captured (on the CPU with its backward pass as a graph of its own); each :meth:`run` replays it and
@@ -46,13 +46,9 @@ class CapturedRollout:
         if int(steps) != steps or steps < 1:
             raise ValueError(f"steps must be a positive integer, got {steps!r}")
         check_schedule(control, steps)
-        if sim.collision is not None or sim.proximity is not None:
-            raise ValueError("CapturedRollout: this scene has a collision stage or proximity forces, which still "
-                             "read the device inside a step and cannot be captured yet; use wc.rollout")
-        scripted = any(m is not None for m in (*sim.model.pin_motion, *sim.model.handle_motion))
-        if scripted and sim.device.is_cuda:
-            raise ValueError("CapturedRollout: scripted pin or handle motions copy their targets from the host "
-                                 "every step, which a CUDA graph cannot hold; use wc.rollout")
+        reason = self.unsupported(sim)
+        if reason is not None:
+            raise ValueError(f"CapturedRollout: {reason}; use wc.rollout")
         if loss is not None and not sim.model.requires_grad:
             raise ValueError("CapturedRollout: a loss needs a model finalized with requires_grad=True")
         self.sim, self.state, self.control, self.steps, self._loss_fn = sim, state, control, int(steps), loss
@@ -64,7 +60,7 @@ class CapturedRollout:
         self._record_forward()  # an ordinary run: loads modules, builds the solver's lazily made buffers
         warmup = self.tape
         if warmup is not None:
-            warmup.backward(self.loss)
+            self._backward()
             warmup.zero()
         device = sim.device
         self.graphs: list = []
@@ -88,11 +84,19 @@ class CapturedRollout:
                 self._record_forward()
             forward = capture.graph
             with wp.ScopedCapture(device=device) as capture:
-                self.tape.backward(self.loss)
+                self._backward()
             backward = capture.graph
             with wp.ScopedCapture(device=device) as capture:
                 self.tape.zero()
             self.graphs = [capture.graph, forward, backward]
+
+    @staticmethod
+    def unsupported(sim: Simulator) -> str | None:
+        """Why ``sim``'s steps cannot be captured, or None if they can."""
+        if sim.collision is not None or sim.proximity is not None:
+            return ("this scene has a collision stage or proximity forces, which still read the device inside a "
+                    "step and cannot be captured yet")
+        return None
 
     def _record_forward(self) -> None:
         sim = self.sim
@@ -103,13 +107,18 @@ class CapturedRollout:
         with wp.ScopedDevice(sim.device), self.tape:
             self.trajectory = rollout(sim, self.state, self.control, steps=self.steps)
             self.loss = self._loss_fn(self.trajectory)
+            self._seed = wp.ones_like(self.loss, requires_grad=False)
+
+    def _backward(self) -> None:
+        """The recording tape's backward pass of the loss's sum (its seed: ones, made in the loss's recording)."""
+        self.tape.backward(grads={self.loss: self._seed})
 
     def run(self) -> list[State]:
         """Replay the rollout (and, with a loss, the backward pass); returns the trajectory."""
         if not self.graphs:  # not captured (CUDA with a loss): the ordinary forward and backward passes
             self.tape.zero()
             self._record_forward()
-            self.tape.backward(self.loss)
+            self._backward()
         for graph in self.graphs:
             wp.capture_launch(graph)
         self.sim.check(self.trajectory)

@@ -152,7 +152,8 @@ class TrajectoryFit:
     """
 
     def __init__(self, model: wc.Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
-                 frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None):
+                 frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None,
+                 capture: bool = True):
         worlds = model.world_count
         if model.material_count != worlds:
             raise ValueError(f"TrajectoryFit estimates one material per world; the model has {model.material_count} "
@@ -185,6 +186,11 @@ class TrajectoryFit:
         self.targets = [wp.array(np.asarray(x, dtype=np.float64), dtype=model.types.vec3, device=model.device)
                         for x in targets[: frames + 1]]
         self._first = wp.zeros(worlds, dtype=wp.int32, device=model.device)  # each world's targets are its own
+        self.capture = capture
+        """Replay each evaluation's rollout from a graph (wc.CapturedRollout, one per horizon and kind), bitwise
+        the uncaptured results on the CPU; not where the scene cannot be captured (contact), and on CUDA only the
+        forward losses (a graph with the backward pass did not instantiate there with Warp 1.19)."""
+        self._captured: dict = {}
         self.evaluations = 0
         self.seconds = 0.0
 
@@ -214,17 +220,42 @@ class TrajectoryFit:
         model.material_stretching.assign(np.stack([x.stretching for x in ms]))
         model.material_bending.assign(np.stack([x.bending for x in ms]))
 
-    def _rollout_loss(self, steps: int):
+    def _rollout_loss(self, steps: int, grad: bool) -> tuple[wp.array, wp.Tape | None]:
+        """Each world's loss (an array), from the captured rollout of this horizon where there is one; with
+        ``grad``, the materials' gradients too (of the losses' sum: each world's own), and the tape to zero after
+        reading them (None where the captured replay zeroes them itself)."""
+        model = self.model
+        captured = self._capture(steps, grad)
+        if captured is not None:
+            trajectory = captured.run()
+            return (captured.loss if grad else self._loss_of(trajectory, steps)), None
+        if not grad:
+            return self._loss_of(wc.rollout(self.sim, model.state(), steps=steps), steps), None
+        tape = wp.Tape()
+        with tape:
+            loss = self._loss_of(wc.rollout(self.sim, model.state(), steps=steps), steps)
+        tape.backward(grads={loss: wp.ones(model.world_count, dtype=model.types.scalar, device=model.device)})
+        return loss, tape
+
+    def _capture(self, steps: int, grad: bool) -> wc.CapturedRollout | None:
+        if not self.capture or (grad and self.model.device.is_cuda) or wc.CapturedRollout.unsupported(self.sim):
+            return None
+        key = (steps, grad, id(self.sim.options))  # options are kernel arguments baked into the graph
+        if key not in self._captured:
+            loss = (lambda trajectory: self._loss_of(trajectory, steps)) if grad else None
+            self._captured[key] = wc.CapturedRollout(self.sim, self.model.state(), steps=steps, loss=loss)
+        return self._captured[key]
+
+    def _loss_of(self, trajectory, steps: int) -> wp.array:
         model = self.model
         frames = steps // self.frame_stride
         loss = wp.zeros(model.world_count, dtype=model.types.scalar, device=model.device, requires_grad=True)
-        trajectory = wc.rollout(self.sim, model.state(), steps=steps)
         scale = model.scalar(1.0 / (frames * (model.particle_count // model.world_count)))  # a world's particles
         for k in range(1, frames + 1):
             wp.launch(self._kernels.world_squared_distance, model.particle_count,
                       inputs=[trajectory[k * self.frame_stride].particle_x, self.targets[k], model.particle_world,
                               self._first, scale], outputs=[loss])
-        return loss, trajectory
+        return loss
 
     def _one_world(self, what: str) -> None:
         if self.model.world_count != 1:
@@ -239,8 +270,7 @@ class TrajectoryFit:
         """Each world's loss with its material ``materials[w]``, forward only, (world_count,)."""
         self.set_material(materials)
         t0 = time.perf_counter()
-        loss, _ = self._rollout_loss(steps or self.steps)
-        out = loss.numpy().astype(np.float64)
+        out = self._rollout_loss(steps or self.steps, grad=False)[0].numpy().astype(np.float64)
         self.seconds += time.perf_counter() - t0
         return out
 
@@ -256,13 +286,11 @@ class TrajectoryFit:
         model = self.model
         self.set_material(materials)
         t0 = time.perf_counter()
-        tape = wp.Tape()
-        with tape:
-            loss, _ = self._rollout_loss(steps or self.steps)
-        tape.backward(grads={loss: wp.ones(model.world_count, dtype=model.types.scalar, device=model.device)})
+        loss, tape = self._rollout_loss(steps or self.steps, grad=True)
         density, stretching, bending = (a.grad.numpy().astype(float) for a in
                                         (model.material_density, model.material_stretching, model.material_bending))
-        tape.zero()
+        if tape is not None:
+            tape.zero()
         for arr in (model.material_density, model.material_stretching, model.material_bending):
             arr.grad.zero_()
         self.seconds += time.perf_counter() - t0
