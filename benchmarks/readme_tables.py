@@ -735,6 +735,28 @@ def worlds(d: dict) -> str:
     return "\n".join(out)
 
 
+def _diff(x: float) -> str:
+    return "0" if x == 0 else f"{x:.0e}"
+
+
+def graph_step(d: dict) -> str:
+    rows = [[f"{r['res']}×{r['res']}", str(r["worlds"]), f"{r['backend']}, {r['preconditioner']}",
+             f"{r['cg_iters']:.1f}", f"{r['launches_per_step']:.0f}",
+             "–" if r.get("allocs_per_step") is None else f"{r['allocs_per_step']:.0f}", g(r["step_ms"]),
+             g(r["step_ms_sync0"]), g(r["captured_ms"]), g(r["world_steps_per_s"]), _diff(r["max_diff"])]
+            for r in d["cases"]]
+    out = [table(["grid", "worlds", "CG", "CG it/step", "launches/step", "arrays made/step", "step ms",
+                  "step ms, sync_every=0", "captured ms", "world-steps/s captured", "captured − uncaptured [m]"],
+                 rows)]
+    for gr in d["gradients"]:
+        out += ["", f"A taped {gr['steps']}-step rollout of the {gr['res']}×{gr['res']} sheet and its backward pass: "
+                f"{g(gr['fwd_bwd_s'] * 1e3)} ms, captured {g(gr['fwd_bwd_captured_s'] * 1e3)} ms "
+                f"({gr['fwd_bwd_s'] / gr['fwd_bwd_captured_s']:.2f}×); wind gradient captured − uncaptured "
+                f"{_diff(gr['max_diff'])}."]
+    out += ["", provenance(d)]
+    return "\n".join(out)
+
+
 def jobs(d: dict) -> str:
     counts = d["workers"]
     header = ["jobs", "count"] + [f"{w} worker{'s' if w > 1 else ''} [s]" for w in counts]
@@ -761,6 +783,7 @@ def jobs(d: dict) -> str:
 
 BLOCKS = {
     "jobs": jobs,
+    "graph_step": graph_step,
     "presets": presets,
     "tradeoff_findings": tradeoff_findings,
     "step_time": step_time,
