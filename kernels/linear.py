@@ -200,25 +200,11 @@ def linear_kernels(scalar):
             x[i] = x[i] + dinv[i] * s
 
     @wp.func
-    def multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33)):
-        """The coarse levels' blocks (Galerkin sums), their diagonal inverses, and the Cholesky factor of the
-        coarsest level. Returns False if a pivot is not positive (A is not positive definite)."""
+    def factor_coarsest(mg: Multigrid):
+        """The coarsest level as a dense float64 matrix in ``mg.factor``, then its Cholesky factor (lower). Returns
+        False if a pivot is not positive."""
         n0 = mg.level_start[1]
         total = mg.level_start[mg.levels]
-        zero = mat33()
-        for k in range(mg.values.shape[0]):
-            mg.values[k] = zero
-        for k in range(A.offsets[n0]):
-            slot = mg.fine_slot[k]
-            if slot >= 0:
-                mg.values[slot] = mg.values[slot] + A.values[k]
-        # a level's blocks all precede the next level's, so one pass in order completes each level before it is read
-        for k in range(mg.values.shape[0]):
-            slot = mg.coarse_slot[k]
-            if slot >= 0:
-                mg.values[slot] = mg.values[slot] + mg.values[k]
-        for f in range(n0, total):
-            dinv[f] = wp.inverse(mg.values[mg.diag_slot[f - n0]])
         lo = mg.level_start[mg.levels - 1]
         m = 3 * (total - lo)
         F = mg.factor
@@ -251,6 +237,51 @@ def linear_kernels(scalar):
         return ok
 
     @wp.func
+    def solve_coarsest(mg: Multigrid, b: wp.array(dtype=vec3), x: wp.array(dtype=vec3)):
+        """x = (the coarsest level's matrix)^-1 b on the coarsest level's flat nodes, by the factor of
+        factor_coarsest (one thread; the level has at most MAX_COARSEST nodes)."""
+        total = mg.level_start[mg.levels]
+        lo = mg.level_start[mg.levels - 1]
+        m = 3 * (total - lo)
+        F, w = mg.factor, mg.work
+        for i in range(m):
+            s = wp.float64(b[lo + i // 3][i % 3])
+            for k in range(i):
+                s -= F[i, k] * w[k]
+            w[i] = s / F[i, i]
+        for ii in range(m):
+            i = m - 1 - ii
+            s = w[i]
+            for k in range(i + 1, m):
+                s -= F[k, i] * w[k]
+            w[i] = s / F[i, i]
+        for f in range(lo, total):
+            j = 3 * (f - lo)
+            x[f] = vec3(scalar(w[j]), scalar(w[j + 1]), scalar(w[j + 2]))
+
+    @wp.func
+    def multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33)):
+        """The coarse levels' blocks (Galerkin sums), their diagonal inverses, and the Cholesky factor of the
+        coarsest level. Returns False if a pivot is not positive (A is not positive definite)."""
+        n0 = mg.level_start[1]
+        total = mg.level_start[mg.levels]
+        zero = mat33()
+        for k in range(mg.values.shape[0]):
+            mg.values[k] = zero
+        for k in range(A.offsets[n0]):
+            slot = mg.fine_slot[k]
+            if slot >= 0:
+                mg.values[slot] = mg.values[slot] + A.values[k]
+        # a level's blocks all precede the next level's, so one pass in order completes each level before it is read
+        for k in range(mg.values.shape[0]):
+            slot = mg.coarse_slot[k]
+            if slot >= 0:
+                mg.values[slot] = mg.values[slot] + mg.values[k]
+        for f in range(n0, total):
+            dinv[f] = wp.inverse(mg.values[mg.diag_slot[f - n0]])
+        return factor_coarsest(mg)
+
+    @wp.func
     def multigrid_apply(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), r: wp.array(dtype=vec3),
                         z: wp.array(dtype=vec3)):
         """z = one symmetric V-cycle on r (forward Gauss-Seidel down, a dense solve on the coarsest level,
@@ -265,23 +296,7 @@ def linear_kernels(scalar):
         for level in range(1, last):
             smooth_down(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.level_start[level],
                         mg.level_start[level + 1], dinv, mg.b, mg.x, mg.aggregate, mg.b)
-        lo = mg.level_start[last]
-        m = 3 * (total - lo)
-        F, w = mg.factor, mg.work
-        for i in range(m):
-            s = wp.float64(mg.b[lo + i // 3][i % 3])
-            for k in range(i):
-                s -= F[i, k] * w[k]
-            w[i] = s / F[i, i]
-        for ii in range(m):
-            i = m - 1 - ii
-            s = w[i]
-            for k in range(i + 1, m):
-                s -= F[k, i] * w[k]
-            w[i] = s / F[i, i]
-        for f in range(lo, total):
-            j = 3 * (f - lo)
-            mg.x[f] = vec3(scalar(w[j]), scalar(w[j + 1]), scalar(w[j + 2]))
+        solve_coarsest(mg, mg.b, mg.x)
         for level_down in range(1, last):
             level = last - level_down
             smooth_up(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.level_start[level],
@@ -547,6 +562,93 @@ def linear_kernels(scalar):
             info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
             info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
 
+    # -- the parallel multigrid (the warp backend's "multigrid"): the same hierarchy, a thread per node or block.
+    # Galerkin sums gather their sources (no atomics: the same sums in the same order on every device), damped
+    # block-Jacobi smoothing replaces the Gauss-Seidel sweeps (warpcloth/solver/multigrid.py ParallelMultigrid has
+    # the measurements), and the coarsest level keeps its dense Cholesky solve on one thread.
+    @wp.kernel
+    def mg_galerkin(source: wp.array(dtype=mat33), source_start: wp.array(dtype=wp.int32),
+                    sources: wp.array(dtype=wp.int32), first: int, values: wp.array(dtype=mat33)):
+        # one coarse block: the sum of the finer blocks that map to it (a level's, from the level before it)
+        k = wp.tid()
+        acc = mat33()
+        for s in range(source_start[k], source_start[k + 1]):
+            acc += source[sources[s]]
+        values[first + k] = acc
+
+    @wp.kernel
+    def mg_diag_inverse(diag_slot: wp.array(dtype=wp.int32), values: wp.array(dtype=mat33), row_base: int, lo: int,
+                        dinv: wp.array(dtype=mat33)):
+        # a level's diagonal block inverses (the smoother's), a thread per node
+        i = lo + wp.tid()
+        dinv[i] = wp.inverse(values[diag_slot[i - row_base]])
+
+    @wp.kernel
+    def mg_factor(mg: Multigrid):
+        # the coarsest level's Cholesky factor (one thread); a matrix that is not positive definite poisons it
+        # with a NaN, so the CG reports a non-finite residual as the sequential multigrid does
+        if not factor_coarsest(mg):
+            mg.factor[0, 0] = wp.float64(wp.nan)
+
+    @wp.kernel
+    def mg_smooth_first(dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), lo: int, omega: scalar,
+                        x: wp.array(dtype=vec3)):
+        # the first damped Jacobi sweep from zero: x = omega D^-1 b
+        i = lo + wp.tid()
+        x[i] = omega * (dinv[i] * b[i])
+
+    @wp.kernel
+    def mg_smooth(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                  values: wp.array(dtype=mat33), row_base: int, lo: int, dinv: wp.array(dtype=mat33),
+                  b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), omega: scalar, x_out: wp.array(dtype=vec3)):
+        # a damped Jacobi sweep: x_out = x + omega D^-1 (b - A x) on the level's nodes [lo, lo + dim)
+        i = lo + wp.tid()
+        row = i - row_base
+        s = b[i]
+        for k in range(offsets[row], offsets[row + 1]):
+            s -= values[k] * x[columns[k]]
+        x_out[i] = x[i] + omega * (dinv[i] * s)
+
+    @wp.kernel
+    def mg_restrict(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                    values: wp.array(dtype=mat33), row_base: int, member_start: wp.array(dtype=wp.int32),
+                    members: wp.array(dtype=wp.int32), b: wp.array(dtype=vec3), x: wp.array(dtype=vec3),
+                    coarse_lo: int, b_coarse: wp.array(dtype=vec3)):
+        # a coarse node's right-hand side: the sum of its members' residuals b - A x (P^T r, P piecewise constant)
+        c = wp.tid()
+        acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        for m in range(member_start[c], member_start[c + 1]):
+            i = members[m]
+            row = i - row_base
+            r = b[i]
+            for k in range(offsets[row], offsets[row + 1]):
+                r -= values[k] * x[columns[k]]
+            acc += r
+        b_coarse[coarse_lo + c] = acc
+
+    @wp.kernel
+    def mg_solve_coarsest(mg: Multigrid, b: wp.array(dtype=vec3), x: wp.array(dtype=vec3)):
+        solve_coarsest(mg, b, x)
+
+    @wp.kernel
+    def mg_prolong(aggregate: wp.array(dtype=wp.int32), lo: int, x_coarse: wp.array(dtype=vec3),
+                   x: wp.array(dtype=vec3)):
+        # add the next level's correction (P x_coarse)
+        i = lo + wp.tid()
+        a = aggregate[i]
+        if a >= 0:
+            x[i] = x[i] + x_coarse[a]
+
+    @wp.kernel
+    def mg_output(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), alpha: scalar, beta: scalar,
+                  z: wp.array(dtype=vec3)):
+        # z = alpha x + beta y (warp.optim.linear's matvec contract)
+        i = wp.tid()
+        zi = alpha * x[i]
+        if beta != scalar(0.0):
+            zi += beta * y[i]
+        z[i] = zi
+
     @wp.kernel
     def diagonal_inverse(A: BlockMatrix, use_block: int, precond: wp.array(dtype=mat33)):
         # the (block) Jacobi preconditioner of the warp backend, rebuilt from each system's diagonal blocks
@@ -607,6 +709,15 @@ def linear_kernels(scalar):
         cg_sequential=cg_sequential,
         cg_tiled=cg_tiled,
         diagonal_inverse=diagonal_inverse,
+        mg_galerkin=mg_galerkin,
+        mg_diag_inverse=mg_diag_inverse,
+        mg_factor=mg_factor,
+        mg_smooth_first=mg_smooth_first,
+        mg_smooth=mg_smooth,
+        mg_restrict=mg_restrict,
+        mg_solve_coarsest=mg_solve_coarsest,
+        mg_prolong=mg_prolong,
+        mg_output=mg_output,
         apply_diagonal=apply_diagonal,
         warp_cg_info=warp_cg_info,
         pair_product=pair_product,

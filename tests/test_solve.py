@@ -31,7 +31,7 @@ def assembled(sim):
 
 @pytest.mark.parametrize("backend, preconditioner", [
     ("sequential", "jacobi"), ("sequential", "block_jacobi"), ("sequential", "block_ssor"), ("sequential", "multigrid"),
-    ("warp", "jacobi"), ("warp", "block_jacobi"), ("tiled", "jacobi"), ("tiled", "block_jacobi"),
+    ("warp", "jacobi"), ("warp", "block_jacobi"), ("warp", "multigrid"), ("tiled", "jacobi"), ("tiled", "block_jacobi"),
 ])
 def test_cg_matches_dense_solve(backend, preconditioner):
     sim = hanging_sim(cg_tol=1e-12, cg_atol=1e-30, cg_backend=backend, preconditioner=preconditioner)
@@ -44,7 +44,8 @@ def test_cg_matches_dense_solve(backend, preconditioner):
 
 @pytest.mark.parametrize("backend, preconditioner", [("sequential", "block_ssor"), ("sequential", "block_jacobi"),
                                                     ("sequential", "multigrid"),
-                                                    ("warp", "block_jacobi"), ("tiled", "block_jacobi")])
+                                                    ("warp", "block_jacobi"), ("warp", "multigrid"),
+                                                    ("tiled", "block_jacobi")])
 def test_solve_adjoint_matches_dense(backend, preconditioner):
     sim = hanging_sim(cg_tol=1e-12, cg_backend=backend, preconditioner=preconditioner)
     _, A, b, values, rhs, _ = assembled(sim)

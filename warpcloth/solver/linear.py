@@ -22,7 +22,7 @@ from warpcloth.errors import SimulationError
 from warpcloth.kernels import status as ks
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Model
-from warpcloth.solver.multigrid import Hierarchy
+from warpcloth.solver.multigrid import Hierarchy, ParallelMultigrid
 from warpcloth.solver.options import SolverOptions
 from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
@@ -75,6 +75,8 @@ class LinearSolver:
         if chosen_by_device:
             if self.device.is_cpu:
                 backend = "sequential"
+            elif options.preconditioner == "multigrid":  # its parallel form runs with warp.optim's CG
+                backend = "warp"
             else:  # a thread block per world while a world fits one well; else the many-block warp.optim CG
                 backend = "tiled" if largest <= TILED_MAX_PARTICLES else "warp"
         self.backend = backend
@@ -83,19 +85,24 @@ class LinearSolver:
         """What was mapped to run on this device (empty if nothing was): the CLI prints it."""
         preconditioner = options.preconditioner
         if preconditioner == "auto":
-            if backend != "sequential":
+            # a model whose particles are all pinned has nothing to coarsen; one hierarchy spans one world
+            coarsen = (model.particle_pin.numpy() < 0).any() and model.world_count == 1
+            if backend == "tiled":
                 preconditioner = "block_jacobi"
-            else:  # a model whose particles are all pinned has nothing to coarsen; one hierarchy spans one world
-                free = (model.particle_pin.numpy() < 0).any()
-                preconditioner = "multigrid" if free and model.world_count == 1 else "block_ssor"
+            elif backend == "warp":
+                preconditioner = "multigrid" if coarsen else "block_jacobi"
+            else:
+                preconditioner = "multigrid" if coarsen else "block_ssor"
         if preconditioner == "multigrid" and model.world_count > 1:
             raise ValueError(f"SolverOptions.preconditioner 'multigrid' takes a model of one world (this one has "
                              f"{model.world_count}); use 'block_ssor', which each world's solve runs on its own")
-        if preconditioner in ("block_ssor", "multigrid") and backend != "sequential":
+        sequential_only = ("block_ssor", "multigrid") if backend == "tiled" else ("block_ssor",)
+        if preconditioner in sequential_only and backend != "sequential":
             if not chosen_by_device:
                 raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' "
                                  f"(its sweeps are sequential); use 'block_jacobi' or 'jacobi' with the {backend} "
-                                 "backend")
+                                 "backend" + (", or 'multigrid' (in parallel form) with 'warp'"
+                                              if backend == "tiled" else ""))
             self.note = (f"preconditioner {preconditioner!r} is a sequential sweep; the {backend} CG backend that "
                          f"{self.device} runs uses 'block_jacobi' instead")
             preconditioner = "block_jacobi"
@@ -104,10 +111,14 @@ class LinearSolver:
         n = model.particle_count
         vec3, mat33 = model.types.vec3, model.types.mat33
         self._scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
+        self._parallel_multigrid = None
         if preconditioner == "multigrid":
             hierarchy = Hierarchy(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
                                   model.particle_pin.numpy() >= 0)
             self._multigrid = hierarchy.multigrid(self.kernels, model.scalar, self.device)
+            if backend == "warp":  # the same hierarchy in parallel form: Jacobi smoothing, a thread per node
+                self._parallel_multigrid = ParallelMultigrid(hierarchy, self._multigrid, self.kernels, model,
+                                                             self.device)
             self.multigrid_levels = tuple(hierarchy.sizes)
             """Nodes per level of the multigrid hierarchy, the particles first (empty without multigrid)."""
         else:
@@ -321,7 +332,7 @@ class LinearSolver:
         if model.world_count > 1:
             batch = dict(batch_offsets=wp.array(3 * starts, dtype=int, device=device),
                          max_batch_length=int(3 * np.diff(starts).max()))
-        w = SimpleNamespace(bsr=bsr, batch=batch or {}, functors={}, pairs=None)
+        w = SimpleNamespace(bsr=bsr, batch=batch or {}, functors={}, pairs=None, matrix=self._plain)
         scalar, kernels = model.scalar, self.kernels
 
         def matvec(x, y, z, alpha, beta):  # z = alpha A x + beta y, plus the pairs' cross blocks
@@ -333,6 +344,9 @@ class LinearSolver:
                           inputs=[w.pairs, x, scalar(alpha)], outputs=[z], record_tape=False)
 
         def precondition(x, y, z, alpha, beta):
+            if self._parallel_multigrid is not None:
+                self._parallel_multigrid.apply(w.matrix, x, y, alpha, beta, z)
+                return
             wp.launch(kernels.apply_diagonal, n, device=device,
                       inputs=[self._precond, x, y, scalar(alpha), scalar(beta)], outputs=[z], record_tape=False)
 
@@ -354,6 +368,7 @@ class LinearSolver:
         w = self._warp_backend(b, x)
         w.bsr.values = values
         matrix = self.block_matrix(values, pairs)
+        w.matrix = matrix  # the preconditioner's level 0 (the multigrid smooths the pattern's blocks alone)
         w.pairs = matrix if matrix.pair_count else None
         if guess is None:
             x.zero_()
@@ -362,6 +377,8 @@ class LinearSolver:
         wp.launch(self.kernels.diagonal_inverse, model.particle_count, device=self.device,
                   inputs=[matrix, int(self.preconditioner != "jacobi")],
                   outputs=[self._precond], record_tape=False)
+        if self._parallel_multigrid is not None:
+            self._parallel_multigrid.setup(matrix)
         device_side = self.device.is_cuda
         key = (tol, opt.cg_atol, opt.cg_max_iters)
         if key not in w.functors:

@@ -156,3 +156,123 @@ class Hierarchy:
         mg.x = wp.zeros(total, dtype=vec3, device=device)
         mg.work = wp.zeros(m, dtype=wp.float64, device=device)
         return mg
+
+
+class ParallelMultigrid:
+    """The multigrid preconditioner in parallel form (the warp backend's ``"multigrid"``): one symmetric V-cycle
+    over a :class:`Hierarchy`, a launch per stage and level, a thread per node or block (kernels/linear.py, mg_*).
+
+    Per solve, :meth:`setup` forms the coarse levels' Galerkin blocks (each gathers its sources: no atomics),
+    their diagonal inverses and the coarsest level's Cholesky factor. Per application, :meth:`apply` smooths each
+    level with ``SWEEPS`` damped block-Jacobi sweeps (``OMEGA``) on the way down and up, restricts residuals by
+    summing each aggregate's members, and solves the coarsest level densely on one thread.
+    """
+
+    SWEEPS = 2  # even: the sweeps alternate between two arrays (apply)
+    OMEGA = 0.5
+    """Damped block-Jacobi sweeps per level and their damping. A sweep damps every mode only while OMEGA times the
+    largest eigenvalue of D^-1 A stays under 2: that eigenvalue was 1.7 to 3.1 over the hanging sheets of three
+    fabrics at 8x8 to 64x64 and dt 0.02 and 0.005 (largest: 64x64 white-swim-solid at dt 0.02) and 3.09 on
+    tests/test_multigrid.py's 0.5 m 32x32 sheet, where OMEGA 0.7 made the CG take 52 iterations (0.6: 20, 0.5:
+    22, against the sequential multigrid's 22). Cold solves to 1e-5, CG iterations with 2 sweeps at 0.5 / 0.6 /
+    0.7 / 0.8: 20 / 18 / 17 / 16 on the 16x16 hanging sheet, 34 / 32 / 30 / 28 at 64x64 (sequential multigrid 17
+    and 28, block Jacobi 83 and 324); 4 sweeps at 0.6: 14 and 23. l1-Jacobi (Baker et al. 2011: each row's
+    off-diagonal Frobenius norms added to its diagonal, convergent without damping) was tried and over-damps: 39
+    and 94 iterations."""
+
+    def __init__(self, hierarchy: Hierarchy, mg, kernels, model, device):
+        self.kernels, self.mg, self.model, self.device = kernels, mg, model, device
+        self.scalar = model.scalar
+        start = [int(s) for s in hierarchy.level_start]
+        self.start = start
+        n0, levels = start[1], len(hierarchy.sizes)
+        self.levels = levels
+
+        def ints(a):
+            return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=device)
+
+        def csr(keys: np.ndarray, count: int, offset: int):
+            """(start, ids) listing, for each target t in [0, count), the positions k with keys[k] == t + offset."""
+            ids = np.flatnonzero(keys >= 0)
+            ids = ids[np.argsort(keys[ids] - offset, kind="stable")]
+            starts = np.searchsorted(keys[ids] - offset, np.arange(count + 1))
+            return ints(starts), ints(ids)
+
+        # the coarse levels' block ranges in the flat block list (mg.values)
+        first_block = [int(hierarchy.offsets[s - n0]) for s in start[1:]]
+        self.galerkin = []  # per coarse level: (first block, block count, source start, sources)
+        for level in range(1, levels):
+            lo, hi = first_block[level - 1], first_block[level]
+            if level == 1:
+                keys = np.asarray(hierarchy.fine_slot, dtype=np.int64)
+            else:  # sources: the previous level's blocks (their coarse_slot), positions counted from its first
+                prev = first_block[level - 2]
+                keys = np.full(len(hierarchy.coarse_slot), -1, dtype=np.int64)
+                keys[prev:lo] = hierarchy.coarse_slot[prev:lo]
+            source_start, sources = csr(keys, hi - lo, lo)
+            self.galerkin.append((lo, hi - lo, source_start, sources))
+        aggregate = np.asarray(hierarchy.aggregate, dtype=np.int64)
+        self.members = []  # per level but the coarsest: the members of each node of the next level
+        for level in range(levels - 1):
+            keys = np.full(len(aggregate), -1, dtype=np.int64)
+            keys[start[level]:start[level + 1]] = aggregate[start[level]:start[level + 1]]
+            self.members.append(csr(keys, start[level + 2] - start[level + 1], start[level + 1]))
+        self.scratch = wp.zeros(start[-1], dtype=mg.x.dtype, device=device)
+        self.smoother = wp.zeros(start[-1], dtype=mg.values.dtype, device=device)
+        """Each node's inverse diagonal block (all levels but the coarsest)."""
+        self._diag0 = model.particle_diag_slot
+
+    def setup(self, A) -> None:
+        """The smoother and the coarse levels of A (``A``: the BlockMatrix of the particles' level)."""
+        k, mg, dev, start = self.kernels, self.mg, self.device, self.start
+        for level, (first, count, source_start, sources) in enumerate(self.galerkin, 1):
+            wp.launch(k.mg_galerkin, count, device=dev,
+                      inputs=[A.values if level == 1 else mg.values, source_start, sources, first],
+                      outputs=[mg.values], record_tape=False)
+        for level in range(self.levels - 1):
+            matrix = [self._diag0, A.values, 0] if level == 0 else [mg.diag_slot, mg.values, start[1]]
+            wp.launch(k.mg_diag_inverse, start[level + 1] - start[level], device=dev,
+                      inputs=[*matrix, start[level]], outputs=[self.smoother], record_tape=False)
+        wp.launch(k.mg_factor, 1, device=dev, inputs=[mg], record_tape=False)
+
+    def apply(self, A, r: wp.array, y: wp.array, alpha: float, beta: float, z: wp.array) -> None:
+        """z = alpha M^-1 r + beta y, M^-1 one V-cycle; ``A``: the BlockMatrix of the particles' level."""
+        k, mg, dev, start = self.kernels, self.mg, self.device, self.start
+        omega, dinv = self.scalar(self.OMEGA), self.smoother
+        solution, other = mg.x, self.scratch  # each level's result ends in mg.x
+
+        def matrix(level):
+            if level == 0:
+                return [A.offsets, A.columns, A.values, 0]
+            return [mg.offsets, mg.columns, mg.values, start[1]]
+
+        def sweeps(level, b, first_from_zero):
+            """SWEEPS damped Jacobi sweeps on ``level``, from zero or from the level's solution; the result ends
+            in ``solution`` (SWEEPS is even, so sweeps that alternate between the two arrays end where they
+            started)."""
+            lo, n = start[level], start[level + 1] - start[level]
+            src, dst = solution, other
+            if first_from_zero:  # the first sweep from zero is omega D^-1 b; the result must still end in solution
+                src, dst = other, solution
+                wp.launch(k.mg_smooth_first, n, device=dev, inputs=[dinv, b, lo, omega], outputs=[src],
+                          record_tape=False)
+            for _ in range(self.SWEEPS - 1 if first_from_zero else self.SWEEPS):
+                wp.launch(k.mg_smooth, n, device=dev, inputs=[*matrix(level), lo, dinv, b, src, omega],
+                          outputs=[dst], record_tape=False)
+                src, dst = dst, src
+
+        for level in range(self.levels - 1):
+            b = r if level == 0 else mg.b
+            sweeps(level, b, first_from_zero=True)
+            member_start, members = self.members[level]
+            wp.launch(k.mg_restrict, start[level + 2] - start[level + 1], device=dev,
+                      inputs=[*matrix(level), member_start, members, b, solution, start[level + 1]],
+                      outputs=[mg.b], record_tape=False)
+        wp.launch(k.mg_solve_coarsest, 1, device=dev, inputs=[mg, mg.b], outputs=[solution], record_tape=False)
+        for level in reversed(range(self.levels - 1)):
+            lo, n = start[level], start[level + 1] - start[level]
+            wp.launch(k.mg_prolong, n, device=dev, inputs=[mg.aggregate, lo, solution], outputs=[solution],
+                      record_tape=False)
+            sweeps(level, r if level == 0 else mg.b, first_from_zero=False)
+        wp.launch(k.mg_output, start[1], device=dev, inputs=[solution, y, self.scalar(alpha), self.scalar(beta)],
+                  outputs=[z], record_tape=False)

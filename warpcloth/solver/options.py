@@ -84,12 +84,15 @@ class SolverOptions:
     """Iteration cap of each CG solve."""
     preconditioner: str = "auto"
     """``"multigrid"`` (one symmetric V-cycle of an aggregation hierarchy built from the mesh: block Gauss-Seidel
-    smoothing, a dense solve on the coarsest level; sequential backend only; 26 CG iterations per step against
+    smoothing with the sequential backend, two damped block-Jacobi sweeps per level in its parallel form with the
+    warp backend (34 CG iterations against the sequential form's 28 on a cold 64x64 solve, block Jacobi's 324:
+    multigrid.py's ParallelMultigrid), a dense solve on the coarsest level; not with the tiled backend; 26 CG
+    iterations per step against
     block SSOR's 84 on the 64x64 hanging sheet at dt 0.02, 1.8x faster per step, benchmarks/step_time.py),
     ``"block_ssor"`` (symmetric block Gauss-Seidel sweeps; sequential backend only: ~3x fewer iterations than block
     Jacobi at 64x64, benchmarks/cg_solvers.py), ``"block_jacobi"`` (inverse 3x3 diagonal blocks), ``"jacobi"``
-    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential backend, block_jacobi with the tiled and
-    warp ones).
+    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential and warp backends for a model of one
+    world, block SSOR and block Jacobi for several; block Jacobi with the tiled backend).
     Where the mass dominates the system (small dt), block SSOR is the faster one: measured on warm solves of the
     hanging sheet in the wind and of benchmarks/peers.py's pinned sheet, 16x16 to 128x128, dt 1/50 to 1/4000, the
     multigrid won every system that block SSOR needed more than 23 iterations for (by up to 2.1x: 128x128 at
