@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # The CUDA checks of one lent-GPU session (../shared/gpu/README.md): the device tests, the graph benchmark and the
-# material-estimation CLI on cuda:0 and on that machine's CPU. Run on the GPU machine after
-# `bash .gpu/on-device.sh install` (or `sync`) as
+# material-estimation and control CLIs on cuda:0. Run on the GPU machine after `bash .gpu/on-device.sh install`
+# (or `sync`) as
 #   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu_checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
-# TESTS, SIZES, WORLDS and ITERS override what runs.
+# TESTS, SIZES, WORLDS and ITERS override what runs. The first CUDA compile of the kernel modules takes about a
+# minute on a fresh machine (2026-11-27, H200); the tests below took 123 s with it.
 set -u
 root=${1:?project root}
 out=${OUT:-/tmp/out}
@@ -17,13 +18,13 @@ part() {  # part NAME SECONDS COMMAND...
   timeout "$limit" "$@" > "$out/$name.log" 2>&1
   echo "$name: rc=$? in $((SECONDS - t0)) s" | tee -a "$out/summary.txt"
 }
-part tests 150 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda}" "$root/tests/test_devices.py" \
-  "$root/tests/test_capture.py"
+part tests 150 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda and not contact}" \
+  "$root/tests/test_devices.py" "$root/tests/test_capture.py"
 tail -n 5 "$out/tests.log" >> "$out/summary.txt"
 part graph_step 180 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
-  --worlds "${WORLDS:-1,64,1024}" --steps 50 --reps 3 --out "$out/graph_step_cuda.json"
+  --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --out "$out/graph_step_cuda.json"
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
-for device in cuda:0 cpu; do
-  part "estimate_${device%%:*}" 50 warpcloth estimate --device "$device" --iters "${ITERS:-5}"
-  grep -E "runtime|simulation error" "$out/estimate_${device%%:*}.log" >> "$out/summary.txt"
-done
+part estimate_cuda 60 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
+grep -E "runtime|simulation error" "$out/estimate_cuda.log" >> "$out/summary.txt"
+part control_cuda 120 warpcloth control --device cuda:0 --iters 2
+tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"

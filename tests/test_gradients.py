@@ -7,6 +7,9 @@ little gravity; 10 steps of dt = 0.02 s, CG tolerance 1e-12. The initial state i
 state: at exactly zero shear (|G01| in the stretching lookup) and zero dihedral angle (the curvature clamp) the
 model has kinks where a one-sided autodiff derivative and a central difference legitimately disagree.
 
+Every test runs on each device the suite reaches (conftest.DEVICES: CUDA too where there is one), the finite
+differences on the same device.
+
 Loss: a random linear functional of the final positions and velocities plus the squared distance of the final
 positions to a random target. Each test compares grad . d from the tape with (L(p + eps d) - L(p - eps d)) / 2 eps
 for a random direction d, eps = 1e-6 x the parameter's largest entry.
@@ -17,7 +20,7 @@ import zlib
 import numpy as np
 import pytest
 import warp as wp
-from conftest import hanging_builder
+from conftest import DEVICES, hanging_builder
 
 import warpcloth as wc
 
@@ -30,11 +33,12 @@ TOL64 = 1.0e-4
 class Problem:
     """A hanging-cloth rollout with a scalar loss, its tape gradient and its finite differences."""
 
-    def __init__(self, dtype=wp.float64, *, moving_pin=False, cg_tol=1.0e-12, seed=0, integrator="euler"):
+    def __init__(self, dtype=wp.float64, *, moving_pin=False, cg_tol=1.0e-12, seed=0, integrator="euler",
+                 device="cpu"):
         # stiffer bending: see the module docstring
         material = wc.preset("gray-interlock", thicken=2).scaled(bending=30.0)
         builder = hanging_builder(material=material, moving_pin=moving_pin)
-        self.model = m = builder.finalize("cpu", requires_grad=True, dtype=dtype)
+        self.model = m = builder.finalize(device, requires_grad=True, dtype=dtype)
         self.sim = wc.Simulator(m, DT, options=wc.SolverOptions(cg_tol=cg_tol, cg_max_iters=2000,
                                                                 integrator=integrator))
         rng = np.random.default_rng(seed)
@@ -74,11 +78,12 @@ class Problem:
         for a in arrays.values():
             a.grad.zero_()
         tape = wp.Tape()
-        with tape:
+        with wp.ScopedDevice(self.model.device), tape:
             final = wc.rollout(self.sim, self.state, self.control, steps=STEPS)[-1]
         _, gx, gv = self._loss(*final.numpy())
-        vec3 = self.model.types.vec3
-        tape.backward(grads={final.particle_x: wp.array(gx, dtype=vec3), final.particle_v: wp.array(gv, dtype=vec3)})
+        vec3, device = self.model.types.vec3, self.model.device
+        tape.backward(grads={final.particle_x: wp.array(gx, dtype=vec3, device=device),
+                             final.particle_v: wp.array(gv, dtype=vec3, device=device)})
         grad = arrays[name].grad.numpy().astype(np.float64).copy()
         tape.zero()
         return grad
@@ -124,9 +129,9 @@ def fd_along(problem, name, direction):
     return problem.finite_difference(name, direction, 1.0e-6)
 
 
-@pytest.fixture(scope="module")
-def handles64():
-    return Problem(wp.float64)
+@pytest.fixture(scope="module", params=DEVICES)
+def handles64(request):
+    return Problem(wp.float64, device=request.param)
 
 
 @pytest.mark.parametrize(
@@ -136,9 +141,9 @@ def test_gradient_float64(handles64, name):
     check_directional(handles64, name)
 
 
-@pytest.fixture(scope="module")
-def bdf2_problem():
-    return Problem(wp.float64, integrator="bdf2", moving_pin=True)
+@pytest.fixture(scope="module", params=DEVICES)
+def bdf2_problem(request):
+    return Problem(wp.float64, integrator="bdf2", moving_pin=True, device=request.param)
 
 
 @pytest.mark.parametrize("name", ["x0", "v0", "density", "stretching", "bending", "wind", "pin_target"])
@@ -157,8 +162,9 @@ def test_gradient_bending_float64(handles64):
     assert relative_effect > 1.0e-4, f"bending barely affects the loss ({relative_effect:.2e})"
 
 
-def test_gradient_moving_pin_float64():
-    problem = Problem(wp.float64, moving_pin=True)
+@pytest.mark.parametrize("device", DEVICES)
+def test_gradient_moving_pin_float64(device):
+    problem = Problem(wp.float64, moving_pin=True, device=device)
     check_directional(problem, "pin_target")
     # the rest of the scene's gradients still hold with a hard pin in the system
     check_directional(problem, "x0")
@@ -175,5 +181,5 @@ TOL32 = 1.0e-3
 
 @pytest.mark.parametrize("name", ["density", "x0"])
 def test_gradient_float32(handles64, name):
-    problem = Problem(wp.float32, cg_tol=1.0e-6)
+    problem = Problem(wp.float32, cg_tol=1.0e-6, device=handles64.model.device)
     check_directional(problem, name, tol=TOL32, reference=handles64)

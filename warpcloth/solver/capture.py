@@ -121,5 +121,7 @@ class CapturedRollout:
             self._backward()
         for graph in self.graphs:
             wp.capture_launch(graph)
+        if self.graphs:
+            self.sim._count_replayed(self.steps)  # noqa: SLF001 - the solver package's own bookkeeping
         self.sim.check(self.trajectory)
         return self.trajectory

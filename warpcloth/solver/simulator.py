@@ -163,8 +163,7 @@ class Simulator:
             stage(s)
             clock.lap(phase)
         self._steps += 1
-        every = self.options.sync_every
-        if every and s.number % every == 0 and not capturing(self.device):
+        if self._sync_due(s.number):
             self._check((state_out,), s)
 
     # -- the stages of a step ----------------------------------------------------------------------------------------
@@ -198,8 +197,7 @@ class Simulator:
             state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
 
         def after_adjoint() -> None:
-            every = self.options.sync_every
-            if every and s.number % every == 0 and not capturing(self.device):
+            if self._sync_due(s.number):
                 self._check()
 
         self.linear_solver.solve_recorded(
@@ -429,6 +427,16 @@ class Simulator:
                           requires_grad=recording)
             state_out.particle_dv = dv
         return dv
+
+    def _sync_due(self, step: int) -> bool:
+        """Whether step number ``step`` reads the failure record itself (SolverOptions.sync_every; never while a
+        graph is captured: its launches have not run)."""
+        every = self.options.sync_every
+        return bool(every) and step % every == 0 and not capturing(self.device)
+
+    def _count_replayed(self, steps: int) -> None:
+        """Count ``steps`` steps a graph replayed (CapturedRollout.run) in ``stats``."""
+        self._steps += steps
 
     def _check(self, states=(), s: _Step | None = None) -> None:
         """Read the failure record (Simulator.check); ``s``: the step being taken, whose inputs can still tell
