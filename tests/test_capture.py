@@ -56,6 +56,7 @@ def test_captured_forward_equals_uncaptured(device):
     same = exact_or_close(device)
     for got, want in zip(captured.run(), expected):
         same(got.particle_x.numpy(), want)
+    assert sim.stats["steps"] == 3 * STEPS  # the rollout, the capture's ordinary run, the replay (not the capture)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -122,6 +123,13 @@ def test_capture_refuses_a_scene_with_contact():
     model = b.finalize("cpu")
     sim = wc.Simulator(model, 0.01)
     with pytest.raises(ValueError, match="collision stage or proximity forces"):
+        wc.CapturedRollout(sim, model.state(), steps=2)
+
+
+def test_capture_refuses_the_warp_backend_on_the_cpu():
+    model = hanging_builder(res=3).finalize("cpu")
+    sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_backend="warp"))
+    with pytest.raises(ValueError, match="tests its convergence on the host"):
         wc.CapturedRollout(sim, model.state(), steps=2)
 
 

@@ -146,15 +146,20 @@ def test_multigrid_takes_fewer_iterations_than_block_ssor():
     assert iterations["multigrid"] < 0.5 * iterations["block_ssor"], iterations
 
 
-def test_a_system_that_is_not_positive_definite_raises():
+def solve_negative_definite(backend):
+    """The multigrid's solve of a negative definite system (-I on the diagonal, no coupling: the coarse level's
+    first pivot is negative)."""
     model = hanging(6)
-    solver = wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid"))
-    # negative definite: -I on the diagonal, no coupling; the coarse level's first pivot is negative
+    solver = wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid", cg_backend=backend))
     blocks = np.zeros((model.bsr_nnz, 3, 3))
     blocks[model.particle_diag_slot.numpy()] = -np.eye(3)
     values = wp.array(blocks, dtype=model.types.mat33)
     rhs = wp.array(np.ones((model.particle_count, 3)), dtype=model.types.vec3)
-    info = solver.solve(values, rhs, wp.zeros_like(rhs))
+    return solver, solver.solve(values, rhs, wp.zeros_like(rhs))
+
+
+def test_a_system_that_is_not_positive_definite_raises():
+    solver, info = solve_negative_definite("sequential")
     assert not np.isfinite(info.residual)
     with pytest.raises(SimulationError, match="non-finite residual"):
         solver.check(info, "forward", 3)
@@ -195,11 +200,5 @@ def test_the_parallel_multigrid_takes_about_the_sequential_ones_iterations():
 
 
 def test_the_parallel_multigrid_reports_a_system_that_is_not_positive_definite():
-    model = hanging(6)
-    solver = wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid", cg_backend="warp"))
-    blocks = np.zeros((model.bsr_nnz, 3, 3))
-    blocks[model.particle_diag_slot.numpy()] = -np.eye(3)
-    values = wp.array(blocks, dtype=model.types.mat33)
-    rhs = wp.array(np.ones((model.particle_count, 3)), dtype=model.types.vec3)
-    info = solver.solve(values, rhs, wp.zeros_like(rhs))
+    _, info = solve_negative_definite("warp")
     assert not np.isfinite(info.residual)

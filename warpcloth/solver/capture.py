@@ -96,6 +96,9 @@ class CapturedRollout:
         if sim.collision is not None or sim.proximity is not None:
             return ("this scene has a collision stage or proximity forces, which still read the device inside a "
                     "step and cannot be captured yet")
+        if sim.linear_solver.backend == "warp" and sim.device.is_cpu:
+            return ("the warp CG backend tests its convergence on the host on the CPU; use cg_backend 'sequential' "
+                    "or 'tiled' there")
         return None
 
     def _record_forward(self) -> None:

@@ -162,7 +162,8 @@ class Simulator:
         for phase, stage in self._stages:
             stage(s)
             clock.lap(phase)
-        self._steps += 1
+        if not capturing(self.device):  # a captured step runs at its replays (CapturedRollout counts them)
+            self._steps += 1
         if self._sync_due(s.number):
             self._check((state_out,), s)
 
