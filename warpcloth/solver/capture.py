@@ -122,6 +122,7 @@ class CapturedRollout:
             self.tape.zero()
             self._record_forward()
             self._backward()
+            self.sim.check()  # the adjoint solves' failures
         for graph in self.graphs:
             wp.capture_launch(graph)
         if self.graphs:

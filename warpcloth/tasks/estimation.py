@@ -182,7 +182,9 @@ class TrajectoryFit:
                                  "particles")
         self.model, self.steps, self.frame_stride = model, steps, frame_stride
         self._kernels = loss_kernels(model.scalar)
-        self.sim = wc.Simulator(model, dt, options=options or wc.SolverOptions(cg_tol=1e-6))
+        # sync_every=0: a rollout reads the failure record once, at its end (and the backward pass after it), not
+        # at every step: free on the CPU, a device round trip a step on CUDA; errors still name their step
+        self.sim = wc.Simulator(model, dt, options=options or wc.SolverOptions(cg_tol=1e-6, sync_every=0))
         self.targets = [wp.array(np.asarray(x, dtype=np.float64), dtype=model.types.vec3, device=model.device)
                         for x in targets[: frames + 1]]
         self._first = wp.zeros(worlds, dtype=wp.int32, device=model.device)  # each world's targets are its own
@@ -235,6 +237,7 @@ class TrajectoryFit:
         with tape:
             loss = self._loss_of(wc.rollout(self.sim, model.state(), steps=steps), steps)
         tape.backward(grads={loss: wp.ones(model.world_count, dtype=model.types.scalar, device=model.device)})
+        self.sim.check()  # the adjoint solves' failures (a rollout checks its forward steps itself)
         return loss, tape
 
     def _capture(self, steps: int, grad: bool) -> wc.CapturedRollout | None:
