@@ -56,8 +56,10 @@ class LinearSolver:
         status: the failure record the recorded solves latch into (a Simulator shares its own; a new one if None).
 
     A preconditioner the resolved backend cannot run is mapped to one it can when the backend was chosen by the
-    device (``cg_backend="auto"``): block SSOR and multigrid are sequential sweeps, so the warp backend (CUDA)
-    runs block Jacobi instead, and ``note`` says so. Asking for such a pair explicitly raises ValueError.
+    device (``cg_backend="auto"``): block SSOR is a sequential sweep, so the tiled and warp backends (CUDA) run
+    block Jacobi instead, and ``note`` says so; the multigrid runs in parallel form with the warp backend (asked
+    for on CUDA, it selects that backend) and has no tiled form. Asking for an impossible pair explicitly raises
+    ValueError.
     """
 
     def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None,
@@ -267,12 +269,8 @@ class LinearSolver:
         """Warn or raise (``SolverOptions.on_cg_failure``) when a solve missed its tolerance; always raise on a
         non-finite residual. ``world`` names the failing world of a model of several."""
         message, fatal = self.failure_message(info, which, step, world)
-        if message is None:
-            return
-        worlds = [world] if world is not None and self.model.world_count > 1 else None
-        if fatal:
-            raise SimulationError(message, worlds=worlds)
-        warnings.warn(message, RuntimeWarning, stacklevel=4)
+        if message is not None:
+            self._report(message, fatal, world)
 
     def check_failure(self, failure: Failure, *, cause: str | None = None) -> None:
         """Warn or raise for a failed solve latched in the failure record (``cause``: what made it non-finite,
@@ -284,10 +282,13 @@ class LinearSolver:
             message = f"step {failure.step}: {cause} ({message})"
         if failure.count > 1:
             message += f" ({failure.count - 1} more solves missed their tolerance since the last check)"
-        worlds = [failure.index] if self.model.world_count > 1 else None
+        self._report(message, fatal, failure.index)
+
+    def _report(self, message: str, fatal: bool, world: int | None) -> None:
+        worlds = [world] if world is not None and self.model.world_count > 1 else None
         if fatal:
             raise SimulationError(message, worlds=worlds)
-        warnings.warn(message, RuntimeWarning, stacklevel=4)
+        warnings.warn(message, RuntimeWarning, stacklevel=5)
 
     def failure_message(self, info: SolveInfo, which: str, step: int, world: int | None) -> tuple[str | None, bool]:
         """(message, whether it raises) for a solve's result, or (None, False) when it succeeded."""
@@ -310,9 +311,10 @@ class LinearSolver:
 
     # -- the warp backend --------------------------------------------------------------------------------------------
     def _warp_backend(self, b: wp.array, x: wp.array) -> SimpleNamespace:
-        """The warp backend's objects, made at its first solve: a BSR view of the model's block pattern, the
-        operator (batched per world, so each world's CG has its own step sizes and convergence test), the diagonal
-        preconditioner, and a CG functor per tolerance (preallocated: a solve allocates nothing)."""
+        """The warp backend's objects, made with the solver (a first solve may be inside a graph capture): a BSR
+        view of the model's block pattern, the operator (batched per world, so each world's CG has its own step
+        sizes and convergence test), the preconditioner (diagonal, or the parallel multigrid), and a CG functor per
+        tolerance (preallocated: a solve allocates nothing)."""
         if self._warp is not None:
             return self._warp
         import warp.optim.linear as wl
