@@ -14,6 +14,8 @@ sheet in one model (``ModelBuilder.replicate``).
     launches_per_step    kernel launches of an uncaptured step (warp.optim's included)
     allocs_per_step      Warp array allocations of an untaped step between two preallocated States (CPU only)
     fwd_bwd_s            a taped rollout and its backward pass, uncaptured and captured (single world only)
+    throw                the seed's basket throw (contact: not capturable yet), one forward + backward evaluation
+                         (ThrowTask.evaluate at zero pushes): seconds, and Warp launches and arrays made per step
     max_diff             largest difference between the captured and the uncaptured final positions [m] (and
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
@@ -126,6 +128,23 @@ def gradient_case(res: int, device: str, steps: int, reps: int) -> dict:
     return out
 
 
+def throw_case(device: str, reps: int, steps: int | None) -> dict:
+    """The throw's forward + backward: what its contact steps cost in launches and allocations (issue 37)."""
+    from warpcloth.tasks.throw import ThrowTask
+
+    with wp.ScopedDevice(device):  # the task's model is made on the default device
+        task = ThrowTask(**({"steps": steps} if steps else {}))
+        params = np.zeros(task.params_shape)
+        task.evaluate(params)  # compiles
+        seconds = common.median_time(lambda: task.evaluate(params), reps=reps)
+        with common.launch_profile() as launches, common.alloc_profile() as allocs:
+            task.evaluate(params)
+    per_step = 1.0 / task.steps
+    return {"steps": task.steps, "particles": task.model.particle_count, "fwd_bwd_s": seconds,
+            "launches_per_step": per_step * sum(calls for calls, _ in launches.values()),
+            "allocs_per_step": None if allocs["count"] is None else per_step * allocs["count"]}
+
+
 def main():
     args = common.parse_args(__doc__, quick={"sizes": "8", "worlds": "1,4", "steps": 5, "reps": 2},
                              device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3)
@@ -154,7 +173,11 @@ def main():
         ["grid", "steps", "fwd+bwd s", "captured s", "max diff"],
         [[f"{g['res']}x{g['res']}", g["steps"], g["fwd_bwd_s"], g["fwd_bwd_captured_s"], g["max_diff"]]
          for g in gradients], ["", "", ".4f", ".4f", ".1e"], title="a taped rollout and its backward pass")
-    common.write_result(args, {"cases": rows, "gradients": gradients}, device=args.device)
+    throw = throw_case(args.device, args.reps, 20 if args.quick else None)
+    print(f"\nthe throw ({throw['steps']} steps, {throw['particles']} particles, contact): forward + backward "
+          f"{throw['fwd_bwd_s']:.3f} s, {throw['launches_per_step']:.1f} launches and "
+          f"{common.fmt(throw['allocs_per_step'], '.1f')} arrays made per step (forward and backward)")
+    common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throw}, device=args.device)
 
 
 if __name__ == "__main__":

@@ -753,6 +753,13 @@ def graph_step(d: dict) -> str:
                 f"{g(gr['fwd_bwd_s'] * 1e3)} ms, captured {g(gr['fwd_bwd_captured_s'] * 1e3)} ms "
                 f"({gr['fwd_bwd_s'] / gr['fwd_bwd_captured_s']:.2f}×); wind gradient captured − uncaptured "
                 f"{_diff(gr['max_diff'])}."]
+    throw = d.get("throw")
+    if throw:
+        allocs = "–" if throw["allocs_per_step"] is None else f"{throw['allocs_per_step']:.0f}"
+        out += ["", f"The seed's throw ({throw['steps']} steps, {throw['particles']} particles, contact: not captured "
+                f"yet): forward + backward {throw['fwd_bwd_s']:.2f} s (issue 37's target 0.5 s: "
+                f"{met(throw['fwd_bwd_s'] <= 0.5)}), {throw['launches_per_step']:.0f} launches and {allocs} arrays "
+                "made per step, forward and backward together."]
     out += ["", provenance(d)]
     return "\n".join(out)
 

@@ -42,7 +42,7 @@ BENCHMARKS = {
     "memory": (("records", "target_ratio"), False, False),
     "prediction": (("records", "means", "motions"), True, False),
     "worlds": (("records", "target_speedup"), False, False),
-    "graph_step": (("cases", "gradients"), False, False),
+    "graph_step": (("cases", "gradients", "throw"), False, False),
     "jobs": (("records", "workers", "target_speedup"), True, True),
 }
 
