@@ -295,3 +295,23 @@ def test_adjoint_failure_names_its_own_step():
     named = sorted(int(re.search(r"adjoint CG solve of step (\d+)", str(w.message)).group(1)) for w in record
                    if "adjoint" in str(w.message))
     assert named == [1, 2, 3], f"adjoint warnings name steps {named}"
+
+
+def test_a_deferred_check_reports_the_first_failed_solve_and_counts_the_rest():
+    # sync_every=0: no step reads the failure record; the rollout's end does, once
+    _, state, sim = hard_problem(cg_max_iters=1, sync_every=0)
+    with pytest.warns(RuntimeWarning, match=r"forward CG solve of step 1 did not converge.*\(2 more solves missed"):
+        wc.rollout(sim, state, steps=3)
+
+
+def test_deferred_adjoint_failures_are_reported_by_check():
+    model, state, sim = hard_problem(cg_tol=1e-10, sync_every=0)
+    tape = wp.Tape()
+    with tape:
+        final = wc.rollout(sim, state, steps=3)[-1]
+    sim.options = replace(sim.options, cg_max_iters=1, on_cg_failure="raise")
+    tape.backward(grads={final.particle_x: wp.array(np.ones((model.particle_count, 3)), dtype=model.types.vec3)})
+    # the adjoint solves run from the last step to the first: the first failure latched is step 3's
+    with pytest.raises(wc.SimulationError, match=r"adjoint CG solve of step 3 did not converge"):
+        sim.check()
+    sim.check()  # read and cleared: nothing left to report
