@@ -4,9 +4,11 @@ iteration.
 The system A dv = b is taken from a real step (step SPINUP+1 of benchmarks/step_time.py's scene: ``Simulator.assemble``
 of the state after SPINUP steps) and solved with ``wc.LinearSolver``, the simulator's own solver, under different
 SolverOptions. Compared, all to cg_tol 1e-6 (|b - A x| <= 1e-6 |b|) from x0 = 0:
-  (a) warp.optim.linear.cg with its "diag" preconditioner as the library's warp backend calls it (check_every=1,
-      preconditioner rebuilt per solve; SolverOptions(cg_backend="warp", preconditioner="jacobi")), the same with
-      the backend's default preconditioner (block Jacobi), and raw with warp's default check_every=10;
+  (a) warp.optim.linear.cg with its "diag" preconditioner as the library's warp backend calls it (on the CPU
+      check_every=1; SolverOptions(cg_backend="warp", preconditioner="jacobi")), the same with block Jacobi and
+      with the multigrid in parallel form (the backend's default for one world, CUDA's for worlds over 1024
+      particles), and raw with warp's default check_every=10; the tiled backend (CUDA's default for smaller worlds:
+      one thread block a world; here a block is one thread, so only its iterations mean what they would on CUDA);
   (b) the one-launch sequential CG (cg_backend="sequential") with jacobi, block_jacobi, block_ssor (omega 1.0,
       i.e. symmetric Gauss-Seidel, and 1.5) and multigrid (the CPU default), block_ssor and multigrid also
       warm-started from the previous step's dv (``State.particle_dv``, what SolverOptions.warm_start uses);
@@ -121,16 +123,21 @@ def bench_size(res, reps, quick=False):
 
     # (a) warp.optim.linear.cg, as the library's warp backend calls it
     sw = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="jacobi")
-    sb = solver(m, cg_tol=TOL, cg_backend="warp")  # the warp backend's default preconditioner
+    sb = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="block_jacobi")
+    smg = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="multigrid")
+    st = solver(m, cg_tol=TOL, cg_backend="tiled")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for pre in ("jacobi", "block_jacobi"):  # compiles warp.sparse / warp.optim kernels
+        for pre in ("jacobi", "block_jacobi", "multigrid"):  # compiles warp.sparse / warp.optim kernels
             solver(m, cg_tol=TOL, cg_backend="warp", preconditioner=pre, cg_max_iters=3).solve(values, rhs, x)
     warp_reps = 2 if quick else (3 if res <= 16 else 1)
     record("warp cg diag (library call)", lambda: sw.solve(values, rhs, x), warp_reps,
            "check_every=1, preconditioner rebuilt and b copied to host per solve")
-    record(f"warp cg {sb.preconditioner} (library default)", lambda: sb.solve(values, rhs, x), warp_reps,
-           "the warp backend's default preconditioner (CUDA)")
+    record("warp cg block_jacobi", lambda: sb.solve(values, rhs, x), warp_reps)
+    record("warp cg multigrid (parallel form)", lambda: smg.solve(values, rhs, x), warp_reps,
+           "damped block-Jacobi smoothing; CUDA's default for a world over 1024 particles")
+    record("tiled block_jacobi", lambda: st.solve(values, rhs, x), reps,
+           "CUDA's default for worlds up to 1024 particles; one thread a block on the CPU")
     A = warp_matrix(m, values)
     M = wl.preconditioner(A, "diag")
 
