@@ -5,6 +5,10 @@ differentiating the squared distance between trajectories through the whole roll
 along the cloth's normals acts on it (ARCSim's model has no tangential drag by default), so only the speed along x
 (the cloth faces +x) is fitted: the other components are not identifiable from this motion.
 
+The rollout, its loss and its backward pass are recorded once as a graph (``wc.CapturedRollout``) and replayed at
+every iteration: the wind is changed in place between replays, and each replay leaves the loss's gradient in
+``model.wind_velocity.grad``.
+
     python examples/example_estimate_wind.py --iters 30
 """
 
@@ -32,25 +36,26 @@ class Example:
         self.squared_distance = loss_kernels(self.model.scalar).squared_distance  # loss += scale |x - target|^2
         self.targets = [s.particle_x for s in wc.rollout(self.sim, self.model.state(), steps=steps)]
         self.model.wind_velocity.assign([(guess, 0.0, 0.0)])
+        self.captured = wc.CapturedRollout(self.sim, self.model.state(), steps=steps, loss=self.loss_of)
         # Adam on the wind speed along x (the component normal to the cloth): the loss's scale is unknown upfront
         self.learning_rate = 0.3
         self.moments = [0.0, 0.0]
         self.iteration = 0
 
-    def loss_and_grad(self) -> float:
+    def loss_of(self, trajectory) -> wp.array:
+        """Mean squared distance to the target trajectory (kernels launched on the trajectory: recorded too)."""
         loss = wp.zeros(1, dtype=float, requires_grad=True)
-        tape = wp.Tape()
-        with tape:
-            trajectory = wc.rollout(self.sim, self.model.state(), steps=self.steps)
-            scale = 1.0 / (self.steps * self.model.particle_count)
-            for state, target in zip(trajectory[1:], self.targets[1:]):
-                wp.launch(self.squared_distance, self.model.particle_count,
-                          inputs=[state.particle_x, target, scale], outputs=[loss])
-        tape.backward(loss)
-        return float(loss.numpy()[0])
+        scale = 1.0 / (self.steps * self.model.particle_count)
+        for state, target in zip(trajectory[1:], self.targets[1:]):
+            wp.launch(self.squared_distance, self.model.particle_count,
+                      inputs=[state.particle_x, target, scale], outputs=[loss])
+        return loss
+
+    def loss_and_grad(self) -> float:
+        self.captured.run()  # forward, loss and backward: the gradient is in model.wind_velocity.grad
+        return float(self.captured.loss.numpy()[0])
 
     def step(self) -> float:
-        self.model.wind_velocity.grad.zero_()
         loss = self.loss_and_grad()
         g = float(self.model.wind_velocity.grad.numpy()[0, 0])
         self.iteration += 1
