@@ -376,11 +376,12 @@ class LinearSolver:
             x.zero_()
         elif guess is not x:
             wp.copy(x, guess)
-        wp.launch(self.kernels.diagonal_inverse, model.particle_count, device=self.device,
-                  inputs=[matrix, int(self.preconditioner != "jacobi")],
-                  outputs=[self._precond], record_tape=False)
         if self._parallel_multigrid is not None:
             self._parallel_multigrid.setup(matrix)
+        else:
+            wp.launch(self.kernels.diagonal_inverse, model.particle_count, device=self.device,
+                      inputs=[matrix, int(self.preconditioner != "jacobi")],
+                      outputs=[self._precond], record_tape=False)
         device_side = self.device.is_cuda
         key = (tol, opt.cg_atol, opt.cg_max_iters)
         if key not in w.functors:
