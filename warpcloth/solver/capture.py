@@ -53,7 +53,8 @@ class CapturedRollout:
             raise ValueError("CapturedRollout: a loss needs a model finalized with requires_grad=True")
         self.sim, self.state, self.control, self.steps, self._loss_fn = sim, state, control, int(steps), loss
         self.trajectory: list[State] = []
-        """The states of the last replay, ``[state, s1, ..., s_steps]`` (the same arrays at every replay)."""
+        """The states of the last replay, ``[state, s1, ..., s_steps]`` (the same arrays at every replay; new ones at
+        every run where the rollout is not captured, on CUDA with a loss)."""
         self.loss: wp.array | None = None
         """The loss array the graph writes (None without a loss)."""
         self.tape: wp.Tape | None = None
