@@ -166,3 +166,16 @@ def test_scripted_motions_replay_their_targets(device):
     captured = wc.CapturedRollout(sim, model.state(), steps=STEPS)
     captured.trajectory[-1].particle_x.zero_()
     exact_or_close(device)(captured.run()[-1].particle_x.numpy(), expected)
+
+
+def test_a_replay_refuses_options_or_arrays_replaced_since_the_capture():
+    model, sim, state, control = scene("cpu")
+    captured = wc.CapturedRollout(sim, state, control, steps=2)
+    sim.options = wc.SolverOptions(cg_tol=1e-6)  # kernel arguments the graph baked in
+    with pytest.raises(ValueError, match="options changed since the capture"):
+        captured.run()
+    captured = wc.CapturedRollout(sim, state, control, steps=2)
+    model.material_density = wp.array(model.material_density.numpy() * 1.1, dtype=model.scalar,
+                                      requires_grad=True)  # a new array: the graph reads the old one
+    with pytest.raises(ValueError, match="rebound since the capture"):
+        captured.run()

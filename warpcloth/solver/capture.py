@@ -15,7 +15,7 @@ import warp as wp
 
 from warpcloth.model import State
 from warpcloth.solver.rollout import ControlSchedule, check_schedule, rollout
-from warpcloth.solver.simulator import Simulator
+from warpcloth.solver.simulator import Simulator, model_arrays
 
 
 class CapturedRollout:
@@ -52,6 +52,8 @@ class CapturedRollout:
         if loss is not None and not sim.model.requires_grad:
             raise ValueError("CapturedRollout: a loss needs a model finalized with requires_grad=True")
         self.sim, self.state, self.control, self.steps, self._loss_fn = sim, state, control, int(steps), loss
+        # what the graph baked in: the options (kernel arguments) and the model's arrays (pointers)
+        self._captured_with = (sim.options, model_arrays(sim.model))
         self.trajectory: list[State] = []
         """The states of the last replay, ``[state, s1, ..., s_steps]`` (the same arrays at every replay; new ones at
         every run where the rollout is not captured, on CUDA with a loss)."""
@@ -118,7 +120,17 @@ class CapturedRollout:
         self.tape.backward(grads={self.loss: self._seed})
 
     def run(self) -> list[State]:
-        """Replay the rollout (and, with a loss, the backward pass); returns the trajectory."""
+        """Replay the rollout (and, with a loss, the backward pass); returns the trajectory. Raises ValueError where
+        the Simulator's options were replaced or an array of the model rebound since the capture: the graph would
+        still use the old ones (change values in place, or capture again)."""
+        options, arrays = self._captured_with
+        if self.sim.options is not options:
+            raise ValueError("CapturedRollout.run: the Simulator's options changed since the capture, and the graph "
+                             "holds the old ones; make a new CapturedRollout")
+        if model_arrays(self.sim.model) != arrays:
+            raise ValueError("CapturedRollout.run: an array of the model was rebound since the capture, and the "
+                             "graph reads the old one; assign values in place instead, or make a new "
+                             "CapturedRollout")
         if not self.graphs:  # not captured (CUDA with a loss): the ordinary forward and backward passes
             self.tape.zero()
             self._record_forward()

@@ -101,7 +101,7 @@ class Simulator:
             stages.append(("collision", self._collide))
         stages.append(("integrate", self._hand_on))
         self._stages = stages
-        self._model_arrays = _array_identities(model)
+        self._model_arrays = model_arrays(model)
 
     @property
     def options(self) -> SolverOptions:
@@ -152,7 +152,7 @@ class Simulator:
             raise ValueError("step() needs distinct state_in and state_out (a tape cannot record in-place updates)")
         self._check_state("state_in", state_in)
         self._check_state("state_out", state_out)
-        if _array_identities(self.model) != self._model_arrays:  # an array of the model was rebound
+        if model_arrays(self.model) != self._model_arrays:  # an array of the model was rebound
             self.notify_model_changed()
         recording = active_tape() is not None and self.model.requires_grad
         s = _Step(state_in=state_in, state_out=state_out,
@@ -492,7 +492,7 @@ class _Step:
     report: CollisionReport | None = None
 
 
-def _array_identities(model: Model) -> tuple:
+def model_arrays(model: Model) -> tuple:
     """The identity of every array the model holds (a rebound array changes it)."""
     return tuple(id(value) for value in vars(model).values() if isinstance(value, wp.array))
 
