@@ -2,7 +2,7 @@
 # The CUDA checks of one lent-GPU session (../shared/gpu/README.md): the device tests, the graph benchmark and the
 # material-estimation and control CLIs on cuda:0. Run on the GPU machine after `bash .gpu/on-device.sh install`
 # (or `sync`) as
-#   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu_checks.sh" "$root"
+#   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu/checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
 # TESTS, SIZES, WORLDS and ITERS override what runs. The first CUDA compile of the kernel modules takes about a
 # minute on a fresh machine (2026-11-27, H200); the tests below took 123 s with it.
@@ -28,3 +28,5 @@ part estimate_cuda 60 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
 grep -E "runtime|simulation error" "$out/estimate_cuda.log" >> "$out/summary.txt"
 part control_cuda 120 warpcloth control --device cuda:0 --iters 2
 tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"
+part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0
+cat "$out/capture_probe.log" >> "$out/summary.txt"

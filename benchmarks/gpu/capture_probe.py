@@ -1,0 +1,129 @@
+"""Which ways of capturing a taped rollout and its backward pass replay correctly on a device (issue 37).
+
+On an H200 with Warp 1.19 (2026-11-27) a CUDA graph holding the taped forward pass and the backward pass failed to
+instantiate ("invalid argument"), and the forward and backward passes as two graphs crashed on replay (error 719),
+so ``wc.CapturedRollout`` with a loss runs uncaptured on CUDA. This probe tries the variants below, each in a
+process of its own (a crashed CUDA context poisons the process), and prints whether each replays to the uncaptured
+gradient:
+
+    one_graph          forward (taped) + loss + backward in one graph, arrays allocated during the capture
+    one_graph_no_gc    the same with Python's garbage collector off during the capture (no frees inside it)
+    preallocated       every State allocated before the capture (the step's own per-step buffers still inside)
+    two_graphs         forward graph, then backward graph (what CapturedRollout does on the CPU)
+    two_graphs_no_gc   the same with the garbage collector off
+
+Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME]
+(without --variant it runs every variant in a subprocess and prints a line each)
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import subprocess
+import sys
+
+import numpy as np
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+
+import warpcloth as wc  # noqa: E402
+from warpcloth.tasks import scenes  # noqa: E402
+
+VARIANTS = ("one_graph", "one_graph_no_gc", "preallocated", "two_graphs", "two_graphs_no_gc")
+STEPS = 6
+
+
+@wp.kernel
+def _height(x: wp.array(dtype=wp.vec3), loss: wp.array(dtype=float)):
+    wp.atomic_add(loss, 0, x[wp.tid()][2])
+
+
+def _problem(device: str):
+    model = scenes.hanging_cloth(wc.preset("gray-interlock", thicken=2), res=6, device=device, requires_grad=True)
+    return model, wc.Simulator(model, 0.02), model.state()
+
+
+def _loss(x):
+    loss = wp.zeros(1, dtype=float, requires_grad=True)
+    wp.launch(_height, x.shape[0], inputs=[x], outputs=[loss])
+    return loss
+
+
+def _forward(sim, state, states=None):
+    """A taped rollout and its loss: (tape, loss, kept objects)."""
+    tape = wp.Tape()
+    with wp.ScopedDevice(sim.device), tape:
+        if states is None:
+            trajectory = wc.rollout(sim, state, steps=STEPS)
+        else:
+            trajectory = [state]
+            for i in range(STEPS):
+                sim.step(trajectory[-1], states[i])
+                trajectory.append(states[i])
+        loss = _loss(trajectory[-1].particle_x)
+    return tape, loss, trajectory
+
+
+def run_variant(variant: str, device: str) -> str:
+    model, sim, state = _problem(device)
+    tape, loss, _ = _forward(sim, state)
+    tape.backward(loss)
+    expected = model.wind_velocity.grad.numpy().copy()
+    tape.zero()
+    keep = [tape, loss]
+    no_gc = variant.endswith("no_gc")
+    if no_gc:
+        gc.disable()
+    try:
+        if variant in ("one_graph", "one_graph_no_gc", "preallocated"):
+            states = [model.empty_state(requires_grad=True) for _ in range(STEPS)] if variant == "preallocated" \
+                else None
+            with wp.ScopedCapture(device=device) as capture:
+                tape.zero()
+                tape2, loss2, traj = _forward(sim, state, states)
+                tape2.backward(loss2)
+            graphs = [capture.graph]
+            keep += [tape2, loss2, traj, states]
+        else:
+            with wp.ScopedCapture(device=device) as capture:
+                tape2, loss2, traj = _forward(sim, state)
+            forward = capture.graph
+            with wp.ScopedCapture(device=device) as capture:
+                tape2.backward(loss2)
+            backward = capture.graph
+            with wp.ScopedCapture(device=device) as capture:
+                tape2.zero()
+            graphs = [capture.graph, forward, backward]
+            keep += [tape2, loss2, traj]
+    finally:
+        if no_gc:
+            gc.enable()
+    errors = []
+    for _ in range(2):
+        for graph in graphs:
+            wp.capture_launch(graph)
+        wp.synchronize_device(device)
+        errors.append(float(np.abs(model.wind_velocity.grad.numpy() - expected).max()))
+    return f"replays: gradient off by {errors[0]:.1e}, {errors[1]:.1e} (gradient scale {np.abs(expected).max():.1e})"
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cuda:0" if wp.is_cuda_available() else "cpu")
+    p.add_argument("--variant", choices=VARIANTS)
+    args = p.parse_args()
+    if args.variant:
+        print(run_variant(args.variant, args.device), flush=True)
+        return
+    for variant in VARIANTS:
+        proc = subprocess.run([sys.executable, __file__, "--device", args.device, "--variant", variant],
+                              capture_output=True, text=True, timeout=300)
+        text = proc.stdout.strip().splitlines()[-1:] if proc.returncode == 0 else \
+            [f"failed (rc {proc.returncode}): " + (proc.stderr.strip().splitlines() or ["?"])[-1]]
+        print(f"{variant:18s} {text[0] if text else '?'}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
