@@ -3,8 +3,9 @@
 Why a whole CG in one launch: on the CPU Warp runs each kernel on one thread and a launch costs ~20 us, while
 ``warp.optim.linear.cg`` spends most of its time in tile-based dot products that are slow there (measured in
 ``benchmarks/cg_solvers.py``). One sequential launch that loops over rows and iterations avoids both costs.
-On CUDA the library solver (many threads, device-side convergence inside a graph) is the right tool, and the host
-code uses it there with the diagonal preconditioner kernels below.
+On CUDA the same idea takes a thread block per world (cg_tiled: one launch a solve, tile reductions), and for
+worlds too large for one block the library solver (every operation across the GPU, convergence tested on the device
+inside a graph) with the diagonal or the parallel multigrid preconditioner kernels below (mg_*).
 Block SSOR's Gauss-Seidel sweeps are natural on one thread (~3.5x fewer iterations than block Jacobi at 64x64).
 Eisenstat's trick (one product per iteration instead of three passes) was tried and measured 1.3x faster, but lost
 an order of magnitude of accuracy in float32 (error vs a float64 solve 7e-5 against 3e-6 at 64x64), so it is not used.
