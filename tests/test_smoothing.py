@@ -1,0 +1,77 @@
+"""The Gaussian-smoothed gradient (tasks/optim.py smoothed_gradient) is the gradient of the smoothed loss: exactly
+where it is known in closed form (a quadratic; a jump), and against central differences of the smoothed loss,
+estimated with the same perturbations, through a simulation run as worlds of one batch."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpcloth.tasks import scenes as S
+from warpcloth.tasks import throw as C
+from warpcloth.tasks.optim import smoothed_gradient
+
+
+def evaluator(loss, grad):
+    """An evaluate_many over a NumPy loss and its (pointwise) gradient."""
+    return lambda requests: [SimpleNamespace(loss=loss(p), grad=grad(p)) for p, _ in requests]
+
+
+def test_a_quadratics_smoothed_gradient_is_its_gradient():
+    # for L = |A p|^2 / 2 smoothing adds a constant: both estimators are unbiased, the first order exact
+    A = np.random.default_rng(1).standard_normal((4, 3))
+    p = np.array([0.3, -1.0, 2.0])
+    exact = A.T @ A @ p
+    evaluate = evaluator(lambda q: 0.5 * float(np.sum((A @ q) ** 2)), lambda q: A.T @ A @ q)
+    first = smoothed_gradient(evaluate, p, scale=0.5, samples=8, rng=np.random.default_rng(0))
+    np.testing.assert_allclose(first.grad, exact, rtol=1e-12)
+    zeroth = smoothed_gradient(evaluate, p, scale=0.5, samples=40000, rng=np.random.default_rng(0), zeroth_order=True)
+    np.testing.assert_allclose(zeroth.grad, exact, atol=0.05 * np.abs(exact).max())  # Monte Carlo: ~1 % here
+
+
+def test_across_a_jump_only_the_zeroth_order_estimate_sees_the_smoothed_slope():
+    # L = 1 where p0 > 0: the pointwise gradient is 0 everywhere it exists, the smoothed loss is Phi(p0 / s), whose
+    # slope at 0 is phi(0) / s: what a landing or a strike on a rim does to a throw's loss, in one dimension
+    s = 0.2
+    evaluate = evaluator(lambda q: float(q[0] > 0.0), lambda q: np.zeros(3))
+    p = np.zeros(3)
+    zeroth = smoothed_gradient(evaluate, p, scale=s, samples=20000, rng=np.random.default_rng(2), zeroth_order=True)
+    slope = 1.0 / np.sqrt(2.0 * np.pi) / s
+    assert zeroth.grad[0] == pytest.approx(slope, rel=0.03)
+    assert np.abs(zeroth.grad[1:]).max() < 0.05 * slope
+    first = smoothed_gradient(evaluate, p, scale=s, samples=20, rng=np.random.default_rng(2))
+    assert np.all(first.grad == 0.0)  # the tape's gradients miss the jump
+
+
+def test_the_smoothed_gradient_of_a_simulation_matches_central_differences_of_the_smoothed_loss():
+    # four steps of the throw (in the air, no contact), float64; 6 copies run as 6 worlds of one model, bitwise the
+    # copies run one by one
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=4)
+    p = np.random.default_rng(3).normal(scale=2.0, size=task.n_params)
+    scale, samples = 0.5, 6
+
+    def smoothed_at(q):
+        return smoothed_gradient(task.evaluate_many, q, scale=scale, samples=samples, rng=np.random.default_rng(4))
+
+    at = smoothed_at(p)
+    assert at.samples == samples and at.failed == 0 and task.batches >= 1
+    d = np.random.default_rng(5).standard_normal(task.n_params)
+    h = 1e-4
+    fd = (smoothed_at(p + h * d).loss - smoothed_at(p - h * d).loss) / (2 * h)  # the same perturbations
+    assert abs(fd) > 1e-8
+    assert at.grad @ d == pytest.approx(fd, rel=1e-5)
+    # the batch evaluated the perturbed copies: the mean of their gradients, each simulated alone (the flying
+    # throw's loss is nearly quadratic in its pushes, so the smoothed gradient is close to the one at p itself:
+    # that comparison could not tell the points apart)
+    eps = np.random.default_rng(4).standard_normal((samples // 2, task.n_params))
+    alone = [task.evaluate(p + scale * e).grad for e in np.concatenate([eps, -eps])]
+    np.testing.assert_array_equal(at.grad, np.mean(alone, axis=0))
+
+
+def test_bad_arguments_are_refused():
+    evaluate = evaluator(lambda q: 0.0, lambda q: np.zeros(1))
+    with pytest.raises(ValueError, match="even integer"):
+        smoothed_gradient(evaluate, np.zeros(1), scale=1.0, samples=3, rng=np.random.default_rng(0))
+    with pytest.raises(ValueError, match="scale must be finite"):
+        smoothed_gradient(evaluate, np.zeros(1), scale=0.0, samples=2, rng=np.random.default_rng(0))
