@@ -132,3 +132,59 @@ def smoothed_gradient(evaluate_many, params, *, scale: float, samples: int, rng:
     else:
         grad = np.mean([r.grad for r, good in zip(results, ok) if good], axis=0)
     return Smoothed(loss=float(np.nanmean(losses)), grad=grad, samples=int(ok.sum()), failed=int((~ok).sum()))
+
+
+def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int, rng: np.random.Generator,
+          popsize: int | None = None, callback=None) -> np.ndarray:
+    """CMA-ES (Hansen 2016, "The CMA Evolution Strategy: A Tutorial": (mu/mu_w, lambda) with cumulative step-size
+    adaptation and rank-one and rank-mu covariance updates), a population method for losses whose gradient
+    misleads (a trajectory that changes piece often). ``evaluate_population(points) -> losses`` evaluates a
+    generation at once (as worlds of one batch: ``ControlTask.losses_worlds``; an infinite loss for a failed
+    simulation); ``popsize`` defaults to 4 + floor(3 ln n). Returns the best point evaluated; ``callback(k, loss,
+    point)`` sees every evaluation in order (k counts them)."""
+    x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
+    n = x0.size
+    lam = popsize or 4 + int(3 * math.log(n))
+    if lam < 2 or sigma <= 0.0 or not math.isfinite(sigma):
+        raise ValueError(f"cmaes needs popsize >= 2 and a finite sigma > 0, got {lam} and {sigma!r}")
+    mu = lam // 2
+    weights = math.log(mu + 0.5) - np.log(np.arange(1, mu + 1))
+    weights /= weights.sum()
+    mu_eff = 1.0 / float(weights @ weights)
+    c_sigma = (mu_eff + 2.0) / (n + mu_eff + 5.0)
+    d_sigma = 1.0 + 2.0 * max(0.0, math.sqrt((mu_eff - 1.0) / (n + 1.0)) - 1.0) + c_sigma
+    c_c = (4.0 + mu_eff / n) / (n + 4.0 + 2.0 * mu_eff / n)
+    c_1 = 2.0 / ((n + 1.3) ** 2 + mu_eff)
+    c_mu = min(1.0 - c_1, 2.0 * (mu_eff - 2.0 + 1.0 / mu_eff) / ((n + 2.0) ** 2 + mu_eff))
+    chi_n = math.sqrt(n) * (1.0 - 1.0 / (4.0 * n) + 1.0 / (21.0 * n * n))
+    mean, C = x0.copy(), np.eye(n)
+    p_sigma, p_c = np.zeros(n), np.zeros(n)
+    best = (math.inf, x0.copy())
+    evaluations = 0
+    for generation in range(1, generations + 1):
+        eigenvalues, B = np.linalg.eigh(C)
+        D = np.sqrt(np.maximum(eigenvalues, 1e-300))
+        z = rng.standard_normal((lam, n))
+        y = (z * D) @ B.T  # ~ N(0, C)
+        points = mean + sigma * y
+        losses = np.asarray(evaluate_population(list(points)), dtype=np.float64)
+        for point, loss in zip(points, losses):
+            evaluations += 1
+            if callback:
+                callback(evaluations, float(loss), point)
+            if loss < best[0]:
+                best = (float(loss), point.copy())
+        order = np.argsort(np.where(np.isfinite(losses), losses, np.inf))[:mu]
+        y_w = weights @ y[order]
+        mean = mean + sigma * y_w
+        C_inv_sqrt = B @ np.diag(1.0 / D) @ B.T
+        p_sigma = (1.0 - c_sigma) * p_sigma + math.sqrt(c_sigma * (2.0 - c_sigma) * mu_eff) * (C_inv_sqrt @ y_w)
+        h_sigma = float(np.linalg.norm(p_sigma) / math.sqrt(1.0 - (1.0 - c_sigma) ** (2 * generation))
+                        < (1.4 + 2.0 / (n + 1.0)) * chi_n)
+        p_c = (1.0 - c_c) * p_c + h_sigma * math.sqrt(c_c * (2.0 - c_c) * mu_eff) * y_w
+        rank_mu = (y[order].T * weights) @ y[order]
+        C = ((1.0 - c_1 - c_mu) * C + c_1 * (np.outer(p_c, p_c) + (1.0 - h_sigma) * c_c * (2.0 - c_c) * C)
+             + c_mu * rank_mu)
+        C = 0.5 * (C + C.T)
+        sigma *= math.exp((c_sigma / d_sigma) * (np.linalg.norm(p_sigma) / chi_n - 1.0))
+    return best[1]
