@@ -18,8 +18,9 @@ part() {  # part NAME SECONDS COMMAND...
   timeout "$limit" "$@" > "$out/$name.log" 2>&1
   echo "$name: rc=$? in $((SECONDS - t0)) s" | tee -a "$out/summary.txt"
 }
-part tests 150 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda and not contact}" \
-  "$root/tests/test_devices.py" "$root/tests/test_capture.py"
+part tests 240 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda and not contact}" \
+  "$root/tests/test_devices.py" "$root/tests/test_capture.py" "$root/tests/test_gradients.py" \
+  "$root/tests/test_worlds.py"
 tail -n 5 "$out/tests.log" >> "$out/summary.txt"
 part graph_step 180 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --out "$out/graph_step_cuda.json"
