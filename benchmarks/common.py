@@ -178,6 +178,13 @@ def advance(sim: wc.Simulator, state: wc.State, steps: int) -> wc.State:
     return state
 
 
+def cold(state: wc.State, *, requires_grad: bool = False) -> wc.State:
+    """The positions and velocities of ``state`` as a new trajectory's start: no first guess for the solve, so
+    repeated timed rollouts from it are alike."""
+    return wc.State(wp.clone(state.particle_x, requires_grad=requires_grad),
+                    wp.clone(state.particle_v, requires_grad=requires_grad), state.time)
+
+
 # -- timing ----------------------------------------------------------------------------------------------------------
 def timed(fn, *args, **kwargs):
     """(seconds, result) of one call, synchronised before and after."""

@@ -62,8 +62,7 @@ def model_of(res: int, worlds: int, device: str, requires_grad: bool = False) ->
 
 def spun_up(sim: wc.Simulator, steps: int) -> wc.State:
     """A flapping cloth's positions and velocities, as a State with no first guess (a cold first solve)."""
-    state = common.advance(sim, sim.model.state(), steps)
-    return wc.State(wp.clone(state.particle_x), wp.clone(state.particle_v), state.time)
+    return common.cold(common.advance(sim, sim.model.state(), steps))
 
 
 def case(res: int, worlds: int, device: str, steps: int, reps: int) -> dict:

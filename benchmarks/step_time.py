@@ -45,12 +45,6 @@ TARGET_STEP_MS_64 = 15.0
 TARGET_FWD_BWD_MS_16 = 3.0
 
 
-def cold(state, *, requires_grad=False):
-    """The positions and velocities of ``state`` as a new trajectory's start: no first guess for the solve."""
-    return wc.State(wp.clone(state.particle_x, requires_grad=requires_grad),
-                    wp.clone(state.particle_v, requires_grad=requires_grad), state.time)
-
-
 def forward_rollouts(sim, s0, steps, reps):
     times, iters = [], []
     for _ in range(reps):
@@ -170,14 +164,14 @@ def main():
             warnings.simplefilter("always")
             m = common.hanging_cloth(res, requires_grad=False)
             sim = wc.Simulator(m, common.DT, options=options)
-            s0 = cold(common.advance(sim, m.state(), spinup))  # also compiles
+            s0 = common.cold(common.advance(sim, m.state(), spinup))  # also compiles
             fwd, iters = forward_rollouts(sim, s0, steps, reps)
             cold_sim = wc.Simulator(m, common.DT, options=dataclasses.replace(options, warm_start=False))
             _, cold_iters = forward_rollouts(cold_sim, s0, steps, 1)
 
             mg = common.hanging_cloth(res, requires_grad=True)
             simg = wc.Simulator(mg, common.DT, options=options)
-            s0g = cold(s0, requires_grad=True)
+            s0g = common.cold(s0, requires_grad=True)
             control = mg.control()
             taped_rollout(simg, s0g, control, 1)  # warm-up (adjoint kernels)
             runs = [taped_rollout(simg, s0g, control, steps) for _ in range(reps)]

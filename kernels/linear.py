@@ -567,6 +567,15 @@ def linear_kernels(scalar):
     # Galerkin sums gather their sources (no atomics: the same sums in the same order on every device), damped
     # block-Jacobi smoothing replaces the Gauss-Seidel sweeps (warpcloth/solver/multigrid.py ParallelMultigrid has
     # the measurements), and the coarsest level keeps its dense Cholesky solve on one thread.
+    @wp.func
+    def row_residual(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                     values: wp.array(dtype=mat33), row: int, b: vec3, x: wp.array(dtype=vec3)):
+        """b - (A x) on one row of a level's matrix."""
+        r = b
+        for k in range(offsets[row], offsets[row + 1]):
+            r -= values[k] * x[columns[k]]
+        return r
+
     @wp.kernel
     def mg_galerkin(source: wp.array(dtype=mat33), source_start: wp.array(dtype=wp.int32),
                     sources: wp.array(dtype=wp.int32), first: int, values: wp.array(dtype=mat33)):
@@ -604,10 +613,7 @@ def linear_kernels(scalar):
                   b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), omega: scalar, x_out: wp.array(dtype=vec3)):
         # a damped Jacobi sweep: x_out = x + omega D^-1 (b - A x) on the level's nodes [lo, lo + dim)
         i = lo + wp.tid()
-        row = i - row_base
-        s = b[i]
-        for k in range(offsets[row], offsets[row + 1]):
-            s -= values[k] * x[columns[k]]
+        s = row_residual(offsets, columns, values, i - row_base, b[i], x)
         x_out[i] = x[i] + omega * (dinv[i] * s)
 
     @wp.kernel
@@ -620,11 +626,7 @@ def linear_kernels(scalar):
         acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         for m in range(member_start[c], member_start[c + 1]):
             i = members[m]
-            row = i - row_base
-            r = b[i]
-            for k in range(offsets[row], offsets[row + 1]):
-                r -= values[k] * x[columns[k]]
-            acc += r
+            acc += row_residual(offsets, columns, values, i - row_base, b[i], x)
         b_coarse[coarse_lo + c] = acc
 
     @wp.kernel
