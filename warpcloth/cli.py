@@ -44,7 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scenes", help="list the embedded scenes")
 
     from warpcloth.materials import PRESET_NAMES
-    from warpcloth.scene import CONTROLLERS, ESTIMATION_OPTIMIZERS
+    from warpcloth.scene import CONTROL_OPTIMIZERS, CONTROLLERS, ESTIMATION_OPTIMIZERS
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from how it moves (a scene's [estimate] task)")
     est.add_argument("scene", nargs="*", default=[],
@@ -73,7 +73,13 @@ def _parser() -> argparse.ArgumentParser:
                      "through the simulator (needs the torch extra); each with the scene's optimiser where it is the "
                      "scene's controller, else its default (Gauss-Newton for a centre-of-mass target); default: the "
                      "scene's")
+    ctl.add_argument("--optimizer", default=None, choices=sorted({o for v in CONTROL_OPTIMIZERS.values() for o in v}),
+                     help="the controller's optimiser (open loop: gauss-newton, lbfgs, or cmaes: a global search over "
+                     "worlds, then the local default; mlp: gauss-newton or adam) (default: the scene's)")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
+    ctl.add_argument("--warm-start", type=int, default=None, metavar="N",
+                     help="the MLP: first optimise the pushes themselves with N simulations and fit the network to "
+                     "them (default: the scene's, else none)")
     ctl.add_argument("--starts", type=int, default=1,
                      help="runs from K starts, one job each: the first from zero pushes (the seed's start), start k "
                      "from random pushes of seed k (the MLP: its weights' seed k) (default: 1)")
@@ -385,7 +391,7 @@ def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures)
 def _cmd_control(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.scene import load_scene
+    from warpcloth.scene import check_control_optimizer, load_scene
     from warpcloth.tasks import throw as C
     from warpcloth.tasks.control import ControlTask
     from warpcloth.tasks.jobs import ControlJob
@@ -393,8 +399,21 @@ def _cmd_control(args: argparse.Namespace) -> int:
 
     if args.starts < 1:
         return _error(f"--starts must be >= 1, got {args.starts}", _USAGE_ERROR)
-    jobs = [ControlJob(scene=args.scene, controller=args.controller, iters=args.iters,
-                       seed=k or None, device=args.device)
+    if args.optimizer:  # refused here, before any job starts
+        try:
+            spec = load_scene(args.scene).control
+        except (ValueError, OSError) as exc:
+            return _error(str(exc), _USAGE_ERROR)
+        if spec is not None:
+            controller = args.controller or spec.controller
+            problem = check_control_optimizer(args.optimizer, controller, spec.target_com, spec.regularizer)
+            if problem:
+                return _error(f"--optimizer: {problem}", _USAGE_ERROR)
+    if args.warm_start is not None and (args.warm_start < 0 or args.controller == "open-loop"):
+        return _error(f"--warm-start {args.warm_start}: the MLP's warm start takes a number of simulations >= 0",
+                      _USAGE_ERROR)
+    jobs = [ControlJob(scene=args.scene, controller=args.controller, iters=args.iters, optimizer=args.optimizer,
+                       warm_start=args.warm_start, seed=k or None, device=args.device)
             for k in range(args.starts)]
     if len(jobs) > 1 or args.workers > 1 or args.address:
         return _run_many(args, jobs, ["error [%]", "simulations to reach it", "failed trials"],
@@ -411,7 +430,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
         goal = f"its centre of mass to {task.target_com.tolist()}"
     print(f"{scene.name}: {len(task.particles)} particles pushed {task.intervals} times, {task.steps} steps of "
           f"{task.dt:g} s, moving {goal}; controller {controller}"
-          f" ({task.optimizer_for(controller)}), {iters} simulations")
+          f" ({job.optimizer_of(task)}), {iters} simulations")
     _print_solver_note(task.sim)
     try:
         result = task.run(controller=controller, iters=iters, progress=True, **job.start(task))

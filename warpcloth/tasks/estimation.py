@@ -31,8 +31,8 @@ from warpcloth.materials import (
     STRETCHING_SHAPE,
 )
 from warpcloth.progress import progress_bar
-from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, load_scene
-from warpcloth.tasks.optim import adam, lbfgs
+from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
+from warpcloth.tasks.optim import adam, cmaes, lbfgs
 from warpcloth.tasks.scenes import THICKEN
 
 # -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
@@ -370,6 +370,10 @@ START_SCAN = {"density": (0.5, 2.0**-0.5, 1.0, 2.0**0.5, 2.0), "stretch": tuple(
 0.49x to 1.41x the seed's mean start) and on its warp and weft stretch (1/4 to 32; the fabrics span 0.18x to 29x).
 A fit does not cross these ranges by gradient steps, and the two act together (README, Material estimation)."""
 
+SEARCH_SIGMA = 0.5
+"""The global search's default initial spread (``SearchSpec.sigma``) in the parameterization's units (log-scale for
+density, warp/weft stretch and bending: a factor of e^0.5 = 1.65)."""
+
 
 @dataclass
 class EstimationResult:
@@ -398,15 +402,17 @@ class EstimationResult:
 
 def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
-                      scan: dict[str, Sequence[float]] | None = START_SCAN, progress: bool = False
-                      ) -> EstimationResult:
+                      scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
+                      progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
     Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
     SGD with momentum 0.9 on the seed's scaled units, lr 0.1 for density and stretching and 10 for bending, with the
     growing-horizon curriculum: 2 steps more each time the loss drops under 1e-4 m^2). ``iters`` counts evaluations.
     ``free`` names the parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others keep
-    ``initial``'s values.
+    ``initial``'s values. ``cmaes``: a global search, CMA-ES (``warpcloth.tasks.optim.cmaes``) over the free
+    parameters around the start with ``search.sigma`` (default :data:`SEARCH_SIGMA`), each point one forward
+    evaluation, then L-BFGS from its best point with ``search.refine`` evaluations (default a fifth of ``iters``).
 
     ``scan`` (``{"density": factors, "stretch": factors}``, default ``START_SCAN``): before ``lbfgs`` or ``adam``, the
     loss (forward only) of ``initial`` with its density and its warp and weft stretch times every pair of factors
@@ -459,6 +465,18 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         loss, g = objective(theta)
         return loss, g[mask]
 
+    def loss_free(theta_free: np.ndarray) -> float:
+        """The loss alone (a forward evaluation): the global search's."""
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = theta_free
+        try:
+            loss = fit.loss(param.decode(theta))
+        except wc.SimulationError as exc:  # a diverging trial: an infinite loss
+            result.diverged.append(str(exc))
+            loss = math.inf
+        record(loss, fit.steps)
+        return loss
+
     seconds0 = fit.seconds
     scan = dict(scan or {})
     unknown = set(scan) - {"density", "stretch"}
@@ -478,6 +496,18 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     elif optimizer == "adam":
         theta = np.zeros(N_PARAMS)
         theta[mask] = adam(objective_free, theta0, iters=iters)
+    elif optimizer == "cmaes":
+        search = search or SearchSpec()
+        refine = iters // 5 if search.refine is None else min(search.refine, iters)
+        population = search.population or 4 + int(3 * math.log(theta0.size))
+        generations = (iters - refine) // population
+        start = theta0
+        if generations:
+            start = cmaes(lambda points: [loss_free(q) for q in points], theta0, sigma=search.sigma or SEARCH_SIGMA,
+                          generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
+        remaining = iters - generations * population
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     else:
         theta = _seed_sgd(fit, param, objective, iters)
     result.seconds += fit.seconds - seconds0
@@ -674,8 +704,9 @@ class EstimationTask:
         fit: The loss (a TrajectoryFit, or a MultiMotionFit of several).
         start: The material the fit starts from (default: the seed's mean of 8 fabrics).
         free: The parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``).
-        optimizer: ``"lbfgs"``, ``"adam"`` or ``"seed-sgd"``.
-        iters: Forward + backward evaluations.
+        optimizer: ``"lbfgs"``, ``"adam"``, ``"seed-sgd"`` or ``"cmaes"`` (global search, then L-BFGS).
+        iters: Evaluations (forward + backward; the global search's forward ones count one each).
+        search: The global search's settings (``optimizer="cmaes"``).
         truth: The true material when the targets were simulated with one (for parameter errors), else None.
         source: Where the targets came from, in words.
     """
@@ -685,6 +716,7 @@ class EstimationTask:
     free: tuple[str, ...] = MATERIAL_PARTS
     optimizer: str = "lbfgs"
     iters: int = 100
+    search: SearchSpec = field(default_factory=SearchSpec)
     truth: wc.Material | None = None
     source: str = ""
 
@@ -724,14 +756,14 @@ class EstimationTask:
             source = f"{truth.name} simulated by warpcloth"
         fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
                             options=scene.solver_options)
-        return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters, truth=truth,
-                   source=source)
+        return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters,
+                   search=spec.search, truth=truth, source=source)
 
     def run(self, *, optimizer: str | None = None, iters: int | None = None, progress: bool = False
             ) -> EstimationResult:
         """:func:`estimate_material` with the task's settings (``optimizer``, ``iters`` override them)."""
         return estimate_material(self.fit, initial=self.start, optimizer=optimizer or self.optimizer,
-                                 iters=iters or self.iters, free=self.free, progress=progress)
+                                 iters=iters or self.iters, free=self.free, search=self.search, progress=progress)
 
 
 def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:
