@@ -19,7 +19,6 @@ import copy
 import dataclasses
 import math
 import os
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -37,6 +36,7 @@ from warpcloth.scene import (
     default_control_optimizer,
     load_scene,
 )
+from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
 from warpcloth.tasks.optim import cmaes, lbfgs
 
 SEARCH_SIGMA = 5.0
@@ -833,71 +833,21 @@ def optimize_open_loop_starts(task: ControlTask, starts: list, *, batch: bool = 
     if not batch:
         return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, **kwargs)
                 for s in starts]
-    lockstep = _Lockstep(task, len(starts))
-    results: list = [None] * len(starts)
+    def evaluate(requests: dict[int, list]) -> dict[int, list]:  # the runs' requests as one batch, answers split
+        flat = task.evaluate_many([r for rows in requests.values() for r in rows])
+        answers = {}
+        for run, rows in requests.items():
+            answers[run], flat = flat[:len(rows)], flat[len(rows):]
+        return answers
 
-    def one(i: int) -> None:
-        try:
-            results[i] = optimize_open_loop(task, start=starts[i], iters=iters, progress=progress,
-                                            _evaluate=lambda requests: lockstep.evaluate(i, requests), **kwargs)
-        except BaseException as exc:  # handed to the caller below
-            results[i] = exc
-        finally:
-            lockstep.leave()
-
-    threads = [threading.Thread(target=one, args=(i,), daemon=True) for i in range(len(starts))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    lockstep = Lockstep(len(starts), evaluate)
+    results = run_in_lockstep(lockstep, len(starts), lambda i: optimize_open_loop(
+        task, start=starts[i], iters=iters, progress=progress,
+        _evaluate=lambda requests: lockstep.ask(i, requests), **kwargs))
     for r in results:
         if isinstance(r, BaseException):
             raise r
     return results
-
-
-class _Lockstep:
-    """The evaluations that several optimisations (each in its own thread) ask for, run as one batch once every
-    optimisation still running is waiting for its own; requests go in the order of the runs, so the batches, and
-    the results, do not depend on the threads' timing."""
-
-    def __init__(self, task: ControlTask, runs: int):
-        self.task = task
-        self.running = runs
-        self.pending: dict[int, list] = {}
-        self.answers: dict[int, list] = {}
-        self.lock = threading.Condition()
-
-    def evaluate(self, run: int, requests: list) -> list:
-        with self.lock:
-            self.pending[run] = requests
-            self._dispatch()
-            while run not in self.answers:
-                self.lock.wait()
-            answer = self.answers.pop(run)
-        if isinstance(answer, BaseException):
-            raise answer
-        return answer
-
-    def leave(self) -> None:
-        with self.lock:
-            self.running -= 1
-            self._dispatch()
-
-    def _dispatch(self) -> None:
-        if not self.pending or len(self.pending) < self.running:
-            return
-        runs = sorted(self.pending)
-        try:
-            flat = self.task.evaluate_many([r for k in runs for r in self.pending[k]])
-        except BaseException as exc:  # every waiting run raises it (a bug, not a rejected trial)
-            self.answers.update(dict.fromkeys(runs, exc))
-        else:
-            for k in runs:
-                size = len(self.pending[k])
-                self.answers[k], flat = flat[:size], flat[size:]
-        self.pending.clear()
-        self.lock.notify_all()
 
 
 def _finish(result: ControlResult, bar, t0: float) -> ControlResult:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import os
-import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -32,6 +31,7 @@ from warpcloth.materials import (
 )
 from warpcloth.progress import progress_bar
 from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
+from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
 from warpcloth.tasks.optim import adam, cmaes, lbfgs
 from warpcloth.tasks.scenes import THICKEN
 
@@ -545,8 +545,8 @@ def _scan_start(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, densiti
 
 def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc.Material] | None = None,
                        optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
-                       scan: dict[str, Sequence[float]] | None = START_SCAN, progress: bool = False
-                       ) -> list[EstimationResult]:
+                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
+                       progress: bool = False) -> list[EstimationResult]:
     """:func:`estimate_material` for every world of a batched ``fit`` at once (a fabric library, or several starts
     of one fabric: a world per fit), each world from ``initial`` (one material, or one per world; default: the
     seed's mean). The fits run in lockstep: each evaluation waits until every unfinished fit has asked for one, and
@@ -563,32 +563,21 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
         SimulationError: when a world's first evaluation fails (as :func:`estimate_material`), naming the world.
     """
     if optimizer == "seed-sgd":
-        raise ValueError("estimate_materials runs lbfgs or adam in lockstep; seed-sgd grows each fit's horizon")
+        raise ValueError("estimate_materials runs lbfgs, adam or cmaes in lockstep; seed-sgd grows each fit's "
+                         "horizon")
     worlds = fit.world_count
     starts = [initial] * worlds if initial is None or isinstance(initial, wc.Material) else list(initial)
     if len(starts) != worlds:
         raise ValueError(f"initial: {len(starts)} materials for a fit of {worlds} worlds")
-    batch = _Lockstep(fit, progress_bar(iters, f"estimate {worlds} worlds ({optimizer})", "batch")
-                      if progress else None)
-    results: list[EstimationResult | None] = [None] * worlds
-    errors: dict[int, BaseException] = {}
-
-    def run(w: int) -> None:
-        try:
-            results[w] = estimate_material(_WorldFit(batch, w), initial=starts[w], optimizer=optimizer, iters=iters,
-                                           free=free, scan=scan)
-        except BaseException as exc:  # noqa: BLE001 -- raised below, naming the world
-            errors[w] = exc
-        finally:
-            batch.leave()
-
-    threads = [threading.Thread(target=run, args=(w,), name=f"estimate world {w}") for w in range(worlds)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if batch.bar is not None:
-        batch.bar.close()
+    bar = progress_bar(iters, f"estimate {worlds} worlds ({optimizer})", "batch") if progress else None
+    batch = _BatchFit(fit, bar)
+    outcomes = run_in_lockstep(batch.lockstep, worlds, lambda w: estimate_material(
+        _WorldFit(batch, w), initial=starts[w], optimizer=optimizer, iters=iters, free=free, scan=scan,
+        search=search))
+    results = [None if isinstance(r, BaseException) else r for r in outcomes]
+    errors = {w: r for w, r in enumerate(outcomes) if isinstance(r, BaseException)}
+    if bar is not None:
+        bar.close()
     if errors:
         w, exc = min(errors.items())
         if isinstance(exc, wc.SimulationError):
@@ -597,48 +586,16 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
     return results
 
 
-class _Lockstep:
-    """The batch of :func:`estimate_materials`: collects every unfinished fit's request (a material, forward only
-    or with the gradient) and, once all have asked, evaluates them as one simulation of ``fit``'s worlds; a world
-    without a request (its fit is done, or its trial failed) simulates its last material that did."""
+class _BatchFit:
+    """The batch of :func:`estimate_materials`: every unfinished fit's request (a material, forward only or with
+    the gradient), once all have asked, evaluated as one simulation of ``fit``'s worlds (a :class:`Lockstep`); a
+    world without a request (its fit is done, or its trial failed) simulates its last material that did."""
 
     def __init__(self, fit: TrajectoryFit, bar):
-        self.fit, self.bar = fit, bar
-        self.running = fit.world_count
-        self.pending: dict[int, tuple[wc.Material, bool]] = {}
-        self.answers: dict[int, object] = {}
+        self.fit = fit
+        self.lockstep = Lockstep(fit.world_count, self._evaluate, on_batch=bar.update if bar is not None else None)
         self.seconds = [0.0] * fit.world_count
         self.simulated: list[wc.Material | None] = [None] * fit.world_count
-        self.lock = threading.Condition()
-
-    def ask(self, world: int, material: wc.Material, grad: bool):
-        with self.lock:
-            self.pending[world] = (material, grad)
-            self._run_if_complete()
-            while world not in self.answers:
-                self.lock.wait()
-            answer = self.answers.pop(world)
-        if isinstance(answer, BaseException):
-            raise answer
-        return answer
-
-    def leave(self) -> None:
-        with self.lock:
-            self.running -= 1
-            self._run_if_complete()
-
-    def _run_if_complete(self) -> None:
-        """(Holding the lock.) Evaluate the requests once every unfinished fit has made one."""
-        if not self.pending or len(self.pending) < self.running:
-            return
-        requests, self.pending = self.pending, {}
-        try:
-            self.answers.update(self._evaluate(requests))
-        except BaseException as exc:  # noqa: BLE001 -- every waiting fit gets it, none waits forever
-            self.answers.update({w: exc for w in requests})
-        if self.bar is not None:
-            self.bar.update()
-        self.lock.notify_all()
 
     def _evaluate(self, requests: dict[int, tuple[wc.Material, bool]]) -> dict[int, object]:
         """Each request's answer: a loss, a (loss, gradients) tuple, or the SimulationError that rejected it."""
@@ -675,9 +632,9 @@ class _Lockstep:
 
 
 class _WorldFit:
-    """One world of a :class:`_Lockstep` batch, in a TrajectoryFit's place for :func:`estimate_material`."""
+    """One world of a :class:`_BatchFit`, in a TrajectoryFit's place for :func:`estimate_material`."""
 
-    def __init__(self, batch: _Lockstep, world: int):
+    def __init__(self, batch: _BatchFit, world: int):
         self.batch, self.world = batch, world
         self.steps = batch.fit.steps
 
@@ -686,10 +643,10 @@ class _WorldFit:
         return self.batch.seconds[self.world]
 
     def loss(self, m: wc.Material, steps: int | None = None) -> float:
-        return self.batch.ask(self.world, m, grad=False)
+        return self.batch.lockstep.ask(self.world, (m, False))
 
     def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
-        return self.batch.ask(self.world, m, grad=True)
+        return self.batch.lockstep.ask(self.world, (m, True))
 
     def simulation_error(self, m: wc.Material) -> float:
         return 100.0 * math.sqrt(self.loss(m))
