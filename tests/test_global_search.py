@@ -150,6 +150,25 @@ def test_the_global_search_counts_every_trial_and_refines_from_its_best_point():
     assert again.losses == result.losses[:8]
 
 
+def test_the_multistart_interleaves_its_runs_and_keeps_the_best():
+    # three Gauss-Newton runs of 4 simulations in lockstep, from zero and two random starts: each as it runs alone
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=20)
+    seen = []
+    result = optimize_open_loop(task, iters=12, optimizer="multistart", search=SearchSpec(population=3, sigma=3.0,
+                                                                                          seed=2),
+                                callback=lambda k, loss, err, params: seen.append((k, loss, err)))
+    rng = np.random.default_rng(2)
+    starts = [np.zeros(task.n_params)] + [rng.normal(scale=3.0, size=task.n_params) for _ in range(2)]
+    alone = [optimize_open_loop(task, iters=4, start=s) for s in starts]
+    assert result.losses == [run.losses[k] for k in range(4) for run in alone]
+    assert result.error_pct == min(run.error_pct for run in alone)
+    assert result.errors_pct[result.simulations - 1] == result.error_pct
+    assert min(result.errors_pct[:result.simulations - 1]) > result.error_pct  # the first time it was reached
+    assert seen and all(result.losses[k - 1] == loss and result.errors_pct[k - 1] == err for k, loss, err in seen)
+    with pytest.raises(ValueError, match="multistart: 2 simulations for 3 starts"):
+        optimize_open_loop(task, iters=2, optimizer="multistart", search=SearchSpec(population=3))
+
+
 def test_a_warm_started_mlp_starts_where_the_open_loop_ended():
     # whatever its random weights, the network fitted to the open loop's pushes repeats their simulation
     pytest.importorskip("torch")
@@ -180,7 +199,12 @@ def test_search_settings_in_a_scene_and_on_the_command_line(tmp_path, capsys):
     spec = load(gn, 'optimizer = "cmaes"\nsearch = { population = 6, sigma = 2.5, refine = 10, seed = 3 }\n')
     assert spec.optimizer == "cmaes" and spec.search == SearchSpec(population=6, sigma=2.5, refine=10, seed=3)
     assert load(gn, 'optimizer = "cmaes"\n').search == SearchSpec()
-    for new, message in [('search = { population = 6 }\n', r"control\.search: .*cmaes.*not 'gauss-newton'"),
+    assert load(gn, 'optimizer = "multistart"\nsearch = { population = 4, seed = 2 }\n').search == SearchSpec(
+        population=4, seed=2)
+    for new, message in [('search = { population = 6 }\n', r"control\.search: .*multistart or cmaes.*'gauss-newton'"),
+                         ('optimizer = "multistart"\nsearch = { refine = 5 }\n', r"control\.search.*refine"),
+                         ('optimizer = "multistart"\nsearch = { population = 51 }\n',
+                          r"control\.search\.population: 51 starts"),
                          ('optimizer = "cmaes"\nsearch = { refine = 50 }\n', r"control\.search\.refine: .*nothing"),
                          ('optimizer = "cmaes"\nsearch = { popsize = 6 }\n', r"control\.search.*popsize"),
                          ('optimizer = "cmaes"\nsearch = { population = 1 }\n', r"control\.search\.population"),

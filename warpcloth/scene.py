@@ -89,14 +89,16 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
     regularizer = 0.0                  # optional: adds regularizer * 1/2 |pushes|^2 [pushes in m/s^2]
     controller = "open-loop"           # optional: "open-loop" (default) or "mlp" (a PyTorch MLP of the state)
     optimizer = "gauss-newton"         # optional: "gauss-newton" (default with com; for the MLP, without a
-                                       #   regularizer), else "lbfgs" (open loop) or "adam" (MLP), or "cmaes" (open
-                                       #   loop: a global search over worlds, then the local default; see search)
+                                       #   regularizer), else "lbfgs" (open loop) or "adam" (MLP); open loop, a
+                                       #   global search over worlds: "multistart" (local runs from random starts in
+                                       #   lockstep) or "cmaes" (CMA-ES, then the local default); see search
     iters = 50                         # optional: simulations spent (default 50 open-loop, 100 mlp)
-    search = { population = 16, sigma = 5.0, refine = 60, seed = 0 }
-                                       # optional, only with optimizer = "cmaes", every key optional: points per
-                                       #   generation (one simulation each, run as worlds of one batch; default
-                                       #   4 + 3 ln n), initial spread [m/s^2] (5), simulations left to the local
-                                       #   optimiser (a fifth of iters), random seed (0)
+    search = { population = 8, sigma = 5.0, seed = 0 }
+                                       # optional, with a global search, every key optional: multistart: starts
+                                       #   (8) and their spread [m/s^2] (5); cmaes: points per generation (one
+                                       #   simulation each, run as worlds of one batch; default 4 + 3 ln n), initial
+                                       #   spread (5) and refine = simulations left to the local optimiser (a fifth
+                                       #   of iters); random seed (0)
     warm_start = 20                    # optional, the MLP only: first optimise the pushes themselves with this many
                                        #   simulations and fit the network's output layer to them (default 0: none)
 
@@ -156,15 +158,18 @@ _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 
 @dataclass(frozen=True)
 class SearchSpec:
-    """The global stage of ``optimizer = "cmaes"`` (a ``search`` table in ``[control]`` or ``[estimate]``): CMA-ES
-    over the task's parameters, each generation simulated as one batch of worlds (forward only), then the task's
-    local optimiser from the best point found (``warpcloth.tasks.optim.cmaes``).
+    """A global search's settings (a ``search`` table in ``[control]`` or ``[estimate]``). ``optimizer = "cmaes"``:
+    CMA-ES over the task's parameters, each generation simulated as one batch of worlds (forward only), then the
+    task's local optimiser from the best point found (``warpcloth.tasks.optim.cmaes``). ``optimizer =
+    "multistart"`` (control): local runs from random starts, in lockstep as batches of worlds.
 
     Attributes:
-        population: Points per generation, each one simulation (default 4 + floor(3 ln n), n parameters).
-        sigma: The search's initial standard deviation in the parameters' units (default: the task's, pushes
-            5 m/s^2 for control, 0.5 of the material's log-scale parameters for estimation).
-        refine: Simulations left to the local optimiser (default a fifth of the budget).
+        population: CMA-ES's points per generation, each one simulation (default 4 + floor(3 ln n), n parameters);
+            the multistart's starts (default 8).
+        sigma: CMA-ES's initial standard deviation, the multistart's spread of starts, in the parameters' units
+            (default: the task's, pushes 5 m/s^2 for control, 0.5 of the material's log-scale parameters for
+            estimation).
+        refine: CMA-ES: simulations left to the local optimiser (default a fifth of the budget).
         seed: Seed of the search's random numbers.
     """
 
@@ -943,7 +948,9 @@ def _parse_rigid_motion(value: Any, path: str) -> list:
 
 CONTROLLERS = ("open-loop", "mlp")
 """Controllers of a ``[control]`` task."""
-CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "cmaes"), "mlp": ("gauss-newton", "adam")}
+CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes"), "mlp": ("gauss-newton", "adam")}
+GLOBAL_OPTIMIZERS = ("multistart", "cmaes")
+"""The optimisers that take a ``search`` table."""
 """Optimisers of each controller of a ``[control]`` task (Gauss-Newton needs a centre-of-mass target, and for the MLP
 no regulariser)."""
 
@@ -1067,13 +1074,18 @@ def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchS
     """The ``search`` table of a ``[control]`` or ``[estimate]`` task (only with ``optimizer = "cmaes"``)."""
     if "search" not in table:
         return SearchSpec()
-    if optimizer != "cmaes":
-        raise _err(f"{path}.search", f"configures the global search of optimizer = \"cmaes\", not {optimizer!r}")
+    if optimizer not in GLOBAL_OPTIMIZERS:
+        raise _err(f"{path}.search", f"configures a global search ({' or '.join(GLOBAL_OPTIMIZERS)}), not optimizer = "
+                                     f"{optimizer!r}")
     search = _table(table["search"], f"{path}.search")
-    _check_keys(search, f"{path}.search", ("population", "sigma", "refine", "seed"))
+    refine_key = ("refine",) if optimizer == "cmaes" else ()  # the multistart has no local stage of its own
+    _check_keys(search, f"{path}.search", ("population", "sigma", "seed") + refine_key)
     population = sigma = refine = None
     if "population" in search:
         population = _int(search["population"], f"{path}.search.population", min_value=2)
+        if optimizer == "multistart" and population > iters:
+            raise _err(f"{path}.search.population", f"{population} starts for {path}.iters = {iters} simulations: "
+                                                    "each start needs one at least")
     if "sigma" in search:
         sigma = _float(search["sigma"], f"{path}.search.sigma", min_value=0.0, strict=True)
     if "refine" in search:

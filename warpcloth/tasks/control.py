@@ -40,8 +40,10 @@ from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
 from warpcloth.tasks.optim import cmaes, lbfgs
 
 SEARCH_SIGMA = 5.0
-"""The global search's default initial spread of the pushes [m/s^2] (``SearchSpec.sigma``): half the push that holds
-the seed's cloth up."""
+"""The global search's default spread of the pushes [m/s^2] (``SearchSpec.sigma``): CMA-ES's initial one, the
+multistart's random starts' (half the push that holds the seed's cloth up)."""
+MULTISTART_POPULATION = 8
+"""The multistart's default number of starts (``SearchSpec.population``)."""
 
 WHOLE_TAPE_PARTICLE_STEPS = 200_000
 """A control task tapes a rollout whole, without checkpoints, up to this many particle-steps (particles of all
@@ -673,6 +675,11 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
       Jacobian), cut short when its loss is worse. The step solves ``(J^T J + (w + mu) I) d = -(J^T r + w p)``
       (w the regulariser, mu = damping * tr(J J^T) / 3).
     * ``"lbfgs"``: L-BFGS (``warpcloth.tasks.optim.lbfgs``) on the loss; one simulation per point.
+    * ``"multistart"``: ``search.population`` runs of the local default (Gauss-Newton with a centre-of-mass
+      target, else L-BFGS) in lockstep (:func:`optimize_open_loop_starts`: their simulations as batches of worlds),
+      from ``start`` and from random points around it (normal, ``search.sigma`` [m/s^2], default
+      :data:`SEARCH_SIGMA`), each with an equal share of ``iters``; the best of them. Their histories are
+      interleaved in the order the lockstep ran them, and ``simulations`` counts every run's up to the best.
     * ``"cmaes"``: a global search, then the local default (Gauss-Newton with a centre-of-mass target, else
       L-BFGS) from the best point it found, for ``search.refine`` simulations (default a fifth of ``iters``). The
       search is CMA-ES (``warpcloth.tasks.optim.cmaes``) around ``start`` with ``search.sigma`` [m/s^2] (default
@@ -720,6 +727,11 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
             bar.update()
 
     params = np.zeros(task.n_params) if start is None else np.array(start, dtype=np.float64).reshape(task.n_params)
+    if optimizer == "multistart":
+        if bar is not None:
+            bar.close()
+        return _multistart(task, params, iters=iters, search=search or task.search, batch=batch, callback=callback,
+                           local=dict(max_step=max_step, damping=damping))
     if optimizer == "cmaes":
         search = search or task.search
         refine = iters // 5 if search.refine is None else min(search.refine, iters)
@@ -816,6 +828,45 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
     return _finish(result, bar, t0)
 
 
+def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: SearchSpec, batch: bool, callback,
+                local: dict) -> ControlResult:
+    """``optimizer="multistart"`` (:func:`optimize_open_loop`): ``search.population`` local runs in lockstep, from
+    ``params`` and from random points around it, each with an equal share of ``iters``; their histories interleaved
+    in the order the lockstep ran them (every run's k-th simulation, run by run, then the k+1-th)."""
+    starts = search.population or MULTISTART_POPULATION
+    if iters < starts:
+        raise ValueError(f"multistart: {iters} simulations for {starts} starts; give each start one at least")
+    rng = np.random.default_rng(search.seed)
+    sigma = search.sigma or SEARCH_SIGMA
+    points = [params] + [params + rng.normal(scale=sigma, size=task.n_params) for _ in range(starts - 1)]
+    seen: list[list] = [[] for _ in points]
+    t0 = time.perf_counter()
+    runs = optimize_open_loop_starts(
+        task, points, batch=batch, iters=iters // starts,
+        optimizer=default_control_optimizer("open-loop", task.target_com, task.regularizer),
+        callback_of=lambda i: lambda k, loss, err, p: seen[i].append((k, loss, err, np.array(p, dtype=np.float64))),
+        **local)
+    result = ControlResult(params=np.zeros(task.params_shape))
+    position = {}  # (run, its simulation k) -> the simulation's place in the interleaved history
+    for k in range(max(len(r.losses) for r in runs)):
+        for i, run in enumerate(runs):
+            if k >= len(run.losses):
+                continue
+            result.losses.append(run.losses[k])
+            result.errors_pct.append(run.errors_pct[k])
+            position[i, k + 1] = len(result.losses)
+            if k + 1 == run.simulations and not run.error_pct >= result.error_pct:  # this run's best, and better
+                result.params, result.error_pct, result.simulations = run.params, run.error_pct, len(result.losses)
+    for run in runs:
+        result.failed_trials += run.failed_trials
+    if callback is not None:  # the recorded points in the interleaved order
+        for n, loss, err, point in sorted((position[i, k], loss, err, point) for i, points in enumerate(seen)
+                                          for k, loss, err, point in points):
+            callback(n, loss, err, point)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
 def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) -> Evaluation | Exception:
     try:
         return task.evaluate(params, component=component)
@@ -824,15 +875,16 @@ def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) 
 
 
 def optimize_open_loop_starts(task: ControlTask, starts: list, *, batch: bool = True, iters: int = 50,
-                              progress: bool = False, **kwargs) -> list[ControlResult]:
+                              progress: bool = False, callback_of=None, **kwargs) -> list[ControlResult]:
     """:func:`optimize_open_loop` from each of ``starts`` (None: zero pushes), with ``batch`` in lockstep: every
     round the simulations that all the runs ask for next go as one batch of worlds (:meth:`ControlTask.evaluate_many`),
     so random restarts cost little more wall time than one run on a CPU whose launches, not its arithmetic, bound a
     small cloth's step (benchmarks/worlds.py). Each run's result equals its run alone, bitwise. Without ``batch``
-    the runs go one after another."""
+    the runs go one after another. ``callback_of(i)``: run i's callback (:func:`optimize_open_loop`), or None."""
+    callback_of = callback_of or (lambda i: None)
     if not batch:
-        return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, **kwargs)
-                for s in starts]
+        return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, callback=callback_of(i),
+                                   **kwargs) for i, s in enumerate(starts)]
     def evaluate(requests: dict[int, list]) -> dict[int, list]:  # the runs' requests as one batch, answers split
         flat = task.evaluate_many([r for rows in requests.values() for r in rows])
         answers = {}
@@ -842,7 +894,7 @@ def optimize_open_loop_starts(task: ControlTask, starts: list, *, batch: bool = 
 
     lockstep = Lockstep(len(starts), evaluate)
     results = run_in_lockstep(lockstep, len(starts), lambda i: optimize_open_loop(
-        task, start=starts[i], iters=iters, progress=progress,
+        task, start=starts[i], iters=iters, progress=progress, callback=callback_of(i),
         _evaluate=lambda requests: lockstep.ask(i, requests), **kwargs))
     for r in results:
         if isinstance(r, BaseException):
