@@ -128,7 +128,8 @@ class ControlJob:
     """A motion control run, as ``warpcloth control`` runs it: a scene's ``[control]`` task (by default the seed's
     throw). ``seed``: the start; for the open loop None is zero pushes (the seed's start) and a number random pushes
     (normal, :data:`START_SIGMA`, from ``numpy.random.default_rng(seed)``); for the MLP the seed of its initial
-    weights (None: 0). With the global search (``optimizer="cmaes"``) the seed also seeds the search.
+    weights (None: 0). With a global search (``optimizer="multistart"`` or ``"cmaes"``) the seed also seeds the
+    search.
     ``optimizer``: the controller's optimiser (default: the task's, ``ControlTask.optimizer_for``);
     ``warm_start``: the MLP's (``train_mlp``; default: the task's)."""
 
@@ -164,7 +165,9 @@ class ControlJob:
             return {**chosen, "seed": self.seed or 0}
         if self.seed is None:
             return chosen
-        if self.optimizer_of(task) == "cmaes":
+        from warpcloth.scene import GLOBAL_OPTIMIZERS
+
+        if self.optimizer_of(task) in GLOBAL_OPTIMIZERS:
             chosen["search"] = replace(task.search, seed=self.seed)
         return {**chosen, "start": np.random.default_rng(self.seed).normal(scale=START_SIGMA, size=task.n_params)}
 
