@@ -24,9 +24,11 @@ _RUNTIME_ERROR = 1
 
 
 def _parser() -> argparse.ArgumentParser:
+    from warpcloth import __version__
     from warpcloth.scene import DEFAULT_SCENE
 
     parser = argparse.ArgumentParser(prog="warpcloth", description="Differentiable cloth simulation in NVIDIA Warp.")
+    parser.add_argument("--version", action="version", version=f"warpcloth {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     sim = sub.add_parser("simulate", help="simulate a scene and write a time-sampled USD")
