@@ -9,10 +9,13 @@ import sys
 import sysconfig
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image, ImageSequence
 
 import warpcloth as wc
 from warpcloth.cli import main
+from warpcloth.preview import CLOTH_COLOR, PREVIEW_FRAMES, write_preview
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,3 +123,150 @@ def test_model_does_not_import_obstacles():
         todo.extend(_imports(source))
     assert "warpcloth.model" in seen and "warpcloth.geometry.motion" in seen
     assert "warpcloth.obstacles" not in seen
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The preview: warpcloth.preview.write_preview and warpcloth simulate --preview.
+
+CLOTH_RGB = np.array(CLOTH_COLOR)
+
+
+def _trajectory(frame_count: int = 50):
+    """A 0.5 m sheet falling and swinging past a static box, and a ball-sized box moving along x."""
+    mesh = wc.grid_mesh(6, 6, 0.5, 0.5)
+    t = np.arange(frame_count)[:, None, None] * 0.02
+    frames = mesh.positions[None] + np.array([-0.25, -0.25, 0.6]) + t * np.array([0.3, 0.0, -0.5])
+    box_v, box_t = wc.box_mesh((0.3, 0.3, 0.1))
+    ball_v, ball_t = wc.box_mesh((0.05, 0.05, 0.05))
+    moving = ball_v[None] + t * np.array([1.0, 0.0, 0.0])
+    return mesh.triangles, frames, [("floor", box_v, box_t), ("ball", moving, ball_t)]
+
+
+def _cloth_pixels(rgb: np.ndarray) -> int:
+    """How many pixels have the cloth's hue (some shade of it: the lighting scales its colour)."""
+    rgb = rgb[..., :3].astype(np.float64) / 255.0
+    scale = rgb.max(axis=-1, keepdims=True)
+    hue = np.divide(rgb, scale, out=np.zeros_like(rgb), where=scale > 0.1)
+    return int(np.sum(np.all(np.abs(hue - CLOTH_RGB / CLOTH_RGB.max()) < 0.12, axis=-1)))
+
+
+def _gif_frames(path) -> list[np.ndarray]:
+    with Image.open(path) as im:
+        return [np.asarray(frame.convert("RGB")) for frame in ImageSequence.Iterator(im)]
+
+
+def test_preview_gif(tmp_path):
+    triangles, frames, obstacles = _trajectory(50)
+    drawn = write_preview(tmp_path / "fall.gif", triangles=triangles, frames=frames, fps=50.0, obstacles=obstacles,
+                          title="falling", size=3.0)
+    assert len(drawn) == PREVIEW_FRAMES[".gif"] == 36 and drawn[0] == 0 and drawn[-1] == 49
+    assert len(set(drawn.tolist())) == len(drawn)
+    images = _gif_frames(tmp_path / "fall.gif")
+    assert len(images) == 36 and images[0].shape == (300, 300, 3)
+    for image in (images[0], images[-1]):
+        assert _cloth_pixels(image) > 500  # the cloth is drawn
+        assert len(np.unique(image.reshape(-1, 3), axis=0)) > 10  # not blank
+    assert np.abs(images[0].astype(int) - images[-1].astype(int)).sum() > 0  # it moves
+
+
+def test_preview_png_contact_sheet(tmp_path):
+    triangles, frames, obstacles = _trajectory(20)
+    drawn = write_preview(tmp_path / "sheet.png", triangles=triangles, frames=frames, fps=50.0, obstacles=obstacles,
+                          max_frames=5, size=2.0)
+    assert drawn.tolist() == [0, 5, 10, 14, 19]
+    with Image.open(tmp_path / "sheet.png") as im:
+        sheet = np.asarray(im.convert("RGB"))
+    assert sheet.shape == (2 * 200, 3 * 200, 3)  # 5 panels: 3 columns, 2 rows of 2 x 2 inches at 100 dpi
+    assert _cloth_pixels(sheet[:200, :200]) > 100 and _cloth_pixels(sheet[200:, :200]) > 100  # panels 1 and 4
+
+
+def test_preview_fewer_frames_than_asked(tmp_path):
+    triangles, frames, _ = _trajectory(3)
+    drawn = write_preview(tmp_path / "short.gif", triangles=triangles, frames=frames, fps=10.0, size=2.0)
+    assert drawn.tolist() == [0, 1, 2] and len(_gif_frames(tmp_path / "short.gif")) == 3
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(path="a.avi"), r"write_preview: path '.*a.avi': expected a file ending in \.gif or \.mp4 or \.png"),
+    (dict(max_frames=0), "max_frames must be an integer >= 1, got 0"),
+    (dict(fps=0.0), "fps must be a finite number > 0"),
+    (dict(frames=[]), "frames is empty"),
+    (dict(triangles=[[0, 1, 99]]), r"triangle 0 \[0, 1, 99\] has an index out of range"),
+    (dict(obstacles=[("ball", np.zeros((4, 8, 3)), [[0, 1, 2]])]), "obstacle 'ball' has 4 frames of vertices"),
+])
+def test_preview_bad_input_names_it(tmp_path, kwargs, match):
+    triangles, frames, _ = _trajectory(5)
+    args = dict(path="p.gif", triangles=triangles, frames=frames, fps=10.0, obstacles=())
+    args.update(kwargs)
+    args["path"] = tmp_path / args["path"]
+    with pytest.raises(ValueError, match=match):
+        write_preview(**args)
+    assert not (tmp_path / "p.gif").exists()
+
+
+def test_preview_mp4_needs_ffmpeg(tmp_path, monkeypatch):
+    import matplotlib
+
+    monkeypatch.setitem(matplotlib.rcParams, "animation.ffmpeg_path", str(tmp_path / "no-ffmpeg-here"))
+    triangles, frames, _ = _trajectory(5)
+    with pytest.raises(ValueError, match="MP4 needs ffmpeg on PATH"):
+        write_preview(tmp_path / "v.mp4", triangles=triangles, frames=frames, fps=10.0)
+
+
+@pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg is not on PATH")
+def test_preview_mp4(tmp_path):
+    triangles, frames, obstacles = _trajectory(10)
+    drawn = write_preview(tmp_path / "v.mp4", triangles=triangles, frames=frames, fps=10.0, obstacles=obstacles)
+    assert len(drawn) == 10 and (tmp_path / "v.mp4").stat().st_size > 1000
+
+
+SCENE = """\
+name = "preview-test"
+[sim]
+dt = 0.02
+steps = 12
+[cloth]
+grid = { res = [4, 4], size = [0.5, 0.5] }
+material = "gray-interlock"
+[[obstacles]]
+name = "ball"
+shape = "sphere"
+radius = 0.1
+pos = [0.25, 0.25, -0.3]
+"""
+
+
+def test_simulate_preview(tmp_path, capsys):
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    status = main(["simulate", str(scene), "--device", "cpu", "--usd", str(tmp_path / "out.usda"),
+                   "--preview", str(tmp_path / "out.gif")])
+    assert status == 0, capsys.readouterr().err
+    assert f"wrote {tmp_path / 'out.gif'} (13 frames drawn)" in capsys.readouterr().out
+    images = _gif_frames(tmp_path / "out.gif")
+    assert len(images) == 13 and _cloth_pixels(images[-1]) > 500
+
+
+def test_simulate_preview_bad_suffix_fails_before_simulating(tmp_path, capsys):
+    status = main(["simulate", "free-fall", "--device", "cpu", "--usd", str(tmp_path / "out.usda"),
+                   "--preview", str(tmp_path / "out.avi")])
+    assert status == 2
+    err = capsys.readouterr().err
+    assert "--preview" in err and "out.avi" in err and ".gif or .mp4 or .png" in err
+    assert not (tmp_path / "out.usda").exists()
+
+
+def test_estimate_preview(tmp_path, capsys):
+    path = tmp_path / "fit.gif"
+    assert main(["estimate", "--material", "tango-red-jet-set", "--iters", "1", "--steps", "4", "--device", "cpu",
+                 "--preview", str(path)]) == 0
+    assert f"wrote {path}" in capsys.readouterr().out
+    images = _gif_frames(path)
+    assert len(images) == 3 and _cloth_pixels(images[-1]) > 500  # the frames the fit compares: 0, 2 and 4 steps
+
+
+def test_preview_of_many_jobs_is_a_usage_error(tmp_path, capsys):
+    assert main(["control", "--starts", "2", "--preview", str(tmp_path / "c.gif")]) == 2
+    assert "--preview writes one run's trajectory; this command runs 2 jobs" in capsys.readouterr().err
+    assert main(["estimate", "--preview", str(tmp_path / "e.jpg")]) == 2
+    assert "--preview" in capsys.readouterr().err
