@@ -16,6 +16,7 @@ from warpcloth.obstacles import (
     obstacle_points,
     obstacle_points_numpy,
 )
+from warpcloth.preview import write_preview
 from warpcloth.scene import SCENE_NAMES, Scene, load_scene
 from warpcloth.solver import (
     PRESET_SOLVER_NAMES,
@@ -89,5 +90,6 @@ __all__ = [
     "rollout",
     "solver_preset",
     "sphere_mesh",
+    "write_preview",
     "write_usd",
 ]
