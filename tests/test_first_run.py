@@ -22,9 +22,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _site_env() -> dict:
     """The environment of a Python started with -S (no site: no .pth files, so no editable-install finder) that still
-    finds the dependencies: this interpreter's site-packages on PYTHONPATH, after the script's own directory."""
-    paths = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]])
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), "PYTHONNOUSERSITE": "1"}
+    finds the dependencies: this interpreter's path on PYTHONPATH (after the current directory, which -c puts first),
+    less the checkout's root."""
+    paths = [sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]]
+    paths += [p for p in sys.path if p and Path(p).resolve() != ROOT and Path(p).is_dir()]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
 
 
 def _python(code: str, cwd: Path) -> subprocess.CompletedProcess:
