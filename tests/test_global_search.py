@@ -18,7 +18,7 @@ from warpcloth.scene import SearchSpec, load_scene
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
-from warpcloth.tasks.control import optimize_open_loop, train_mlp
+from warpcloth.tasks.controllers import optimize_open_loop, train_mlp
 from warpcloth.tasks.optim import cmaes, smoothed_gradient
 
 

@@ -16,7 +16,8 @@ from warpcloth.cli import main
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
-from warpcloth.tasks.control import ControlTask, optimize_open_loop
+from warpcloth.tasks.control import ControlTask
+from warpcloth.tasks.controllers import optimize_open_loop
 
 # A small hanging sheet: 4x4 cells, two soft handles, no contact; pushes on two lower corners.
 SMALL = """

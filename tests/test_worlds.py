@@ -410,7 +410,7 @@ def test_a_failing_request_in_a_batch_is_returned_and_the_others_kept():
 def test_batched_open_loop_optimisation_gives_the_sequential_result(optimizer):
     """The open loop with its Jacobian rows in one batch, and three starts in lockstep, end where the one-at-a-time
     runs end (the cloth on its sphere: contact throughout): the same pushes and the same history, bitwise."""
-    from warpcloth.tasks.control import optimize_open_loop, optimize_open_loop_starts
+    from warpcloth.tasks.controllers import optimize_open_loop, optimize_open_loop_starts
 
     task = draped_task()
     rng = np.random.default_rng(4)

@@ -14,16 +14,10 @@ import numpy as np
 
 import warpcloth as wc
 from warpcloth.scene import load_scene
+from warpcloth.tasks.control import ControlTask, scene_task_args
 
-# the optimisers (warpcloth.tasks.control), importable from here too
-from warpcloth.tasks.control import (
-    ControlResult,
-    ControlTask,
-    optimize_open_loop,
-    optimize_open_loop_starts,
-    scene_task_args,
-    train_mlp,
-)
+# the optimisers (warpcloth.tasks.controllers), importable from here too
+from warpcloth.tasks.controllers import ControlResult, optimize_open_loop, optimize_open_loop_starts, train_mlp
 
 __all__ = ["CORNERS", "DT", "N_PARAMS", "SCENE", "SECONDS_CONTROLLED", "SEED_PUBLISHED", "STEPS", "STEPS_PER_SECOND",
            "TARGET", "ControlResult", "ControlTask", "ThrowTask", "optimize_open_loop", "optimize_open_loop_starts",
