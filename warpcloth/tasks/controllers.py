@@ -120,10 +120,8 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
 
     params = np.zeros(task.n_params) if start is None else np.array(start, dtype=np.float64).reshape(task.n_params)
     if optimizer == "multistart":
-        if bar is not None:
-            bar.close()
         return _multistart(task, params, iters=iters, search=search or task.search, batch=batch, callback=callback,
-                           local=dict(max_step=max_step, damping=damping))
+                           bar=bar, local=dict(max_step=max_step, damping=damping))
     if optimizer == "cmaes":
         search = search or task.search
         refine = iters // 5 if search.refine is None else min(search.refine, iters)
@@ -221,7 +219,7 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
 
 
 def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: SearchSpec, batch: bool, callback,
-                local: dict) -> ControlResult:
+                bar, local: dict) -> ControlResult:
     """``optimizer="multistart"`` (:func:`optimize_open_loop`): ``search.population`` local runs in lockstep, from
     ``params`` and from random points around it, each with an equal share of ``iters``; their histories interleaved
     in the order the lockstep ran them (every run's k-th simulation, run by run, then the k+1-th)."""
@@ -231,13 +229,19 @@ def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: Se
     rng = np.random.default_rng(search.seed)
     sigma = search.sigma or SEARCH_SIGMA
     points = [params] + [params + rng.normal(scale=sigma, size=task.n_params) for _ in range(starts - 1)]
-    seen: list[list] = [[] for _ in points]
+    seen: list[list] = [[] for _ in points]  # each run's recorded points: (its simulation k, loss, error, point)
     t0 = time.perf_counter()
+
+    def recorder(i: int):
+        def record(k, loss, err, point):
+            if bar is not None:  # the simulations run i spent since its last recorded point
+                bar.update(k - (seen[i][-1][0] if seen[i] else 0))
+            seen[i].append((k, loss, err, np.array(point, dtype=np.float64)))
+        return record
+
     runs = optimize_open_loop_starts(
-        task, points, batch=batch, iters=iters // starts,
-        optimizer=default_control_optimizer("open-loop", task.target_com, task.regularizer),
-        callback_of=lambda i: lambda k, loss, err, p: seen[i].append((k, loss, err, np.array(p, dtype=np.float64))),
-        **local)
+        task, points, batch=batch, iters=iters // starts, callback_of=recorder,
+        optimizer=default_control_optimizer("open-loop", task.target_com, task.regularizer), **local)
     result = ControlResult(params=np.zeros(task.params_shape))
     position = {}  # (run, its simulation k) -> the simulation's place in the interleaved history
     for k in range(max(len(r.losses) for r in runs)):
@@ -255,8 +259,7 @@ def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: Se
         for n, loss, err, point in sorted((position[i, k], loss, err, point) for i, points in enumerate(seen)
                                           for k, loss, err, point in points):
             callback(n, loss, err, point)
-    result.seconds = time.perf_counter() - t0
-    return result
+    return _finish(result, bar, t0)
 
 
 def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) -> Evaluation | Exception:
