@@ -219,7 +219,9 @@ def test_search_settings_in_a_scene_and_on_the_command_line(tmp_path, capsys):
     assert main(["control", "--optimizer", "adam", "--iters", "1"]) == 2
     assert "--optimizer: unknown value 'adam'" in capsys.readouterr().err
     assert main(["control", "--warm-start", "5", "--controller", "open-loop"]) == 2
-    assert "--warm-start" in capsys.readouterr().err
+    assert "--warm-start 5: the MLP controller's" in capsys.readouterr().err
+    assert main(["control", "--warm-start", "5"]) == 2  # the scene's controller is the open loop
+    assert "this run's controller: open-loop" in capsys.readouterr().err
 
 
 def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_with_lbfgs():

@@ -433,19 +433,19 @@ def _cmd_control(args: argparse.Namespace) -> int:
 
     if args.starts < 1:
         return _error(f"--starts must be >= 1, got {args.starts}", _USAGE_ERROR)
-    if args.optimizer:  # refused here, before any job starts
+    if args.optimizer or args.warm_start is not None:  # refused here, before any job starts
         try:
             spec = load_scene(args.scene).control
         except (ValueError, OSError) as exc:
             return _error(str(exc), _USAGE_ERROR)
-        if spec is not None:
-            controller = args.controller or spec.controller
+        controller = args.controller or (spec.controller if spec is not None else None)
+        if args.optimizer and spec is not None:
             problem = check_control_optimizer(args.optimizer, controller, spec.target_com, spec.regularizer)
             if problem:
                 return _error(f"--optimizer: {problem}", _USAGE_ERROR)
-    if args.warm_start is not None and (args.warm_start < 0 or args.controller == "open-loop"):
-        return _error(f"--warm-start {args.warm_start}: the MLP's warm start takes a number of simulations >= 0",
-                      _USAGE_ERROR)
+        if args.warm_start is not None and (args.warm_start < 0 or controller == "open-loop"):
+            return _error(f"--warm-start {args.warm_start}: the MLP controller's warm start, a number of simulations "
+                          f">= 0 (this run's controller: {controller})", _USAGE_ERROR)
     jobs = [ControlJob(scene=args.scene, controller=args.controller, iters=args.iters, optimizer=args.optimizer,
                        warm_start=args.warm_start, seed=k or None, device=args.device)
             for k in range(args.starts)]
