@@ -2,10 +2,10 @@
 
 - ``sphinx-build -W`` over docs/ (the Markdown pages and the API reference from the docstrings).
 - Every ```` ```python ```` block of README.md and of each page of docs/ runs, in order, in one namespace per page
-  (as a reader would paste them into one session), in a fresh working directory; a traceback names the page's line. A ```` ```{code-block} ````
-  with a ``:caption:`` is a file: it is written there under that name first. A block right after a
-  ``% not run: <why>`` comment line is skipped (a cluster, or minutes of fitting); keep those few. A page with a
-  ``% requires: MODULE`` line skips where that optional module is not installed (torch, ray).
+  (as a reader would paste them into one session), in a fresh working directory; a traceback names the page's line.
+  A ```` ```{code-block} ```` with a ``:caption:`` is a file: it is written there under that name first. A block
+  right after a ``% not run: <why>`` comment line is skipped (a cluster, or minutes of fitting); keep those few. A
+  page with a ``% requires: MODULE`` line skips where that optional module is not installed (torch, ray).
 """
 
 from __future__ import annotations
@@ -41,9 +41,8 @@ def code(text: str) -> tuple[list[tuple[str, str]], list[tuple[int, str]]]:
         if info.startswith("{code-block}"):
             cap = CAPTION.search(body)
             if cap:
-                rest = body[cap.end():]
-                rest = re.sub(r"^(:\w[\w-]*:.*\n)*", "", rest)  # further options
-                files.append((cap["name"], rest.lstrip("\n") if rest.startswith("\n") else rest))
+                rest = re.sub(r"^(:\w[\w-]*:.*\n)*", "", body[cap.end():])  # further options
+                files.append((cap["name"], rest.lstrip("\n")))
             continue
         if info == "python" and not before.startswith("% not run"):
             blocks.append((line, body))
@@ -55,7 +54,6 @@ def _ids(paths):
 
 
 def test_docs_build(tmp_path):
-    pytest.importorskip("sphinx", reason="the docs need the dev extra: pip install -e '.[dev]'")
     proc = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html", str(DOCS),
                            str(tmp_path / "html")], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, f"sphinx-build -W failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
@@ -74,10 +72,10 @@ def test_code_blocks_run(page, tmp_path):
         (tmp_path / name).write_text(content)
     # One script whose lines are the page's lines (other lines left blank): a traceback names the page's line, and
     # Warp finds the source of a kernel defined in a block.
-    lines = [""] * (page.read_text().count("\n") + 1)
+    lines = [""] * (text.count("\n") + 1)
     for line, source in blocks:
-        for i, text in enumerate(source.splitlines()):
-            lines[line - 1 + i] = text
+        for i, code_line in enumerate(source.splitlines()):
+            lines[line - 1 + i] = code_line
     script = tmp_path / (page.relative_to(ROOT).as_posix().replace("/", "__").removesuffix(".md") + ".py")
     script.write_text("\n".join(lines) + "\n")
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
