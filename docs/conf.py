@@ -28,7 +28,7 @@ myst_enable_extensions = ["colon_fence"]
 
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
-autodoc_default_options = {"members": True, "show-inheritance": False}
+autodoc_default_options = {"members": True}
 # Optional dependencies: the reference builds without them (their modules import them lazily or at the top).
 autodoc_mock_imports = [name for name in ("torch", "ray") if importlib.util.find_spec(name) is None]
 napoleon_google_docstring = True
