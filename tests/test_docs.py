@@ -89,3 +89,14 @@ def test_readme_quick_start_is_tested():
     _, blocks = code((ROOT / "README.md").read_text())
     assert any("tape.backward(loss)" in source for _, source in blocks)
     assert "<!-- start: quick start -->" in (DOCS / "getting-started.md").read_text()
+
+
+def test_ci_runs_the_readme_test_command():
+    """CI (.ci/run) installs the extras the README's test command installs and runs its test command exactly."""
+    readme = (ROOT / "README.md").read_text()
+    command = next(line for line in readme.splitlines() if line.startswith("python3 -m venv") and "pytest" in line)
+    install = re.search(r'pip install (-e "\.\[[\w,]+\]")', command)[1]
+    test = command.split(install + " && ", 1)[1]
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert any(line.startswith("python -m pip install") and line.endswith(install) for line in ci), install
+    assert test in ci, f"{test!r} is not a line of .ci/run"
