@@ -5,11 +5,6 @@ Pages are Markdown (MyST); the API reference is autodoc over the docstrings (Goo
 
 import importlib.util
 import re
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "docs"))
 
 project = "warpcloth"
 author = "the warpcloth authors"
