@@ -801,6 +801,29 @@ def jobs(d: dict) -> str:
     return "\n".join(out)
 
 
+def integrators(d: dict) -> str:
+    """BDF2 against backward Euler: error against dt (with the fitted slope) and the energy a swinging sheet loses."""
+    names = {"euler": "backward Euler", "bdf2": "BDF2"}
+    scenes = {"free fall": "In free fall, against the exact solution",
+              "swinging": "On a sheet swinging in its plane from two soft handles, against BDF2 at a finer step"}
+    out = []
+    for scene, label in scenes.items():
+        parts = []
+        for integrator in ("bdf2", "euler"):
+            rs = sorted((r for r in d["orders"] if r["scene"] == scene and r["integrator"] == integrator),
+                        key=lambda r: -r["dt"])
+            if rs:
+                parts.append(f"{names[integrator]} {length(rs[0]['err_m'])} … {length(rs[-1]['err_m'])} from dt "
+                             f"{frac(rs[0]['dt'])} to {frac(rs[-1]['dt'])}, slope {rs[0]['order']:.2f}")
+        if parts:
+            out.append(f"- {label}, RMS error at {d['T']:g} s: " + "; ".join(parts) + ".")
+    energy = [f"{names[e['integrator']]} {100 * e['end_change']:+.0f} % at dt {frac(e['dt'])}" for e in d["energies"]]
+    out.append(f"- Energy in the swinging sheet over {d['energy_T']:g} s, nothing dissipating (the total's change at "
+               "the end, in % of the initial kinetic energy): " + ", ".join(energy).replace("-", "−") + ".")
+    out += ["", provenance(d)]
+    return "\n".join(out)
+
+
 def headline(est: dict, control: dict, ablation: dict) -> str:
     """The README's short table: warpcloth against the seed's published figures on its three experiments."""
     single, multi = est["means"][0], est["means"][-1]
@@ -831,6 +854,7 @@ def headline(est: dict, control: dict, ablation: dict) -> str:
 
 BLOCKS = {
     "headline": headline,
+    "integrators": integrators,
     "jobs": jobs,
     "graph_step": graph_step,
     "presets": presets,
