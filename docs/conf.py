@@ -40,5 +40,13 @@ def _escape_bars(app, what, name, obj, options, lines):
             lines[i] = "".join(p if k % 2 else p.replace("|", r"\|") for k, p in enumerate(parts))
 
 
+def _no_inline_types(app, what, name, obj, options, lines):
+    """Napoleon reads an attribute docstring's first line as ``type: description``; here the text before a colon is
+    description (``Counters over this simulator's life: ...``), so give napoleon an empty type."""
+    if what in ("attribute", "data", "property") and lines:
+        lines[0] = ": " + lines[0]
+
+
 def setup(app):
+    app.connect("autodoc-process-docstring", _no_inline_types, priority=400)  # before napoleon (500)
     app.connect("autodoc-process-docstring", _escape_bars)
