@@ -100,3 +100,13 @@ def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert any(line.startswith("python -m pip install") and line.endswith(install) for line in ci), install
     assert test in ci, f"{test!r} is not a line of .ci/run"
+
+
+def test_api_reference_lists_the_public_api():
+    """Every name of ``warpcloth.__all__`` has its entry in the API reference (docs/api/warpcloth.md)."""
+    import warpcloth
+
+    page = (DOCS / "api" / "warpcloth.md").read_text()
+    listed = set(re.findall(r"^\.\. auto\w+:: warpcloth\.(\w+)$", page, re.M))
+    assert set(warpcloth.__all__) == listed, (f"not in docs/api/warpcloth.md: {sorted(set(warpcloth.__all__) - listed)}"
+                                              f"; not public: {sorted(listed - set(warpcloth.__all__))}")
