@@ -352,9 +352,30 @@ def _package_version(name: str) -> str | None:
         return None
 
 
-def write_result(args: argparse.Namespace, data: dict, *, device: str = "cpu") -> Path:
-    """Write ``{"meta": run_metadata(...), **data}`` to ``args.out`` and return the path."""
+def kept_records(path: str, keys: list[str], **same) -> dict:
+    """The records ``keys`` of the earlier result at ``path``, for a benchmark's ``--only`` (which reruns the others),
+    each with the earlier run's metadata under ``"kept_meta"``; {} where there is none. ``same``: settings the earlier
+    run must share (a mismatch exits, naming it)."""
+    file = Path(path)
+    if not file.exists():
+        return {}
+    old = json.loads(file.read_text())
+    for key, value in same.items():
+        if old.get(key) != value:
+            raise SystemExit(f"--only: {path} was run with {key} = {old.get(key)!r}, this run has {value!r}: "
+                             "run every record")
+    meta = old.get("meta", {})
+    earlier = meta.get("kept_meta", {})  # a record kept before keeps its first run's metadata
+    return {key: {**old[key], "kept_meta": old[key].get("kept_meta") or earlier.get(key) or meta}
+            for key in keys if key in old}
+
+
+def write_result(args: argparse.Namespace, data: dict, *, device: str = "cpu", kept=()) -> Path:
+    """Write ``{"meta": run_metadata(...), **data}`` to ``args.out`` and return the path. ``kept``: the keys of
+    ``data`` taken over from an earlier result (:func:`kept_records`), listed in ``meta.kept``."""
     meta = run_metadata(args, device)
+    if kept:
+        meta["kept"] = list(kept)
     path = Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(_jsonable({"meta": meta, **data}), indent=2) + "\n")

@@ -9,7 +9,9 @@ The rollout, its loss and its backward pass are recorded once as a graph (``wc.C
 every iteration: the wind is changed in place between replays, and each replay leaves the loss's gradient in
 ``model.wind_velocity.grad``.
 
-    python examples/example_estimate_wind.py --iters 30
+At the end the cloth blown by the fitted wind is drawn against the target (translucent grey) with matplotlib.
+
+    python examples/example_estimate_wind.py --iters 30 --preview wind.gif
 """
 
 import argparse
@@ -19,6 +21,7 @@ import warp as wp
 
 import warpcloth as wc
 from warpcloth.kernels.losses import loss_kernels
+from warpcloth.preview import write_preview
 from warpcloth.tasks.scenes import GRID_TO_YZ
 
 
@@ -66,13 +69,24 @@ class Example:
         self.model.wind_velocity.assign([(speed, 0.0, 0.0)])
         return loss
 
+    def save_preview(self, path: str) -> None:
+        """Draw the cloth in the current wind against the target motion (.gif, .png or, with ffmpeg, .mp4)."""
+        frames = [s.particle_x.numpy() for s in wc.rollout(self.sim, self.model.state(), steps=self.steps)]
+        tris = self.model.tri_indices.numpy()
+        target = np.stack([x.numpy() for x in self.targets])
+        write_preview(path, triangles=tris, frames=frames, fps=1.0 / self.sim.dt, obstacles=[("target", target, tris)],
+                      title="fitted wind")
+
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--iters", type=int, default=30)
+    parser.add_argument("--preview", default="example_estimate_wind.gif", help=".gif, .png or .mp4 (ffmpeg)")
     args = parser.parse_args()
     example = Example(device=args.device)
     for it in range(args.iters):
         loss = example.step()
         print(f"iter {it:3d}  loss {loss:.3e} m^2  wind {example.model.wind_velocity.numpy()[0].round(3)}")
+    example.save_preview(args.preview)
+    print(f"wrote {args.preview}")

@@ -44,6 +44,7 @@ BENCHMARKS = {
     "worlds": (("records", "target_speedup"), False, False),
     "graph_step": (("cases", "gradients", "throw"), False, False),
     "jobs": (("records", "workers", "target_speedup"), True, True),
+    "global_search": (("scene", "target", "optimizers"), False, False),
 }
 
 

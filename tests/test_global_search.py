@@ -5,14 +5,20 @@ worlds of one batch. CMA-ES (tasks/optim.py cmaes) converges on an ill-condition
 that holds gradient descent; its generations run as forward-only batches (ControlTask.losses_worlds), bitwise the
 full evaluations' losses."""
 
+from importlib import resources
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import warp as wp
 
+import warpcloth as wc
+from warpcloth.cli import main
+from warpcloth.scene import SearchSpec, load_scene
+from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
+from warpcloth.tasks.control import optimize_open_loop, train_mlp
 from warpcloth.tasks.optim import cmaes, smoothed_gradient
 
 
@@ -119,3 +125,120 @@ def test_forward_only_batched_losses_equal_the_full_evaluations():
         assert a.loss == b.loss and a.grad is None
         np.testing.assert_array_equal(a.positions, b.positions)
     assert task.losses_worlds([points[1]])[0].loss == fast[1].loss  # a world alone, bitwise
+
+
+def test_the_global_search_counts_every_trial_and_refines_from_its_best_point():
+    # 20 steps of the throw in float64: two generations of 4 points (forward only, one batch of worlds each), then
+    # Gauss-Newton from the best of them with the 6 simulations left
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=20)
+    seen = []
+    search = SearchSpec(population=4, sigma=3.0, refine=6, seed=5)
+    result = optimize_open_loop(task, iters=14, optimizer="cmaes", search=search,
+                                callback=lambda k, loss, err, params: seen.append((loss, np.array(params))))
+    assert len(result.losses) == 14 and not result.failed_trials
+    searched = seen[:8]
+    # each trial's loss is the full evaluation's, bitwise (the population ran as worlds, forward only)
+    assert task.evaluate(searched[3][1]).loss == searched[3][0]
+    best = min(range(8), key=lambda k: result.errors_pct[k])
+    # the local stage starts at the search's best point and only improves on it
+    np.testing.assert_array_equal(seen[8][1], searched[best][1])
+    assert result.error_pct <= result.errors_pct[best]
+    assert result.error_pct == min(result.errors_pct)
+    # the same seed, the same search
+    again = optimize_open_loop(task, iters=8, optimizer="cmaes", search=SearchSpec(population=4, sigma=3.0, refine=0,
+                                                                                     seed=5))
+    assert again.losses == result.losses[:8]
+
+
+def test_the_multistart_interleaves_its_runs_and_keeps_the_best():
+    # three Gauss-Newton runs of 4 simulations in lockstep, from zero and two random starts: each as it runs alone
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=20)
+    seen = []
+    result = optimize_open_loop(task, iters=12, optimizer="multistart", search=SearchSpec(population=3, sigma=3.0,
+                                                                                          seed=2),
+                                callback=lambda k, loss, err, params: seen.append((k, loss, err)))
+    rng = np.random.default_rng(2)
+    starts = [np.zeros(task.n_params)] + [rng.normal(scale=3.0, size=task.n_params) for _ in range(2)]
+    alone = [optimize_open_loop(task, iters=4, start=s) for s in starts]
+    assert result.losses == [run.losses[k] for k in range(4) for run in alone]
+    assert result.error_pct == min(run.error_pct for run in alone)
+    assert result.errors_pct[result.simulations - 1] == result.error_pct
+    assert min(result.errors_pct[:result.simulations - 1]) > result.error_pct  # the first time it was reached
+    assert seen and all(result.losses[k - 1] == loss and result.errors_pct[k - 1] == err for k, loss, err in seen)
+    with pytest.raises(ValueError, match="multistart: 2 simulations for 3 starts"):
+        optimize_open_loop(task, iters=2, optimizer="multistart", search=SearchSpec(population=3))
+
+
+def test_a_warm_started_mlp_starts_where_the_open_loop_ended():
+    # whatever its random weights, the network fitted to the open loop's pushes repeats their simulation
+    pytest.importorskip("torch")
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=150)
+    opened = optimize_open_loop(task, iters=5)
+    for seed in (1, 2):
+        result = train_mlp(task, iters=7, warm_start=5, seed=seed, zero_start=False, optimizer="gauss-newton")
+        assert result.errors_pct[:5] == opened.errors_pct
+        # the open loop's best pushes simulated through the torch bridge (the CG's tolerance, 1e-6, apart from the
+        # task's own simulation), then the network's first simulation: those pushes again, to the pinv's rounding
+        assert result.errors_pct[5] == pytest.approx(opened.error_pct, rel=1e-4)
+        assert result.errors_pct[6] == pytest.approx(result.errors_pct[5], rel=1e-9)
+        assert len(result.errors_pct) == 7 and result.error_pct <= opened.error_pct + 1e-9
+    with pytest.raises(ValueError, match="warm_start"):
+        train_mlp(task, iters=5, warm_start=5)
+
+
+def test_search_settings_in_a_scene_and_on_the_command_line(tmp_path, capsys):
+    scenes = resources.files("warpcloth.scenes")
+    throw = scenes.joinpath("basket-throw.toml").read_text().replace("meshes/", f"{scenes.joinpath('meshes')}/")
+
+    def load(old: str, new: str):
+        path = tmp_path / "s.toml"
+        path.write_text(throw.replace(old, new))
+        return load_scene(path).control
+
+    gn = 'optimizer = "gauss-newton"\n'
+    spec = load(gn, 'optimizer = "cmaes"\nsearch = { population = 6, sigma = 2.5, refine = 10, seed = 3 }\n')
+    assert spec.optimizer == "cmaes" and spec.search == SearchSpec(population=6, sigma=2.5, refine=10, seed=3)
+    assert load(gn, 'optimizer = "cmaes"\n').search == SearchSpec()
+    assert load(gn, 'optimizer = "multistart"\nsearch = { population = 4, seed = 2 }\n').search == SearchSpec(
+        population=4, seed=2)
+    for new, message in [('search = { population = 6 }\n', r"control\.search: .*multistart or cmaes.*'gauss-newton'"),
+                         ('optimizer = "multistart"\nsearch = { refine = 5 }\n', r"control\.search.*refine"),
+                         ('optimizer = "multistart"\nsearch = { population = 51 }\n',
+                          r"control\.search\.population: 51 starts"),
+                         ('optimizer = "cmaes"\nsearch = { refine = 50 }\n', r"control\.search\.refine: .*nothing"),
+                         ('optimizer = "cmaes"\nsearch = { popsize = 6 }\n', r"control\.search.*popsize"),
+                         ('optimizer = "cmaes"\nsearch = { population = 1 }\n', r"control\.search\.population"),
+                         ('warm_start = 10\n', r"control\.warm_start: .*MLP")]:
+        with pytest.raises(ValueError, match=message):
+            load(gn, new)
+    mlp = 'controller = "mlp"\noptimizer = "gauss-newton"\n'
+    assert load('controller = "open-loop"\n' + gn, mlp + 'warm_start = 20\n').warm_start == 20
+    with pytest.raises(ValueError, match=r"control\.warm_start: .*nothing"):
+        load('controller = "open-loop"\n' + gn, mlp + 'warm_start = 50\n')
+    # the command line refuses what the controller cannot run, before any simulation
+    assert main(["control", "--optimizer", "adam", "--iters", "1"]) == 2
+    assert "--optimizer: unknown value 'adam'" in capsys.readouterr().err
+    assert main(["control", "--warm-start", "5", "--controller", "open-loop"]) == 2
+    assert "--warm-start" in capsys.readouterr().err
+
+
+def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_with_lbfgs():
+    # a 3x3 hanging cloth, 6 steps, float64: two generations of 4 materials (forward only), then 4 L-BFGS evaluations
+    truth = wc.preset("tango-red-jet-set", thicken=2)
+    b = wc.ModelBuilder()
+    b.add_cloth_grid((3, 3), (0.3, 0.3), material=wc.preset("gray-interlock", thicken=2), rot=S.GRID_TO_YZ,
+                     pos=(0.0, -0.15, -0.15), vel=(0.5, 0.0, 0.0))
+    b.add_handle(12)
+    b.add_handle(15)
+    b.set_wind((3.0, 0.0, 0.0))
+    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    options = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
+    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=6), steps=6, options=options)
+    search = SearchSpec(population=4, sigma=0.5, refine=4, seed=1)
+    result = E.estimate_material(fit, optimizer="cmaes", iters=12, scan=None, search=search)
+    assert len(result.losses) == 12 and not result.diverged
+    searched = result.losses[:8]
+    # L-BFGS starts from the search's best material and only accepts a decrease
+    assert result.losses[8] == min(searched)
+    assert fit.loss(result.material) <= min(searched)
+    assert fit.loss(result.material) < 0.5 * fit.loss(E.initial_guess())

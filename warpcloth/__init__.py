@@ -1,5 +1,8 @@
 """warpcloth: differentiable implicit cloth simulation in NVIDIA Warp (Liang, Lin and Koltun, NeurIPS 2019)."""
 
+
+# First: from a source checkout, warpcloth.kernels is the checkout's kernels/ (warpcloth/_source_tree.py)
+from warpcloth import _source_tree  # noqa: F401
 from warpcloth.builder import ModelBuilder
 from warpcloth.errors import CollisionError, ContactCapacityError, SimulationError
 from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh
@@ -13,6 +16,7 @@ from warpcloth.obstacles import (
     obstacle_points,
     obstacle_points_numpy,
 )
+from warpcloth.preview import write_preview
 from warpcloth.scene import SCENE_NAMES, Scene, load_scene
 from warpcloth.solver import (
     PRESET_SOLVER_NAMES,
@@ -28,6 +32,19 @@ from warpcloth.solver import (
     solver_preset,
 )
 from warpcloth.usd import read_usd_points, write_usd
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("warpcloth")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "0+unknown"
+
+
+__version__ = _version()
+"""The installed distribution's version (``importlib.metadata``); ``warpcloth --version`` prints it."""
 
 __all__ = [
     "CapturedRollout",
@@ -73,5 +90,6 @@ __all__ = [
     "rollout",
     "solver_preset",
     "sphere_mesh",
+    "write_preview",
     "write_usd",
 ]

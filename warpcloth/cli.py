@@ -1,7 +1,8 @@
-"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD; ``warpcloth scenes`` lists scenes and
-their tasks; ``warpcloth estimate [SCENE]`` fits a fabric's material to a trajectory (a scene's ``[estimate]``
-task; by default the seed's hanging cloth); ``warpcloth control [SCENE]`` finds the pushes of a scene's
-``[control]`` task (by default the seed's throw into a basket).
+"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD (and, with ``--preview``, a picture drawn
+with matplotlib: warpcloth/preview.py); ``warpcloth scenes`` lists scenes and their tasks; ``warpcloth estimate
+[SCENE]`` fits a fabric's material to a trajectory (a scene's ``[estimate]`` task; by default the seed's hanging
+cloth); ``warpcloth control [SCENE]`` finds the pushes of a scene's ``[control]`` task (by default the seed's throw
+into a basket). ``warpcloth --version`` prints the version; ``python -m warpcloth`` runs the same command line.
 
 Exit status: 0 on success, 2 for a usage error (bad arguments, unknown scene, invalid scene file), 1 when the
 simulation itself fails (diverges). Errors are one line on stderr, without a traceback.
@@ -24,9 +25,11 @@ _RUNTIME_ERROR = 1
 
 
 def _parser() -> argparse.ArgumentParser:
+    from warpcloth import __version__
     from warpcloth.scene import DEFAULT_SCENE
 
     parser = argparse.ArgumentParser(prog="warpcloth", description="Differentiable cloth simulation in NVIDIA Warp.")
+    parser.add_argument("--version", action="version", version=f"warpcloth {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     sim = sub.add_parser("simulate", help="simulate a scene and write a time-sampled USD")
@@ -39,12 +42,15 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--steps", type=int, default=None, help="number of steps (default: the scene's)")
     sim.add_argument("--dt", type=float, default=None, help="time step in seconds (default: the scene's)")
     sim.add_argument("--usd", metavar="PATH", default=None, help="output USD file (default: <scene name>.usda)")
+    sim.add_argument("--preview", metavar="PATH", default=None,
+                     help="also draw the cloth and its obstacles with matplotlib, to see the result without a USD "
+                     "viewer: an animated .gif, an .mp4 (needs ffmpeg) or a .png contact sheet of 9 frames")
     sim.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
     sub.add_parser("scenes", help="list the embedded scenes")
 
     from warpcloth.materials import PRESET_NAMES
-    from warpcloth.scene import CONTROLLERS, ESTIMATION_OPTIMIZERS
+    from warpcloth.scene import CONTROL_OPTIMIZERS, CONTROLLERS, ESTIMATION_OPTIMIZERS
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from how it moves (a scene's [estimate] task)")
     est.add_argument("scene", nargs="*", default=[],
@@ -73,7 +79,14 @@ def _parser() -> argparse.ArgumentParser:
                      "through the simulator (needs the torch extra); each with the scene's optimiser where it is the "
                      "scene's controller, else its default (Gauss-Newton for a centre-of-mass target); default: the "
                      "scene's")
+    ctl.add_argument("--optimizer", default=None, choices=sorted({o for v in CONTROL_OPTIMIZERS.values() for o in v}),
+                     help="the controller's optimiser (open loop: gauss-newton, lbfgs, or a global search over "
+                     "worlds: multistart, local runs from random starts in lockstep, or cmaes, then the local "
+                     "default; mlp: gauss-newton or adam) (default: the scene's)")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
+    ctl.add_argument("--warm-start", type=int, default=None, metavar="N",
+                     help="the MLP: first optimise the pushes themselves with N simulations and fit the network to "
+                     "them (default: the scene's, else none)")
     ctl.add_argument("--starts", type=int, default=1,
                      help="runs from K starts, one job each: the first from zero pushes (the seed's start), start k "
                      "from random pushes of seed k (the MLP: its weights' seed k) (default: 1)")
@@ -95,6 +108,8 @@ def _add_outputs(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="PATH", default=None, help="write the result as JSON")
     parser.add_argument("--plot", metavar="PNG", default=None, help="write the loss curve")
     parser.add_argument("--usd", metavar="PATH", default=None, help="write the final trajectory")
+    parser.add_argument("--preview", metavar="PATH", default=None,
+                        help="draw the final trajectory with matplotlib: .gif, .mp4 (needs ffmpeg) or .png")
     parser.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
 
@@ -126,6 +141,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
     from warpcloth.outputs import USD_SUFFIXES, prepare_output_path
+    from warpcloth.preview import check_preview_path, write_preview
     from warpcloth.progress import progress_bar
     from warpcloth.scene import load_scene
     from warpcloth.usd import write_usd
@@ -148,6 +164,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     usd_path = args.usd if args.usd is not None else f"{scene.name}.usda"  # scene names are plain file names
     try:
         prepare_output_path(usd_path, "--usd", USD_SUFFIXES)
+        if args.preview is not None:
+            check_preview_path(args.preview, "--preview")
         scene.check_frame_memory()
     except ValueError as exc:
         return _error(str(exc), _USAGE_ERROR)
@@ -176,13 +194,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     # Obstacles: static ones once, moving ones at every frame's time (at the control's base placements).
     obstacles = obstacle_meshes_numpy(model, times)
+    drawn = None
     try:
         write_usd(usd_path, triangles=model.tri_indices.numpy(), frames=frames, fps=1.0 / scene.dt,
                   obstacles=obstacles)
+        if args.preview is not None:
+            drawn = write_preview(args.preview, triangles=model.tri_indices.numpy(), frames=frames,
+                                  fps=1.0 / scene.dt, obstacles=obstacles, title=scene.name)
     except (ValueError, OSError) as exc:
         return _error(str(exc), _RUNTIME_ERROR)
     if failure is not None:
-        return _error(f"{failure}; wrote the {len(frames)} frames before it to {os.path.abspath(usd_path)}",
+        also = "" if drawn is None else f" (and {len(drawn)} of them to {os.path.abspath(args.preview)})"
+        return _error(f"{failure}; wrote the {len(frames)} frames before it to {os.path.abspath(usd_path)}{also}",
                       _RUNTIME_ERROR)
 
     total_cg = sim.stats["cg_iterations"]
@@ -190,6 +213,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     _print_solver_note(sim)
     print(f"CG iterations: {total_cg} total, {total_cg / scene.steps:.1f} per step")
     print(f"wrote {os.path.abspath(usd_path)} ({len(frames)} frames)")
+    if drawn is not None:
+        print(f"wrote {os.path.abspath(args.preview)} ({len(drawn)} frames drawn)")
     return 0
 
 
@@ -201,6 +226,8 @@ def _check_outputs(args: argparse.Namespace) -> str | None:
         value = getattr(args, flag, None)
         if value is not None and value < 1:
             return f"--{flag} must be >= 1, got {value}"
+    from warpcloth.preview import check_preview_path
+
     for flag, suffixes in (("json", JSON_SUFFIXES), ("plot", PLOT_SUFFIXES), ("usd", USD_SUFFIXES)):
         path = getattr(args, flag)
         if path is not None:
@@ -208,6 +235,11 @@ def _check_outputs(args: argparse.Namespace) -> str | None:
                 prepare_output_path(path, f"--{flag}", suffixes)
             except ValueError as exc:
                 return str(exc)
+    if args.preview is not None:
+        try:
+            check_preview_path(args.preview, "--preview")
+        except ValueError as exc:
+            return str(exc)
     return None
 
 
@@ -274,6 +306,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from warpcloth.errors import SimulationError
+    from warpcloth.preview import write_preview
     from warpcloth.tasks import estimation as E
     from warpcloth.usd import write_usd
 
@@ -327,14 +360,19 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.plot:
         _plot_losses(args.plot, {optimizer: result.losses}, "loss [m^2]", f"material estimation: {task.source}")
         print(f"wrote {os.path.abspath(args.plot)}")
-    if args.usd:
+    if args.usd or args.preview:
         sim_frames = fit.trajectory(result.material)[:: fit.frame_stride]
         target = np.stack([t.numpy().astype(np.float64) for t in fit.targets[: len(sim_frames)]])
         tris = fit.model.tri_indices.numpy()
-        write_usd(args.usd, triangles=tris, frames=sim_frames, fps=1.0 / (dt * fit.frame_stride),
-                  obstacles=[("Target", target, tris)])
-        print(f"wrote {os.path.abspath(args.usd)} "
-              "(the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
+        drawing = dict(triangles=tris, frames=sim_frames, fps=1.0 / (dt * fit.frame_stride),
+                       obstacles=[("Target", target, tris)])
+        if args.usd:
+            write_usd(args.usd, **drawing)
+            print(f"wrote {os.path.abspath(args.usd)} "
+                  "(the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
+        if args.preview:
+            write_preview(args.preview, **drawing, title=f"estimate of {task.source}")
+            print(f"wrote {os.path.abspath(args.preview)} (the estimate; the target translucent grey)")
     return 0
 
 
@@ -346,8 +384,9 @@ def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures)
 
     if args.workers < 1:
         return _error(f"--workers must be >= 1, got {args.workers}", _USAGE_ERROR)
-    if args.usd:
-        return _error(f"--usd writes one run's trajectory; this command runs {len(jobs)} jobs", _USAGE_ERROR)
+    for flag in ("usd", "preview"):
+        if getattr(args, flag):
+            return _error(f"--{flag} writes one run's trajectory; this command runs {len(jobs)} jobs", _USAGE_ERROR)
     where = f"the Ray cluster at {args.address}" if args.address else (
         f"{args.workers} workers" if args.workers > 1 else "this process")
     print(f"{args.command}: {len(jobs)} jobs on {where}")
@@ -385,7 +424,8 @@ def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures)
 def _cmd_control(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.scene import load_scene
+    from warpcloth.preview import write_preview
+    from warpcloth.scene import check_control_optimizer, load_scene
     from warpcloth.tasks import throw as C
     from warpcloth.tasks.control import ControlTask
     from warpcloth.tasks.jobs import ControlJob
@@ -393,8 +433,21 @@ def _cmd_control(args: argparse.Namespace) -> int:
 
     if args.starts < 1:
         return _error(f"--starts must be >= 1, got {args.starts}", _USAGE_ERROR)
-    jobs = [ControlJob(scene=args.scene, controller=args.controller, iters=args.iters,
-                       seed=k or None, device=args.device)
+    if args.optimizer:  # refused here, before any job starts
+        try:
+            spec = load_scene(args.scene).control
+        except (ValueError, OSError) as exc:
+            return _error(str(exc), _USAGE_ERROR)
+        if spec is not None:
+            controller = args.controller or spec.controller
+            problem = check_control_optimizer(args.optimizer, controller, spec.target_com, spec.regularizer)
+            if problem:
+                return _error(f"--optimizer: {problem}", _USAGE_ERROR)
+    if args.warm_start is not None and (args.warm_start < 0 or args.controller == "open-loop"):
+        return _error(f"--warm-start {args.warm_start}: the MLP's warm start takes a number of simulations >= 0",
+                      _USAGE_ERROR)
+    jobs = [ControlJob(scene=args.scene, controller=args.controller, iters=args.iters, optimizer=args.optimizer,
+                       warm_start=args.warm_start, seed=k or None, device=args.device)
             for k in range(args.starts)]
     if len(jobs) > 1 or args.workers > 1 or args.address:
         return _run_many(args, jobs, ["error [%]", "simulations to reach it", "failed trials"],
@@ -411,7 +464,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
         goal = f"its centre of mass to {task.target_com.tolist()}"
     print(f"{scene.name}: {len(task.particles)} particles pushed {task.intervals} times, {task.steps} steps of "
           f"{task.dt:g} s, moving {goal}; controller {controller}"
-          f" ({task.optimizer_for(controller)}), {iters} simulations")
+          f" ({job.optimizer_of(task)}), {iters} simulations")
     _print_solver_note(task.sim)
     try:
         result = task.run(controller=controller, iters=iters, progress=True, **job.start(task))
@@ -438,12 +491,17 @@ def _cmd_control(args: argparse.Namespace) -> int:
     if args.plot:
         _plot_losses(args.plot, {controller: result.errors_pct}, "error [%]", f"{scene.name}: motion control")
         print(f"wrote {os.path.abspath(args.plot)}")
-    if args.usd:
+    if args.usd or args.preview:
         frames = result.trajectory(task)
         times = [i * task.dt for i in range(len(frames))]
-        write_usd(args.usd, triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
-                  obstacles=obstacle_meshes_numpy(task.model, times))
-        print(f"wrote {os.path.abspath(args.usd)}")
+        drawing = dict(triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
+                       obstacles=obstacle_meshes_numpy(task.model, times))
+        if args.usd:
+            write_usd(args.usd, **drawing)
+            print(f"wrote {os.path.abspath(args.usd)}")
+        if args.preview:
+            write_preview(args.preview, **drawing, title=scene.name)
+            print(f"wrote {os.path.abspath(args.preview)}")
     return 0
 
 

@@ -4,15 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
+from warpcloth.geometry.motion import RigidMotion
 from warpcloth.kernels.types import types
-
-if TYPE_CHECKING:  # pragma: no cover
-    from warpcloth.obstacles import RigidMotion
 
 
 class State:

@@ -12,25 +12,25 @@ Frames and conventions:
   ``rot`` if wanted) and put its position into the motion's translations instead. Motion keyframes get no gradient.
 
 Built-in shapes come from :mod:`warpcloth.geometry.primitives`; obstacle meshes need not be closed or manifold.
-The quaternion and transform maths lives in :mod:`warpcloth.geometry.transforms`.
+The quaternion and transform maths lives in :mod:`warpcloth.geometry.transforms`, :class:`RigidMotion` in
+:mod:`warpcloth.geometry.motion` (re-exported here). This module builds on :mod:`warpcloth.model` (its functions take
+a Model); the model never imports it.
 """
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
-from warpcloth.geometry.transforms import IDENTITY_TRANSFORM, check_quat, compose, slerp, transform_points
+from warpcloth.geometry.motion import RigidMotion
+from warpcloth.geometry.transforms import IDENTITY_TRANSFORM, check_quat, compose, transform_points
+from warpcloth.kernels.obstacle import obstacle_kernels
 from warpcloth.mesh_io import DEGENERATE_AREA_FRACTION
-
-if TYPE_CHECKING:  # pragma: no cover
-    from warpcloth.model import Control, Model
+from warpcloth.model import Control, Model
 
 __all__ = [
     "Obstacle",
@@ -45,97 +45,6 @@ _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 
 
 # ----------------------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class RigidMotion:
-    """Keyframed rigid motion: piecewise-linear translation, slerp rotation, held constant outside the keys.
-
-    Built from arrays (converted to float64 and validated on construction) or with :meth:`from_keyframes`.
-    """
-
-    times: np.ndarray
-    """Key times [s], strictly increasing, shape (K,), K >= 1."""
-    translations: np.ndarray
-    """Translation at each key [m], shape (K, 3)."""
-    rotations: np.ndarray
-    """Rotation at each key as a unit quaternion (x, y, z, w), shape (K, 4); not renormalised."""
-
-    def __post_init__(self):
-        self.times = np.asarray(self.times, dtype=np.float64)
-        self.translations = np.asarray(self.translations, dtype=np.float64)
-        self.rotations = np.asarray(self.rotations, dtype=np.float64)
-        k = self.times.shape[0] if self.times.ndim == 1 else -1
-        if k < 1:
-            raise ValueError(f"motion: times must have shape (K,) with K >= 1 keyframes, got {self.times.shape}")
-        if self.translations.shape != (k, 3):
-            raise ValueError(f"motion: translations must have shape ({k}, 3), got {self.translations.shape}")
-        if self.rotations.shape != (k, 4):
-            raise ValueError(f"motion: rotations must have shape ({k}, 4), got {self.rotations.shape}")
-        for i in range(k):
-            if not math.isfinite(self.times[i]):
-                raise ValueError(f"motion keyframe {i}: time is not finite: {self.times[i]}")
-            if i and self.times[i] <= self.times[i - 1]:
-                raise ValueError(
-                    f"motion keyframe {i}: key times must be strictly increasing, got {self.times[i]} after "
-                    f"{self.times[i - 1]}"
-                )
-            if not np.all(np.isfinite(self.translations[i])):
-                raise ValueError(f"motion keyframe {i}: translation is not finite: {self.translations[i].tolist()}")
-            check_quat(f"motion keyframe {i}: rotation", self.rotations[i])
-
-    @classmethod
-    def from_keyframes(cls, keyframes) -> RigidMotion:
-        """Builds a motion from ``[(time [s], (tx, ty, tz) [m], (qx, qy, qz, qw)), ...]``.
-
-        Raises:
-            ValueError: naming the keyframe for a malformed, non-finite, out-of-order or non-unit entry.
-        """
-        keys = list(keyframes)
-        if not keys:
-            raise ValueError("motion needs at least one (time, translation, quaternion) keyframe")
-        times, trans, rots = [], [], []
-        for i, key in enumerate(keys):
-            if isinstance(key, (str, bytes)) or len(key) != 3:
-                raise ValueError(f"motion keyframe {i}: expected (time, (tx, ty, tz), (qx, qy, qz, qw)), got {key!r}")
-            t, tr, q = key
-            tr, q = np.asarray(tr, dtype=np.float64), np.asarray(q, dtype=np.float64)
-            if tr.shape != (3,):
-                raise ValueError(f"motion keyframe {i}: translation needs 3 components, got shape {tr.shape}")
-            if q.shape != (4,):
-                raise ValueError(f"motion keyframe {i}: rotation needs 4 components (x, y, z, w), got shape {q.shape}")
-            times.append(float(t))
-            trans.append(tr)
-            rots.append(q)
-        return cls(np.array(times), np.array(trans), np.array(rots))
-
-    @property
-    def key_count(self) -> int:
-        """Number of keyframes K."""
-        return int(self.times.shape[0])
-
-    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Translation (3,) [m] and unit quaternion (4,) (x, y, z, w) at time ``t`` [s].
-
-        Before the first key and after the last one the motion holds that key's value. Between keys the translation
-        is linear and the rotation a slerp along the shorter arc (renormalised against rounding).
-        """
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"motion: time must be finite, got {t}")
-        if t <= self.times[0]:
-            return self.translations[0].copy(), self.rotations[0].copy()
-        if t >= self.times[-1]:
-            return self.translations[-1].copy(), self.rotations[-1].copy()
-        i = int(np.searchsorted(self.times, t, side="right")) - 1
-        s = (t - self.times[i]) / (self.times[i + 1] - self.times[i])
-        tr = (1.0 - s) * self.translations[i] + s * self.translations[i + 1]
-        return tr, slerp(self.rotations[i], self.rotations[i + 1], s)
-
-    def transform_at(self, t: float) -> np.ndarray:
-        """The motion at time ``t`` as a (7,) transform (tx, ty, tz, qx, qy, qz, qw)."""
-        tr, q = self.at(t)
-        return np.concatenate([tr, q])
 
 
 @dataclass
@@ -316,8 +225,6 @@ def obstacle_points(model: Model, control: Control, t: float, out: wp.array | No
         ValueError: when the model has no obstacles, the control has no ``obstacle_transform`` of the right size, or
             ``out`` has the wrong shape, dtype or device.
     """
-    from warpcloth.kernels.obstacle import obstacle_kernels
-
     _require_obstacles(model, "obstacle_points")
     t_ = model.types
     base = getattr(control, "obstacle_transform", None)

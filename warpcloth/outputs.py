@@ -14,6 +14,8 @@ USD_SUFFIXES = (".usd", ".usda", ".usdc")
 """What warpcloth.usd.write_usd writes (.usdz packages are not written)."""
 JSON_SUFFIXES = (".json",)
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+PREVIEW_SUFFIXES = (".gif", ".mp4", ".png")
+"""What warpcloth.preview.write_preview writes: an animation, a video (with ffmpeg) or a contact sheet."""
 
 
 def prepare_output_path(path: str | os.PathLike, what: str, suffixes: tuple[str, ...]) -> Path:

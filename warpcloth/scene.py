@@ -89,8 +89,18 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
     regularizer = 0.0                  # optional: adds regularizer * 1/2 |pushes|^2 [pushes in m/s^2]
     controller = "open-loop"           # optional: "open-loop" (default) or "mlp" (a PyTorch MLP of the state)
     optimizer = "gauss-newton"         # optional: "gauss-newton" (default with com; for the MLP, without a
-                                       #   regularizer), else "lbfgs" (open loop) or "adam" (MLP)
+                                       #   regularizer), else "lbfgs" (open loop) or "adam" (MLP); open loop, a
+                                       #   global search over worlds: "multistart" (local runs from random starts in
+                                       #   lockstep) or "cmaes" (CMA-ES, then the local default); see search
     iters = 50                         # optional: simulations spent (default 50 open-loop, 100 mlp)
+    search = { population = 8, sigma = 5.0, seed = 0 }
+                                       # optional, with a global search, every key optional: multistart: starts
+                                       #   (8) and their spread [m/s^2] (5); cmaes: points per generation (one
+                                       #   simulation each, run as worlds of one batch; default 4 + 3 ln n), initial
+                                       #   spread (5) and refine = simulations left to the local optimiser (a fifth
+                                       #   of iters); random seed (0)
+    warm_start = 20                    # optional, the MLP only: first optimise the pushes themselves with this many
+                                       #   simulations and fit the network's output layer to them (default 0: none)
 
     [estimate]                         # optional: fit the cloth's material to a trajectory
     targets = "frames"                 # optional: a directory of OBJ frames (frame 0 = the start), relative to the
@@ -99,7 +109,9 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
     steps = 50                         # optional: steps compared, default sim.steps
     start = "gray-interlock"           # optional material (the forms above); default the mean of 8 fabrics (the seed's)
     free = ["density", "stretching", "bending"]   # optional: what is fitted (default all); the rest stays at start
-    optimizer = "lbfgs"                # optional: "lbfgs" (default), "adam" or "seed-sgd"
+    optimizer = "lbfgs"                # optional: "lbfgs" (default), "adam", "seed-sgd" or "cmaes" (global search,
+                                       #   then L-BFGS; a search table as [control]'s, sigma in the log-scale
+                                       #   parameters' units, default 0.5)
     iters = 100                        # optional: forward + backward evaluations, default 100
 
 A push is a constant force ``(M / k) p`` on each of the k pushed particles over its interval (M the cloth's mass),
@@ -129,7 +141,8 @@ from warpcloth import mesh_io
 from warpcloth.builder import DEFAULT_HANDLE_STIFFNESS
 from warpcloth.geometry.transforms import QUAT_UNIT_TOL
 
-__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "ControlSpec", "EstimateSpec", "Scene", "load_scene", "scene_from_toml"]
+__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "ControlSpec", "EstimateSpec", "Scene", "SearchSpec", "load_scene",
+           "scene_from_toml"]
 
 DEFAULT_SCENE = "hanging-wind"
 """The scene ``warpcloth simulate`` runs when none is named."""
@@ -141,6 +154,29 @@ SCENE_NAMES: tuple[str, ...] = tuple(
 
 _DEFAULT_GRAVITY = (0.0, 0.0, -9.8)
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+
+
+@dataclass(frozen=True)
+class SearchSpec:
+    """A global search's settings (a ``search`` table in ``[control]`` or ``[estimate]``). ``optimizer = "cmaes"``:
+    CMA-ES over the task's parameters, each generation simulated as one batch of worlds (forward only), then the
+    task's local optimiser from the best point found (``warpcloth.tasks.optim.cmaes``). ``optimizer =
+    "multistart"`` (control): local runs from random starts, in lockstep as batches of worlds.
+
+    Attributes:
+        population: CMA-ES's points per generation, each one simulation (default 4 + floor(3 ln n), n parameters);
+            the multistart's starts (default 8).
+        sigma: CMA-ES's initial standard deviation, the multistart's spread of starts, in the parameters' units
+            (default: the task's, pushes 5 m/s^2 for control, 0.5 of the material's log-scale parameters for
+            estimation).
+        refine: CMA-ES: simulations left to the local optimiser (default a fifth of the budget).
+        seed: Seed of the search's random numbers.
+    """
+
+    population: int | None = None
+    sigma: float | None = None
+    refine: int | None = None
+    seed: int = 0
 
 
 @dataclass
@@ -157,8 +193,11 @@ class ControlSpec:
         regularizer: Weight of ``1/2 |pushes|^2`` in the loss.
         controller: ``"open-loop"`` or ``"mlp"``.
         optimizer: The controller's optimiser (``CONTROL_OPTIMIZERS``): ``"gauss-newton"`` (a centre-of-mass target
-            only; for the MLP, without a regulariser), ``"lbfgs"`` (open loop) or ``"adam"`` (MLP).
+            only; for the MLP, without a regulariser), ``"lbfgs"`` (open loop), ``"cmaes"`` (open loop: global search,
+            then the local default) or ``"adam"`` (MLP).
         iters: Simulations the optimisation may spend.
+        search: The global stage's settings (``optimizer = "cmaes"``).
+        warm_start: The MLP's warm start: simulations of the open-loop optimisation it is first fitted to (0: none).
     """
 
     particles: tuple[int, ...]
@@ -171,6 +210,8 @@ class ControlSpec:
     controller: str
     optimizer: str
     iters: int
+    search: SearchSpec = SearchSpec()
+    warm_start: int = 0
 
 
 @dataclass
@@ -186,8 +227,9 @@ class EstimateSpec:
         start: The material the fit starts from.
         free: The material parameters fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others stay at
             ``start``'s.
-        optimizer: ``"lbfgs"``, ``"adam"`` or ``"seed-sgd"``.
-        iters: Forward + backward evaluations.
+        optimizer: ``"lbfgs"``, ``"adam"``, ``"seed-sgd"`` or ``"cmaes"`` (global search, then L-BFGS).
+        iters: Forward + backward evaluations (a global search's forward-only simulations count one each).
+        search: The global stage's settings (``optimizer = "cmaes"``).
     """
 
     targets: list[np.ndarray] | None
@@ -198,6 +240,7 @@ class EstimateSpec:
     free: tuple[str, ...]
     optimizer: str
     iters: int
+    search: SearchSpec = SearchSpec()
 
 
 @dataclass
@@ -905,7 +948,9 @@ def _parse_rigid_motion(value: Any, path: str) -> list:
 
 CONTROLLERS = ("open-loop", "mlp")
 """Controllers of a ``[control]`` task."""
-CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs"), "mlp": ("gauss-newton", "adam")}
+CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes"), "mlp": ("gauss-newton", "adam")}
+GLOBAL_OPTIMIZERS = ("multistart", "cmaes")
+"""The optimisers that take a ``search`` table."""
 """Optimisers of each controller of a ``[control]`` task (Gauss-Newton needs a centre-of-mass target, and for the MLP
 no regulariser)."""
 
@@ -930,7 +975,7 @@ def check_control_optimizer(optimizer: str, controller: str, target_com, regular
     return None
 
 
-ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd")
+ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd", "cmaes")
 """Optimisers of an ``[estimate]`` task."""
 MATERIAL_PARTS = ("density", "stretching", "bending")
 """The parts of a material an ``[estimate]`` task may free."""
@@ -950,7 +995,7 @@ def _steps_within(table: dict, path: str, sim_steps: int) -> int:
 def _parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int, grid_res, attached: dict[int, str],
                    base_dir: Path) -> ControlSpec:
     keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "controller",
-            "optimizer", "iters")
+            "optimizer", "iters", "search", "warm_start")
     _check_keys(table, "control", keys, required=("interval", "intervals", "loss"))
     if ("particles" in table) == ("grid_vertices" in table):
         raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
@@ -1010,14 +1055,51 @@ def _parse_control(table: dict, dt: float, sim_steps: int, first: int, count: in
     if problem:
         raise _err("control.optimizer", problem)
     iters = _int(table.get("iters", 50 if controller == "open-loop" else 100), "control.iters", min_value=1)
+    search = _parse_search(table, "control", optimizer, iters)
+    warm_start = 0
+    if "warm_start" in table:
+        if controller != "mlp":
+            raise _err("control.warm_start", f"warm-starts the MLP controller, not {controller!r}")
+        warm_start = _int(table["warm_start"], "control.warm_start", min_value=0)
+        if warm_start >= iters:
+            raise _err("control.warm_start", f"{warm_start} simulations leave nothing of control.iters = {iters} to "
+                                             "the MLP")
     return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
                        intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,
-                       regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters)
+                       regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters, search=search,
+                       warm_start=warm_start)
+
+
+def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchSpec:
+    """The ``search`` table of a ``[control]`` or ``[estimate]`` task (only with ``optimizer = "cmaes"``)."""
+    if "search" not in table:
+        return SearchSpec()
+    if optimizer not in GLOBAL_OPTIMIZERS:
+        raise _err(f"{path}.search", f"configures a global search ({' or '.join(GLOBAL_OPTIMIZERS)}), not optimizer = "
+                                     f"{optimizer!r}")
+    search = _table(table["search"], f"{path}.search")
+    refine_key = ("refine",) if optimizer == "cmaes" else ()  # the multistart has no local stage of its own
+    _check_keys(search, f"{path}.search", ("population", "sigma", "seed") + refine_key)
+    population = sigma = refine = None
+    if "population" in search:
+        population = _int(search["population"], f"{path}.search.population", min_value=2)
+        if optimizer == "multistart" and population > iters:
+            raise _err(f"{path}.search.population", f"{population} starts for {path}.iters = {iters} simulations: "
+                                                    "each start needs one at least")
+    if "sigma" in search:
+        sigma = _float(search["sigma"], f"{path}.search.sigma", min_value=0.0, strict=True)
+    if "refine" in search:
+        refine = _int(search["refine"], f"{path}.search.refine", min_value=0)
+        if refine >= iters:
+            raise _err(f"{path}.search.refine", f"{refine} simulations leave nothing of {path}.iters = {iters} to "
+                                                "the global search")
+    seed = _int(search.get("seed", 0), f"{path}.search.seed", min_value=0)
+    return SearchSpec(population=population, sigma=sigma, refine=refine, seed=seed)
 
 
 def _parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _materials.Material,
                     base_dir: Path) -> EstimateSpec:
-    keys = ("targets", "frame_stride", "steps", "start", "free", "optimizer", "iters")
+    keys = ("targets", "frame_stride", "steps", "start", "free", "optimizer", "iters", "search")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
     steps = _steps_within(table, "estimate", sim_steps)
@@ -1052,5 +1134,6 @@ def _parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _ma
     if optimizer == "seed-sgd" and set(free) != set(MATERIAL_PARTS):
         raise _err("estimate.optimizer", "seed-sgd fits the whole material; use lbfgs or adam to free only some of it")
     iters = _int(table.get("iters", 100), "estimate.iters", min_value=1)
+    search = _parse_search(table, "estimate", optimizer, iters)
     return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
-                        free=free, optimizer=optimizer, iters=iters)
+                        free=free, optimizer=optimizer, iters=iters, search=search)

@@ -12,6 +12,7 @@ import warp as wp
 from warpcloth.errors import ContactCapacityError
 from warpcloth.kernels.collision import collision_kernels
 from warpcloth.model import Model
+from warpcloth.obstacles import obstacle_points_numpy
 
 
 @dataclass
@@ -203,8 +204,6 @@ class ContactDetector:
 
     def check_start_outside(self, model: Model) -> None:
         """Raise ValueError if a cloth particle starts inside a closed obstacle (the response cannot fix that)."""
-        from warpcloth.obstacles import obstacle_points_numpy
-
         points = obstacle_points_numpy(model, 0.0)
         x0 = model.particle_x0
         ts = model.obstacle_tri_start

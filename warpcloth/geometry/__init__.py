@@ -1,1 +1,2 @@
-"""Host-side geometry that needs no Model: rigid transforms and the meshes of simple shapes."""
+"""Host-side geometry that needs no Model: rigid transforms, keyframed rigid motions and the meshes of
+simple shapes."""

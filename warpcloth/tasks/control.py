@@ -19,7 +19,6 @@ import copy
 import dataclasses
 import math
 import os
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -32,11 +31,19 @@ from warpcloth.progress import progress_bar
 from warpcloth.scene import (
     CONTROLLERS,
     Scene,
+    SearchSpec,
     check_control_optimizer,
     default_control_optimizer,
     load_scene,
 )
-from warpcloth.tasks.optim import lbfgs
+from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
+from warpcloth.tasks.optim import cmaes, lbfgs
+
+SEARCH_SIGMA = 5.0
+"""The global search's default spread of the pushes [m/s^2] (``SearchSpec.sigma``): CMA-ES's initial one, the
+multistart's random starts' (half the push that holds the seed's cloth up)."""
+MULTISTART_POPULATION = 8
+"""The multistart's default number of starts (``SearchSpec.population``)."""
 
 WHOLE_TAPE_PARTICLE_STEPS = 200_000
 """A control task tapes a rollout whole, without checkpoints, up to this many particle-steps (particles of all
@@ -85,7 +92,8 @@ class ControlTask:
         segment_steps: Checkpoint segment length. By default the whole horizon (one taped forward pass, no
             re-simulation) where the tape stays small, ``particle_count * steps <= WHOLE_TAPE_PARTICLE_STEPS``,
             else ceil(sqrt(steps)) (O(sqrt(T)) stored states; each segment but the last simulated twice).
-        controller, optimizer, iters: What :meth:`run` does when not told otherwise (a scene's choices).
+        controller, optimizer, iters, search, warm_start: What :meth:`run` does when not told otherwise (a scene's
+            choices).
         template: The one-world builder ``model`` was finalised from (copies of ``model``); with it
             :meth:`evaluate_many` runs several simulations as one batch of worlds (``ModelBuilder.replicate``).
     """
@@ -94,7 +102,7 @@ class ControlTask:
                  target_com=None, target_positions=None, regularizer: float = 0.0,
                  options: wc.SolverOptions | None = None, segment_steps: int | None = None,
                  controller: str = "open-loop", optimizer: str | None = None, iters: int | None = None,
-                 template: wc.ModelBuilder | None = None):
+                 search: SearchSpec | None = None, warm_start: int = 0, template: wc.ModelBuilder | None = None):
         starts = np.asarray(model.world_particle_start)
         sizes = np.diff(starts)
         if np.any(sizes != sizes[0]):
@@ -126,7 +134,8 @@ class ControlTask:
         self._args = dict(dt=dt, particles=self.particles, interval_steps=interval_steps, intervals=intervals,
                           steps=steps, target_com=target_com, target_positions=target_positions,
                           regularizer=regularizer, options=options, segment_steps=segment_steps,
-                          controller=controller, optimizer=optimizer, iters=iters, template=template)
+                          controller=controller, optimizer=optimizer, iters=iters, search=search,
+                          warm_start=warm_start, template=template)
         self.model, self.dt, self.steps = model, float(dt), int(steps)
         self.world_count = model.world_count
         self.world_particles = n
@@ -144,6 +153,10 @@ class ControlTask:
         if problem:
             raise ValueError(f"optimizer: {problem}")
         self.iters = iters
+        self.search = search or SearchSpec()
+        """The global search's settings (``optimizer="cmaes"``)."""
+        self.warm_start = int(warm_start)
+        """The MLP's warm start (:func:`train_mlp`)."""
         self.template = template
         self.sim = wc.Simulator(model, dt, options=options)
         self._kernels = loss_kernels(model.scalar)
@@ -515,6 +528,32 @@ class ControlTask:
                 out.append(exc)
         return out
 
+    def losses_many(self, points: list) -> list[Evaluation | Exception]:
+        """Forward simulations alone of several points (``grad`` None): one batch of worlds (:meth:`worlds`,
+        :meth:`losses_worlds`) where the task has a ``template``, one after another otherwise. A point whose
+        simulation raises (CollisionError, SimulationError) gets the exception in its place; a batch that raised is
+        run again point by point, so that the others' losses are kept. Each loss is the one :meth:`evaluate` gives."""
+        if self.world_count != 1:
+            raise ValueError(f"losses_many runs on a task of one world; this one has {self.world_count}")
+        batch = self.worlds(len(points)) if len(points) > 1 else None
+        if batch is not None:
+            try:
+                out = batch.losses_worlds(points)
+                self._count(batch)
+                return out
+            except (wc.CollisionError, wc.SimulationError):
+                batch.simulations += len(points)
+            self._count(batch)
+            self.batch_retries += 1
+        out = []
+        for params in points:
+            try:
+                out += self.losses_worlds([params])
+            except (wc.CollisionError, wc.SimulationError) as exc:
+                self.simulations += 1
+                out.append(exc)
+        return out
+
     def _row_triples(self, requests: list) -> tuple[list, list] | None:
         """(points, thresholds) of ``requests`` where they are whole Jacobians, (p, 0), (p, 1), (p, 2) for each point
         p in turn (each with the same optional threshold), on a rollout taped whole (:meth:`jacobian_worlds`); else
@@ -572,6 +611,7 @@ class ControlTask:
         kwargs.setdefault("optimizer", self.optimizer_for(controller))
         if controller == "open-loop":
             return optimize_open_loop(self, iters=iters, progress=progress, **kwargs)
+        kwargs.setdefault("warm_start", self.warm_start if controller == self.controller else 0)
         return train_mlp(self, iters=iters, progress=progress, **kwargs)
 
     def optimizer_for(self, controller: str) -> str:
@@ -595,7 +635,8 @@ def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.Solve
     return dict(dt=scene.dt, particles=spec.particles, interval_steps=spec.interval_steps, intervals=spec.intervals,
                 steps=steps or spec.steps, target_com=spec.target_com, target_positions=spec.target_positions,
                 regularizer=spec.regularizer, options=options or scene.solver_options, segment_steps=segment_steps,
-                controller=spec.controller, optimizer=spec.optimizer, iters=spec.iters)
+                controller=spec.controller, optimizer=spec.optimizer, iters=spec.iters, search=spec.search,
+                warm_start=spec.warm_start)
 
 
 @dataclass
@@ -618,11 +659,11 @@ class ControlResult:
 
 
 def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
-                       start: np.ndarray | None = None, optimizer: str | None = None, batch: bool = True,
-                       progress: bool = False, callback=None, _evaluate=None) -> ControlResult:
+                       start: np.ndarray | None = None, optimizer: str | None = None, search: SearchSpec | None = None,
+                       batch: bool = True, progress: bool = False, callback=None, _evaluate=None) -> ControlResult:
     """Optimise the pushes directly, from zero (the seed's start) or ``start`` (n_params pushes [m/s^2]).
-    ``iters`` bounds the simulations (forward + backward) spent; returns the best iterate and the simulations spent
-    to reach it. A start whose simulation raises is halved towards zero until one runs.
+    ``iters`` bounds the simulations spent; returns the best iterate and the simulations spent to reach it. A start
+    whose simulation raises is halved towards zero until one runs.
 
     ``optimizer`` (default: the task's):
 
@@ -634,8 +675,20 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
       Jacobian), cut short when its loss is worse. The step solves ``(J^T J + (w + mu) I) d = -(J^T r + w p)``
       (w the regulariser, mu = damping * tr(J J^T) / 3).
     * ``"lbfgs"``: L-BFGS (``warpcloth.tasks.optim.lbfgs``) on the loss; one simulation per point.
+    * ``"multistart"``: ``search.population`` runs of the local default (Gauss-Newton with a centre-of-mass
+      target, else L-BFGS) in lockstep (:func:`optimize_open_loop_starts`: their simulations as batches of worlds),
+      from ``start`` and from random points around it (normal, ``search.sigma`` [m/s^2], default
+      :data:`SEARCH_SIGMA`), each with an equal share of ``iters``; the best of them. Their histories are
+      interleaved in the order the lockstep ran them, and ``simulations`` counts every run's up to the best.
+    * ``"cmaes"``: a global search, then the local default (Gauss-Newton with a centre-of-mass target, else
+      L-BFGS) from the best point it found, for ``search.refine`` simulations (default a fifth of ``iters``). The
+      search is CMA-ES (``warpcloth.tasks.optim.cmaes``) around ``start`` with ``search.sigma`` [m/s^2] (default
+      :data:`SEARCH_SIGMA`); each generation of ``search.population`` points runs forward only as one batch of
+      worlds (:meth:`ControlTask.losses_many`), a simulation per point. Where Gauss-Newton settles in the first basin
+      it meets (holding the cloth above a wall rather than throwing it over), the population sees the others.
 
-    ``max_step`` [m/s^2] bounds how far one step moves any push.
+    ``max_step`` [m/s^2] bounds how far one step moves any push. ``search``: the global search's settings (default:
+    the task's, ``task.search``).
 
     ``batch``: run a point's three Gauss-Newton simulations as one batch of three worlds
     (:meth:`ControlTask.evaluate_many`; the task needs a ``template``). The result is the same as one at a time,
@@ -674,6 +727,35 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
             bar.update()
 
     params = np.zeros(task.n_params) if start is None else np.array(start, dtype=np.float64).reshape(task.n_params)
+    if optimizer == "multistart":
+        if bar is not None:
+            bar.close()
+        return _multistart(task, params, iters=iters, search=search or task.search, batch=batch, callback=callback,
+                           local=dict(max_step=max_step, damping=damping))
+    if optimizer == "cmaes":
+        search = search or task.search
+        refine = iters // 5 if search.refine is None else min(search.refine, iters)
+        population = search.population or 4 + int(3 * math.log(task.n_params))
+
+        def generation(points: list) -> list[float]:
+            losses = []
+            for point, e in zip(points, task.losses_many(points)):
+                if isinstance(e, Exception):  # a rejected trial: an infinite loss
+                    failed(e)
+                    losses.append(math.inf)
+                else:
+                    record(point, e.loss, task.error_pct(e.positions))
+                    losses.append(e.loss)
+            return losses
+
+        generations = (iters - refine) // population
+        if generations:
+            cmaes(generation, params, sigma=search.sigma or SEARCH_SIGMA, generations=generations,
+                  rng=np.random.default_rng(search.seed), popsize=population)
+            if math.isfinite(result.error_pct):
+                params = result.params.reshape(-1).copy()  # the local stage starts from the best point
+        optimizer = default_control_optimizer("open-loop", task.target_com, task.regularizer)
+
     if optimizer == "lbfgs":
         def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
             e = run([(theta, None)])[0]
@@ -683,6 +765,8 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
             record(theta, e.loss, task.error_pct(e.positions))
             return e.loss, e.grad
 
+        if len(result.losses) >= iters:
+            return _finish(result, bar, t0)
         loss, grad = objective(params)
         while not math.isfinite(loss) and len(result.losses) < iters:  # the start raised: pull it in
             params = 0.5 * params
@@ -699,6 +783,8 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
         step is rejected and halved."""
         jac = np.zeros((3, task.n_params))
         com = None
+        if len(result.losses) >= iters:
+            return math.inf, None, None
         # the rows at once, with the loss they are needed below (a worse point's batch may skip its reverse passes)
         rows = run([(params, k, best_loss) for k in range(3)]) if together else None
         for k in range(3):
@@ -723,7 +809,7 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
         return trial_loss, com, jac
 
     best_loss, com, jac = evaluate(params, math.inf)
-    while com is None and result.failed_trials and len(result.losses) < iters:  # the start raised: pull it in
+    while com is None and len(result.losses) < iters:  # the start raised (or the budget is spent): pull it in
         params = 0.5 * params
         best_loss, com, jac = evaluate(params, math.inf)
     step = None
@@ -742,6 +828,45 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
     return _finish(result, bar, t0)
 
 
+def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: SearchSpec, batch: bool, callback,
+                local: dict) -> ControlResult:
+    """``optimizer="multistart"`` (:func:`optimize_open_loop`): ``search.population`` local runs in lockstep, from
+    ``params`` and from random points around it, each with an equal share of ``iters``; their histories interleaved
+    in the order the lockstep ran them (every run's k-th simulation, run by run, then the k+1-th)."""
+    starts = search.population or MULTISTART_POPULATION
+    if iters < starts:
+        raise ValueError(f"multistart: {iters} simulations for {starts} starts; give each start one at least")
+    rng = np.random.default_rng(search.seed)
+    sigma = search.sigma or SEARCH_SIGMA
+    points = [params] + [params + rng.normal(scale=sigma, size=task.n_params) for _ in range(starts - 1)]
+    seen: list[list] = [[] for _ in points]
+    t0 = time.perf_counter()
+    runs = optimize_open_loop_starts(
+        task, points, batch=batch, iters=iters // starts,
+        optimizer=default_control_optimizer("open-loop", task.target_com, task.regularizer),
+        callback_of=lambda i: lambda k, loss, err, p: seen[i].append((k, loss, err, np.array(p, dtype=np.float64))),
+        **local)
+    result = ControlResult(params=np.zeros(task.params_shape))
+    position = {}  # (run, its simulation k) -> the simulation's place in the interleaved history
+    for k in range(max(len(r.losses) for r in runs)):
+        for i, run in enumerate(runs):
+            if k >= len(run.losses):
+                continue
+            result.losses.append(run.losses[k])
+            result.errors_pct.append(run.errors_pct[k])
+            position[i, k + 1] = len(result.losses)
+            if k + 1 == run.simulations and not run.error_pct >= result.error_pct:  # this run's best, and better
+                result.params, result.error_pct, result.simulations = run.params, run.error_pct, len(result.losses)
+    for run in runs:
+        result.failed_trials += run.failed_trials
+    if callback is not None:  # the recorded points in the interleaved order
+        for n, loss, err, point in sorted((position[i, k], loss, err, point) for i, points in enumerate(seen)
+                                          for k, loss, err, point in points):
+            callback(n, loss, err, point)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
 def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) -> Evaluation | Exception:
     try:
         return task.evaluate(params, component=component)
@@ -750,80 +875,31 @@ def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) 
 
 
 def optimize_open_loop_starts(task: ControlTask, starts: list, *, batch: bool = True, iters: int = 50,
-                              progress: bool = False, **kwargs) -> list[ControlResult]:
+                              progress: bool = False, callback_of=None, **kwargs) -> list[ControlResult]:
     """:func:`optimize_open_loop` from each of ``starts`` (None: zero pushes), with ``batch`` in lockstep: every
     round the simulations that all the runs ask for next go as one batch of worlds (:meth:`ControlTask.evaluate_many`),
     so random restarts cost little more wall time than one run on a CPU whose launches, not its arithmetic, bound a
     small cloth's step (benchmarks/worlds.py). Each run's result equals its run alone, bitwise. Without ``batch``
-    the runs go one after another."""
+    the runs go one after another. ``callback_of(i)``: run i's callback (:func:`optimize_open_loop`), or None."""
+    callback_of = callback_of or (lambda i: None)
     if not batch:
-        return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, **kwargs)
-                for s in starts]
-    lockstep = _Lockstep(task, len(starts))
-    results: list = [None] * len(starts)
+        return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, callback=callback_of(i),
+                                   **kwargs) for i, s in enumerate(starts)]
+    def evaluate(requests: dict[int, list]) -> dict[int, list]:  # the runs' requests as one batch, answers split
+        flat = task.evaluate_many([r for rows in requests.values() for r in rows])
+        answers = {}
+        for run, rows in requests.items():
+            answers[run], flat = flat[:len(rows)], flat[len(rows):]
+        return answers
 
-    def one(i: int) -> None:
-        try:
-            results[i] = optimize_open_loop(task, start=starts[i], iters=iters, progress=progress,
-                                            _evaluate=lambda requests: lockstep.evaluate(i, requests), **kwargs)
-        except BaseException as exc:  # handed to the caller below
-            results[i] = exc
-        finally:
-            lockstep.leave()
-
-    threads = [threading.Thread(target=one, args=(i,), daemon=True) for i in range(len(starts))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    lockstep = Lockstep(len(starts), evaluate)
+    results = run_in_lockstep(lockstep, len(starts), lambda i: optimize_open_loop(
+        task, start=starts[i], iters=iters, progress=progress, callback=callback_of(i),
+        _evaluate=lambda requests: lockstep.ask(i, requests), **kwargs))
     for r in results:
         if isinstance(r, BaseException):
             raise r
     return results
-
-
-class _Lockstep:
-    """The evaluations that several optimisations (each in its own thread) ask for, run as one batch once every
-    optimisation still running is waiting for its own; requests go in the order of the runs, so the batches, and
-    the results, do not depend on the threads' timing."""
-
-    def __init__(self, task: ControlTask, runs: int):
-        self.task = task
-        self.running = runs
-        self.pending: dict[int, list] = {}
-        self.answers: dict[int, list] = {}
-        self.lock = threading.Condition()
-
-    def evaluate(self, run: int, requests: list) -> list:
-        with self.lock:
-            self.pending[run] = requests
-            self._dispatch()
-            while run not in self.answers:
-                self.lock.wait()
-            answer = self.answers.pop(run)
-        if isinstance(answer, BaseException):
-            raise answer
-        return answer
-
-    def leave(self) -> None:
-        with self.lock:
-            self.running -= 1
-            self._dispatch()
-
-    def _dispatch(self) -> None:
-        if not self.pending or len(self.pending) < self.running:
-            return
-        runs = sorted(self.pending)
-        try:
-            flat = self.task.evaluate_many([r for k in runs for r in self.pending[k]])
-        except BaseException as exc:  # every waiting run raises it (a bug, not a rejected trial)
-            self.answers.update(dict.fromkeys(runs, exc))
-        else:
-            for k in runs:
-                size = len(self.pending[k])
-                self.answers[k], flat = flat[:size], flat[size:]
-        self.pending.clear()
-        self.lock.notify_all()
 
 
 def _finish(result: ControlResult, bar, t0: float) -> ControlResult:
@@ -835,7 +911,7 @@ def _finish(result: ControlResult, bar, t0: float) -> ControlResult:
 
 def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = None, lr: float = 1e-3, hidden: int = 200,
               seed: int = 0, zero_start: bool = True, damping: float = 1e-3, max_step: float = 20.0,
-              progress: bool = False) -> ControlResult:
+              warm_start: int = 0, progress: bool = False) -> ControlResult:
     """Train a PyTorch MLP controller through the simulator (warpcloth.torch): at the start of every controlled
     interval the MLP maps the cloth's state (positions relative to the target and velocities of all particles) to
     the interval's pushes (the seed's "Ours + FC": Linear -> ReLU -> Linear).
@@ -850,6 +926,14 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
       is the smallest change of the weights that the damped linear model asks for,
       ``d = -J^T (J J^T + mu I)^-1 r`` (mu = damping * tr(J J^T) / 3), scaled so that no push at the current
       trajectory's states changes by more than ``max_step`` [m/s^2].
+
+    ``warm_start`` (simulations, 0: none): first optimise the pushes themselves (:func:`optimize_open_loop` from zero,
+    the open loop's default optimiser) with that many simulations, then set the output layer so that the network
+    gives those pushes at the states their rollout passes through (one forward simulation: the least-norm solution
+    for the output layer's weights and bias, the hidden layer kept as initialised), and train from there. The
+    network's first simulation then repeats the open loop's best one (to rounding), whatever its initial weights:
+    training starts in the open loop's basin instead of where a random network throws the cloth. Every simulation
+    counts towards ``iters``.
 
     A simulation that raises (CollisionError, SimulationError) is a rejected step (``ControlResult.failed_trials``)
     and the run goes on: Adam goes back to the last weights that simulated and halves its learning rate;
@@ -867,8 +951,9 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
         hidden: Width of the hidden layer.
         seed: Seed of torch's generator for the initial weights.
         zero_start: Zero the output layer, so training starts from no pushes (as the open loop does); else it keeps
-            PyTorch's random initialisation (a random start).
+            PyTorch's random initialisation (a random start). A warm start sets the output layer either way.
         damping, max_step: Gauss-Newton's damping and step bound.
+        warm_start: Simulations of the open-loop optimisation the network is first fitted to (0: none).
         progress: Show a progress bar (tqdm).
 
     Returns:
@@ -886,6 +971,9 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
     problem = check_control_optimizer(optimizer, "mlp", task.target_com, task.regularizer)
     if problem:
         raise ValueError(f"optimizer: {problem}")
+    if int(warm_start) != warm_start or not 0 <= warm_start < iters:
+        raise ValueError(f"warm_start must be a whole number of simulations in [0, iters = {iters}), got "
+                         f"{warm_start!r}")
     torch.manual_seed(seed)
     model = task.model
     device, dtype = torch_device(model), torch_dtype(model)
@@ -910,14 +998,15 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
     def features(x, v):
         return torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
 
-    def rollout():
-        """The final positions, the pushes and the network's inputs of one closed-loop simulation."""
+    def rollout(fixed=None):
+        """The final positions, the pushes and the network's inputs of one closed-loop simulation (or of the
+        open-loop pushes ``fixed``, (controlled, k, 3), where given)."""
         x, v = x0, v0
         pushes, inputs = [], []
         for s in range(controlled):
             f = features(x, v)  # the push depends on the state: the gradient flows through it (closed loop)
             inputs.append(f.detach())
-            push = push_scale * net(f).reshape(k, 3)
+            push = push_scale * net(f).reshape(k, 3) if fixed is None else fixed[s]
             pushes.append(push)
             steps = min(task.interval_steps, task.steps - s * task.interval_steps)
             force = torch.zeros((n, 3), dtype=dtype, device=device).index_put((pushed,), task.push_mass * push)
@@ -940,8 +1029,13 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
         return loss
 
     result = ControlResult(params=np.zeros(task.params_shape))
-    bar = progress_bar(iters, f"control (mlp, {optimizer})", "sim") if progress else None
     t0 = time.perf_counter()
+    if warm_start:
+        opened = optimize_open_loop(task, iters=warm_start, progress=progress)
+        result.losses, result.errors_pct = list(opened.losses), list(opened.errors_pct)
+        result.failed_trials = list(opened.failed_trials)
+        result.params, result.simulations, result.error_pct = opened.params, opened.simulations, opened.error_pct
+    bar = progress_bar(iters - len(result.losses), f"control (mlp, {optimizer})", "sim") if progress else None
 
     def record(x, pushes, loss: float) -> None:
         task.simulations += 1
@@ -964,6 +1058,23 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
         result.errors_pct.append(math.inf)
         if bar is not None:
             bar.update()
+
+    if warm_start:  # the output layer that gives the open loop's pushes at its rollout's states
+        fixed = torch.tensor(result.params[:controlled], dtype=dtype, device=device)
+        try:
+            with torch.no_grad():
+                x, pushes, inputs = rollout(fixed)
+            loss = float(loss_of(x, pushes))
+        except (wc.CollisionError, wc.SimulationError) as exc:
+            failed(exc)
+        else:
+            record(x, pushes, loss)
+            with torch.no_grad():
+                hidden_out = torch.relu(net[0](torch.stack(inputs))).double()
+                lhs = torch.cat([hidden_out, torch.ones_like(hidden_out[:, :1])], dim=1)
+                out = torch.linalg.pinv(lhs) @ (fixed.reshape(controlled, -1).double() / push_scale)
+                net[2].weight.copy_(out[:-1].T.to(dtype))
+                net[2].bias.copy_(out[-1].to(dtype))
 
     if optimizer == "adam":
         opt = torch.optim.Adam(net.parameters(), lr=lr)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import os
-import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -31,8 +30,9 @@ from warpcloth.materials import (
     STRETCHING_SHAPE,
 )
 from warpcloth.progress import progress_bar
-from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, load_scene
-from warpcloth.tasks.optim import adam, lbfgs
+from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
+from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
+from warpcloth.tasks.optim import adam, cmaes, lbfgs
 from warpcloth.tasks.scenes import THICKEN
 
 # -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
@@ -370,6 +370,10 @@ START_SCAN = {"density": (0.5, 2.0**-0.5, 1.0, 2.0**0.5, 2.0), "stretch": tuple(
 0.49x to 1.41x the seed's mean start) and on its warp and weft stretch (1/4 to 32; the fabrics span 0.18x to 29x).
 A fit does not cross these ranges by gradient steps, and the two act together (README, Material estimation)."""
 
+SEARCH_SIGMA = 0.5
+"""The global search's default initial spread (``SearchSpec.sigma``) in the parameterization's units (log-scale for
+density, warp/weft stretch and bending: a factor of e^0.5 = 1.65)."""
+
 
 @dataclass
 class EstimationResult:
@@ -398,15 +402,17 @@ class EstimationResult:
 
 def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
-                      scan: dict[str, Sequence[float]] | None = START_SCAN, progress: bool = False
-                      ) -> EstimationResult:
+                      scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
+                      progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
     Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
     SGD with momentum 0.9 on the seed's scaled units, lr 0.1 for density and stretching and 10 for bending, with the
     growing-horizon curriculum: 2 steps more each time the loss drops under 1e-4 m^2). ``iters`` counts evaluations.
     ``free`` names the parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others keep
-    ``initial``'s values.
+    ``initial``'s values. ``cmaes``: a global search, CMA-ES (``warpcloth.tasks.optim.cmaes``) over the free
+    parameters around the start with ``search.sigma`` (default :data:`SEARCH_SIGMA`), each point one forward
+    evaluation, then L-BFGS from its best point with ``search.refine`` evaluations (default a fifth of ``iters``).
 
     ``scan`` (``{"density": factors, "stretch": factors}``, default ``START_SCAN``): before ``lbfgs`` or ``adam``, the
     loss (forward only) of ``initial`` with its density and its warp and weft stretch times every pair of factors
@@ -459,6 +465,18 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         loss, g = objective(theta)
         return loss, g[mask]
 
+    def loss_free(theta_free: np.ndarray) -> float:
+        """The loss alone (a forward evaluation): the global search's."""
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = theta_free
+        try:
+            loss = fit.loss(param.decode(theta))
+        except wc.SimulationError as exc:  # a diverging trial: an infinite loss
+            result.diverged.append(str(exc))
+            loss = math.inf
+        record(loss, fit.steps)
+        return loss
+
     seconds0 = fit.seconds
     scan = dict(scan or {})
     unknown = set(scan) - {"density", "stretch"}
@@ -478,6 +496,18 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     elif optimizer == "adam":
         theta = np.zeros(N_PARAMS)
         theta[mask] = adam(objective_free, theta0, iters=iters)
+    elif optimizer == "cmaes":
+        search = search or SearchSpec()
+        refine = iters // 5 if search.refine is None else min(search.refine, iters)
+        population = search.population or 4 + int(3 * math.log(theta0.size))
+        generations = (iters - refine) // population
+        start = theta0
+        if generations:
+            start = cmaes(lambda points: [loss_free(q) for q in points], theta0, sigma=search.sigma or SEARCH_SIGMA,
+                          generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
+        remaining = iters - generations * population
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     else:
         theta = _seed_sgd(fit, param, objective, iters)
     result.seconds += fit.seconds - seconds0
@@ -515,8 +545,8 @@ def _scan_start(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, densiti
 
 def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc.Material] | None = None,
                        optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
-                       scan: dict[str, Sequence[float]] | None = START_SCAN, progress: bool = False
-                       ) -> list[EstimationResult]:
+                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
+                       progress: bool = False) -> list[EstimationResult]:
     """:func:`estimate_material` for every world of a batched ``fit`` at once (a fabric library, or several starts
     of one fabric: a world per fit), each world from ``initial`` (one material, or one per world; default: the
     seed's mean). The fits run in lockstep: each evaluation waits until every unfinished fit has asked for one, and
@@ -533,32 +563,21 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
         SimulationError: when a world's first evaluation fails (as :func:`estimate_material`), naming the world.
     """
     if optimizer == "seed-sgd":
-        raise ValueError("estimate_materials runs lbfgs or adam in lockstep; seed-sgd grows each fit's horizon")
+        raise ValueError("estimate_materials runs lbfgs, adam or cmaes in lockstep; seed-sgd grows each fit's "
+                         "horizon")
     worlds = fit.world_count
     starts = [initial] * worlds if initial is None or isinstance(initial, wc.Material) else list(initial)
     if len(starts) != worlds:
         raise ValueError(f"initial: {len(starts)} materials for a fit of {worlds} worlds")
-    batch = _Lockstep(fit, progress_bar(iters, f"estimate {worlds} worlds ({optimizer})", "batch")
-                      if progress else None)
-    results: list[EstimationResult | None] = [None] * worlds
-    errors: dict[int, BaseException] = {}
-
-    def run(w: int) -> None:
-        try:
-            results[w] = estimate_material(_WorldFit(batch, w), initial=starts[w], optimizer=optimizer, iters=iters,
-                                           free=free, scan=scan)
-        except BaseException as exc:  # noqa: BLE001 -- raised below, naming the world
-            errors[w] = exc
-        finally:
-            batch.leave()
-
-    threads = [threading.Thread(target=run, args=(w,), name=f"estimate world {w}") for w in range(worlds)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if batch.bar is not None:
-        batch.bar.close()
+    bar = progress_bar(iters, f"estimate {worlds} worlds ({optimizer})", "batch") if progress else None
+    batch = _BatchFit(fit, bar)
+    outcomes = run_in_lockstep(batch.lockstep, worlds, lambda w: estimate_material(
+        _WorldFit(batch, w), initial=starts[w], optimizer=optimizer, iters=iters, free=free, scan=scan,
+        search=search))
+    results = [None if isinstance(r, BaseException) else r for r in outcomes]
+    errors = {w: r for w, r in enumerate(outcomes) if isinstance(r, BaseException)}
+    if bar is not None:
+        bar.close()
     if errors:
         w, exc = min(errors.items())
         if isinstance(exc, wc.SimulationError):
@@ -567,48 +586,16 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
     return results
 
 
-class _Lockstep:
-    """The batch of :func:`estimate_materials`: collects every unfinished fit's request (a material, forward only
-    or with the gradient) and, once all have asked, evaluates them as one simulation of ``fit``'s worlds; a world
-    without a request (its fit is done, or its trial failed) simulates its last material that did."""
+class _BatchFit:
+    """The batch of :func:`estimate_materials`: every unfinished fit's request (a material, forward only or with
+    the gradient), once all have asked, evaluated as one simulation of ``fit``'s worlds (a :class:`Lockstep`); a
+    world without a request (its fit is done, or its trial failed) simulates its last material that did."""
 
     def __init__(self, fit: TrajectoryFit, bar):
-        self.fit, self.bar = fit, bar
-        self.running = fit.world_count
-        self.pending: dict[int, tuple[wc.Material, bool]] = {}
-        self.answers: dict[int, object] = {}
+        self.fit = fit
+        self.lockstep = Lockstep(fit.world_count, self._evaluate, on_batch=bar.update if bar is not None else None)
         self.seconds = [0.0] * fit.world_count
         self.simulated: list[wc.Material | None] = [None] * fit.world_count
-        self.lock = threading.Condition()
-
-    def ask(self, world: int, material: wc.Material, grad: bool):
-        with self.lock:
-            self.pending[world] = (material, grad)
-            self._run_if_complete()
-            while world not in self.answers:
-                self.lock.wait()
-            answer = self.answers.pop(world)
-        if isinstance(answer, BaseException):
-            raise answer
-        return answer
-
-    def leave(self) -> None:
-        with self.lock:
-            self.running -= 1
-            self._run_if_complete()
-
-    def _run_if_complete(self) -> None:
-        """(Holding the lock.) Evaluate the requests once every unfinished fit has made one."""
-        if not self.pending or len(self.pending) < self.running:
-            return
-        requests, self.pending = self.pending, {}
-        try:
-            self.answers.update(self._evaluate(requests))
-        except BaseException as exc:  # noqa: BLE001 -- every waiting fit gets it, none waits forever
-            self.answers.update({w: exc for w in requests})
-        if self.bar is not None:
-            self.bar.update()
-        self.lock.notify_all()
 
     def _evaluate(self, requests: dict[int, tuple[wc.Material, bool]]) -> dict[int, object]:
         """Each request's answer: a loss, a (loss, gradients) tuple, or the SimulationError that rejected it."""
@@ -645,9 +632,9 @@ class _Lockstep:
 
 
 class _WorldFit:
-    """One world of a :class:`_Lockstep` batch, in a TrajectoryFit's place for :func:`estimate_material`."""
+    """One world of a :class:`_BatchFit`, in a TrajectoryFit's place for :func:`estimate_material`."""
 
-    def __init__(self, batch: _Lockstep, world: int):
+    def __init__(self, batch: _BatchFit, world: int):
         self.batch, self.world = batch, world
         self.steps = batch.fit.steps
 
@@ -656,10 +643,10 @@ class _WorldFit:
         return self.batch.seconds[self.world]
 
     def loss(self, m: wc.Material, steps: int | None = None) -> float:
-        return self.batch.ask(self.world, m, grad=False)
+        return self.batch.lockstep.ask(self.world, (m, False))
 
     def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
-        return self.batch.ask(self.world, m, grad=True)
+        return self.batch.lockstep.ask(self.world, (m, True))
 
     def simulation_error(self, m: wc.Material) -> float:
         return 100.0 * math.sqrt(self.loss(m))
@@ -674,8 +661,9 @@ class EstimationTask:
         fit: The loss (a TrajectoryFit, or a MultiMotionFit of several).
         start: The material the fit starts from (default: the seed's mean of 8 fabrics).
         free: The parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``).
-        optimizer: ``"lbfgs"``, ``"adam"`` or ``"seed-sgd"``.
-        iters: Forward + backward evaluations.
+        optimizer: ``"lbfgs"``, ``"adam"``, ``"seed-sgd"`` or ``"cmaes"`` (global search, then L-BFGS).
+        iters: Evaluations (forward + backward; the global search's forward ones count one each).
+        search: The global search's settings (``optimizer="cmaes"``).
         truth: The true material when the targets were simulated with one (for parameter errors), else None.
         source: Where the targets came from, in words.
     """
@@ -685,6 +673,7 @@ class EstimationTask:
     free: tuple[str, ...] = MATERIAL_PARTS
     optimizer: str = "lbfgs"
     iters: int = 100
+    search: SearchSpec = field(default_factory=SearchSpec)
     truth: wc.Material | None = None
     source: str = ""
 
@@ -724,14 +713,14 @@ class EstimationTask:
             source = f"{truth.name} simulated by warpcloth"
         fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
                             options=scene.solver_options)
-        return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters, truth=truth,
-                   source=source)
+        return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters,
+                   search=spec.search, truth=truth, source=source)
 
     def run(self, *, optimizer: str | None = None, iters: int | None = None, progress: bool = False
             ) -> EstimationResult:
         """:func:`estimate_material` with the task's settings (``optimizer``, ``iters`` override them)."""
         return estimate_material(self.fit, initial=self.start, optimizer=optimizer or self.optimizer,
-                                 iters=iters or self.iters, free=self.free, progress=progress)
+                                 iters=iters or self.iters, free=self.free, search=self.search, progress=progress)
 
 
 def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:

@@ -25,7 +25,7 @@ import math
 import os
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, is_dataclass
+from dataclasses import asdict, dataclass, is_dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -128,12 +128,17 @@ class ControlJob:
     """A motion control run, as ``warpcloth control`` runs it: a scene's ``[control]`` task (by default the seed's
     throw). ``seed``: the start; for the open loop None is zero pushes (the seed's start) and a number random pushes
     (normal, :data:`START_SIGMA`, from ``numpy.random.default_rng(seed)``); for the MLP the seed of its initial
-    weights (None: 0)."""
+    weights (None: 0). With a global search (``optimizer="multistart"`` or ``"cmaes"``) the seed also seeds the
+    search.
+    ``optimizer``: the controller's optimiser (default: the task's, ``ControlTask.optimizer_for``);
+    ``warm_start``: the MLP's (``train_mlp``; default: the task's)."""
 
     scene: str | None = None
     controller: str | None = None
     iters: int | None = None
     seed: int | None = None
+    optimizer: str | None = None
+    warm_start: int | None = None
     steps: int | None = None
     device: str | None = None
 
@@ -147,18 +152,29 @@ class ControlJob:
         controller = self.controller or task.controller
         return controller, self.iters or task.default_iters(controller)
 
+    def optimizer_of(self, task) -> str:
+        """The run's optimiser: the job's, else the task's for the run's controller."""
+        return self.optimizer or task.optimizer_for(self.settings(task)[0])
+
     def start(self, task) -> dict:
-        """The optimiser's start arguments."""
-        if self.settings(task)[0] == "open-loop":
-            if self.seed is None:
-                return {}
-            return {"start": np.random.default_rng(self.seed).normal(scale=START_SIGMA, size=task.n_params)}
-        return {"seed": self.seed or 0}
+        """The optimiser's arguments: its start, and the job's optimiser where it names one."""
+        chosen = {"optimizer": self.optimizer} if self.optimizer else {}
+        if self.settings(task)[0] != "open-loop":
+            if self.warm_start is not None:
+                chosen["warm_start"] = self.warm_start
+            return {**chosen, "seed": self.seed or 0}
+        if self.seed is None:
+            return chosen
+        from warpcloth.scene import GLOBAL_OPTIMIZERS
+
+        if self.optimizer_of(task) in GLOBAL_OPTIMIZERS:
+            chosen["search"] = replace(task.search, seed=self.seed)
+        return {**chosen, "start": np.random.default_rng(self.seed).normal(scale=START_SIGMA, size=task.n_params)}
 
     def record(self, task, result) -> dict:
         """The run's figures (what ``warpcloth control --json`` writes)."""
         controller, iters = self.settings(task)
-        return {"scene": task.name, "controller": controller, "optimizer": task.optimizer_for(controller),
+        return {"scene": task.name, "controller": controller, "optimizer": self.optimizer_of(task),
                 "seed": self.seed,
                 "error_pct": result.error_pct, "simulations": result.simulations, "iters": iters,
                 "seconds": result.seconds, "losses": result.losses, "errors_pct": result.errors_pct,
