@@ -1,14 +1,16 @@
-"""The README's benchmark figures, rendered from the JSON files the benchmarks wrote into benchmarks/results/.
+"""The benchmark figures of README.md and the documentation (docs/**/*.md), rendered from the JSON files the
+benchmarks wrote into benchmarks/results/.
 
-Every measured figure in README.md sits in a block
+Every measured figure in those pages sits in a block
 
     <!-- results NAME: benchmarks/results/FILE.json [...] -->
     ... (generated: a table, or sentences with the figures) ...
     <!-- end results -->
 
-whose body is ``BLOCKS[NAME]`` applied to those files. ``python benchmarks/readme_tables.py`` rewrites every block
-from the current results; ``--check`` only compares and exits 1 on a difference (``tests/test_benchmarks.py`` runs
-the same check, so a hand-edited figure or a stale table fails the tests).
+whose body is ``BLOCKS[NAME]`` applied to those files (one argument per file, in order).
+``python benchmarks/readme_tables.py`` rewrites every block of every page from the current results; ``--check`` only
+compares and exits 1 on a difference (``tests/test_benchmarks.py`` runs the same check, so a hand-edited figure or a
+stale table fails the tests).
 
 Plain JSON and Markdown only: this module imports neither Warp nor warpcloth.
 """
@@ -25,6 +27,7 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = REPO_ROOT / "benchmarks" / "results"
 README = REPO_ROOT / "README.md"
+DOCS = REPO_ROOT / "docs"
 
 BLOCK_RE = re.compile(r"^<!-- results (?P<name>[\w-]+): (?P<files>[^>]*?) -->\n(?P<body>.*?)^<!-- end results -->$",
                       re.S | re.M)
@@ -798,7 +801,60 @@ def jobs(d: dict) -> str:
     return "\n".join(out)
 
 
+def integrators(d: dict) -> str:
+    """BDF2 against backward Euler: error against dt (with the fitted slope) and the energy a swinging sheet loses."""
+    names = {"euler": "backward Euler", "bdf2": "BDF2"}
+    scenes = {"free fall": "In free fall, against the exact solution",
+              "swinging": "On a sheet swinging in its plane from two soft handles, against BDF2 at a finer step"}
+    out = []
+    for scene, label in scenes.items():
+        parts = []
+        for integrator in ("bdf2", "euler"):
+            rs = sorted((r for r in d["orders"] if r["scene"] == scene and r["integrator"] == integrator),
+                        key=lambda r: -r["dt"])
+            if rs:
+                parts.append(f"{names[integrator]} {length(rs[0]['err_m'])} … {length(rs[-1]['err_m'])} from dt "
+                             f"{frac(rs[0]['dt'])} to {frac(rs[-1]['dt'])}, slope {rs[0]['order']:.2f}")
+        if parts:
+            out.append(f"- {label}, RMS error at {d['T']:g} s: " + "; ".join(parts) + ".")
+    energy = [f"{names[e['integrator']]} {100 * e['end_change']:+.0f} % at dt {frac(e['dt'])}" for e in d["energies"]]
+    out.append(f"- Energy in the swinging sheet over {d['energy_T']:g} s, nothing dissipating (the total's change at "
+               "the end, in % of the initial kinetic energy): " + ", ".join(energy).replace("-", "−") + ".")
+    out += ["", provenance(d)]
+    return "\n".join(out)
+
+
+def headline(est: dict, control: dict, ablation: dict) -> str:
+    """The README's short table: warpcloth against the seed's published figures on its three experiments."""
+    single, multi = est["means"][0], est["means"][-1]
+    s = est["seed"]
+    rows = [["Material estimation (Table 2): simulation error, mean of 10 fabrics",
+             f"{pct(single['sim_err_pct'])} ({pct(multi['sim_err_pct'])} from three motions)",
+             f"{s['sim_err_pct']:g} %"],
+            ["Material estimation: density error", f"{pct(single['density_err_pct'])} "
+             f"({pct(multi['density_err_pct'])} from three motions)", f"{s['density_err_pct']:g} %"],
+            ["Material estimation: time per step and evaluation (forward + backward)",
+             f"{g(single['runtime_s_per_step_iter'] * 1e3, 2)} ms", f"{s['runtime_s_per_step_iter']:g} s"]]
+    for key, seed_key, label in (("open_loop", "open-loop", "Throw into a basket, open loop: error"),
+                                 ("mlp_gauss_newton", "mlp", "Throw into a basket, MLP controller: error")):
+        r, sd = control.get(key), control["seed"][seed_key]
+        if r:
+            rows.append([label, f"{g(r['error_pct'], 3)} % after {r['simulations']:g} simulations (median of 3 starts)",
+                         f"{sd['error_pct']:g} % after {sd['simulations']}"])
+    big = ablation["records"][-1]
+    seed_big = ablation["seed"].get(big["mesh"])
+    if seed_big and big.get("qr_backward_s") is not None:
+        rows.append([f"Backward through the collision response, {big['mesh'].replace('x', '×')} (Table 1)",
+                     f"{g(big['qr_backward_s'], 2)} s", f"{seed_big['qr_backward_s']:g} s"])
+    dates = sorted(d["meta"]["date"][:10] for d in (est, control, ablation))
+    return "\n".join([table(["", "warpcloth", "seed (published)"], rows), "",
+                      f"A 2-core CPU, runs of {dates[0]} to {dates[-1]}; the commands, the machine and every "
+                      "figure: the documentation's results pages."])
+
+
 BLOCKS = {
+    "headline": headline,
+    "integrators": integrators,
     "jobs": jobs,
     "graph_step": graph_step,
     "presets": presets,
@@ -820,11 +876,20 @@ BLOCKS = {
 }
 
 
-# -- README ----------------------------------------------------------------------------------------------------------
+# -- the pages -------------------------------------------------------------------------------------------------------
+def pages() -> list[Path]:
+    """Every page that may hold results blocks: README.md and the documentation's Markdown sources."""
+    return [README, *sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.relative_to(DOCS).parts)]
+
+
+def page_name(path: Path) -> str:
+    return str(path.resolve().relative_to(REPO_ROOT)) if path.resolve().is_relative_to(REPO_ROOT) else str(path)
+
+
 def load(path: str) -> dict:
     p = REPO_ROOT / path
     if not p.resolve().is_relative_to(RESULTS_DIR.resolve()) or p.resolve().parent != RESULTS_DIR.resolve():
-        raise ValueError(f"{path}: README figures must come from benchmarks/results/*.json")
+        raise ValueError(f"{path}: published figures must come from benchmarks/results/*.json")
     return json.loads(p.read_text())
 
 
@@ -836,9 +901,9 @@ def render(name: str, files: str) -> str:
     paths = files.split()
     if name not in BLOCKS:
         raise KeyError(f"unknown results block {name!r} (known: {', '.join(BLOCKS)})")
-    if len(paths) != 1:
-        raise ValueError(f"block {name}: one results file expected, got {paths}")
-    return BLOCKS[name](load(paths[0])).rstrip("\n") + "\n"
+    if not paths:
+        raise ValueError(f"block {name}: no results file named")
+    return BLOCKS[name](*(load(p) for p in paths)).rstrip("\n") + "\n"
 
 
 def update(text: str) -> str:
@@ -853,8 +918,9 @@ def update(text: str) -> str:
     return BLOCK_RE.sub(sub, text)
 
 
-def differences(text: str) -> list[str]:
-    """One message per block whose body differs from its rendering (with the first differing line)."""
+def differences(text: str, page: str = "README.md") -> list[str]:
+    """One message per block of ``text`` (the page ``page``) whose body differs from its rendering (with the first
+    differing line)."""
     out = []
     for m in blocks(text):
         want = render(m["name"], m["files"])
@@ -863,8 +929,8 @@ def differences(text: str) -> list[str]:
             first = next((i for i, (a, b) in enumerate(zip(have_lines, want_lines)) if a != b),
                          min(len(have_lines), len(want_lines)))
             line = text[: m.start()].count("\n") + 2 + first
-            out.append(f"README.md:{line}: block {m['name']} differs from {m['files']}:\n"
-                       f"  README:    {have_lines[first] if first < len(have_lines) else '(nothing)'}\n"
+            out.append(f"{page}:{line}: block {m['name']} differs from {m['files']}:\n"
+                       f"  page:      {have_lines[first] if first < len(have_lines) else '(nothing)'}\n"
                        f"  generated: {want_lines[first] if first < len(want_lines) else '(nothing)'}")
     return out
 
@@ -872,18 +938,23 @@ def differences(text: str) -> list[str]:
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--check", action="store_true", help="compare only; exit 1 if a block differs")
-    p.add_argument("--readme", default=str(README))
+    p.add_argument("pages", nargs="*", type=Path, help="pages to render (default: README.md and docs/**/*.md)")
     args = p.parse_args()
-    path = Path(args.readme)
-    text = path.read_text()
+    diffs, count = [], 0
+    for path in args.pages or pages():
+        text = path.read_text()
+        count += len(blocks(text))
+        if args.check:
+            diffs += differences(text, page_name(path))
+            continue
+        new = update(text)
+        if new != text:
+            path.write_text(new)
+            print(f"{len(blocks(text))} results blocks rendered into {page_name(path)}")
     if args.check:
-        diffs = differences(text)
-        print("\n".join(diffs) or f"{len(blocks(text))} results blocks match their JSON")
+        print("\n".join(diffs) or f"{count} results blocks match their JSON")
         sys.exit(1 if diffs else 0)
-    new = update(text)
-    if new != text:
-        path.write_text(new)
-    print(f"{len(blocks(text))} results blocks rendered into {path}" + ("" if new != text else " (unchanged)"))
+    print(f"{count} results blocks in all")
 
 
 if __name__ == "__main__":

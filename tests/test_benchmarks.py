@@ -1,6 +1,6 @@
 """Benchmarks that cannot rot: every script in benchmarks/ runs with ``--quick`` (a few seconds each) and writes its
-JSON, uses no private attribute, and every figure in the README's results blocks is what benchmarks/readme_tables.py
-renders from the JSON files in benchmarks/results/."""
+JSON, uses no private attribute, and every figure in the results blocks of README.md and of the documentation (docs/)
+is what benchmarks/readme_tables.py renders from the JSON files in benchmarks/results/."""
 
 from __future__ import annotations
 
@@ -96,7 +96,7 @@ def test_no_private_access():
     assert not bad, "private attribute access in benchmarks:\n" + "\n".join(bad)
 
 
-# -- the README against the results ----------------------------------------------------------------------------------
+# -- the README and the docs against the results ---------------------------------------------------------------------
 def _readme_tables():
     spec = importlib.util.spec_from_file_location("readme_tables", BENCH / "readme_tables.py")
     module = importlib.util.module_from_spec(spec)
@@ -110,46 +110,58 @@ def rt():
 
 
 @pytest.fixture(scope="module")
-def readme():
-    return (ROOT / "README.md").read_text()
+def pages(rt):
+    """{page name: text} of README.md and every docs page."""
+    return {rt.page_name(p): p.read_text() for p in rt.pages()}
 
 
-def test_readme_figures_match_results(rt, readme):
-    found = rt.blocks(readme)
-    assert len(found) >= 10, "the README's results blocks are missing"
-    diffs = rt.differences(readme)
-    assert not diffs, ("README figures differ from benchmarks/results (regenerate with "
-                       "python benchmarks/readme_tables.py after a full run):\n" + "\n".join(diffs))
+def test_pages_cover_readme_and_docs(rt, pages):
+    assert "README.md" in pages and any(name.startswith("docs/") for name in pages)
+    assert rt.blocks(pages["README.md"]), "the README's headline results block is missing"
+    assert sum(len(rt.blocks(text)) for text in pages.values()) >= 18, "results blocks are missing"
+    names = [m["name"] for text in pages.values() for m in rt.blocks(text)]
+    unused = set(rt.BLOCKS) - set(names)
+    assert not unused, f"results blocks no page shows: {sorted(unused)}"
 
 
-def test_readme_results_are_full_runs(rt, readme):
-    for m in rt.blocks(readme):
-        for path in m["files"].split():
-            assert path.startswith("benchmarks/results/") and "/quick/" not in path, path
-            meta = json.loads((ROOT / path).read_text()).get("meta")
-            if meta is not None:
-                assert meta["quick"] is False, f"{path} is a --quick run"
+def test_figures_match_results(rt, pages):
+    diffs = [d for name, text in pages.items() for d in rt.differences(text, name)]
+    assert not diffs, ("figures differ from benchmarks/results (regenerate with python benchmarks/readme_tables.py "
+                       "after a full run):\n" + "\n".join(diffs))
 
 
-def test_readme_tables_are_generated(rt, readme):
-    """Every Markdown table of the README is inside a results block: none is copied by hand."""
-    spans = [(m.start(), m.end()) for m in rt.blocks(readme)]
-    pos = 0
+def test_results_are_full_runs(rt, pages):
+    for text in pages.values():
+        for m in rt.blocks(text):
+            for path in m["files"].split():
+                assert path.startswith("benchmarks/results/") and "/quick/" not in path, path
+                meta = json.loads((ROOT / path).read_text()).get("meta")
+                if meta is not None:
+                    assert meta["quick"] is False, f"{path} is a --quick run"
+
+
+def test_tables_are_generated(rt, pages):
+    """Every Markdown table of README.md and docs/ is inside a results block: none is copied by hand."""
     loose = []
-    for i, line in enumerate(readme.splitlines(keepends=True), 1):
-        if line.startswith("|") and not any(a <= pos < b for a, b in spans):
-            loose.append(f"README.md:{i}: {line.strip()[:80]}")
-        pos += len(line)
+    for name, text in pages.items():
+        spans = [(m.start(), m.end()) for m in rt.blocks(text)]
+        pos = 0
+        for i, line in enumerate(text.splitlines(keepends=True), 1):
+            if line.lstrip().startswith("|") and not any(a <= pos < b for a, b in spans):
+                loose.append(f"{name}:{i}: {line.strip()[:80]}")
+            pos += len(line)
     assert not loose, "tables outside a results block:\n" + "\n".join(loose)
 
 
-def test_readme_check_catches_an_edited_figure(rt, readme):
-    """The comparison fails when one figure of a table is changed."""
-    m = next(m for m in rt.blocks(readme) if m["name"] == "step_time")
-    body = m["body"]
-    digit = re.search(r"\| (\d)", body.split("\n", 2)[2])  # first figure of the first data row
-    assert digit
-    start = m.start("body") + len(body.split("\n", 2)[0]) + len(body.split("\n", 2)[1]) + 2 + digit.start(1)
-    edited = readme[:start] + str((int(readme[start]) + 1) % 10) + readme[start + 1:]
-    assert rt.differences(edited)
-    assert not rt.differences(readme)
+def test_check_catches_an_edited_figure(rt, pages):
+    """The comparison fails when one figure of a table is changed, in the README and in a docs page."""
+    for name in ("README.md", next(n for n, t in pages.items() if n.startswith("docs/") and rt.blocks(t))):
+        text = pages[name]
+        m = rt.blocks(text)[0]
+        body = m["body"]
+        digit = re.search(r"\| (\d)", body.split("\n", 2)[2])  # first figure of the first data row
+        assert digit
+        start = m.start("body") + len(body.split("\n", 2)[0]) + len(body.split("\n", 2)[1]) + 2 + digit.start(1)
+        edited = text[:start] + str((int(text[start]) + 1) % 10) + text[start + 1:]
+        assert rt.differences(edited, name)
+        assert not rt.differences(text, name)
