@@ -94,8 +94,13 @@ def provenance(data: dict, what: str = "") -> str:
     env = meta.get("env") or {}
     blas = (", one BLAS thread" if env and set(env.values()) == {"1"}
             else "".join(f", {k}={v}" for k, v in env.items()))
-    return (f"Run: `{meta['command']}`{blas}, {meta['date'][:10]}, {meta['cpu_usable']}/{meta['cpu_count']} CPUs "
+    line = (f"Run: `{meta['command']}`{blas}, {meta['date'][:10]}, {meta['cpu_usable']}/{meta['cpu_count']} CPUs "
             f"({meta['cpu']}), warp {meta['warp']}, {duration(meta['wall_s'])}{load_s}.")
+    kept = [key for key in meta.get("kept", ()) if isinstance(data.get(key), dict)]
+    if kept:  # records an --only run took over from an earlier one (benchmarks/common.py kept_records)
+        line += " " + " ".join(f"`{key}` from the earlier run `{data[key]['kept_meta']['command']}`, "
+                               f"{data[key]['kept_meta']['date'][:10]}." for key in kept)
+    return line
 
 
 def duration(seconds: float) -> str:
@@ -652,10 +657,13 @@ def motion_control(d: dict) -> str:
     seed = d.get("seed", {})
     for key, seed_key, label in (("open_loop", "open-loop", "Open loop (Gauss–Newton)"),
                                  ("mlp_gauss_newton", "mlp", "MLP controller (Gauss–Newton on its weights)"),
-                                 ("mlp", "mlp", "MLP controller (Adam)")):
+                                 ("mlp", "mlp", "MLP controller (Adam)"),
+                                 ("mlp_warm", "mlp", "MLP controller warm-started from the open loop (20 simulations "
+                                                     "of its Gauss–Newton, then Gauss–Newton on the weights)")):
         r = d.get(key)
         if not r:
-            out.append(f"- {label}: not run." + (" (torch not installed)" if key != "open_loop" else ""))
+            if key != "mlp_warm":  # a record older files do not have
+                out.append(f"- {label}: not run." + (" (torch not installed)" if key != "open_loop" else ""))
             continue
         runs = "; ".join(f"{run['start']}: {g(run['error_pct'], 3)} % after {run['simulations']}"
                          + (f" ({len(run['failed_trials'])} trials rejected)" if run["failed_trials"] else "")
