@@ -42,12 +42,16 @@ def timed(totals: dict, phase: str):
         totals[phase] += time.perf_counter() - t0
 
 
-def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recording: bool) -> wp.array:
-    """One array of every node's position: cloth particles first, then obstacle vertices (taped)."""
+def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recording: bool,
+                 out: wp.array | None = None) -> wp.array:
+    """One array of every node's position: cloth particles first, then obstacle vertices (taped), in a new array,
+    or, untaped, into ``out`` (a buffer the caller owns)."""
     n = model.particle_count
-    out = wp.empty(n + obstacle_x.shape[0], dtype=model.types.vec3, device=model.device, requires_grad=recording)
+    taped = out is None
+    if taped:
+        out = wp.empty(n + obstacle_x.shape[0], dtype=model.types.vec3, device=model.device, requires_grad=recording)
     wp.launch(contact_kernels(model.scalar).gather_nodes, out.shape[0], device=model.device,
-              inputs=[cloth_x, obstacle_x, n], outputs=[out])
+              inputs=[cloth_x, obstacle_x, n], outputs=[out], record_tape=taped)
     return out
 
 
@@ -210,6 +214,14 @@ class DeviceBackend:
         self.node_count = node_count
         self._solver: DeviceProjection | None = None  # made on first use, grown as needed
         self._nodes = self._normals = self._weights = self._targets = None  # the step's contact lists (_grow)
+        dev = model.device
+        # Buffers of untaped steps and of the per-round checks, reused by every step: a taped step's constants and
+        # positions are its own instead (its recorded adjoint reads them in the backward pass)
+        self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._untaped_constants = (wp.zeros(node_count, dtype=wp.vec3d, device=dev),
+                                   wp.zeros(node_count, dtype=wp.int32, device=dev),
+                                   wp.zeros(node_count, dtype=wp.float64, device=dev))
+        self._untaped_z = wp.zeros(self.cloth_count, dtype=model.types.vec3, device=dev)
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
@@ -247,11 +259,14 @@ class DeviceBackend:
         kr = device_round_kernels(model.scalar)
         found, total, N = self._found, self._total, self.node_count
         if self._constants is None:  # x^ and the obstacle in float64, the masses: the step's constants
-            positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+            if self._recording:
+                positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+                free = wp.empty(N, dtype=wp.int32, device=dev)
+                inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
+            else:
+                positions, free, inv_mass = self._untaped_constants
             wp.launch(kr.positions64, N, device=dev, inputs=[self._x_hat, self._obstacle_end, self.cloth_count],
                       outputs=[positions], record_tape=False)
-            free = wp.empty(N, dtype=wp.int32, device=dev)
-            inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
             wp.launch(kr.inverse_mass, N, device=dev, inputs=[self._mass, model.particle_pin, self.cloth_count],
                       outputs=[free, inv_mass], record_tape=False)
             self._constants = (positions, free, inv_mass)
@@ -265,7 +280,8 @@ class DeviceBackend:
                   inputs=[start, end, *found_arrays, model.scalar(self.thickness), det.world_mode, det.node_world],
                   outputs=[normal, weight, target])
         wp.copy(self._nodes, det.nodes, dest_offset=4 * total, count=4 * found)
-        bad = wp.full(1, found + 1, dtype=wp.int32, device=dev)
+        bad = self._bad
+        bad.fill_(found + 1)
         wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, target, total],
                   outputs=[self._normals, self._weights, self._targets, bad], record_tape=False)
         j = int(bad.numpy()[0]) - 1
@@ -304,7 +320,10 @@ class DeviceBackend:
                 f"{solution.iterations} iterations: a contact violated or an active one off by "
                 f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)",
                 worlds=failed or None)
-        z = wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
+        # a taped round's z is its own (its gradient is this round's); an untaped one's is read before the next
+        # round projects again (the next detection gathers it, or the stage writes it into the step's result)
+        z = (wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=True) if self._recording
+             else self._untaped_z)
         wp.launch(device_round_kernels(model.scalar).cloth_positions, self.cloth_count, device=dev,
                   inputs=[solution.z], outputs=[z], record_tape=False)
         if self._recording:
@@ -341,20 +360,21 @@ class DeviceBackend:
 
         def adjoint():
             with timed(self.timings, "adjoint"):
-                d_z = wp.empty(N, dtype=wp.vec3d, device=dev)
+                # the solver's work arrays (the adjoints of a backward pass run one at a time), at the sizes the
+                # kernels were given when these were arrays of their own
+                work, m = solver.adjoint_work, max(count, 1)
+                d_z, d_z_in, grad_const = work.d_z, work.d_z_in, work.grad_const
+                grad_w, grad_n, grad_target = work.grad_w[:m], work.grad_n[:m], work.grad_target[:m]
                 wp.launch(kr.scaled_gradient, N, device=dev, inputs=[z.grad, inv_mass, n], outputs=[d_z])
-                d_z_in = wp.clone(d_z)
+                wp.copy(d_z_in, d_z)
                 d_lam = solver.adjoint_on_device(solution, d_z)
-                grad_w = wp.empty(max(count, 1), dtype=wp.vec4d, device=dev)
-                grad_n = wp.empty(max(count, 1), dtype=wp.vec3d, device=dev)
-                grad_target = wp.empty(max(count, 1), dtype=wp.float64, device=dev)
-                grad_const = wp.zeros(N, dtype=wp.vec3d, device=dev)
+                grad_const.zero_()
                 wp.launch(kr.push_contacts, count, device=dev,
                           inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
                           outputs=[grad_w, grad_n, grad_const, grad_target])
-                obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else wp.zeros(
-                    max(N - n, 1), dtype=model.types.vec3, device=dev)
-                mass_grad = mass.grad if mass.grad is not None else wp.zeros(n, dtype=model.scalar, device=dev)
+                obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else work.sink(
+                    max(N - n, 1), model.types.vec3, dev)
+                mass_grad = mass.grad if mass.grad is not None else work.sink(n, model.scalar, dev)
                 wp.launch(kr.position_gradients, N, device=dev,
                           inputs=[z.grad, d_z, d_z_in, inv_mass, grad_const, solution.z, positions, n],
                           outputs=[x_hat.grad, obstacle_grad, mass_grad])

@@ -58,12 +58,16 @@ class PrimitiveSet:
     grouped by world where the model has several (``node_world``: the world of each node), so that a query meets
     only its own world's primitives (kernels/geometry.py world_root)."""
 
-    def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None):
+    def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None,
+                 boxes: tuple[wp.array, wp.array] | None = None):
         self.count = len(indices)
         self.corners = indices.shape[1]
         self.indices = wp.array(indices.astype(np.int32), dtype=wp.int32, device=device)
-        self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
-        self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
+        if boxes is None:
+            boxes = (wp.zeros(self.count, dtype=wp.vec3, device=device),
+                     wp.zeros(self.count, dtype=wp.vec3, device=device))
+        self.lowers, self.uppers = boxes
+        """The boxes (count,) vec3: arrays of their own, or ``boxes``, views into a detector's boxes of all sets."""
         self.bvh: wp.Bvh | None = None
         self.groups = None
         if node_world is not None and self.count and node_world.max() > 0:
@@ -101,23 +105,35 @@ class ContactDetector:
         self.node_world_host = worlds
         """:attr:`node_world` on the host (error messages)."""
         self.grouped = int(model.world_count > 1)
-        cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
-        cloth_vertices = PrimitiveSet(np.arange(n)[:, None], dev, worlds)
-        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds)
-        self._sets = [cloth_tris, cloth_vertices, cloth_edges]
+        rows = [model.triangles_np, np.arange(n)[:, None], model.edge_indices.numpy()]
+        if obstacles:
+            V = model.obstacle_vertex_count
+            rows += [model.obstacle_tri_indices.numpy() + n, np.arange(n, n + V)[:, None],
+                     model.obstacle_edge_indices.numpy() + n]
+        # Every set's swept boxes in one launch (primitive_bounds_all): all primitives as rows of three corners, a
+        # vertex's and an edge's padded by repeating their last corner (the same box: min and max are exact), and
+        # each set's boxes a view into the one array of them.
+        rows = [np.asarray(r, dtype=np.int32).reshape(len(r), -1) for r in rows]
+        self._prims = wp.array(np.concatenate([np.pad(r, ((0, 0), (0, 3 - r.shape[1])), mode="edge") if len(r) else
+                                               np.zeros((0, 3), dtype=np.int32) for r in rows]),
+                               dtype=wp.int32, device=dev)
+        self._lowers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
+        self._uppers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
+        ends = [int(e) for e in np.cumsum([0] + [len(r) for r in rows])]
+        sets = [PrimitiveSet(r, dev, worlds, boxes=(self._lowers[lo:hi], self._uppers[lo:hi]))
+                for r, lo, hi in zip(rows, ends[:-1], ends[1:])]
+        cloth_tris, cloth_vertices, cloth_edges = sets[:3]
+        self._sets = sets
         # (query set, target set, kind, skip-incident/same-set flag)
         self._queries: list[tuple[PrimitiveSet, PrimitiveSet, str, int]] = []
         if obstacles:
-            V = model.obstacle_vertex_count
-            obst_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev, worlds)
-            obst_vertices = PrimitiveSet(np.arange(n, n + V)[:, None], dev, worlds)
-            obst_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev, worlds)
-            self._sets += [obst_tris, obst_vertices, obst_edges]
+            obst_tris, obst_vertices, obst_edges = sets[3:]
             self._queries += [(cloth_vertices, obst_tris, "vf", 0), (obst_vertices, cloth_tris, "vf", 0),
                               (cloth_edges, obst_edges, "ee", 0)]
         if self_collision:
             self._queries += [(cloth_vertices, cloth_tris, "vf", 1), (cloth_edges, cloth_edges, "ee", 1)]
-        self.world_mode = wp.zeros(model.world_count, dtype=wp.int32, device=dev)
+        self._world_modes: dict[bytes, wp.array] = {}  # set_world_modes: one array per pattern, never written again
+        self.set_world_modes(np.zeros(model.world_count, dtype=np.int32))
         """Each world's mode in the collision stage's current try (kernels/contact.py WORLD_SKIPPED...): set by
         :meth:`set_world_modes`; every world at the full thickness until then."""
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -130,9 +146,15 @@ class ContactDetector:
         """Each world's mode for the detections that follow (kernels/contact.py): 0 the full thickness, 1 keep start
         gaps (pairs that start inside the thickness are contacts only where they come closer than they started,
         kernels/collision.py START_SLACK), -1 skip the world (no contacts)."""
-        # a new array, not assigned into the old one: the tape's contact-geometry launches keep the modes of their
-        # try for the backward pass
-        self.world_mode = wp.array(np.asarray(modes, dtype=np.int32), dtype=wp.int32, device=self.device)
+        # Never assigned into: the tape's contact-geometry launches keep the modes array of their try for the
+        # backward pass. One array per pattern of modes, made the first time it is asked for and never written
+        # again, so a step reuses it without allocating (the common pattern, all worlds at full thickness, is made
+        # here at construction).
+        modes = np.ascontiguousarray(modes, dtype=np.int32)
+        array = self._world_modes.get(modes.tobytes())
+        if array is None:
+            array = self._world_modes[modes.tobytes()] = wp.array(modes, dtype=wp.int32, device=self.device)
+        self.world_mode = array
 
     def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> Contacts:
         """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host. ``reference``
@@ -173,11 +195,9 @@ class ContactDetector:
         :attr:`sign`); returns their count (the one value read back)."""
         k = self.kernels
         half = 0.5 * self.thickness
-        for prims in self._sets:
-            if prims.count:
-                wp.launch(k.primitive_bounds, prims.count, device=self.device,
-                          inputs=[x0, x1, prims.indices, prims.corners, half],
-                          outputs=[prims.lowers, prims.uppers], record_tape=False)
+        if self._prims.shape[0]:
+            wp.launch(k.primitive_bounds, self._prims.shape[0], device=self.device,
+                      inputs=[x0, x1, self._prims, 3, half], outputs=[self._lowers, self._uppers], record_tape=False)
         self._count.zero_()
         reference = x1 if reference is None else reference
         refitted = set()

@@ -53,6 +53,32 @@ class DeviceSolution:
         return np.flatnonzero(self.world_status != kp.CONVERGED).tolist()
 
 
+class AdjointWork:
+    """The collision stage's device backend's adjoint work arrays for ``node_count`` nodes and up to ``capacity``
+    contacts (one set per DeviceProjection, reused by every step's adjoint: they run one at a time)."""
+
+    def __init__(self, device, node_count: int, capacity: int):
+        f64 = wp.float64
+        self.d_z = wp.zeros(node_count, dtype=wp.vec3d, device=device)
+        self.d_z_in = wp.zeros(node_count, dtype=wp.vec3d, device=device)
+        self.grad_const = wp.zeros(node_count, dtype=wp.vec3d, device=device)
+        self.grad_w = wp.zeros(capacity, dtype=wp.vec4d, device=device)
+        self.grad_n = wp.zeros(capacity, dtype=wp.vec3d, device=device)
+        self.grad_target = wp.zeros(capacity, dtype=f64, device=device)
+        self.sinks: dict = {}
+        """Gradient arrays for inputs that have none (their gradient is dropped), by (shape, dtype)."""
+
+    def sink(self, count: int, dtype, device) -> wp.array:
+        """An array of ``count`` zeros of ``dtype`` to write a dropped gradient into (zeroed at each call)."""
+        key = (count, dtype)
+        array = self.sinks.get(key)
+        if array is None:
+            array = self.sinks[key] = wp.zeros(count, dtype=dtype, device=device)
+        else:
+            array.zero_()
+        return array
+
+
 class DeviceProjection:
     """Buffers and launches of the device projection for up to ``capacity`` contacts among ``node_count`` nodes,
     the nodes in ``world_count`` worlds (each world's contacts are its own QP, solved by its own thread).
@@ -91,6 +117,15 @@ class DeviceProjection:
         self._scratch = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._info = wp.zeros((self.world_count, 5), dtype=f64, device=device)
         self._rows = None
+        # The adjoint's work arrays, reused by every call (a backward pass runs one step's adjoint at a time, and
+        # nothing is kept from one call to the next but what the caller copies out of them)
+        self._adj_active = wp.zeros(m, dtype=wp.int32, device=device)
+        self._adj_sorted_d_lam = wp.zeros(m, dtype=f64, device=device)
+        self._adj_work = [wp.zeros(m, dtype=f64, device=device) for _ in range(6)]
+        self._adj_info = wp.zeros((self.world_count, 2), dtype=f64, device=device)
+        self._adj_d_lam = wp.zeros(m, dtype=f64, device=device)
+        self.adjoint_work = AdjointWork(device, N, m)
+        """Work arrays of a caller's adjoint (the collision stage's device backend), sized for this capacity."""
 
     def grown(self, capacity: int) -> DeviceProjection:
         """A projection of a larger capacity that resumes this one's step: its multipliers and positions kept."""
@@ -184,22 +219,25 @@ class DeviceProjection:
                           rtol: float = 1.0e-13) -> wp.array:
         """In place on the device: ``d_z`` (node_count,) vec3d holds W⁻¹ ∂L/∂z on entry (0 for constant nodes) and
         W⁻¹(∂L/∂z − G_Aᵀd_λ) on return; returns the kernels' d_λ (count,) in the caller's order (the negative of
-        :mod:`warpcloth.collision.adjoint`'s)."""
+        :mod:`warpcloth.collision.adjoint`'s), in this object's buffer: valid until the next call."""
         r = solution.rows
         dev = self.device
         m = max(r.count, 1)
-        active = wp.zeros(m, dtype=wp.int32, device=dev)
+        if m > self.capacity:
+            raise ValueError(f"{r.count} contacts for a device projection of capacity {self.capacity}")
+        # this object's work arrays, their first m entries zeroed (as new arrays of m zeros would be)
+        active, sorted_d_lam, d_lam = (a[:m] for a in (self._adj_active, self._adj_sorted_d_lam, self._adj_d_lam))
+        rhs, res, p, q, correction, remainder = (a[:m] for a in self._adj_work)
+        info = self._adj_info
+        for a in (active, sorted_d_lam, rhs, res, p, q, correction, remainder, info, d_lam):
+            a.zero_()
         if r.count:
             wp.launch(kp.active_set, r.count, device=dev,
                       inputs=[r, solution.z, solution.sorted_lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
-        sorted_d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
-        rhs, res, p, q, correction, remainder = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(6))
-        info = wp.zeros((self.world_count, 2), dtype=wp.float64, device=dev)
         wp.launch(kp.adjoint, self.world_count, device=dev, inputs=[r, active, wp.float64(rtol)],
                   outputs=[sorted_d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info],
                   record_tape=False)
-        d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
         if r.count:
             wp.launch(kp.scatter, r.count, device=dev, inputs=[sorted_d_lam, r.order], outputs=[d_lam],
                       record_tape=False)
@@ -220,7 +258,7 @@ class DeviceProjection:
         inv_mass = solution.rows.inv_mass.numpy()
         d_z = wp.array(np.asarray(grad_z, dtype=np.float64) * inv_mass[:, None], dtype=wp.vec3d, device=self.device)
         d_lam = self.adjoint_on_device(solution, d_z)
-        return d_z.numpy(), -d_lam.numpy()[:solution.rows.count]
+        return d_z.numpy(), -d_lam.numpy()[:solution.rows.count]  # a copy: d_lam is this object's buffer
 
     def backward(self, solution: DeviceSolution, grad_z: np.ndarray, *, x_hat: np.ndarray, mass: np.ndarray,
                  fixed: np.ndarray, obstacle_x: np.ndarray, nodes: np.ndarray, weights: np.ndarray,

@@ -123,6 +123,14 @@ class CollisionStage:
                                           np.linalg.norm(dm[:, :, 1] - dm[:, :, 0], axis=1)])
         self._edge_ends_device = wp.array(self._edge_ends, dtype=wp.int32, device=self.device)
         self._edge_rest_device = wp.array(self._edge_rest, dtype=wp.float64, device=self.device)
+        self._largest_strain = wp.zeros(1, dtype=wp.float64, device=self.device)
+        # The node positions detection reads (untaped, the stage's own, reused by every step): the step's start, its
+        # unprojected end (round 0, and the side of pairs touching at the start in every round) and a later round's
+        # end. A round that finds contacts gathers its start and end again, taped, into arrays of the step's own
+        # (the tape's contact geometry reads them in the backward pass); a round that finds none costs no taped
+        # launch and no allocation.
+        vec3 = model.types.vec3
+        self._start, self._reference, self._end = (wp.zeros(n + V, dtype=vec3, device=self.device) for _ in range(3))
 
     @property
     def backward_seconds(self) -> float:
@@ -143,7 +151,9 @@ class CollisionStage:
         opt = self.options.collision
         backend = self.backends[opt.solver]
         report = CollisionReport(solver=opt.solver, x_hat=x_hat)
-        start = gather_nodes(model, state_in.particle_x, obstacle_start, recording)
+        start = gather_nodes(model, state_in.particle_x, obstacle_start, recording, out=self._start)
+        # the step's start nodes taped, made at the first round that finds contacts (shared by the step's tries)
+        taped_start = _Lazy(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
         # Each world's way through the step: the full thickness; where that fails, the second try keeping start
         # gaps; where that fails too, the fail-safe. A failure names its worlds, so only they move on: the others
         # redo their tries unchanged (worlds never interact), and each world ends as it would alone.
@@ -157,7 +167,7 @@ class CollisionStage:
             backend.begin(x_hat, obstacle_end, mass, recording)
             report.rounds = 0
             try:
-                z = self._rounds(backend, start, x_hat, obstacle_end, step, report, recording)
+                z = self._rounds(backend, start, taped_start, x_hat, obstacle_end, step, report, recording)
                 report.contacts = backend.count
                 break
             except ContactCapacityError:
@@ -193,7 +203,9 @@ class CollisionStage:
         else:
             report.device = backend.solver_stats
         kernels = contact_kernels(model.scalar)
-        if z is x_hat:  # no contact: z a copy of x̂ all the same (kernels/contact.py copy_positions says why)
+        if z is x_hat and recording:
+            # no contact: z a copy of x̂ all the same (kernels/contact.py copy_positions says why), the step's own
+            # (its gradient is this step's); untaped, apply_projection reads x̂ itself: the same values
             z = wp.empty_like(x_hat, requires_grad=recording)
             wp.launch(kernels.copy_positions, model.particle_count, device=self.device, inputs=[x_hat], outputs=[z])
         report.z = z
@@ -203,18 +215,19 @@ class CollisionStage:
         self.last = report
         return report
 
-    def _rounds(self, backend, start: wp.array, x_hat: wp.array, obstacle_end: wp.array, step: int,
-                report: CollisionReport, recording: bool) -> wp.array:
+    def _rounds(self, backend, start: wp.array, taped_start: _Lazy, x_hat: wp.array, obstacle_end: wp.array,
+                step: int, report: CollisionReport, recording: bool) -> wp.array:
         """The round loop: detect from the start positions to the current end positions, add the new contacts,
-        project x̂ onto all of them; until detection finds nothing new. Returns the projected positions."""
+        project x̂ onto all of them; until detection finds nothing new. Returns the projected positions.
+        ``start``: the start nodes (the stage's buffer); ``taped_start``: the same, taped, made when first needed."""
         opt = self.options.collision
         phases = self.phase_seconds
         z = x_hat
+        reference = self._reference  # the unprojected end: the side of pairs touching at the start
         for round_index in range(opt.rounds + 1):
             with timed(phases, "detection"):
-                end = gather_nodes(self.model, z, obstacle_end, recording)
-                if round_index == 0:
-                    reference = end  # the unprojected end: the side of pairs touching at the start
+                end = gather_nodes(self.model, z, obstacle_end, recording,
+                                   out=reference if round_index == 0 else self._end)
                 found = backend.detect(start, end, reference)
             if found == 0:
                 break
@@ -225,7 +238,10 @@ class CollisionStage:
                 raise rounds_error(step, opt.rounds, found, backend.count + found, *backend.first_found(), start,
                                    self.thickness, backend.found_worlds())
             with timed(phases, "geometry"):
-                backend.add_found(start, end, step)
+                if recording:  # the contacts' geometry is taped: its positions, the step's own
+                    backend.add_found(taped_start(), gather_nodes(self.model, z, obstacle_end, True), step)
+                else:
+                    backend.add_found(start, end, step)
             with timed(phases, "projection"):
                 z = backend.project(step, opt)
             report.rounds = round_index + 1
@@ -238,7 +254,8 @@ class CollisionStage:
         ``CollisionOptions.max_projection_strain`` of its rest length (diagnostics.strain_error says why). The
         largest strain is the one value read back; the host names the edge only when it is over the limit."""
         limit = self.options.collision.max_projection_strain
-        largest = wp.full(1, -np.inf, dtype=wp.float64, device=self.device)
+        largest = self._largest_strain
+        largest.fill_(-np.inf)
         wp.launch(device_round_kernels(self.model.scalar).largest_strain, len(self._edge_rest), device=self.device,
                   inputs=[x_hat, z, self._edge_ends_device, self._edge_rest_device], outputs=[largest],
                   record_tape=False)
@@ -247,6 +264,18 @@ class CollisionStage:
                                  self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
             if error is not None:
                 raise error
+
+
+class _Lazy:
+    """A value made by ``make()`` at its first call, the same one after."""
+
+    def __init__(self, make):
+        self._make, self._value = make, None
+
+    def __call__(self):
+        if self._value is None:
+            self._value = self._make()
+        return self._value
 
 
 def _world_reason(model: Model, world: int, reasons: list[str]) -> str:

@@ -88,6 +88,7 @@ class Simulator:
         self._bdf2_buffers = None  # the blend and extrapolation of untaped BDF2 steps (_bdf2_start)
         self._step_buffers = None
         self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
+        self._candidate = None  # the untaped steps' x̂, v̂ before the collision stage (_integrate)
         self._control_default = None
         # The step, as the stages this model needs, each with the phase it is timed under.
         stages = [("assembly", self._assemble)]
@@ -218,8 +219,12 @@ class Simulator:
         model = self.model
         if self.collision is None:
             out = s.state_out
-        else:
+        elif s.recording:
             out = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
+        else:  # scratch, as _buffers: an untaped step's x̂, v̂ are read within the step
+            if self._candidate is None:
+                self._candidate = model.empty_state(requires_grad=False)
+            out = self._candidate
         wp.launch(self.kernels.integrate, model.particle_count, device=self.device,
                   inputs=[s.start.particle_x, s.start.particle_v, s.velocity_change, model.scalar(s.assembler.dt),
                           model.scalar(self.options.max_speed), s.number],
