@@ -5,7 +5,8 @@ A backend owns its buffers and records its own adjoint on the tape:
 
 * :class:`DeviceBackend` (``"device"``, the default): contacts, their geometry, the projection (MPRGP on the dual,
   kernels/projection.py) and its adjoint (CG on the active set) stay on the device; each round reads back the
-  contact count and the solver's status.
+  detector's flags (detection.py FOUND...) once after its projection: a degenerate normal, a failed solve (the
+  solver's figures only then).
 * :class:`ZoneBackend` (``"numpy"``): the contacts come to the host and the zone solver of
   :mod:`warpcloth.collision.projection` projects them, with the QR or dense KKT adjoint
   (``CollisionOptions.adjoint``); each round's result is kept for benchmarks (``CollisionReport.projections``).
@@ -22,7 +23,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision import projection
-from warpcloth.collision.detection import ContactDetector, Contacts
+from warpcloth.collision.detection import DEGENERATE, FAILED, ContactDetector, Contacts
 from warpcloth.collision.device_projection import DeviceProjection
 from warpcloth.collision.linalg import small_blas
 from warpcloth.errors import CollisionError
@@ -107,7 +108,8 @@ class ZoneBackend:
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
               recording: bool) -> None:
         """Start a try at a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped
-        ``mass``); each world's contacts and targets as the detector's ``world_mode`` says (the stage sets it)."""
+        masses ``mass()``, a function that makes them at its first call); each world's contacts and targets as the
+        detector's ``world_mode`` says (the stage sets it)."""
         self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
         self._contacts = Contacts.empty()  # every contact of the step so far
         self._geometry = []  # (normal, weight, target) of each round's new contacts, evaluated where found
@@ -152,7 +154,7 @@ class ZoneBackend:
     def project(self, step: int, opt) -> wp.array:
         """Project x̂ onto every contact so far (the previous round's multipliers first) with the CollisionOptions
         ``opt``; record its adjoint."""
-        x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass, self._geometry
+        x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass(), self._geometry
         normals, weights, targets = (np.concatenate([g[k].numpy() for g in geometry]).astype(np.float64)
                                      for k in range(3))
         unknowns = 3 * np.unique(self._contacts.nodes).size  # the zones' sizes add up to at most this
@@ -177,7 +179,7 @@ class ZoneBackend:
         return z
 
     def _record_adjoint(self, result, z, geometry, mode, unknowns: int) -> None:
-        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
+        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass()
         sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
 
         def adjoint():
@@ -217,11 +219,11 @@ class DeviceBackend:
         dev = model.device
         # Buffers of untaped steps and of the per-round checks, reused by every step: a taped step's constants and
         # positions are its own instead (its recorded adjoint reads them in the backward pass)
-        self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._untaped_constants = (wp.zeros(node_count, dtype=wp.vec3d, device=dev),
                                    wp.zeros(node_count, dtype=wp.int32, device=dev),
                                    wp.zeros(node_count, dtype=wp.float64, device=dev))
         self._untaped_z = wp.zeros(self.cloth_count, dtype=model.types.vec3, device=dev)
+        self._untaped_geometry = _geometry_arrays(model, max(detector.capacity, 1), False)
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
@@ -267,11 +269,14 @@ class DeviceBackend:
                 positions, free, inv_mass = self._untaped_constants
             wp.launch(kr.positions64, N, device=dev, inputs=[self._x_hat, self._obstacle_end, self.cloth_count],
                       outputs=[positions], record_tape=False)
-            wp.launch(kr.inverse_mass, N, device=dev, inputs=[self._mass, model.particle_pin, self.cloth_count],
+            wp.launch(kr.inverse_mass, N, device=dev, inputs=[self._mass(), model.particle_pin, self.cloth_count],
                       outputs=[free, inv_mass], record_tape=False)
             self._constants = (positions, free, inv_mass)
         self._grow(total + found)
-        normal, weight, target = _geometry_arrays(model, found, self._recording)
+        if self._recording:  # the round's own: the tape's geometry launch and the adjoint read them
+            normal, weight, target = _geometry_arrays(model, found, True)
+        else:  # read at once, into the step's float64 lists
+            normal, weight, target = (a[:found] for a in self._untaped_geometry)
         det = self.detector
         found_arrays = [det.nodes[:found], det.mode[:found], det.t[:found], det.sign[:found]]
         if self._recording:  # the tape replays this launch after later detections reuse the buffers
@@ -280,13 +285,12 @@ class DeviceBackend:
                   inputs=[start, end, *found_arrays, model.scalar(self.thickness), det.world_mode, det.node_world],
                   outputs=[normal, weight, target])
         wp.copy(self._nodes, det.nodes, dest_offset=4 * total, count=4 * found)
-        bad = self._bad
+        # the first degenerate contact, if any, lands in the detector's flags: project reads them once, after the
+        # solve (a degenerate row makes the solve stop at once as unbounded), and raises for it first
+        bad = det.degenerate
         bad.fill_(found + 1)
         wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, target, total],
                   outputs=[self._normals, self._weights, self._targets, bad], record_tape=False)
-        j = int(bad.numpy()[0]) - 1
-        if j < found:
-            raise _degenerate(step, det.nodes.numpy()[j], det)
         self._rounds.append((total, found, normal, weight, target))
         self._total += found
         self._found = 0
@@ -304,9 +308,17 @@ class DeviceBackend:
         solution = self._solver.project(
             positions, free, inv_mass, self._nodes, self._weights, self._normals, total, self._targets,
             lam_init=None if self._solution is None else self._solver.lam, warm=warm,
-            resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording)
+            resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording, failed=self.detector.failed)
         self._solution = solution
-        self.solver_stats = {"iterations": solution.iterations, "violation": solution.violation}
+        self.solver_stats = _SolverStats(solution)
+        # the round's one read: its degenerate contact, if any, and whether a world's solve failed
+        flags = self.detector.read_flags()
+        found = self._rounds[-1][1]
+        j = int(flags[DEGENERATE]) - 1
+        if j < found:
+            raise _degenerate(step, self.detector.nodes.numpy()[j], self.detector)
+        if not flags[FAILED]:
+            return self._positions(solution)
         failed = solution.failed_worlds()
         where = _worlds(model, failed)
         if solution.unbounded:
@@ -320,6 +332,11 @@ class DeviceBackend:
                 f"{solution.iterations} iterations: a contact violated or an active one off by "
                 f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)",
                 worlds=failed or None)
+        raise AssertionError("a failed solve with every world converged")  # the flag and the info disagree
+
+    def _positions(self, solution) -> wp.array:
+        """The cloth's positions of a solve that succeeded, in the model's precision (its adjoint recorded)."""
+        model, dev = self.model, self.model.device
         # a taped round's z is its own (its gradient is this round's); an untaped one's is read before the next
         # round projects again (the next detection gathers it, or the stage writes it into the step's result)
         z = (wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=True) if self._recording
@@ -350,7 +367,7 @@ class DeviceBackend:
         model, dev = self.model, self.model.device
         kr = device_round_kernels(model.scalar)
         n, N = self.cloth_count, self.node_count
-        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
+        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass()
         positions, free, inv_mass = self._constants
         rounds = list(self._rounds)
         count = solution.rows.count
@@ -385,6 +402,63 @@ class DeviceBackend:
                                   outputs=[normal.grad, weight.grad, target.grad])
 
         record_adjoint(adjoint, arrays=[z])
+
+
+class _SolverStats(dict):
+    """The device backend's ``solver_stats`` (``iterations``, ``violation``), read from the solve's info when first
+    looked at (diagnostics: no step reads them; an untaped step's solution shares the solver's buffer, so read them
+    before the next step)."""
+
+    def __init__(self, solution):
+        super().__init__()
+        self._solution = solution
+
+    def _fill(self) -> None:
+        if self._solution is not None:
+            solution, self._solution = self._solution, None
+            self.update(iterations=solution.iterations, violation=solution.violation)
+
+    def __getitem__(self, key):
+        self._fill()
+        return super().__getitem__(key)
+
+    def __contains__(self, key):
+        self._fill()
+        return super().__contains__(key)
+
+    def __iter__(self):
+        self._fill()
+        return super().__iter__()
+
+    def __len__(self) -> int:
+        self._fill()
+        return super().__len__()
+
+    def __repr__(self) -> str:
+        self._fill()
+        return super().__repr__()
+
+    def __eq__(self, other):
+        self._fill()
+        return super().__eq__(other)
+
+    __hash__ = None
+
+    def get(self, key, default=None):
+        self._fill()
+        return super().get(key, default)
+
+    def items(self):
+        self._fill()
+        return super().items()
+
+    def keys(self):
+        self._fill()
+        return super().keys()
+
+    def values(self):
+        self._fill()
+        return super().values()
 
 
 def _worlds(model: Model, worlds: list[int]) -> str:

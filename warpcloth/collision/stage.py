@@ -27,13 +27,14 @@ the trajectory's piece).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
 from warpcloth.collision.backends import DeviceBackend, ZoneBackend, gather_nodes, timed
-from warpcloth.collision.detection import ContactDetector
+from warpcloth.collision.detection import STRAINED, ContactDetector
 from warpcloth.collision.diagnostics import rounds_error, strain_error
 from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
 from warpcloth.errors import CollisionError, ContactCapacityError
@@ -115,6 +116,10 @@ class CollisionStage:
         """Steps resolved by the second try, which keeps start gaps, over this stage's life."""
         self.last: CollisionReport | None = None
         """The report of the last step (diagnostics: no step reads it)."""
+        self.record = wp.zeros(10, dtype=wp.int32, device=self.device)
+        """The failure record (kernels/status.py) the divergence guard on the stage's result latches into: the
+        Simulator's (it also points ``detector.skip`` at it, so that candidate positions that diverged meet no
+        contact); one of the stage's own otherwise."""
         # every triangle's three edges and their rest lengths (material space): the projection-strain guard
         tris = model.triangles_np
         dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: rest edges x1 - x0, x2 - x0
@@ -123,7 +128,6 @@ class CollisionStage:
                                           np.linalg.norm(dm[:, :, 1] - dm[:, :, 0], axis=1)])
         self._edge_ends_device = wp.array(self._edge_ends, dtype=wp.int32, device=self.device)
         self._edge_rest_device = wp.array(self._edge_rest, dtype=wp.float64, device=self.device)
-        self._largest_strain = wp.zeros(1, dtype=wp.float64, device=self.device)
         # The node positions detection reads (untaped, the stage's own, reused by every step): the step's start, its
         # unprojected end (round 0, and the side of pairs touching at the start in every round) and a later round's
         # end. A round that finds contacts gathers its start and end again, taped, into arrays of the step's own
@@ -138,20 +142,26 @@ class CollisionStage:
         return self.phase_seconds["adjoint"]
 
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                obstacle_end: wp.array, state_out: State, step: int, mass: wp.array,
+                obstacle_end: wp.array, state_out: State, step: int, mass: wp.array | Callable[[], wp.array],
                 implicit_dt: float | None = None) -> CollisionReport:
         """Write the collision-free positions and corrected velocities of the step into ``state_out`` and report
         what it took. ``obstacle_start`` and ``obstacle_end`` are the obstacle vertices at the step's start and end
-        (empty without obstacles); ``mass``: the particles' lumped masses (the adjoint adds to ``mass.grad``).
+        (empty without obstacles); ``mass``: the particles' lumped masses (the adjoint adds to ``mass.grad``), or a
+        function that makes them (called once, where the step has contacts: a step without costs no launch for them).
         ``implicit_dt``: the length of the implicit step that gave x̂ = start + implicit_dt v̂, where it is not the
         time step (BDF2: 2/3 dt from its blend); the velocity change is (z − x̂) / implicit_dt, so the result keeps
         that relation."""
         model = self.model
         recording = active_tape() is not None and model.requires_grad
         opt = self.options.collision
+        mass = _Lazy(mass if callable(mass) else (lambda masses=mass: masses))
         backend = self.backends[opt.solver]
         report = CollisionReport(solver=opt.solver, x_hat=x_hat)
-        start = gather_nodes(model, state_in.particle_x, obstacle_start, recording, out=self._start)
+        # the step's start nodes and its unprojected end (every try's round 0), for detection: one launch
+        start = self._start
+        wp.launch(contact_kernels(model.scalar).gather_two, start.shape[0], device=self.device,
+                  inputs=[state_in.particle_x, obstacle_start, x_hat, obstacle_end, model.particle_count],
+                  outputs=[start, self._reference], record_tape=False)
         # the step's start nodes taped, made at the first round that finds contacts (shared by the step's tries)
         taped_start = _Lazy(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
         # Each world's way through the step: the full thickness; where that fails, the second try keeping start
@@ -191,7 +201,7 @@ class CollisionStage:
             reason = " | ".join(_world_reason(model, w, reasons[w]) for w in report.fail_safe_worlds)
             with timed(self.phase_seconds, "fail_safe"):
                 z, report.fail_safe = self.fail_safe.resolve(state_in.particle_x, z, obstacle_start, obstacle_end,
-                                                             mass, rows, recording, reason, step)
+                                                             mass(), rows, recording, reason, step)
             report.contacts += len(rows)
             self.fail_safe_steps += 1
         if report.start_gap_worlds:
@@ -211,7 +221,8 @@ class CollisionStage:
         report.z = z
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
         wp.launch(kernels.apply_projection, model.particle_count, device=self.device,
-                  inputs=[x_hat, v_hat, z, inv_dt], outputs=[state_out.particle_x, state_out.particle_v])
+                  inputs=[x_hat, v_hat, z, inv_dt, model.scalar(self.options.max_speed), step],
+                  outputs=[state_out.particle_x, state_out.particle_v, self.record])
         self.last = report
         return report
 
@@ -226,8 +237,10 @@ class CollisionStage:
         reference = self._reference  # the unprojected end: the side of pairs touching at the start
         for round_index in range(opt.rounds + 1):
             with timed(phases, "detection"):
-                end = gather_nodes(self.model, z, obstacle_end, recording,
-                                   out=reference if round_index == 0 else self._end)
+                if round_index == 0:
+                    end = reference  # gathered with the start (resolve)
+                else:
+                    end = gather_nodes(self.model, z, obstacle_end, recording, out=self._end)
                 found = backend.detect(start, end, reference)
             if found == 0:
                 break
@@ -244,26 +257,31 @@ class CollisionStage:
                     backend.add_found(start, end, step)
             with timed(phases, "projection"):
                 z = backend.project(step, opt)
+                self._test_strain(x_hat, z)
             report.rounds = round_index + 1
-        if backend.count:
-            self._check_strain(x_hat, z, step)
+        if backend.count and self.detector.last_flags[STRAINED]:  # as the last detection's read saw it
+            self._strain_error(x_hat, z, step)
         return z
 
-    def _check_strain(self, x_hat: wp.array, z: wp.array, step: int) -> None:
-        """Raise CollisionError where the projection alone lengthened an edge by more than
-        ``CollisionOptions.max_projection_strain`` of its rest length (diagnostics.strain_error says why). The
-        largest strain is the one value read back; the host names the edge only when it is over the limit."""
+    def _test_strain(self, x_hat: wp.array, z: wp.array) -> None:
+        """Flag (the detector's STRAINED flag) a projection that alone lengthened an edge by more than
+        ``CollisionOptions.max_projection_strain`` of its rest length (diagnostics.strain_error says why). Run after
+        every projection, so that the next detection's read carries the flag of the round's positions: the last
+        round's is the step's (that detection finds nothing new)."""
         limit = self.options.collision.max_projection_strain
-        largest = self._largest_strain
-        largest.fill_(-np.inf)
+        self.detector.strained.zero_()
         wp.launch(device_round_kernels(self.model.scalar).largest_strain, len(self._edge_rest), device=self.device,
-                  inputs=[x_hat, z, self._edge_ends_device, self._edge_rest_device], outputs=[largest],
-                  record_tape=False)
-        if float(largest.numpy()[0]) > limit:
-            error = strain_error(step, x_hat.numpy().astype(np.float64), z.numpy().astype(np.float64),
-                                 self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
-            if error is not None:
-                raise error
+                  inputs=[x_hat, z, self._edge_ends_device, self._edge_rest_device, wp.float64(limit)],
+                  outputs=[self.detector.strained], record_tape=False)
+
+    def _strain_error(self, x_hat: wp.array, z: wp.array, step: int) -> None:
+        """Raise the CollisionError naming the edge the projection stretched past the limit (flagged on the device:
+        the host reads the positions only then)."""
+        limit = self.options.collision.max_projection_strain
+        error = strain_error(step, x_hat.numpy().astype(np.float64), z.numpy().astype(np.float64),
+                             self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
+        if error is not None:
+            raise error
 
 
 class _Lazy:
