@@ -174,14 +174,18 @@ def contact_kernels(scalar):
         v[i] = v_new
         guard(i, x_new, v_new, max_speed, step, record)
 
-    @wp.kernel
-    def copy_positions(x: wp.array(dtype=vec3), out: wp.array(dtype=vec3)):
-        # the stage's result where it found no contact: a copy, so that the adjoint adds dL/dz to dL/dx^ as a
-        # projection that left a particle where it was does (a world without contacts among worlds with some)
+    @wp.kernel(enable_backward=False)
+    def unmoved_adjoint(adj_x: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), inv_dt: scalar,
+                        # out:
+                        x_hat_grad: wp.array(dtype=vec3), v_hat_grad: wp.array(dtype=vec3)):
+        # The adjoint of a stage that moved nothing, as a copy z of x^ and apply_projection(x^, v^, z) taped
+        # would give it, operation for operation: apply_projection's adjoint adds -(dL/dv inv_dt) to dL/dx^ and
+        # dL/dx + dL/dv inv_dt to dL/dz (zero before), the copy's adds dL/dz to dL/dx^.
         i = wp.tid()
-        out[i] = x[i]
+        d = adj_v[i] * inv_dt
+        v_hat_grad[i] = v_hat_grad[i] + adj_v[i]
+        x_hat_grad[i] = (x_hat_grad[i] - d) + (adj_x[i] + d)
 
     return SimpleNamespace(gather_nodes=gather_nodes, gather_two=gather_two, geometry=geometry,
-                           apply_projection=apply_projection,
-                           copy_positions=copy_positions)
+                           apply_projection=apply_projection, unmoved_adjoint=unmoved_adjoint)
 

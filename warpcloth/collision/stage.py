@@ -41,7 +41,7 @@ from warpcloth.errors import CollisionError, ContactCapacityError
 from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.model import Model, State
-from warpcloth.tape import active_tape
+from warpcloth.tape import active_tape, record_adjoint
 
 
 @dataclass
@@ -213,16 +213,22 @@ class CollisionStage:
         else:
             report.device = backend.solver_stats
         kernels = contact_kernels(model.scalar)
-        if z is x_hat and recording:
-            # no contact: z a copy of x̂ all the same (kernels/contact.py copy_positions says why), the step's own
-            # (its gradient is this step's); untaped, apply_projection reads x̂ itself: the same values
-            z = wp.empty_like(x_hat, requires_grad=recording)
-            wp.launch(kernels.copy_positions, model.particle_count, device=self.device, inputs=[x_hat], outputs=[z])
         report.z = z
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
+        unmoved = z is x_hat and recording  # no contact in any world, on a tape
         wp.launch(kernels.apply_projection, model.particle_count, device=self.device,
                   inputs=[x_hat, v_hat, z, inv_dt, model.scalar(self.options.max_speed), step],
-                  outputs=[state_out.particle_x, state_out.particle_v, self.record])
+                  outputs=[state_out.particle_x, state_out.particle_v, self.record], record_tape=not unmoved)
+        if unmoved:
+            # No contact: the adjoint is that of z, a copy of x̂, projected by apply_projection (a world without
+            # contacts among worlds with some passes dL/dz on to dL/dx̂ so: position_gradients), in one hand-written
+            # kernel with the same arithmetic (kernels/contact.py unmoved_adjoint): no copy, no array for z.
+            def adjoint():
+                wp.launch(kernels.unmoved_adjoint, model.particle_count, device=self.device,
+                          inputs=[state_out.particle_x.grad, state_out.particle_v.grad, inv_dt],
+                          outputs=[x_hat.grad, v_hat.grad], record_tape=False)
+
+            record_adjoint(adjoint, arrays=[state_out.particle_x, state_out.particle_v])
         self.last = report
         return report
 
