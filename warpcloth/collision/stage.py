@@ -23,6 +23,28 @@ Gradients reach x̂, the step's start positions x0 and the obstacles' start and 
 transforms of the Control) through n, w and the times of impact, and the masses in W (the Simulator's taped lumped
 masses, on to the densities). Deliberately dropped: which contacts exist and which are active (piecewise constant:
 the trajectory's piece).
+
+What the host does in a step (issue 37). Detection reads one small array (the detector's flags: contacts found,
+and the last projection's strain-guard flag); a round with contacts reads it once more after its projection (a
+degenerate normal, a failed solve). A step without contacts therefore reads one value, runs four launches (the
+nodes, the swept boxes, every query, the result) and the BVH refits, and, taped, records one hand-written adjoint
+(one launch) and nothing else; an untaped step allocates nothing here (tests/test_collision.py). What still
+keeps a contact step from being captured as a graph (``wp.capture_while`` over a device flag "found new contacts
+and rounds left"):
+* launch sizes and offsets from the host: a round's geometry, append and copy launches and the projection's
+  sort, prepare, gather and scatter launches are sized by the contact counts read back (``found``, ``total``),
+  and the device projection's ``Rows.count`` is a host int; they would become launches of the capacity that
+  return past a count held on the device (bitwise the same per contact: the CPU runs threads in order);
+* the tape: each round records launches on arrays of its own sized by its count (the contacts' geometry, the
+  solution kept for the adjoint), and the adjoint closure launches with those counts. A device-side round loop
+  needs per-step storage for the most rounds (rounds x capacity) and an adjoint that walks the rounds back with
+  the same device count, which Warp's tape cannot record (it replays a fixed list of launches);
+* the tries: a failed world's second try and the fail-safe branch on the host, and the fail-safe
+  (failsafe.py: rigid impact zones, NumPy) runs on the host; the second try could run on the device (world modes
+  set by a kernel from the failure flags, the rounds run again), the fail-safe could not;
+* the projection's capacity grows on the host (``DeviceBackend.project``: a new DeviceProjection).
+Outside this stage, a contact scene's step also reads the device for its proximity pairs (their count sizes the
+pair launches and the taped copies) and evaluates scripted obstacle motions on the host into new arrays.
 """
 
 from __future__ import annotations
