@@ -290,7 +290,7 @@ def _counting_resolve(sim):
 
 
 @pytest.mark.parametrize("z", [0.05, 0.0004])
-def test_an_untaped_collision_stage_step_allocates_nothing_and_reads_once_a_round(z):
+def test_an_untaped_collision_stage_step_allocates_nothing_and_reads_once_a_detection_and_a_projection(z):
     # A cloth falling from 5 cm (no contact in these steps) or lying 0.4 mm over the plane (contacts every step):
     # between two preallocated States, the stage makes no array once its buffers exist, and reads the device once
     # after each detection and once after each projection (its flags: contacts found; a degenerate normal and a
