@@ -489,6 +489,88 @@ def collision_kernels(scalar):
         return query_contacts
 
     @wp.kernel
+    def query_all(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), x_ref: wp.array(dtype=vec3),
+                  queries: wp.array2d(dtype=wp.int32), prims: wp.array2d(dtype=wp.int32),
+                  lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3), query_start: wp.array(dtype=int),
+                  query_offset: wp.array(dtype=int), bvhs: wp.array(dtype=wp.uint64),
+                  target_offset: wp.array(dtype=int), vertex_face: wp.array(dtype=int), same: wp.array(dtype=int),
+                  thickness: wp.float64, world_mode: wp.array(dtype=wp.int32), capacity: int,
+                  node_world: wp.array(dtype=wp.int32), grouped: int, skip: wp.array(dtype=wp.int32),
+                  # out:
+                  count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
+                  contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
+                  contact_sign: wp.array(dtype=wp.float64)):
+        # Every query of a detection in one launch: thread i is query primitive i - query_start[k] of query k (the
+        # queries one after another, in the order query_contacts would be launched for them; on the CPU, whose
+        # threads run in order, the contacts come out in the same order). Query k: its rows (a vertex as (v, v), an
+        # edge as (a, b)) against the BVH bvhs[k] of the primitives prims[target_offset[k]:], their boxes lowers and
+        # uppers at query_offset[k] + its index; a vertex-face query (vertex_face[k]) or an edge-edge one, same[k]
+        # as query_contacts' same_cloth. skip[0] != 0 (an error latched in the failure record): no query runs.
+        i = wp.tid()
+        if skip[0] != 0:
+            return
+        k = int(0)
+        while query_start[k + 1] <= i:
+            k += 1
+        local = i - query_start[k]
+        q0 = queries[i, 0]
+        q1 = queries[i, 1]
+        vf = vertex_face[k]
+        same_cloth = same[k]
+        toff = target_offset[k]
+        bvh = bvhs[k]
+        # the query's world's mode in this try of the step (WORLD_SKIPPED, 0, or WORLD_KEEPS_START_GAPS)
+        keep_start_gaps = world_mode[node_world[q0]]
+        if keep_start_gaps == WORLD_SKIPPED:
+            return
+        root = world_root(bvh, grouped, node_world[q0])  # only the query's own world (ModelBuilder.add_world)
+        if root == -2:
+            return
+        query = wp.bvh_query_aabb(bvh, lowers[query_offset[k] + local], uppers[query_offset[k] + local], root)
+        j = int(0)
+        # the most urgent contact on each side of the query primitive (EE_DIRECTION counts as the + side)
+        best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
+        best_target = wp.vec2i(-1, -1)
+        best_t = wp.vec2d()
+        best_mode = wp.vec2i()
+        while wp.bvh_query_next(query, j):
+            a = prims[toff + j, 0]
+            b = prims[toff + j, 1]
+            hit = bool(False)
+            mode = int(0)
+            t = wp.float64(0.0)
+            sign = wp.float64(0.0)
+            rank = wp.float64(0.0)
+            if vf != 0:
+                c = prims[toff + j, 2]
+                if same_cloth != 0 and (q0 == a or q0 == b or q0 == c):
+                    continue
+                hit, mode, t, sign, rank = vertex_face_test(
+                    wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
+                    wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]),
+                    wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]), wp.vec3d(x_ref[c]), thickness,
+                    keep_start_gaps)
+            else:
+                if same_cloth != 0 and (j <= local or q0 == a or q0 == b or q1 == a or q1 == b):
+                    continue  # each pair once; edges sharing a vertex do not collide
+                hit, mode, t, sign, rank = edge_edge_test(
+                    wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
+                    wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]),
+                    wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[q1]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]),
+                    thickness, keep_start_gaps)
+            best, best_target, best_t, best_mode = keep_most_urgent(hit, rank, sign, t, mode, j, best,
+                                                                    best_target, best_t, best_mode)
+        for side in range(2):
+            jb = best_target[side]
+            if jb >= 0:
+                if vf != 0:
+                    emit(side, q0, prims[toff + jb, 0], prims[toff + jb, 1], prims[toff + jb, 2], best_mode[side],
+                         best_t[side], capacity, count, contact_nodes, contact_mode, contact_t, contact_sign)
+                else:
+                    emit(side, q0, q1, prims[toff + jb, 0], prims[toff + jb, 1], best_mode[side], best_t[side],
+                         capacity, count, contact_nodes, contact_mode, contact_t, contact_sign)
+
+    @wp.kernel
     def inside_mesh(mesh: wp.uint64, x: wp.array(dtype=vec3), max_dist: float,
                     # out:
                     inside: wp.array(dtype=wp.int32)):
@@ -499,5 +581,5 @@ def collision_kernels(scalar):
             inside[i] = 1
 
     return SimpleNamespace(primitive_bounds=primitive_bounds, vertex_face=contact_query(True),
-                           edge_edge=contact_query(False), inside_mesh=inside_mesh)
+                           edge_edge=contact_query(False), query_all=query_all, inside_mesh=inside_mesh)
 

@@ -17,6 +17,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from warpcloth.kernels.geometry import segment_parameters, span_coordinates
+from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.kernels.types import per_precision, types
 
 VF_PLANE = 0
@@ -36,6 +37,7 @@ def contact_kernels(scalar):
     t = types(scalar)
     vec3, vec4 = t.vec3, t.vec4
     one = scalar(1.0)
+    guard = implicit_kernels(scalar).flag_divergence
 
     # Nearly parallel segments: this s is differentiated and ds/dx grows like 1/den, so the geometry treats
     # segments as parallel from a larger squared sine than detection (kernels/collision.py's PARALLEL_SINE2).
@@ -51,6 +53,20 @@ def contact_kernels(scalar):
             nodes[i] = cloth_x[i]
         else:
             nodes[i] = obstacle_x[i - cloth_count]
+
+    @wp.kernel(enable_backward=False)
+    def gather_two(cloth_a: wp.array(dtype=vec3), obstacle_a: wp.array(dtype=vec3), cloth_b: wp.array(dtype=vec3),
+                   obstacle_b: wp.array(dtype=vec3), cloth_count: int,
+                   # out:
+                   nodes_a: wp.array(dtype=vec3), nodes_b: wp.array(dtype=vec3)):
+        # gather_nodes of two sets of positions in one launch (untaped: the collision stage's detection buffers)
+        i = wp.tid()
+        if i < cloth_count:
+            nodes_a[i] = cloth_a[i]
+            nodes_b[i] = cloth_b[i]
+        else:
+            nodes_a[i] = obstacle_a[i - cloth_count]
+            nodes_b[i] = obstacle_b[i - cloth_count]
 
     @wp.func
     def frozen(value: scalar):
@@ -145,21 +161,31 @@ def contact_kernels(scalar):
 
     @wp.kernel
     def apply_projection(x_hat: wp.array(dtype=vec3), v_hat: wp.array(dtype=vec3), z: wp.array(dtype=vec3),
-                         inv_dt: scalar,
+                         inv_dt: scalar, max_speed: scalar, step: int,
                          # out:
-                         x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
-        # the projected positions, and velocities corrected by the displacement (SPEC §2 step 4)
+                         x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), record: wp.array(dtype=wp.int32)):
+        # the projected positions, and velocities corrected by the displacement (SPEC §2 step 4); then the
+        # divergence guard on them (the collision response changed the state), here rather than in a launch of its
+        # own
         i = wp.tid()
-        x[i] = z[i]
-        v[i] = v_hat[i] + (z[i] - x_hat[i]) * inv_dt
+        x_new = z[i]
+        v_new = v_hat[i] + (x_new - x_hat[i]) * inv_dt
+        x[i] = x_new
+        v[i] = v_new
+        guard(i, x_new, v_new, max_speed, step, record)
 
-    @wp.kernel
-    def copy_positions(x: wp.array(dtype=vec3), out: wp.array(dtype=vec3)):
-        # the stage's result where it found no contact: a copy, so that the adjoint adds dL/dz to dL/dx^ as a
-        # projection that left a particle where it was does (a world without contacts among worlds with some)
+    @wp.kernel(enable_backward=False)
+    def unmoved_adjoint(adj_x: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), inv_dt: scalar,
+                        # out:
+                        x_hat_grad: wp.array(dtype=vec3), v_hat_grad: wp.array(dtype=vec3)):
+        # The adjoint of a stage that moved nothing, as a copy z of x^ and apply_projection(x^, v^, z) taped
+        # would give it, operation for operation: apply_projection's adjoint adds -(dL/dv inv_dt) to dL/dx^ and
+        # dL/dx + dL/dv inv_dt to dL/dz (zero before), the copy's adds dL/dz to dL/dx^.
         i = wp.tid()
-        out[i] = x[i]
+        d = adj_v[i] * inv_dt
+        v_hat_grad[i] = v_hat_grad[i] + adj_v[i]
+        x_hat_grad[i] = (x_hat_grad[i] - d) + (adj_x[i] + d)
 
-    return SimpleNamespace(gather_nodes=gather_nodes, geometry=geometry, apply_projection=apply_projection,
-                           copy_positions=copy_positions)
+    return SimpleNamespace(gather_nodes=gather_nodes, gather_two=gather_two, geometry=geometry,
+                           apply_projection=apply_projection, unmoved_adjoint=unmoved_adjoint)
 

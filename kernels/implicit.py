@@ -473,6 +473,6 @@ def implicit_kernels(scalar):
         pin_rows=pin_rows, handles=handles, external_forces=external_forces, wind=wind,
         faces=faces, hinges=hinges, faces_potential=faces_potential, hinges_potential=hinges_potential,
         face_energy=face_energy, hinge_energy=hinge_energy, integrate=integrate, check_state=check_state,
-        bdf2_blend=bdf2_blend, bdf2_history=bdf2_history, lumped_mass=lumped_mass,
+        bdf2_blend=bdf2_blend, bdf2_history=bdf2_history, lumped_mass=lumped_mass, flag_divergence=flag_divergence,
     )
 

@@ -280,14 +280,16 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
           ones: wp.array(dtype=wp.int32), solve_world: wp.array(dtype=wp.int32),
           lam: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.float64),
           g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), hp: wp.array(dtype=wp.float64),
-          tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array2d(dtype=wp.float64)):
+          tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array2d(dtype=wp.float64),
+          failed: wp.array(dtype=wp.int32)):
     # One thread per world, on its own slots (its own QP: worlds share no node). MPRGP on the Jacobi-scaled dual
     # min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1, bs = D^-1 (h - G x^)); its gradient
     # g = Hs x - bs is D^-1 c(z), so the stopping test max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the
     # projection's KKT test. Stops as NOT_CONVERGED when its residual has not halved in ``stall`` iterations
     # (contacts that contradict each other stall it). On entry lam (sorted) holds the warm start and z every node's
     # last positions; a world with solve_world 0 keeps them (it found nothing new), the others restart their
-    # contacts' nodes from x^.
+    # contacts' nodes from x^. failed[0] = 1 where a world ends other than CONVERGED (or with a non-finite KKT
+    # residual): the host reads that flag alone, and the worlds' info only then.
     world = wp.tid()
     lo = r.start[world]
     hi = r.start[world + 1]
@@ -421,6 +423,8 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
     info[world, 0] = wp.float64(status)
     info[world, 1] = wp.float64(it)
     info[world, 2] = worst
+    if status != CONVERGED or not wp.isfinite(worst):
+        failed[0] = 1
     info[world, 3] = norm
     info[world, 4] = violated
 
@@ -588,13 +592,15 @@ def device_round_kernels(scalar):
 
     @wp.kernel(enable_backward=False)
     def largest_strain(x_hat: wp.array(dtype=vec3), z: wp.array(dtype=vec3), ends: wp.array2d(dtype=wp.int32),
-                       rest: wp.array(dtype=wp.float64), largest: wp.array(dtype=wp.float64)):
-        # the projection-strain guard's measure (warpcloth/collision/stage.py), its maximum over the edges
+                       rest: wp.array(dtype=wp.float64), limit: wp.float64, over: wp.array(dtype=wp.int32)):
+        # the projection-strain guard's test (warpcloth/collision/stage.py): over[0] = 1 where an edge's strain is
+        # above the limit (the host names the edge only then)
         e = wp.tid()
         a = ends[e, 0]
         b = ends[e, 1]
         grown = wp.float64(wp.length(z[a] - z[b])) - wp.float64(wp.length(x_hat[a] - x_hat[b]))
-        wp.atomic_max(largest, 0, grown / rest[e])
+        if grown / rest[e] > limit:
+            over[0] = 1
 
     return SimpleNamespace(largest_strain=largest_strain, positions64=positions64, inverse_mass=inverse_mass,
                            append_geometry=append_geometry, cloth_positions=cloth_positions,

@@ -256,3 +256,59 @@ def test_scene_without_collisions_builds_no_collision_stage():
     assert model.collision is None
     assert wc.Simulator(model, 0.01).collision is None
 
+
+
+def _counting_resolve(sim):
+    """Wrap ``sim.collision.resolve`` to count, per call, the Warp arrays it makes (not views) and the device arrays
+    it reads back (``.numpy()``); returns the list of (made, reads, rounds) it appends to."""
+    stage = sim.collision
+    resolve = stage.resolve
+    counts = []
+
+    def counting(*args, **kwargs):
+        made, reads = [], [0]
+        init, numpy = wp.array.__init__, wp.array.numpy
+
+        def counting_init(self, *a, **k):
+            if k.get("ptr") is None:  # not a view of existing memory
+                made.append(k.get("shape", a[:1]))
+            init(self, *a, **k)
+
+        def counting_numpy(self):
+            reads[0] += 1
+            return numpy(self)
+
+        wp.array.__init__, wp.array.numpy = counting_init, counting_numpy
+        try:
+            return resolve(*args, **kwargs)
+        finally:
+            wp.array.__init__, wp.array.numpy = init, numpy
+            counts.append((made, reads[0], stage.last.rounds))
+
+    stage.resolve = counting
+    return counts
+
+
+@pytest.mark.parametrize("z", [0.05, 0.0004])
+def test_an_untaped_collision_stage_step_allocates_nothing_and_reads_once_a_detection_and_a_projection(z):
+    # A cloth falling from 5 cm (no contact in these steps) or lying 0.4 mm over the plane (contacts every step):
+    # between two preallocated States, the stage makes no array once its buffers exist, and reads the device once
+    # after each detection and once after each projection (its flags: contacts found; a degenerate normal and a
+    # failed solve; the strain guard's flag rides on the next detection's read).
+    b = flat_cloth(res=4, size=0.2, z=z)
+    b.add_obstacle_plane((1.0, 1.0))
+    model = b.finalize("cpu")
+    sim = wc.Simulator(model, 0.005)
+    a, c = model.state(), model.empty_state()
+    for _ in range(2):  # the stage's buffers are made at the first contacts
+        sim.step(a, c)
+        sim.step(c, a)
+    counts = _counting_resolve(sim)
+    for _ in range(2):
+        sim.step(a, c)
+        sim.step(c, a)
+    assert len(counts) == 4
+    for made, reads, rounds in counts:
+        assert (rounds > 0) == (z < DELTA)
+        assert not made, f"{len(made)} arrays made in an untaped step of the collision stage: {made}"
+        assert reads == 2 * rounds + 1, f"{reads} reads in a step of {rounds} projection rounds"

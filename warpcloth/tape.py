@@ -1,5 +1,7 @@
 """The one place that touches Warp's tape internals."""
 
+import functools
+import gc
 from contextlib import contextmanager
 
 import warp as wp
@@ -27,6 +29,32 @@ def untaped():
         yield
     finally:
         runtime.tape = tape
+
+
+@contextmanager
+def paused_gc():
+    """Python's cyclic garbage collector off inside (as it was after). A rollout makes no reference cycles (one
+    evaluation of the throw left 0 unreachable objects), but a tape holds every step's arrays and launch records, and
+    each full collection walks all of them: on the throw's forward + backward (700 steps) the collector took 0.4 s
+    of 1.46 s (issue 37)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def gc_paused(function):
+    """``function`` run with the cyclic garbage collector paused (:func:`paused_gc`); its signature and docs kept."""
+
+    @functools.wraps(function)
+    def paused(*args, **kwargs):
+        with paused_gc():
+            return function(*args, **kwargs)
+
+    return paused
 
 
 def capturing(device) -> bool:

@@ -5,7 +5,8 @@ A backend owns its buffers and records its own adjoint on the tape:
 
 * :class:`DeviceBackend` (``"device"``, the default): contacts, their geometry, the projection (MPRGP on the dual,
   kernels/projection.py) and its adjoint (CG on the active set) stay on the device; each round reads back the
-  contact count and the solver's status.
+  detector's flags (detection.py FOUND...) once after its projection: a degenerate normal, a failed solve (the
+  solver's figures only then).
 * :class:`ZoneBackend` (``"numpy"``): the contacts come to the host and the zone solver of
   :mod:`warpcloth.collision.projection` projects them, with the QR or dense KKT adjoint
   (``CollisionOptions.adjoint``); each round's result is kept for benchmarks (``CollisionReport.projections``).
@@ -22,7 +23,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision import projection
-from warpcloth.collision.detection import ContactDetector, Contacts
+from warpcloth.collision.detection import DEGENERATE, FAILED, ContactDetector, Contacts
 from warpcloth.collision.device_projection import DeviceProjection
 from warpcloth.collision.linalg import small_blas
 from warpcloth.errors import CollisionError
@@ -42,12 +43,16 @@ def timed(totals: dict, phase: str):
         totals[phase] += time.perf_counter() - t0
 
 
-def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recording: bool) -> wp.array:
-    """One array of every node's position: cloth particles first, then obstacle vertices (taped)."""
+def gather_nodes(model: Model, cloth_x: wp.array, obstacle_x: wp.array, recording: bool,
+                 out: wp.array | None = None) -> wp.array:
+    """One array of every node's position: cloth particles first, then obstacle vertices (taped), in a new array,
+    or, untaped, into ``out`` (a buffer the caller owns)."""
     n = model.particle_count
-    out = wp.empty(n + obstacle_x.shape[0], dtype=model.types.vec3, device=model.device, requires_grad=recording)
+    taped = out is None
+    if taped:
+        out = wp.empty(n + obstacle_x.shape[0], dtype=model.types.vec3, device=model.device, requires_grad=recording)
     wp.launch(contact_kernels(model.scalar).gather_nodes, out.shape[0], device=model.device,
-              inputs=[cloth_x, obstacle_x, n], outputs=[out])
+              inputs=[cloth_x, obstacle_x, n], outputs=[out], record_tape=taped)
     return out
 
 
@@ -103,7 +108,8 @@ class ZoneBackend:
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
               recording: bool) -> None:
         """Start a try at a step that projects ``x_hat`` (the obstacle at ``obstacle_end``; the particles' lumped
-        ``mass``); each world's contacts and targets as the detector's ``world_mode`` says (the stage sets it)."""
+        masses ``mass()``, a function that makes them at its first call); each world's contacts and targets as the
+        detector's ``world_mode`` says (the stage sets it)."""
         self._x_hat, self._obstacle_end, self._mass, self._recording = x_hat, obstacle_end, mass, recording
         self._contacts = Contacts.empty()  # every contact of the step so far
         self._geometry = []  # (normal, weight, target) of each round's new contacts, evaluated where found
@@ -148,7 +154,7 @@ class ZoneBackend:
     def project(self, step: int, opt) -> wp.array:
         """Project x̂ onto every contact so far (the previous round's multipliers first) with the CollisionOptions
         ``opt``; record its adjoint."""
-        x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass, self._geometry
+        x_hat, obstacle_end, mass, geometry = self._x_hat, self._obstacle_end, self._mass(), self._geometry
         normals, weights, targets = (np.concatenate([g[k].numpy() for g in geometry]).astype(np.float64)
                                      for k in range(3))
         unknowns = 3 * np.unique(self._contacts.nodes).size  # the zones' sizes add up to at most this
@@ -173,7 +179,7 @@ class ZoneBackend:
         return z
 
     def _record_adjoint(self, result, z, geometry, mode, unknowns: int) -> None:
-        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
+        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass()
         sizes = np.cumsum([0] + [g[0].shape[0] for g in geometry])
 
         def adjoint():
@@ -210,6 +216,14 @@ class DeviceBackend:
         self.node_count = node_count
         self._solver: DeviceProjection | None = None  # made on first use, grown as needed
         self._nodes = self._normals = self._weights = self._targets = None  # the step's contact lists (_grow)
+        dev = model.device
+        # Buffers of untaped steps and of the per-round checks, reused by every step: a taped step's constants and
+        # positions are its own instead (its recorded adjoint reads them in the backward pass)
+        self._untaped_constants = (wp.zeros(node_count, dtype=wp.vec3d, device=dev),
+                                   wp.zeros(node_count, dtype=wp.int32, device=dev),
+                                   wp.zeros(node_count, dtype=wp.float64, device=dev))
+        self._untaped_z = wp.zeros(self.cloth_count, dtype=model.types.vec3, device=dev)
+        self._untaped_geometry = _geometry_arrays(model, max(detector.capacity, 1), False)
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
@@ -247,16 +261,22 @@ class DeviceBackend:
         kr = device_round_kernels(model.scalar)
         found, total, N = self._found, self._total, self.node_count
         if self._constants is None:  # x^ and the obstacle in float64, the masses: the step's constants
-            positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+            if self._recording:
+                positions = wp.empty(N, dtype=wp.vec3d, device=dev)
+                free = wp.empty(N, dtype=wp.int32, device=dev)
+                inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
+            else:
+                positions, free, inv_mass = self._untaped_constants
             wp.launch(kr.positions64, N, device=dev, inputs=[self._x_hat, self._obstacle_end, self.cloth_count],
                       outputs=[positions], record_tape=False)
-            free = wp.empty(N, dtype=wp.int32, device=dev)
-            inv_mass = wp.empty(N, dtype=wp.float64, device=dev)
-            wp.launch(kr.inverse_mass, N, device=dev, inputs=[self._mass, model.particle_pin, self.cloth_count],
+            wp.launch(kr.inverse_mass, N, device=dev, inputs=[self._mass(), model.particle_pin, self.cloth_count],
                       outputs=[free, inv_mass], record_tape=False)
             self._constants = (positions, free, inv_mass)
         self._grow(total + found)
-        normal, weight, target = _geometry_arrays(model, found, self._recording)
+        if self._recording:  # the round's own: the tape's geometry launch and the adjoint read them
+            normal, weight, target = _geometry_arrays(model, found, True)
+        else:  # read at once, into the step's float64 lists
+            normal, weight, target = (a[:found] for a in self._untaped_geometry)
         det = self.detector
         found_arrays = [det.nodes[:found], det.mode[:found], det.t[:found], det.sign[:found]]
         if self._recording:  # the tape replays this launch after later detections reuse the buffers
@@ -265,12 +285,12 @@ class DeviceBackend:
                   inputs=[start, end, *found_arrays, model.scalar(self.thickness), det.world_mode, det.node_world],
                   outputs=[normal, weight, target])
         wp.copy(self._nodes, det.nodes, dest_offset=4 * total, count=4 * found)
-        bad = wp.full(1, found + 1, dtype=wp.int32, device=dev)
+        # the first degenerate contact, if any, lands in the detector's flags: project reads them once, after the
+        # solve (a degenerate row makes the solve stop at once as unbounded), and raises for it first
+        bad = det.degenerate
+        bad.fill_(found + 1)
         wp.launch(kr.append_geometry, found, device=dev, inputs=[normal, weight, target, total],
                   outputs=[self._normals, self._weights, self._targets, bad], record_tape=False)
-        j = int(bad.numpy()[0]) - 1
-        if j < found:
-            raise _degenerate(step, det.nodes.numpy()[j], det)
         self._rounds.append((total, found, normal, weight, target))
         self._total += found
         self._found = 0
@@ -288,9 +308,17 @@ class DeviceBackend:
         solution = self._solver.project(
             positions, free, inv_mass, self._nodes, self._weights, self._normals, total, self._targets,
             lam_init=None if self._solution is None else self._solver.lam, warm=warm,
-            resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording)
+            resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording, failed=self.detector.failed)
         self._solution = solution
-        self.solver_stats = {"iterations": solution.iterations, "violation": solution.violation}
+        self.solver_stats = _SolverStats(solution)
+        # the round's one read: its degenerate contact, if any, and whether a world's solve failed
+        flags = self.detector.read_flags()
+        found = self._rounds[-1][1]
+        j = int(flags[DEGENERATE]) - 1
+        if j < found:
+            raise _degenerate(step, self.detector.nodes.numpy()[j], self.detector)
+        if not flags[FAILED]:
+            return self._positions(solution)
         failed = solution.failed_worlds()
         where = _worlds(model, failed)
         if solution.unbounded:
@@ -304,7 +332,15 @@ class DeviceBackend:
                 f"{solution.iterations} iterations: a contact violated or an active one off by "
                 f"{solution.residual:.3e} m > tol {opt.qp_tol:.1e} (contacts that contradict each other stall it)",
                 worlds=failed or None)
-        z = wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=self._recording)
+        raise AssertionError("a failed solve with every world converged")  # the flag and the info disagree
+
+    def _positions(self, solution) -> wp.array:
+        """The cloth's positions of a solve that succeeded, in the model's precision (its adjoint recorded)."""
+        model, dev = self.model, self.model.device
+        # a taped round's z is its own (its gradient is this round's); an untaped one's is read before the next
+        # round projects again (the next detection gathers it, or the stage writes it into the step's result)
+        z = (wp.empty(self.cloth_count, dtype=model.types.vec3, device=dev, requires_grad=True) if self._recording
+             else self._untaped_z)
         wp.launch(device_round_kernels(model.scalar).cloth_positions, self.cloth_count, device=dev,
                   inputs=[solution.z], outputs=[z], record_tape=False)
         if self._recording:
@@ -331,7 +367,7 @@ class DeviceBackend:
         model, dev = self.model, self.model.device
         kr = device_round_kernels(model.scalar)
         n, N = self.cloth_count, self.node_count
-        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass
+        x_hat, obstacle_end, mass = self._x_hat, self._obstacle_end, self._mass()
         positions, free, inv_mass = self._constants
         rounds = list(self._rounds)
         count = solution.rows.count
@@ -341,20 +377,21 @@ class DeviceBackend:
 
         def adjoint():
             with timed(self.timings, "adjoint"):
-                d_z = wp.empty(N, dtype=wp.vec3d, device=dev)
+                # the solver's work arrays (the adjoints of a backward pass run one at a time), at the sizes the
+                # kernels were given when these were arrays of their own
+                work, m = solver.adjoint_work, max(count, 1)
+                d_z, d_z_in, grad_const = work.d_z, work.d_z_in, work.grad_const
+                grad_w, grad_n, grad_target = work.grad_w[:m], work.grad_n[:m], work.grad_target[:m]
                 wp.launch(kr.scaled_gradient, N, device=dev, inputs=[z.grad, inv_mass, n], outputs=[d_z])
-                d_z_in = wp.clone(d_z)
+                wp.copy(d_z_in, d_z)
                 d_lam = solver.adjoint_on_device(solution, d_z)
-                grad_w = wp.empty(max(count, 1), dtype=wp.vec4d, device=dev)
-                grad_n = wp.empty(max(count, 1), dtype=wp.vec3d, device=dev)
-                grad_target = wp.empty(max(count, 1), dtype=wp.float64, device=dev)
-                grad_const = wp.zeros(N, dtype=wp.vec3d, device=dev)
+                grad_const.zero_()
                 wp.launch(kr.push_contacts, count, device=dev,
                           inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
                           outputs=[grad_w, grad_n, grad_const, grad_target])
-                obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else wp.zeros(
-                    max(N - n, 1), dtype=model.types.vec3, device=dev)
-                mass_grad = mass.grad if mass.grad is not None else wp.zeros(n, dtype=model.scalar, device=dev)
+                obstacle_grad = obstacle_end.grad if obstacle_end.grad is not None else work.sink(
+                    max(N - n, 1), model.types.vec3, dev)
+                mass_grad = mass.grad if mass.grad is not None else work.sink(n, model.scalar, dev)
                 wp.launch(kr.position_gradients, N, device=dev,
                           inputs=[z.grad, d_z, d_z_in, inv_mass, grad_const, solution.z, positions, n],
                           outputs=[x_hat.grad, obstacle_grad, mass_grad])
@@ -365,6 +402,63 @@ class DeviceBackend:
                                   outputs=[normal.grad, weight.grad, target.grad])
 
         record_adjoint(adjoint, arrays=[z])
+
+
+class _SolverStats(dict):
+    """The device backend's ``solver_stats`` (``iterations``, ``violation``), read from the solve's info when first
+    looked at (diagnostics: no step reads them; an untaped step's solution shares the solver's buffer, so read them
+    before the next step)."""
+
+    def __init__(self, solution):
+        super().__init__()
+        self._solution = solution
+
+    def _fill(self) -> None:
+        if self._solution is not None:
+            solution, self._solution = self._solution, None
+            self.update(iterations=solution.iterations, violation=solution.violation)
+
+    def __getitem__(self, key):
+        self._fill()
+        return super().__getitem__(key)
+
+    def __contains__(self, key):
+        self._fill()
+        return super().__contains__(key)
+
+    def __iter__(self):
+        self._fill()
+        return super().__iter__()
+
+    def __len__(self) -> int:
+        self._fill()
+        return super().__len__()
+
+    def __repr__(self) -> str:
+        self._fill()
+        return super().__repr__()
+
+    def __eq__(self, other):
+        self._fill()
+        return super().__eq__(other)
+
+    __hash__ = None
+
+    def get(self, key, default=None):
+        self._fill()
+        return super().get(key, default)
+
+    def items(self):
+        self._fill()
+        return super().items()
+
+    def keys(self):
+        self._fill()
+        return super().keys()
+
+    def values(self):
+        self._fill()
+        return super().values()
 
 
 def _worlds(model: Model, worlds: list[int]) -> str:

@@ -59,12 +59,16 @@ class PrimitiveSet:
     grouped by world where the model has several (``node_world``: the world of each node), so that a query meets
     only its own world's primitives (kernels/geometry.py world_root)."""
 
-    def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None):
+    def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None,
+                 boxes: tuple[wp.array, wp.array] | None = None):
         self.count = len(indices)
         self.corners = indices.shape[1]
         self.indices = wp.array(indices.astype(np.int32), dtype=wp.int32, device=device)
-        self.lowers = wp.zeros(self.count, dtype=wp.vec3, device=device)
-        self.uppers = wp.zeros(self.count, dtype=wp.vec3, device=device)
+        if boxes is None:
+            boxes = (wp.zeros(self.count, dtype=wp.vec3, device=device),
+                     wp.zeros(self.count, dtype=wp.vec3, device=device))
+        self.lowers, self.uppers = boxes
+        """The boxes (count,) vec3: arrays of their own, or ``boxes``, views into a detector's boxes of all sets."""
         self.bvh: wp.Bvh | None = None
         self.groups = None
         if node_world is not None and self.count and node_world.max() > 0:
@@ -76,6 +80,14 @@ class PrimitiveSet:
             self.bvh = wp.Bvh(self.lowers, self.uppers, groups=self.groups)
         else:
             self.bvh.refit()
+
+
+FOUND, DEGENERATE, FAILED, STRAINED = 0, 1, 2, 3
+"""The slots of :attr:`ContactDetector.flags`: contacts the last detection found (beyond the capacity, only
+counted); 1 + the first contact of the last round whose normal is degenerate (the round's count + 1: none); 1 where
+the last projection failed in a world; 1 where the projection stretched an edge past
+``CollisionOptions.max_projection_strain``. The collision stage reads them together, once after each detection and
+once after each projection."""
 
 
 class ContactDetector:
@@ -102,26 +114,62 @@ class ContactDetector:
         self.node_world_host = worlds
         """:attr:`node_world` on the host (error messages)."""
         self.grouped = int(model.world_count > 1)
-        cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
-        cloth_vertices = PrimitiveSet(np.arange(n)[:, None], dev, worlds)
-        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds)
-        self._sets = [cloth_tris, cloth_vertices, cloth_edges]
+        rows = [model.triangles_np, np.arange(n)[:, None], model.edge_indices.numpy()]
+        if obstacles:
+            V = model.obstacle_vertex_count
+            rows += [model.obstacle_tri_indices.numpy() + n, np.arange(n, n + V)[:, None],
+                     model.obstacle_edge_indices.numpy() + n]
+        # Every set's swept boxes in one launch (primitive_bounds_all): all primitives as rows of three corners, a
+        # vertex's and an edge's padded by repeating their last corner (the same box: min and max are exact), and
+        # each set's boxes a view into the one array of them.
+        rows = [np.asarray(r, dtype=np.int32).reshape(len(r), -1) for r in rows]
+        self._prims = wp.array(np.concatenate([np.pad(r, ((0, 0), (0, 3 - r.shape[1])), mode="edge") if len(r) else
+                                               np.zeros((0, 3), dtype=np.int32) for r in rows]),
+                               dtype=wp.int32, device=dev)
+        self._lowers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
+        self._uppers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
+        ends = [int(e) for e in np.cumsum([0] + [len(r) for r in rows])]
+        sets = [PrimitiveSet(r, dev, worlds, boxes=(self._lowers[lo:hi], self._uppers[lo:hi]))
+                for r, lo, hi in zip(rows, ends[:-1], ends[1:])]
+        for prims, lo in zip(sets, ends[:-1]):
+            prims.offset = lo  # its first primitive's row in self._prims (and box in self._lowers, self._uppers)
+        cloth_tris, cloth_vertices, cloth_edges = sets[:3]
+        self._sets = sets
         # (query set, target set, kind, skip-incident/same-set flag)
         self._queries: list[tuple[PrimitiveSet, PrimitiveSet, str, int]] = []
         if obstacles:
-            V = model.obstacle_vertex_count
-            obst_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev, worlds)
-            obst_vertices = PrimitiveSet(np.arange(n, n + V)[:, None], dev, worlds)
-            obst_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev, worlds)
-            self._sets += [obst_tris, obst_vertices, obst_edges]
+            obst_tris, obst_vertices, obst_edges = sets[3:]
             self._queries += [(cloth_vertices, obst_tris, "vf", 0), (obst_vertices, cloth_tris, "vf", 0),
                               (cloth_edges, obst_edges, "ee", 0)]
         if self_collision:
             self._queries += [(cloth_vertices, cloth_tris, "vf", 1), (cloth_edges, cloth_edges, "ee", 1)]
-        self.world_mode = wp.zeros(model.world_count, dtype=wp.int32, device=dev)
+        # Every query in one launch (kernels/collision.py query_all): the queries that can find something, their
+        # rows one after another (a vertex as (v, v), an edge as (a, b)), and each one's first thread, boxes, target
+        # primitives, kind and flag; its BVH's id once the BVHs are built (the first detection).
+        live = [q for q in self._queries if q[0].count and q[1].count]
+        self._live_queries = live
+        query_rows = [np.repeat(rows_of, 2, axis=1) if rows_of.shape[1] == 1 else rows_of
+                      for rows_of in (rows[sets.index(q[0])] for q in live)]
+        self._query_rows = wp.array(np.concatenate(query_rows) if live else np.zeros((0, 2), dtype=np.int32),
+                                    dtype=wp.int32, device=dev)
+        self._query_start = wp.array(np.cumsum([0] + [q[0].count for q in live]), dtype=int, device=dev)
+        self._query_table = [wp.array(values, dtype=int, device=dev) for values in (
+            [q[0].offset for q in live], [q[1].offset for q in live], [int(q[2] == "vf") for q in live],
+            [q[3] for q in live])]
+        self._bvh_ids: wp.array | None = None
+        self.skip = wp.zeros(1, dtype=wp.int32, device=dev)
+        """Detection finds nothing while ``skip[0]`` is not 0: the Simulator points it at its failure record's
+        error flag, so that a step whose candidate positions diverged (not yet read on the host) meets no contact."""
+        self._world_modes: dict[bytes, wp.array] = {}  # set_world_modes: one array per pattern, never written again
+        self.set_world_modes(np.zeros(model.world_count, dtype=np.int32))
         """Each world's mode in the collision stage's current try (kernels/contact.py WORLD_SKIPPED...): set by
         :meth:`set_world_modes`; every world at the full thickness until then."""
-        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.flags = wp.zeros(4, dtype=wp.int32, device=dev)
+        """The collision stage's round flags (FOUND, DEGENERATE, FAILED, STRAINED), int32 on the device."""
+        self._count, self.degenerate, self.failed, self.strained = (self.flags[i:i + 1] for i in range(4))
+        """Views of one slot each, as the kernels that write them take them."""
+        self.last_flags = np.zeros(4, dtype=np.int64)
+        """The flags as the last read saw them (:meth:`read_flags`)."""
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._mode = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
@@ -131,9 +179,15 @@ class ContactDetector:
         """Each world's mode for the detections that follow (kernels/contact.py): 0 the full thickness, 1 keep start
         gaps (pairs that start inside the thickness are contacts only where they come closer than they started,
         kernels/collision.py START_SLACK), -1 skip the world (no contacts)."""
-        # a new array, not assigned into the old one: the tape's contact-geometry launches keep the modes of their
-        # try for the backward pass
-        self.world_mode = wp.array(np.asarray(modes, dtype=np.int32), dtype=wp.int32, device=self.device)
+        # Never assigned into: the tape's contact-geometry launches keep the modes array of their try for the
+        # backward pass. One array per pattern of modes, made the first time it is asked for and never written
+        # again, so a step reuses it without allocating (the common pattern, all worlds at full thickness, is made
+        # here at construction).
+        modes = np.ascontiguousarray(modes, dtype=np.int32)
+        array = self._world_modes.get(modes.tobytes())
+        if array is None:
+            array = self._world_modes[modes.tobytes()] = wp.array(modes, dtype=wp.int32, device=self.device)
+        self.world_mode = array
 
     def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> Contacts:
         """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host. ``reference``
@@ -171,36 +225,42 @@ class ContactDetector:
 
     def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> int:
         """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
-        :attr:`sign`); returns their count (the one value read back)."""
+        :attr:`sign`); returns their count. The one read back: :attr:`flags`, whose STRAINED slot carries the last
+        projection's strain-guard flag along."""
         k = self.kernels
         half = 0.5 * self.thickness
-        for prims in self._sets:
-            if prims.count:
-                wp.launch(k.primitive_bounds, prims.count, device=self.device,
-                          inputs=[x0, x1, prims.indices, prims.corners, half],
-                          outputs=[prims.lowers, prims.uppers], record_tape=False)
+        if self._prims.shape[0]:
+            wp.launch(k.primitive_bounds, self._prims.shape[0], device=self.device,
+                      inputs=[x0, x1, self._prims, 3, half], outputs=[self._lowers, self._uppers], record_tape=False)
         self._count.zero_()
         reference = x1 if reference is None else reference
         refitted = set()
-        for query, target, kind, flag in self._queries:
-            if query.count == 0 or target.count == 0:
-                continue
+        for _query, target, _kind, _flag in self._live_queries:
             if id(target) not in refitted:
                 target.update_bvh()
             refitted.add(id(target))
-            kernel = k.vertex_face if kind == "vf" else k.edge_edge
-            query_index = query.indices if kind == "ee" else query.indices.flatten()
-            wp.launch(kernel, query.count, device=self.device,
-                      inputs=[target.bvh.id, x0, x1, reference, query_index, target.indices, query.lowers,
-                              query.uppers, flag, wp.float64(self.thickness), self.world_mode, self.capacity,
-                              self.node_world, self.grouped],
+        if self._live_queries:
+            if self._bvh_ids is None:  # the BVHs are refitted in place from now on: their ids stay
+                self._bvh_ids = wp.array(np.array([q[1].bvh.id for q in self._live_queries], dtype=np.uint64),
+                                         dtype=wp.uint64, device=self.device)
+            query_offset, target_offset, vertex_face, same = self._query_table
+            wp.launch(k.query_all, self._query_rows.shape[0], device=self.device,
+                      inputs=[x0, x1, reference, self._query_rows, self._prims, self._lowers, self._uppers,
+                              self._query_start, query_offset, self._bvh_ids, target_offset, vertex_face, same,
+                              wp.float64(self.thickness), self.world_mode, self.capacity, self.node_world,
+                              self.grouped, self.skip],
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
-        count = int(self._count.numpy()[0])
+        count = int(self.read_flags()[FOUND])
         if count > self.capacity:
             raise ContactCapacityError(
                 f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
                 f"raise CollisionOptions.contact_capacity to at least {count}")
         return count
+
+    def read_flags(self) -> np.ndarray:
+        """Read :attr:`flags` (the one read of a detection or of a projection's checks) into :attr:`last_flags`."""
+        self.last_flags = self.flags.numpy().astype(np.int64)
+        return self.last_flags
 
     def check_start_outside(self, model: Model) -> None:
         """Raise ValueError if a cloth particle starts inside a closed obstacle (the response cannot fix that)."""

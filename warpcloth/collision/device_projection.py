@@ -7,7 +7,7 @@ tests; the stage uses :meth:`DeviceProjection.adjoint_on_device` and the kernels
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -21,7 +21,9 @@ ADJOINT_WARN = 1.0e-8
 
 @dataclass
 class DeviceSolution:
-    """What :meth:`DeviceProjection.project` found (device arrays, valid until the next call)."""
+    """What :meth:`DeviceProjection.project` found (device arrays, valid until the next call, unless it kept its
+    own). The solver's status is read from the device when first asked for (``world_status`` and the figures
+    after it): a caller that reads only the failure flag of the solve reads nothing else."""
 
     z: wp.array
     """Positions of every node (cloth particles, then obstacle vertices) [m], vec3d."""
@@ -31,14 +33,36 @@ class DeviceSolution:
     """The contacts as the kernels read them, sorted by world (kernels/projection.py Rows)."""
     sorted_lam: wp.array
     """``lam`` in the order of ``rows``."""
-    world_status: np.ndarray
-    """Each world's solver status (kernels/projection.py CONVERGED, NOT_CONVERGED, UNBOUNDED)."""
-    iterations: int
-    """MPRGP iterations taken (the most any world took)."""
-    residual: float
-    """The KKT test's residual at the end [m]: largest violation, and |c_j| where λ_j > 0 (largest over worlds)."""
-    violation: float
-    """Largest violation of a contact at the end [m]."""
+    info: wp.array
+    """Each world's [status, iterations, KKT residual, ||H||, violation] (kernels/projection.py solve), float64."""
+    _read: np.ndarray | None = field(default=None, repr=False)
+
+    def _info(self) -> np.ndarray:
+        if self._read is None:
+            self._read = self.info.numpy().copy()
+        return self._read
+
+    @property
+    def world_status(self) -> np.ndarray:
+        """Each world's solver status (kernels/projection.py CONVERGED, NOT_CONVERGED, UNBOUNDED)."""
+        info = self._info()
+        return np.where(np.isfinite(info[:, 2]), info[:, 0], kp.NOT_CONVERGED).astype(np.int64)
+
+    @property
+    def iterations(self) -> int:
+        """MPRGP iterations taken (the most any world took)."""
+        return int(self._info()[:, 1].max())
+
+    @property
+    def residual(self) -> float:
+        """The KKT test's residual at the end [m]: largest violation, and |c_j| where λ_j > 0 (largest over
+        worlds)."""
+        return float(self._info()[:, 2].max())
+
+    @property
+    def violation(self) -> float:
+        """Largest violation of a contact at the end [m]."""
+        return float(self._info()[:, 4].max())
 
     @property
     def converged(self) -> bool:
@@ -51,6 +75,32 @@ class DeviceSolution:
 
     def failed_worlds(self) -> list[int]:
         return np.flatnonzero(self.world_status != kp.CONVERGED).tolist()
+
+
+class AdjointWork:
+    """The collision stage's device backend's adjoint work arrays for ``node_count`` nodes and up to ``capacity``
+    contacts (one set per DeviceProjection, reused by every step's adjoint: they run one at a time)."""
+
+    def __init__(self, device, node_count: int, capacity: int):
+        f64 = wp.float64
+        self.d_z = wp.zeros(node_count, dtype=wp.vec3d, device=device)
+        self.d_z_in = wp.zeros(node_count, dtype=wp.vec3d, device=device)
+        self.grad_const = wp.zeros(node_count, dtype=wp.vec3d, device=device)
+        self.grad_w = wp.zeros(capacity, dtype=wp.vec4d, device=device)
+        self.grad_n = wp.zeros(capacity, dtype=wp.vec3d, device=device)
+        self.grad_target = wp.zeros(capacity, dtype=f64, device=device)
+        self.sinks: dict = {}
+        """Gradient arrays for inputs that have none (their gradient is dropped), by (shape, dtype)."""
+
+    def sink(self, count: int, dtype, device) -> wp.array:
+        """An array of ``count`` zeros of ``dtype`` to write a dropped gradient into (zeroed at each call)."""
+        key = (count, dtype)
+        array = self.sinks.get(key)
+        if array is None:
+            array = self.sinks[key] = wp.zeros(count, dtype=dtype, device=device)
+        else:
+            array.zero_()
+        return array
 
 
 class DeviceProjection:
@@ -90,7 +140,17 @@ class DeviceProjection:
         self._x_hat = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._scratch = wp.zeros(N, dtype=wp.vec3d, device=device)
         self._info = wp.zeros((self.world_count, 5), dtype=f64, device=device)
+        self._failed = wp.zeros(1, dtype=wp.int32, device=device)
         self._rows = None
+        # The adjoint's work arrays, reused by every call (a backward pass runs one step's adjoint at a time, and
+        # nothing is kept from one call to the next but what the caller copies out of them)
+        self._adj_active = wp.zeros(m, dtype=wp.int32, device=device)
+        self._adj_sorted_d_lam = wp.zeros(m, dtype=f64, device=device)
+        self._adj_work = [wp.zeros(m, dtype=f64, device=device) for _ in range(6)]
+        self._adj_info = wp.zeros((self.world_count, 2), dtype=f64, device=device)
+        self._adj_d_lam = wp.zeros(m, dtype=f64, device=device)
+        self.adjoint_work = AdjointWork(device, N, m)
+        """Work arrays of a caller's adjoint (the collision stage's device backend), sized for this capacity."""
 
     def grown(self, capacity: int) -> DeviceProjection:
         """A projection of a larger capacity that resumes this one's step: its multipliers and positions kept."""
@@ -102,7 +162,7 @@ class DeviceProjection:
     def project(self, positions: wp.array, free: wp.array, inv_mass: wp.array, nodes: wp.array, weights: wp.array,
                 normals: wp.array, count: int, thickness: float | wp.array, *, lam_init: wp.array | None = None,
                 warm: int | None = None, resume: bool = False, tol: float = 1.0e-10, max_iters: int = 100000,
-                stall: int = 5000, keep: bool = False) -> DeviceSolution:
+                stall: int = 5000, keep: bool = False, failed: wp.array | None = None) -> DeviceSolution:
         """Project ``positions`` (every node; the free ones are x̂) onto the ``count`` contacts, each world's
         contacts on their own.
 
@@ -122,6 +182,8 @@ class DeviceProjection:
             max_iters: most MPRGP iterations (each one product with the dual matrix).
             stall: stop (not converged) when the KKT residual has not halved in this many iterations.
             keep: return arrays of its own (for a later :meth:`adjoint`), not this object's buffers.
+            failed: a flag (an int32 array, its entry 0) this call zeroes and the solve sets to 1 where a world
+                did not converge; default: one of this object's.
         """
         if count > self.capacity:
             raise ValueError(f"{count} contacts for a device projection of capacity {self.capacity}")
@@ -152,16 +214,16 @@ class DeviceProjection:
             wp.launch(kp.gather, count, device=dev, inputs=[self._lam, self._order], outputs=[self._sorted_lam],
                       record_tape=False)
         x, g, p, hp, tmp = self._work
+        failed = self._failed if failed is None else failed
+        failed.zero_()
         wp.launch(kp.solve, self.world_count, device=dev,
                   inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones, self._solve_world],
-                  outputs=[self._sorted_lam, self._z, x, g, p, hp, tmp, self._scratch, self._info],
+                  outputs=[self._sorted_lam, self._z, x, g, p, hp, tmp, self._scratch, self._info, failed],
                   record_tape=False)
         if count:
             wp.launch(kp.scatter, count, device=dev, inputs=[self._sorted_lam, self._order], outputs=[self._lam],
                       record_tape=False)
-        info = self._info.numpy()
-        status = np.where(np.isfinite(info[:, 2]), info[:, 0], kp.NOT_CONVERGED).astype(np.int64)
-        z, lam, sorted_lam = self._z, self._lam, self._sorted_lam
+        z, lam, sorted_lam, info = self._z, self._lam, self._sorted_lam, self._info
         if keep:
             kept = kp.Rows()
             kept.count = count
@@ -171,9 +233,8 @@ class DeviceProjection:
             kept.diag, kept.inv_mass = wp.clone(self._diag[:m]), wp.clone(inv_mass)
             kept.order, kept.start = wp.clone(self._order[:m]), wp.clone(self._start)
             r, z, lam, sorted_lam = kept, wp.clone(z), wp.clone(lam[:m]), wp.clone(sorted_lam[:m])
-        return DeviceSolution(z=z, lam=lam, rows=r, sorted_lam=sorted_lam, world_status=status,
-                              iterations=int(info[:, 1].max()), residual=float(info[:, 2].max()),
-                              violation=float(info[:, 4].max()))
+            info = wp.clone(info)
+        return DeviceSolution(z=z, lam=lam, rows=r, sorted_lam=sorted_lam, info=info)
 
     @property
     def lam(self) -> wp.array:
@@ -184,22 +245,25 @@ class DeviceProjection:
                           rtol: float = 1.0e-13) -> wp.array:
         """In place on the device: ``d_z`` (node_count,) vec3d holds W⁻¹ ∂L/∂z on entry (0 for constant nodes) and
         W⁻¹(∂L/∂z − G_Aᵀd_λ) on return; returns the kernels' d_λ (count,) in the caller's order (the negative of
-        :mod:`warpcloth.collision.adjoint`'s)."""
+        :mod:`warpcloth.collision.adjoint`'s), in this object's buffer: valid until the next call."""
         r = solution.rows
         dev = self.device
         m = max(r.count, 1)
-        active = wp.zeros(m, dtype=wp.int32, device=dev)
+        if m > self.capacity:
+            raise ValueError(f"{r.count} contacts for a device projection of capacity {self.capacity}")
+        # this object's work arrays, their first m entries zeroed (as new arrays of m zeros would be)
+        active, sorted_d_lam, d_lam = (a[:m] for a in (self._adj_active, self._adj_sorted_d_lam, self._adj_d_lam))
+        rhs, res, p, q, correction, remainder = (a[:m] for a in self._adj_work)
+        info = self._adj_info
+        for a in (active, sorted_d_lam, rhs, res, p, q, correction, remainder, info, d_lam):
+            a.zero_()
         if r.count:
             wp.launch(kp.active_set, r.count, device=dev,
                       inputs=[r, solution.z, solution.sorted_lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
-        sorted_d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
-        rhs, res, p, q, correction, remainder = (wp.zeros(m, dtype=wp.float64, device=dev) for _ in range(6))
-        info = wp.zeros((self.world_count, 2), dtype=wp.float64, device=dev)
         wp.launch(kp.adjoint, self.world_count, device=dev, inputs=[r, active, wp.float64(rtol)],
                   outputs=[sorted_d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info],
                   record_tape=False)
-        d_lam = wp.zeros(m, dtype=wp.float64, device=dev)
         if r.count:
             wp.launch(kp.scatter, r.count, device=dev, inputs=[sorted_d_lam, r.order], outputs=[d_lam],
                       record_tape=False)
@@ -220,7 +284,7 @@ class DeviceProjection:
         inv_mass = solution.rows.inv_mass.numpy()
         d_z = wp.array(np.asarray(grad_z, dtype=np.float64) * inv_mass[:, None], dtype=wp.vec3d, device=self.device)
         d_lam = self.adjoint_on_device(solution, d_z)
-        return d_z.numpy(), -d_lam.numpy()[:solution.rows.count]
+        return d_z.numpy(), -d_lam.numpy()[:solution.rows.count]  # a copy: d_lam is this object's buffer
 
     def backward(self, solution: DeviceSolution, grad_z: np.ndarray, *, x_hat: np.ndarray, mass: np.ndarray,
                  fixed: np.ndarray, obstacle_x: np.ndarray, nodes: np.ndarray, weights: np.ndarray,

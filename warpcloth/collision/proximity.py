@@ -106,6 +106,16 @@ class ProximityForces:
             self._queries += [(cloth_vertices, cloth_tris, "vf", node_area, tri_area_wp, 0),
                               (cloth_edges.indices, cloth_edges, "ee", cloth_edge_area, cloth_edge_area, 1)]
         self._targets = list({id(q[1]): q[1] for q in self._queries}.values())  # each BVH refitted once a step
+        # the targets' boxes in one launch: their rows of three corners (an edge's padded by repeating its last:
+        # the same box), each target's boxes a view into the one array of them
+        rows = [np.pad(t.indices.numpy(), ((0, 0), (0, 3 - t.corners)), mode="edge") for t in self._targets]
+        self._target_rows = wp.array(np.concatenate(rows) if rows else np.zeros((0, 3), dtype=np.int32),
+                                     dtype=wp.int32, device=dev)
+        size = max(self._target_rows.shape[0], 1)
+        self._lowers, self._uppers = (wp.zeros(size, dtype=wp.vec3, device=dev) for _ in range(2))
+        ends = [int(e) for e in np.cumsum([0] + [t.count for t in self._targets])]
+        for t, lo, hi in zip(self._targets, ends[:-1], ends[1:]):
+            t.lowers, t.uppers = self._lowers[lo:hi], self._uppers[lo:hi]
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._count_host = self._count.numpy() if dev.is_cpu else None
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
@@ -140,12 +150,12 @@ class ProximityForces:
         k = self.kernels
         m = self.model
         radius = 2.0 * self.thickness
+        if self._target_rows.shape[0]:
+            wp.launch(k.primitive_boxes, self._target_rows.shape[0], device=self.device,
+                      inputs=[x, self._target_rows, radius], outputs=[self._lowers, self._uppers], record_tape=False)
         for prims in self._targets:
-            if prims.count == 0:
-                continue
-            wp.launch(k.primitive_boxes, prims.count, device=self.device, inputs=[x, prims.indices, radius],
-                      outputs=[prims.lowers, prims.uppers], record_tape=False)
-            prims.update_bvh()
+            if prims.count:
+                prims.update_bvh()
         self._count.zero_()
         search = k.PairSearch()
         search.offsets, search.columns, search.cloth_count = m.bsr_offsets, m.bsr_columns, self.cloth_count

@@ -23,24 +23,47 @@ Gradients reach x̂, the step's start positions x0 and the obstacles' start and 
 transforms of the Control) through n, w and the times of impact, and the masses in W (the Simulator's taped lumped
 masses, on to the densities). Deliberately dropped: which contacts exist and which are active (piecewise constant:
 the trajectory's piece).
+
+What the host does in a step (issue 37). Detection reads one small array (the detector's flags: contacts found,
+and the last projection's strain-guard flag); a round with contacts reads it once more after its projection (a
+degenerate normal, a failed solve). A step without contacts therefore reads one value, runs four launches (the
+nodes, the swept boxes, every query, the result) and the BVH refits, and, taped, records one hand-written adjoint
+(one launch) and nothing else; an untaped step allocates nothing here (tests/test_collision.py). What still
+keeps a contact step from being captured as a graph (``wp.capture_while`` over a device flag "found new contacts
+and rounds left"):
+* launch sizes and offsets from the host: a round's geometry, append and copy launches and the projection's
+  sort, prepare, gather and scatter launches are sized by the contact counts read back (``found``, ``total``),
+  and the device projection's ``Rows.count`` is a host int; they would become launches of the capacity that
+  return past a count held on the device (bitwise the same per contact: the CPU runs threads in order);
+* the tape: each round records launches on arrays of its own sized by its count (the contacts' geometry, the
+  solution kept for the adjoint), and the adjoint closure launches with those counts. A device-side round loop
+  needs per-step storage for the most rounds (rounds x capacity) and an adjoint that walks the rounds back with
+  the same device count, which Warp's tape cannot record (it replays a fixed list of launches);
+* the tries: a failed world's second try and the fail-safe branch on the host, and the fail-safe
+  (failsafe.py: rigid impact zones, NumPy) runs on the host; the second try could run on the device (world modes
+  set by a kernel from the failure flags, the rounds run again), the fail-safe could not;
+* the projection's capacity grows on the host (``DeviceBackend.project``: a new DeviceProjection).
+Outside this stage, a contact scene's step also reads the device for its proximity pairs (their count sizes the
+pair launches and the taped copies) and evaluates scripted obstacle motions on the host into new arrays.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
 from warpcloth.collision.backends import DeviceBackend, ZoneBackend, gather_nodes, timed
-from warpcloth.collision.detection import ContactDetector
+from warpcloth.collision.detection import STRAINED, ContactDetector
 from warpcloth.collision.diagnostics import rounds_error, strain_error
 from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
 from warpcloth.errors import CollisionError, ContactCapacityError
 from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.model import Model, State
-from warpcloth.tape import active_tape
+from warpcloth.tape import active_tape, record_adjoint
 
 
 @dataclass
@@ -115,6 +138,10 @@ class CollisionStage:
         """Steps resolved by the second try, which keeps start gaps, over this stage's life."""
         self.last: CollisionReport | None = None
         """The report of the last step (diagnostics: no step reads it)."""
+        self.record = wp.zeros(10, dtype=wp.int32, device=self.device)
+        """The failure record (kernels/status.py) the divergence guard on the stage's result latches into: the
+        Simulator's (it also points ``detector.skip`` at it, so that candidate positions that diverged meet no
+        contact); one of the stage's own otherwise."""
         # every triangle's three edges and their rest lengths (material space): the projection-strain guard
         tris = model.triangles_np
         dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: rest edges x1 - x0, x2 - x0
@@ -123,6 +150,13 @@ class CollisionStage:
                                           np.linalg.norm(dm[:, :, 1] - dm[:, :, 0], axis=1)])
         self._edge_ends_device = wp.array(self._edge_ends, dtype=wp.int32, device=self.device)
         self._edge_rest_device = wp.array(self._edge_rest, dtype=wp.float64, device=self.device)
+        # The node positions detection reads (untaped, the stage's own, reused by every step): the step's start, its
+        # unprojected end (round 0, and the side of pairs touching at the start in every round) and a later round's
+        # end. A round that finds contacts gathers its start and end again, taped, into arrays of the step's own
+        # (the tape's contact geometry reads them in the backward pass); a round that finds none costs no taped
+        # launch and no allocation.
+        vec3 = model.types.vec3
+        self._start, self._reference, self._end = (wp.zeros(n + V, dtype=vec3, device=self.device) for _ in range(3))
 
     @property
     def backward_seconds(self) -> float:
@@ -130,20 +164,28 @@ class CollisionStage:
         return self.phase_seconds["adjoint"]
 
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
-                obstacle_end: wp.array, state_out: State, step: int, mass: wp.array,
+                obstacle_end: wp.array, state_out: State, step: int, mass: wp.array | Callable[[], wp.array],
                 implicit_dt: float | None = None) -> CollisionReport:
         """Write the collision-free positions and corrected velocities of the step into ``state_out`` and report
         what it took. ``obstacle_start`` and ``obstacle_end`` are the obstacle vertices at the step's start and end
-        (empty without obstacles); ``mass``: the particles' lumped masses (the adjoint adds to ``mass.grad``).
+        (empty without obstacles); ``mass``: the particles' lumped masses (the adjoint adds to ``mass.grad``), or a
+        function that makes them (called once, where the step has contacts: a step without costs no launch for them).
         ``implicit_dt``: the length of the implicit step that gave x̂ = start + implicit_dt v̂, where it is not the
         time step (BDF2: 2/3 dt from its blend); the velocity change is (z − x̂) / implicit_dt, so the result keeps
         that relation."""
         model = self.model
         recording = active_tape() is not None and model.requires_grad
         opt = self.options.collision
+        mass = _Lazy(mass if callable(mass) else (lambda masses=mass: masses))
         backend = self.backends[opt.solver]
         report = CollisionReport(solver=opt.solver, x_hat=x_hat)
-        start = gather_nodes(model, state_in.particle_x, obstacle_start, recording)
+        # the step's start nodes and its unprojected end (every try's round 0), for detection: one launch
+        start = self._start
+        wp.launch(contact_kernels(model.scalar).gather_two, start.shape[0], device=self.device,
+                  inputs=[state_in.particle_x, obstacle_start, x_hat, obstacle_end, model.particle_count],
+                  outputs=[start, self._reference], record_tape=False)
+        # the step's start nodes taped, made at the first round that finds contacts (shared by the step's tries)
+        taped_start = _Lazy(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
         # Each world's way through the step: the full thickness; where that fails, the second try keeping start
         # gaps; where that fails too, the fail-safe. A failure names its worlds, so only they move on: the others
         # redo their tries unchanged (worlds never interact), and each world ends as it would alone.
@@ -157,7 +199,7 @@ class CollisionStage:
             backend.begin(x_hat, obstacle_end, mass, recording)
             report.rounds = 0
             try:
-                z = self._rounds(backend, start, x_hat, obstacle_end, step, report, recording)
+                z = self._rounds(backend, start, taped_start, x_hat, obstacle_end, step, report, recording)
                 report.contacts = backend.count
                 break
             except ContactCapacityError:
@@ -181,7 +223,7 @@ class CollisionStage:
             reason = " | ".join(_world_reason(model, w, reasons[w]) for w in report.fail_safe_worlds)
             with timed(self.phase_seconds, "fail_safe"):
                 z, report.fail_safe = self.fail_safe.resolve(state_in.particle_x, z, obstacle_start, obstacle_end,
-                                                             mass, rows, recording, reason, step)
+                                                             mass(), rows, recording, reason, step)
             report.contacts += len(rows)
             self.fail_safe_steps += 1
         if report.start_gap_worlds:
@@ -193,28 +235,40 @@ class CollisionStage:
         else:
             report.device = backend.solver_stats
         kernels = contact_kernels(model.scalar)
-        if z is x_hat:  # no contact: z a copy of x̂ all the same (kernels/contact.py copy_positions says why)
-            z = wp.empty_like(x_hat, requires_grad=recording)
-            wp.launch(kernels.copy_positions, model.particle_count, device=self.device, inputs=[x_hat], outputs=[z])
         report.z = z
         inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
+        unmoved = z is x_hat and recording  # no contact in any world, on a tape
         wp.launch(kernels.apply_projection, model.particle_count, device=self.device,
-                  inputs=[x_hat, v_hat, z, inv_dt], outputs=[state_out.particle_x, state_out.particle_v])
+                  inputs=[x_hat, v_hat, z, inv_dt, model.scalar(self.options.max_speed), step],
+                  outputs=[state_out.particle_x, state_out.particle_v, self.record], record_tape=not unmoved)
+        if unmoved:
+            # No contact: the adjoint is that of z, a copy of x̂, projected by apply_projection (a world without
+            # contacts among worlds with some passes dL/dz on to dL/dx̂ so: position_gradients), in one hand-written
+            # kernel with the same arithmetic (kernels/contact.py unmoved_adjoint): no copy, no array for z.
+            def adjoint():
+                wp.launch(kernels.unmoved_adjoint, model.particle_count, device=self.device,
+                          inputs=[state_out.particle_x.grad, state_out.particle_v.grad, inv_dt],
+                          outputs=[x_hat.grad, v_hat.grad], record_tape=False)
+
+            record_adjoint(adjoint, arrays=[state_out.particle_x, state_out.particle_v])
         self.last = report
         return report
 
-    def _rounds(self, backend, start: wp.array, x_hat: wp.array, obstacle_end: wp.array, step: int,
-                report: CollisionReport, recording: bool) -> wp.array:
+    def _rounds(self, backend, start: wp.array, taped_start: _Lazy, x_hat: wp.array, obstacle_end: wp.array,
+                step: int, report: CollisionReport, recording: bool) -> wp.array:
         """The round loop: detect from the start positions to the current end positions, add the new contacts,
-        project x̂ onto all of them; until detection finds nothing new. Returns the projected positions."""
+        project x̂ onto all of them; until detection finds nothing new. Returns the projected positions.
+        ``start``: the start nodes (the stage's buffer); ``taped_start``: the same, taped, made when first needed."""
         opt = self.options.collision
         phases = self.phase_seconds
         z = x_hat
+        reference = self._reference  # the unprojected end: the side of pairs touching at the start
         for round_index in range(opt.rounds + 1):
             with timed(phases, "detection"):
-                end = gather_nodes(self.model, z, obstacle_end, recording)
                 if round_index == 0:
-                    reference = end  # the unprojected end: the side of pairs touching at the start
+                    end = reference  # gathered with the start (resolve)
+                else:
+                    end = gather_nodes(self.model, z, obstacle_end, recording, out=self._end)
                 found = backend.detect(start, end, reference)
             if found == 0:
                 break
@@ -225,28 +279,49 @@ class CollisionStage:
                 raise rounds_error(step, opt.rounds, found, backend.count + found, *backend.first_found(), start,
                                    self.thickness, backend.found_worlds())
             with timed(phases, "geometry"):
-                backend.add_found(start, end, step)
+                if recording:  # the contacts' geometry is taped: its positions, the step's own
+                    backend.add_found(taped_start(), gather_nodes(self.model, z, obstacle_end, True), step)
+                else:
+                    backend.add_found(start, end, step)
             with timed(phases, "projection"):
                 z = backend.project(step, opt)
+                self._test_strain(x_hat, z)
             report.rounds = round_index + 1
-        if backend.count:
-            self._check_strain(x_hat, z, step)
+        if backend.count and self.detector.last_flags[STRAINED]:  # as the last detection's read saw it
+            self._strain_error(x_hat, z, step)
         return z
 
-    def _check_strain(self, x_hat: wp.array, z: wp.array, step: int) -> None:
-        """Raise CollisionError where the projection alone lengthened an edge by more than
-        ``CollisionOptions.max_projection_strain`` of its rest length (diagnostics.strain_error says why). The
-        largest strain is the one value read back; the host names the edge only when it is over the limit."""
+    def _test_strain(self, x_hat: wp.array, z: wp.array) -> None:
+        """Flag (the detector's STRAINED flag) a projection that alone lengthened an edge by more than
+        ``CollisionOptions.max_projection_strain`` of its rest length (diagnostics.strain_error says why). Run after
+        every projection, so that the next detection's read carries the flag of the round's positions: the last
+        round's is the step's (that detection finds nothing new)."""
         limit = self.options.collision.max_projection_strain
-        largest = wp.full(1, -np.inf, dtype=wp.float64, device=self.device)
+        self.detector.strained.zero_()
         wp.launch(device_round_kernels(self.model.scalar).largest_strain, len(self._edge_rest), device=self.device,
-                  inputs=[x_hat, z, self._edge_ends_device, self._edge_rest_device], outputs=[largest],
-                  record_tape=False)
-        if float(largest.numpy()[0]) > limit:
-            error = strain_error(step, x_hat.numpy().astype(np.float64), z.numpy().astype(np.float64),
-                                 self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
-            if error is not None:
-                raise error
+                  inputs=[x_hat, z, self._edge_ends_device, self._edge_rest_device, wp.float64(limit)],
+                  outputs=[self.detector.strained], record_tape=False)
+
+    def _strain_error(self, x_hat: wp.array, z: wp.array, step: int) -> None:
+        """Raise the CollisionError naming the edge the projection stretched past the limit (flagged on the device:
+        the host reads the positions only then)."""
+        limit = self.options.collision.max_projection_strain
+        error = strain_error(step, x_hat.numpy().astype(np.float64), z.numpy().astype(np.float64),
+                             self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
+        if error is not None:
+            raise error
+
+
+class _Lazy:
+    """A value made by ``make()`` at its first call, the same one after."""
+
+    def __init__(self, make):
+        self._make, self._value = make, None
+
+    def __call__(self):
+        if self._value is None:
+            self._value = self._make()
+        return self._value
 
 
 def _world_reason(model: Model, world: int, reasons: list[str]) -> str:

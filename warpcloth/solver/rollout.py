@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 from warpcloth.model import Control, State
 from warpcloth.progress import progress_bar
 from warpcloth.solver.simulator import Simulator
-from warpcloth.tape import capturing
+from warpcloth.tape import capturing, paused_gc
 
 ControlSchedule = Control | Sequence[Control] | Callable[[int], Control] | None
 """One Control for every step, a sequence with one per step, or a function of the step index."""
@@ -53,12 +53,13 @@ def rollout(
     trajectory = [state]
     bar = progress_bar(int(steps), "simulate", "step") if progress else None
     try:
-        for i in range(int(steps)):
-            nxt = sim.model.empty_state()
-            sim.step(trajectory[-1], nxt, control_at(control, i))
-            trajectory.append(nxt)
-            if bar is not None:
-                bar.update()
+        with paused_gc():  # tape.py says why
+            for i in range(int(steps)):
+                nxt = sim.model.empty_state()
+                sim.step(trajectory[-1], nxt, control_at(control, i))
+                trajectory.append(nxt)
+                if bar is not None:
+                    bar.update()
     finally:
         if bar is not None:
             bar.close()

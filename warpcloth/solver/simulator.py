@@ -22,6 +22,7 @@ import warp as wp
 from warpcloth.collision import CollisionStage
 from warpcloth.collision.proximity import ProximityForces, ProximityPairs
 from warpcloth.collision.stage import CollisionReport
+from warpcloth.kernels import status as ks
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.model import Control, Model, State
 from warpcloth.obstacles import obstacle_points
@@ -81,6 +82,9 @@ class Simulator:
         """The CG solver of the implicit system (and of its adjoint)."""
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
         """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
+        if self.collision is not None:  # its divergence guard latches here; its detection stops at an error
+            self.collision.record = self.status.record
+            self.collision.detector.skip = self.status.record[ks.ERROR:ks.ERROR + 1]
         self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity)
                           if ProximityForces.needed(model) else None)
         """Proximity repulsion and friction inside the implicit step, or None where the model has neither."""
@@ -88,6 +92,7 @@ class Simulator:
         self._bdf2_buffers = None  # the blend and extrapolation of untaped BDF2 steps (_bdf2_start)
         self._step_buffers = None
         self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
+        self._candidate = None  # the untaped steps' x̂, v̂ before the collision stage (_integrate)
         self._control_default = None
         # The step, as the stages this model needs, each with the phase it is timed under.
         stages = [("assembly", self._assemble)]
@@ -218,28 +223,32 @@ class Simulator:
         model = self.model
         if self.collision is None:
             out = s.state_out
-        else:
+        elif s.recording:
             out = model.empty_state()  # x̂, v̂ before the projection (kept for the backward pass)
+        else:  # scratch, as _buffers: an untaped step's x̂, v̂ are read within the step
+            if self._candidate is None:
+                self._candidate = model.empty_state(requires_grad=False)
+            out = self._candidate
         wp.launch(self.kernels.integrate, model.particle_count, device=self.device,
                   inputs=[s.start.particle_x, s.start.particle_v, s.velocity_change, model.scalar(s.assembler.dt),
                           model.scalar(self.options.max_speed), s.number],
                   outputs=[out.particle_x, out.particle_v, self.status.record])
         if self.collision is not None:
-            # the collision stage is driven from the host: no NaN or runaway particle may reach it
-            self._check((out,), s)
+            # the collision stage is driven from the host (its detection reads the device anyway): no NaN or
+            # runaway particle may reach it, and the step's inputs still tell why (the error names the particle).
+            # Not while a graph is captured: there a latched error makes detection find nothing (detector.skip)
+            if not capturing(self.device):
+                self._check((out,), s)
             s.x_hat, s.v_hat = out.particle_x, out.particle_v
 
     def _collide(self, s: _Step) -> None:
         """The collision stage from x̂, v̂ into ``state_out`` (detection from the true start positions: BDF2's blend
         is no configuration)."""
-        if s.mass is None:
-            s.mass = self._lumped_mass(s.recording)
-        s.report = self.collision.resolve(s.state_in, s.x_hat, s.v_hat, *s.obstacles, s.state_out, s.number, s.mass,
+        # the lumped masses (friction's, or made where the stage finds contacts: one taped launch fewer a step)
+        mass = s.mass if s.mass is not None else (lambda: self._lumped_mass(s.recording))
+        # its last launch runs the divergence guard on the result (the projection's velocity change too)
+        s.report = self.collision.resolve(s.state_in, s.x_hat, s.v_hat, *s.obstacles, s.state_out, s.number, mass,
                                           implicit_dt=s.assembler.dt)
-        wp.launch(self.kernels.check_state, self.model.particle_count, device=self.device,
-                  inputs=[s.state_out.particle_x, s.state_out.particle_v, self.model.scalar(self.options.max_speed),
-                          s.number],
-                  outputs=[self.status.record], record_tape=False)  # the projection's velocity change too
 
     def _hand_on(self, s: _Step) -> None:
         """What the next step reads from ``state_out`` (time, step number, BDF2's history, the wind's lagged
