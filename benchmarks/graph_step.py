@@ -15,7 +15,9 @@ sheet in one model (``ModelBuilder.replicate``).
     allocs_per_step      Warp array allocations of an untaped step between two preallocated States (CPU only)
     fwd_bwd_s            a taped rollout and its backward pass, uncaptured and captured (single world only)
     throw                the seed's basket throw (contact: not capturable yet), one forward + backward evaluation
-                         (ThrowTask.evaluate at zero pushes): seconds, and Warp launches and arrays made per step
+                         (ThrowTask.evaluate) at zero pushes (the cloth falls past everything: no contact, no
+                         repulsion pair) and at the open loop's best pushes of benchmarks/results/motion_control.json
+                         (it lands in the basket: contacts and pairs): seconds, Warp launches and arrays made per step
     max_diff             largest difference between the captured and the uncaptured final positions [m] (and
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
@@ -27,6 +29,7 @@ Usage: python benchmarks/graph_step.py [--quick] [--device cuda:0] [--sizes 16,6
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import common
@@ -127,19 +130,28 @@ def gradient_case(res: int, device: str, steps: int, reps: int) -> dict:
     return out
 
 
-def throw_case(device: str, reps: int, steps: int | None) -> dict:
-    """The throw's forward + backward: what its contact steps cost in launches and allocations (issue 37)."""
+def landing_pushes() -> np.ndarray | None:
+    """The open loop's best pushes from zero (benchmarks/results/motion_control.json), which land the cloth in the
+    basket; None where that file has none."""
+    path = common.RESULTS_DIR / "motion_control.json"
+    if not path.exists():
+        return None
+    runs = json.loads(path.read_text())["open_loop"]["runs"]
+    return np.asarray(runs[0]["params"], dtype=np.float64) if runs and "params" in runs[0] else None
+
+
+def throw_case(device: str, reps: int, steps: int | None, params: np.ndarray) -> dict:
+    """The throw's forward + backward at ``params``: what its steps cost in launches and allocations (issue 37)."""
     from warpcloth.tasks.throw import ThrowTask
 
     with wp.ScopedDevice(device):  # the task's model is made on the default device
         task = ThrowTask(**({"steps": steps} if steps else {}))
-        params = np.zeros(task.params_shape)
-        task.evaluate(params)  # compiles
+        error = task.error_pct(task.evaluate(params).positions)  # compiles
         seconds = common.median_time(lambda: task.evaluate(params), reps=reps)
         with common.launch_profile() as launches, common.alloc_profile() as allocs:
             task.evaluate(params)
     per_step = 1.0 / task.steps
-    return {"steps": task.steps, "particles": task.model.particle_count, "fwd_bwd_s": seconds,
+    return {"steps": task.steps, "particles": task.model.particle_count, "fwd_bwd_s": seconds, "error_pct": error,
             "launches_per_step": per_step * sum(calls for calls, _ in launches.values()),
             "allocs_per_step": None if allocs["count"] is None else per_step * allocs["count"]}
 
@@ -172,11 +184,18 @@ def main():
         ["grid", "steps", "fwd+bwd s", "captured s", "max diff"],
         [[f"{g['res']}x{g['res']}", g["steps"], g["fwd_bwd_s"], g["fwd_bwd_captured_s"], g["max_diff"]]
          for g in gradients], ["", "", ".4f", ".4f", ".1e"], title="a taped rollout and its backward pass")
-    throw = throw_case(args.device, args.reps, 20 if args.quick else None)
-    print(f"\nthe throw ({throw['steps']} steps, {throw['particles']} particles, contact): forward + backward "
-          f"{throw['fwd_bwd_s']:.3f} s, {throw['launches_per_step']:.1f} launches and "
-          f"{common.fmt(throw['allocs_per_step'], '.1f')} arrays made per step (forward and backward)")
-    common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throw}, device=args.device)
+    zero = np.zeros((3, 4, 3))
+    landing = None if args.quick else landing_pushes()
+    throws = {"zero pushes": throw_case(args.device, args.reps, 20 if args.quick else None, zero)}
+    if landing is not None:
+        throws["the open loop's pushes"] = throw_case(args.device, args.reps, None, landing)
+    for label, throw in throws.items():
+        print(f"\nthe throw at {label} ({throw['steps']} steps, {throw['particles']} particles, error "
+              f"{throw['error_pct']:.1f} %): forward + backward {throw['fwd_bwd_s']:.3f} s, "
+              f"{throw['launches_per_step']:.1f} launches and {common.fmt(throw['allocs_per_step'], '.1f')} arrays "
+              "made per step (forward and backward)")
+    common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throws["zero pushes"],
+                               "throw_landing": throws.get("the open loop's pushes")}, device=args.device)
 
 
 if __name__ == "__main__":

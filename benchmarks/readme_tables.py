@@ -794,13 +794,15 @@ def graph_step(d: dict) -> str:
                 f"{g(gr['fwd_bwd_s'] * 1e3)} ms, captured {g(gr['fwd_bwd_captured_s'] * 1e3)} ms "
                 f"({gr['fwd_bwd_s'] / gr['fwd_bwd_captured_s']:.2f}×); wind gradient captured − uncaptured "
                 f"{_diff(gr['max_diff'])}."]
-    throw = d.get("throw")
-    if throw:
-        allocs = "–" if throw["allocs_per_step"] is None else f"{throw['allocs_per_step']:.0f}"
-        out += ["", f"The seed's throw ({throw['steps']} steps, {throw['particles']} particles, contact: not captured "
-                f"yet): forward + backward {throw['fwd_bwd_s']:.2f} s (issue 37's target 0.5 s: "
-                f"{met(throw['fwd_bwd_s'] <= 0.5)}), {throw['launches_per_step']:.0f} launches and {allocs} arrays "
-                "made per step, forward and backward together."]
+    for key, where in (("throw", "at zero pushes (it falls past everything: no contact)"),
+                       ("throw_landing", "at the open loop's best pushes (it lands in the basket)")):
+        throw = d.get(key)
+        if throw:
+            allocs = "–" if throw["allocs_per_step"] is None else f"{throw['allocs_per_step']:.0f}"
+            out += ["", f"The seed's throw {where}, {throw['steps']} steps, {throw['particles']} particles, not "
+                    f"captured (contact scenes cannot be yet): forward + backward {throw['fwd_bwd_s']:.2f} s (issue "
+                    f"37's target 0.5 s: {met(throw['fwd_bwd_s'] <= 0.5)}), {throw['launches_per_step']:.0f} launches "
+                    f"and {allocs} arrays made per step, forward and backward together."]
     out += ["", provenance(d)]
     return "\n".join(out)
 
