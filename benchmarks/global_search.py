@@ -17,7 +17,7 @@ until the best result. The figures are the medians over the starts, every run li
   ``--iters`` minus a fifth, then Gauss-Newton from its best point.
 
 Usage: python benchmarks/global_search.py [--quick] [--out PATH] [--iters 240] [--local-iters 60] [--starts 3]
-       [--optimizers gauss-newton,multistart,cmaes]     (--quick: 20 steps, 16 and 6 simulations, 2 starts)
+       [--optimizers gauss-newton,multistart,cmaes]     (--quick: 20 steps, 20 and 6 simulations, 2 starts)
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def run(optimizer: str, iters: int, start: int, steps: int | None) -> dict:
 def main():
     args = common.parse_args(__doc__, iters=240, local_iters=60, starts=3, steps=0,
                              optimizers="gauss-newton,multistart,cmaes",
-                             quick={"iters": 16, "local_iters": 6, "starts": 2, "steps": 20})
+                             quick={"iters": 20, "local_iters": 6, "starts": 2, "steps": 20})
     steps = args.steps or None
     records = {"scene": SCENE, "steps": steps or 1000, "target": TARGET, "optimizers": {}}
     rows = []

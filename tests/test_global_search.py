@@ -144,6 +144,9 @@ def test_the_global_search_counts_every_trial_and_refines_from_its_best_point():
     np.testing.assert_array_equal(seen[8][1], searched[best][1])
     assert result.error_pct <= result.errors_pct[best]
     assert result.error_pct == min(result.errors_pct)
+    with pytest.raises(ValueError, match="cmaes: 14 simulations, 6 of them left to the local optimiser, make no "
+                                         "generation of 10 points"):
+        optimize_open_loop(task, iters=14, optimizer="cmaes", search=SearchSpec(population=10, refine=6))
     # the same seed, the same search
     again = optimize_open_loop(task, iters=8, optimizer="cmaes", search=SearchSpec(population=4, sigma=3.0, refine=0,
                                                                                      seed=5))
@@ -244,3 +247,7 @@ def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_w
     assert result.losses[8] == min(searched)
     assert fit.loss(result.material) <= min(searched)
     assert fit.loss(result.material) < 0.5 * fit.loss(E.initial_guess())
+    before = fit.evaluations, fit.seconds  # the forward losses add to seconds, the gradients to both
+    with pytest.raises(ValueError, match="cmaes: 12 evaluations, 4 of them left to L-BFGS, make no generation of 9"):
+        E.estimate_material(fit, optimizer="cmaes", iters=12, scan=None, search=SearchSpec(population=9, refine=4))
+    assert (fit.evaluations, fit.seconds) == before  # refused before any simulation

@@ -472,6 +472,8 @@ def _cmd_control(args: argparse.Namespace) -> int:
         return _error(str(exc), _USAGE_ERROR)
     except SimulationError as exc:
         return _error(str(exc), _RUNTIME_ERROR)
+    except ValueError as exc:  # an optimiser that cannot run in this budget (checked before any simulation)
+        return _error(str(exc), _USAGE_ERROR)
     print()
     rows = [["error [%]", result.error_pct], ["simulations to reach it", result.simulations]]
     header = ["", "warpcloth"]

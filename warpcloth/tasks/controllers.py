@@ -139,11 +139,15 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
             return losses
 
         generations = (iters - refine) // population
-        if generations:
-            cmaes(generation, params, sigma=search.sigma or SEARCH_SIGMA, generations=generations,
-                  rng=np.random.default_rng(search.seed), popsize=population)
-            if math.isfinite(result.error_pct):
-                params = result.params.reshape(-1).copy()  # the local stage starts from the best point
+        if not generations:
+            if bar is not None:
+                bar.close()
+            raise ValueError(f"cmaes: {iters} simulations, {refine} of them left to the local optimiser, make no "
+                             f"generation of {population} points; raise iters or lower search.population/refine")
+        cmaes(generation, params, sigma=search.sigma or SEARCH_SIGMA, generations=generations,
+              rng=np.random.default_rng(search.seed), popsize=population)
+        if math.isfinite(result.error_pct):
+            params = result.params.reshape(-1).copy()  # the local stage starts from the best point
         optimizer = default_control_optimizer("open-loop", task.target_com, task.regularizer)
 
     if optimizer == "lbfgs":

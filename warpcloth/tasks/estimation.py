@@ -485,11 +485,21 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     densities = tuple(scan.get("density", (1.0,))) if "density" in free else (1.0,)
     stretches = tuple(scan.get("stretch", (1.0,))) if "stretching" in free else (1.0,)
     cost = len(densities) * len(stretches)
-    if cost > 1 and optimizer != "seed-sgd" and iters >= 2 * cost:
+    scanning = cost > 1 and optimizer != "seed-sgd" and iters >= 2 * cost
+    theta0 = np.zeros(int(mask.sum()))
+    if optimizer == "cmaes":  # the search's budget, checked before any simulation
+        search = search or SearchSpec()
+        budget = iters - cost if scanning else iters
+        refine = budget // 5 if search.refine is None else min(search.refine, budget)
+        population = search.population or 4 + int(3 * math.log(theta0.size))
+        generations = (budget - refine) // population
+        if not generations:
+            raise ValueError(f"cmaes: {budget} evaluations, {refine} of them left to L-BFGS, make no generation of "
+                             f"{population} points; raise iters or lower search.population/refine")
+    if scanning:
         initial = _scan_start(fit, initial, densities, stretches, result, record)
         param = MaterialParameterization(initial)
         iters -= cost
-    theta0 = np.zeros(int(mask.sum()))
     if optimizer == "lbfgs":
         theta = np.zeros(N_PARAMS)
         theta[mask] = lbfgs(objective_free, theta0, iters=iters)
@@ -497,14 +507,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         theta = np.zeros(N_PARAMS)
         theta[mask] = adam(objective_free, theta0, iters=iters)
     elif optimizer == "cmaes":
-        search = search or SearchSpec()
-        refine = iters // 5 if search.refine is None else min(search.refine, iters)
-        population = search.population or 4 + int(3 * math.log(theta0.size))
-        generations = (iters - refine) // population
-        start = theta0
-        if generations:
-            start = cmaes(lambda points: [loss_free(q) for q in points], theta0, sigma=search.sigma or SEARCH_SIGMA,
-                          generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
+        start = cmaes(lambda points: [loss_free(q) for q in points], theta0, sigma=search.sigma or SEARCH_SIGMA,
+                      generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
         remaining = iters - generations * population
         theta = np.zeros(N_PARAMS)
         theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
