@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
 """What warpcloth.usd.write_usd writes (.usdz packages are not written)."""
 JSON_SUFFIXES = (".json",)
@@ -42,3 +44,35 @@ def prepare_output_path(path: str | os.PathLike, what: str, suffixes: tuple[str,
             raise ValueError(f"{what} {str(path)!r}: {str(parent)!r} is a file, not a directory")
     p.parent.mkdir(parents=True, exist_ok=True)
     return p
+
+
+def check_frames(frames, what: str) -> list[np.ndarray]:
+    """``frames`` (a sequence of (N, 3) positions) as float64 arrays; ValueError naming ``what``, the frame and the
+    vertex where one is empty, of another shape or not finite (USD and preview output)."""
+    frames = [np.asarray(f, dtype=np.float64) for f in frames]
+    if not frames:
+        raise ValueError(f"{what}: frames is empty")
+    shape = frames[0].shape
+    if len(shape) != 2 or shape[1] != 3:
+        raise ValueError(f"{what}: frame 0 must have shape (N, 3), got {shape}")
+    for k, f in enumerate(frames):
+        if f.shape != shape:
+            raise ValueError(f"{what}: frame {k} has shape {f.shape}, frame 0 has {shape}")
+        bad = np.flatnonzero(~np.all(np.isfinite(f), axis=1))
+        if len(bad):
+            raise ValueError(f"{what}: frame {k} vertex {int(bad[0])} is not finite: {f[bad[0]].tolist()}")
+    return frames
+
+
+def check_triangles(triangles, vertex_count: int, what: str) -> np.ndarray:
+    """``triangles`` (T, 3) as int32; ValueError naming ``what`` and the triangle where one is out of range."""
+    tris = np.asarray(triangles)
+    if tris.ndim != 2 or tris.shape[1] != 3:
+        raise ValueError(f"{what}: triangles must have shape (T, 3), got {tris.shape}")
+    if tris.size and not np.issubdtype(tris.dtype, np.integer):
+        raise ValueError(f"{what}: triangles must hold integers, got dtype {tris.dtype}")
+    bad = np.argwhere((tris < 0) | (tris >= vertex_count))
+    if len(bad):
+        t = int(bad[0][0])
+        raise ValueError(f"{what}: triangle {t} {tris[t].tolist()} has an index out of range [0, {vertex_count})")
+    return tris.astype(np.int32)

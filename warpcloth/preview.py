@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from warpcloth.outputs import PREVIEW_SUFFIXES, prepare_output_path
+from warpcloth.outputs import PREVIEW_SUFFIXES, check_frames, check_triangles, prepare_output_path
 
 __all__ = ["PREVIEW_FRAMES", "check_preview_path", "preview_frame_indices", "write_preview"]
 
@@ -66,27 +66,15 @@ def preview_frame_indices(frame_count: int, max_frames: int) -> np.ndarray:
 
 
 def _checked(triangles, frames, fps, obstacles, max_frames, kind):
-    from warpcloth.usd import _check_triangles
-
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
         raise ValueError(f"write_preview: fps must be a finite number > 0, got {fps!r}")
     if max_frames is None:
         max_frames = PREVIEW_FRAMES[kind]
     if isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1:
         raise ValueError(f"write_preview: max_frames must be an integer >= 1, got {max_frames!r}")
-    frames = [np.asarray(f, dtype=np.float64) for f in frames]
-    if not frames:
-        raise ValueError("write_preview: frames is empty")
+    frames = check_frames(frames, "write_preview")
     shape = frames[0].shape
-    if len(shape) != 2 or shape[1] != 3:
-        raise ValueError(f"write_preview: frame 0 must have shape (N, 3), got {shape}")
-    for k, f in enumerate(frames):
-        if f.shape != shape:
-            raise ValueError(f"write_preview: frame {k} has shape {f.shape}, frame 0 has {shape}")
-        bad = np.flatnonzero(~np.all(np.isfinite(f), axis=1))
-        if len(bad):
-            raise ValueError(f"write_preview: frame {k} vertex {int(bad[0])} is not finite: {f[bad[0]].tolist()}")
-    tris = _check_triangles(triangles, shape[0], "write_preview cloth")
+    tris = check_triangles(triangles, shape[0], "write_preview cloth")
     checked = []
     for k, obstacle in enumerate(obstacles):
         if len(obstacle) != 3:
@@ -101,7 +89,7 @@ def _checked(triangles, frames, fps, obstacles, max_frames, kind):
                              f"has {len(frames)}; time-sampled obstacles need one per cloth frame")
         if not np.all(np.isfinite(verts)):
             raise ValueError(f"write_preview: obstacle {name!r} has non-finite vertices")
-        checked.append((verts, _check_triangles(otris, verts.shape[-2], f"write_preview obstacle {name!r}")))
+        checked.append((verts, check_triangles(otris, verts.shape[-2], f"write_preview obstacle {name!r}")))
     return tris, frames, checked, int(max_frames)
 
 

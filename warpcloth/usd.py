@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from warpcloth.outputs import USD_SUFFIXES, prepare_output_path
+from warpcloth.outputs import USD_SUFFIXES, check_frames, check_triangles, prepare_output_path
 
 __all__ = ["read_usd_points", "write_usd"]
 
@@ -19,19 +19,6 @@ def _import_pxr():
     except ImportError as exc:  # pragma: no cover - usd-core is a dependency
         raise ImportError("USD output needs the 'usd-core' package (pip install usd-core)") from exc
     return Gf, Sdf, Usd, UsdGeom, Vt
-
-
-def _check_triangles(triangles, vertex_count: int, what: str) -> np.ndarray:
-    tris = np.asarray(triangles)
-    if tris.ndim != 2 or tris.shape[1] != 3:
-        raise ValueError(f"{what}: triangles must have shape (T, 3), got {tris.shape}")
-    if tris.size and not np.issubdtype(tris.dtype, np.integer):
-        raise ValueError(f"{what}: triangles must hold integers, got dtype {tris.dtype}")
-    bad = np.argwhere((tris < 0) | (tris >= vertex_count))
-    if len(bad):
-        t = int(bad[0][0])
-        raise ValueError(f"{what}: triangle {t} {tris[t].tolist()} has an index out of range [0, {vertex_count})")
-    return tris.astype(np.int32)
 
 
 def _define_mesh(stage, UsdGeom, path: str, triangles: np.ndarray):
@@ -90,19 +77,9 @@ def write_usd(
     if not Sdf.Path.IsValidPathString(cloth_prim) or not Sdf.Path(cloth_prim).IsAbsolutePath():
         raise ValueError(f"write_usd: cloth_prim must be an absolute prim path, got {cloth_prim!r}")
 
-    frame_list = [np.asarray(f, dtype=np.float64) for f in frames]
-    if not frame_list:
-        raise ValueError("write_usd: frames is empty")
+    frame_list = check_frames(frames, "write_usd")
     shape = frame_list[0].shape
-    if len(shape) != 2 or shape[1] != 3:
-        raise ValueError(f"write_usd: frame 0 must have shape (N, 3), got {shape}")
-    for k, f in enumerate(frame_list):
-        if f.shape != shape:
-            raise ValueError(f"write_usd: frame {k} has shape {f.shape}, frame 0 has {shape}")
-        bad = np.flatnonzero(~np.all(np.isfinite(f), axis=1))
-        if len(bad):
-            raise ValueError(f"write_usd: frame {k} vertex {int(bad[0])} is not finite: {f[bad[0]].tolist()}")
-    tris = _check_triangles(triangles, shape[0], "write_usd cloth")
+    tris = check_triangles(triangles, shape[0], "write_usd cloth")
 
     checked_obstacles = []
     seen: set[str] = set()
@@ -128,7 +105,7 @@ def write_usd(
         if not np.all(np.isfinite(verts)):
             raise ValueError(f"write_usd: obstacle {name!r} has non-finite vertices")
         checked_obstacles.append(
-            (name, verts, _check_triangles(otris, verts.shape[-2], f"write_usd obstacle {name!r}"))
+            (name, verts, check_triangles(otris, verts.shape[-2], f"write_usd obstacle {name!r}"))
         )
 
     path = prepare_output_path(path, "write_usd: path", USD_SUFFIXES)
