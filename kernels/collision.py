@@ -416,78 +416,6 @@ def collision_kernels(scalar):
         lowers[i] = lo - wp.vec3(g, g, g)
         uppers[i] = hi + wp.vec3(g, g, g)
 
-    def contact_query(vertex_face: bool):
-        """The vertex-face (``vertex_face``) or edge-edge query kernel; the two differ only where marked static."""
-        # query primitives: vertices (one node id each) or edges (a row of two)
-        query_array = wp.array(dtype=wp.int32) if vertex_face else wp.array2d(dtype=wp.int32)
-
-        @wp.kernel
-        def query_contacts(bvh: wp.uint64, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
-                           x_ref: wp.array(dtype=vec3), queries: query_array, targets: wp.array2d(dtype=wp.int32),
-                           query_lowers: wp.array(dtype=wp.vec3), query_uppers: wp.array(dtype=wp.vec3),
-                           same_cloth: int, thickness: wp.float64, world_mode: wp.array(dtype=wp.int32),
-                           capacity: int, node_world: wp.array(dtype=wp.int32), grouped: int,
-                           # out:
-                           count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
-                           contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
-                           contact_sign: wp.array(dtype=wp.float64)):
-            # query primitive i against the targets (faces or edges) whose boxes overlap its box; same_cloth != 0:
-            # queries and targets are the same cloth's, so incident primitives are skipped (each edge pair once)
-            i = wp.tid()
-            if wp.static(vertex_face):
-                q0 = queries[i]
-                q1 = q0
-            else:
-                q0 = queries[i, 0]
-                q1 = queries[i, 1]
-            # the query's world's mode in this try of the step (WORLD_SKIPPED, 0, or WORLD_KEEPS_START_GAPS)
-            keep_start_gaps = world_mode[node_world[q0]]
-            if keep_start_gaps == WORLD_SKIPPED:
-                return
-            root = world_root(bvh, grouped, node_world[q0])  # only the query's own world (ModelBuilder.add_world)
-            if root == -2:
-                return
-            query = wp.bvh_query_aabb(bvh, query_lowers[i], query_uppers[i], root)
-            j = int(0)
-            # the most urgent contact on each side of the query primitive (EE_DIRECTION counts as the + side)
-            best = wp.vec2d(wp.float64(2.0), wp.float64(2.0))
-            best_target = wp.vec2i(-1, -1)
-            best_t = wp.vec2d()
-            best_mode = wp.vec2i()
-            while wp.bvh_query_next(query, j):
-                a = targets[j, 0]
-                b = targets[j, 1]
-                if wp.static(vertex_face):
-                    c = targets[j, 2]
-                    if same_cloth != 0 and (q0 == a or q0 == b or q0 == c):
-                        continue
-                    hit, mode, t, sign, rank = vertex_face_test(
-                        wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
-                        wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]),
-                        wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]), wp.vec3d(x_ref[c]), thickness,
-                        keep_start_gaps)
-                else:
-                    if same_cloth != 0 and (j <= i or q0 == a or q0 == b or q1 == a or q1 == b):
-                        continue  # each pair once; edges sharing a vertex do not collide
-                    hit, mode, t, sign, rank = edge_edge_test(
-                        wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
-                        wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]),
-                        wp.vec3d(x_ref[q0]), wp.vec3d(x_ref[q1]), wp.vec3d(x_ref[a]), wp.vec3d(x_ref[b]),
-                        thickness, keep_start_gaps)
-                best, best_target, best_t, best_mode = keep_most_urgent(hit, rank, sign, t, mode, j, best,
-                                                                        best_target, best_t, best_mode)
-            for side in range(2):
-                jb = best_target[side]
-                if jb >= 0:
-                    if wp.static(vertex_face):
-                        emit(side, q0, targets[jb, 0], targets[jb, 1], targets[jb, 2], best_mode[side], best_t[side],
-                             capacity, count, contact_nodes, contact_mode, contact_t, contact_sign)
-                    else:
-                        emit(side, q0, q1, targets[jb, 0], targets[jb, 1], best_mode[side], best_t[side], capacity,
-                             count, contact_nodes, contact_mode, contact_t, contact_sign)
-
-        return query_contacts
-
     @wp.kernel
     def query_all(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), x_ref: wp.array(dtype=vec3),
                   queries: wp.array2d(dtype=wp.int32), prims: wp.array2d(dtype=wp.int32),
@@ -501,11 +429,12 @@ def collision_kernels(scalar):
                   contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
                   contact_sign: wp.array(dtype=wp.float64)):
         # Every query of a detection in one launch: thread i is query primitive i - query_start[k] of query k (the
-        # queries one after another, in the order query_contacts would be launched for them; on the CPU, whose
-        # threads run in order, the contacts come out in the same order). Query k: its rows (a vertex as (v, v), an
-        # edge as (a, b)) against the BVH bvhs[k] of the primitives prims[target_offset[k]:], their boxes lowers and
-        # uppers at query_offset[k] + its index; a vertex-face query (vertex_face[k]) or an edge-edge one, same[k]
-        # as query_contacts' same_cloth. skip[0] != 0 (an error latched in the failure record): no query runs.
+        # queries one after another, in the detector's order; on the CPU, whose threads run in order, the contacts
+        # come out in that order). Query k: its rows (a vertex as (v, v), an edge as (a, b)) against the BVH bvhs[k]
+        # of the primitives prims[target_offset[k]:], their boxes lowers and uppers at query_offset[k] + its index; a
+        # vertex-face query (vertex_face[k]) or an edge-edge one; same[k] != 0: queries and targets are the same
+        # cloth's, so incident primitives are skipped (each edge pair once). skip[0] != 0 (an error latched in the
+        # failure record): no query runs.
         i = wp.tid()
         if skip[0] != 0:
             return
@@ -580,6 +509,5 @@ def collision_kernels(scalar):
         if q.result and q.sign < 0.0:
             inside[i] = 1
 
-    return SimpleNamespace(primitive_bounds=primitive_bounds, vertex_face=contact_query(True),
-                           edge_edge=contact_query(False), query_all=query_all, inside_mesh=inside_mesh)
+    return SimpleNamespace(primitive_bounds=primitive_bounds, query_all=query_all, inside_mesh=inside_mesh)
 

@@ -12,8 +12,9 @@ DELTA = 5e-4
 
 def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.float64, reference=None,
             keep_start_gaps=0):
-    """Run one detection kernel on node positions x0 -> x1 (``reference``: the positions that side a pair touching
-    at the start, default x1); returns (count, nodes, mode, t, sign)."""
+    """Run the detection kernel (kernels/collision.py query_all) with one query on node positions x0 -> x1
+    (``reference``: the positions that side a pair touching at the start, default x1); returns (count, nodes, mode,
+    t, sign)."""
     k = collision_kernels(dtype)
     vec3 = wp.types.vector(3, dtype)
     X0 = wp.array(x0, dtype=vec3)
@@ -34,11 +35,14 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
     mode = wp.zeros(capacity, dtype=wp.int32)
     t = wp.zeros(capacity, dtype=wp.float64)
     sign = wp.zeros(capacity, dtype=wp.float64)
-    kernel = k.vertex_face if kind == "vf" else k.edge_edge
-    query_index = q.flatten() if kind == "vf" else q
-    wp.launch(kernel, q.shape[0], inputs=[bvh.id, X0, X1, XR, query_index, tg, bounds[0][0], bounds[0][1], flag,
-                                          wp.float64(DELTA), wp.array([keep_start_gaps], dtype=wp.int32), capacity,
-                                          wp.zeros(len(x0), dtype=wp.int32), 0],
+    rows = np.asarray(queries, dtype=np.int32).reshape(len(queries), -1)
+    rows = wp.array(np.repeat(rows, 2, axis=1) if kind == "vf" else rows, dtype=wp.int32)  # a vertex as (v, v)
+    ints = lambda *values: wp.array(values, dtype=int)  # noqa: E731
+    wp.launch(k.query_all, q.shape[0],
+              inputs=[X0, X1, XR, rows, tg, bounds[0][0], bounds[0][1], ints(0, q.shape[0]), ints(0),
+                      wp.array([bvh.id], dtype=wp.uint64), ints(0), ints(int(kind == "vf")), ints(flag),
+                      wp.float64(DELTA), wp.array([keep_start_gaps], dtype=wp.int32), capacity,
+                      wp.zeros(len(x0), dtype=wp.int32), 0, wp.zeros(1, dtype=wp.int32)],
               outputs=[count, nodes, mode, t, sign])
     c = int(count.numpy()[0])
     m = min(c, capacity)
