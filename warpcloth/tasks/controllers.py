@@ -34,11 +34,11 @@ MULTISTART_POPULATION = 8
 @dataclass
 class ControlResult:
     params: np.ndarray
-    """Pushes [m/s^2], shape (intervals, particles, 3) (see the module docstring)."""
+    """Pushes [m/s^2], shape (intervals, particles, 3) (:mod:`warpcloth.tasks.control` defines them)."""
     losses: list[float] = field(default_factory=list)
     errors_pct: list[float] = field(default_factory=list)
     simulations: int = 0
-    """Forward + backward simulations until the best result."""
+    """Simulations until the best result (forward + backward, or forward only in a global search's populations)."""
     error_pct: float = math.nan
     seconds: float = 0.0
     failed_trials: list[str] = field(default_factory=list)
