@@ -17,7 +17,8 @@ until the best result. The figures are the medians over the starts, every run li
   ``--iters`` minus a fifth, then Gauss-Newton from its best point.
 
 Usage: python benchmarks/global_search.py [--quick] [--out PATH] [--iters 240] [--local-iters 60] [--starts 3]
-       [--optimizers gauss-newton,multistart,cmaes]     (--quick: 20 steps, 20 and 6 simulations, 2 starts)
+       [--optimizers gauss-newton,multistart,cmaes] [--device cpu]
+       (--quick: 20 steps, 20 and 6 simulations, 2 starts)
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ TARGET = {"error_pct": 20.0, "simulations": 500}
 """Issue 38's target for a throw of our own that the open loop fails: <= 20 % in <= 500 simulations, median of 3."""
 
 
-def run(optimizer: str, iters: int, start: int, steps: int | None) -> dict:
-    job = ControlJob(scene=SCENE, optimizer=optimizer, iters=iters, seed=start or None, steps=steps)
+def run(optimizer: str, iters: int, start: int, steps: int | None, device: str) -> dict:
+    job = ControlJob(scene=SCENE, optimizer=optimizer, iters=iters, seed=start or None, steps=steps, device=device)
     task = job.task()
     result = task.run(controller="open-loop", iters=iters, progress=True, **job.start(task))
     return {"optimizer": optimizer, "start": "zero pushes" if start == 0 else f"random pushes (seed {start})",
@@ -49,7 +50,7 @@ def run(optimizer: str, iters: int, start: int, steps: int | None) -> dict:
 
 
 def main():
-    args = common.parse_args(__doc__, iters=240, local_iters=60, starts=3, steps=0,
+    args = common.parse_args(__doc__, iters=240, local_iters=60, starts=3, steps=0, device="cpu",
                              optimizers="gauss-newton,multistart,cmaes",
                              quick={"iters": 20, "local_iters": 6, "starts": 2, "steps": 20})
     steps = args.steps or None
@@ -57,7 +58,7 @@ def main():
     rows = []
     for optimizer in args.optimizers.split(","):
         iters = args.local_iters if optimizer == "gauss-newton" else args.iters
-        runs = [run(optimizer, iters, k, steps) for k in range(args.starts)]
+        runs = [run(optimizer, iters, k, steps, args.device) for k in range(args.starts)]
         summary = {"error_pct": float(np.median([r["error_pct"] for r in runs])),
                    "simulations": float(np.median([r["simulations"] for r in runs])),
                    "seconds": float(np.median([r["seconds"] for r in runs])), "runs": runs}
@@ -69,10 +70,10 @@ def main():
         rows.append([optimizer, "median", f"{summary['error_pct']:.1f}", f"{summary['simulations']:g}", iters, "",
                      f"{summary['seconds']:.0f}", f"<= {TARGET['error_pct']:g} % in <= {TARGET['simulations']}: "
                      + ("ok" if ok else "FAIL")])
-    print(f"\n{SCENE}: {records['steps']} steps, float32, {common.cpu_model()}")
+    print(f"\n{SCENE}: {records['steps']} steps, float32, {args.device} ({common.cpu_model()})")
     common.print_table(["optimizer", "start", "error %", "simulations", "budget", "failed trials", "wall s",
                         "target"], rows)
-    common.write_result(args, records)
+    common.write_result(args, records, device=args.device)
 
 
 if __name__ == "__main__":

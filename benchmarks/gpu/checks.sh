@@ -29,5 +29,8 @@ part estimate_cuda 60 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
 grep -E "runtime|simulation error" "$out/estimate_cuda.log" >> "$out/summary.txt"
 part control_cuda 120 warpcloth control --device cuda:0 --iters 2
 tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"
+part global_search 240 $py "$root/benchmarks/global_search.py" --device cuda:0 --optimizers cmaes --starts 1 \
+  --iters 42 --out "$out/global_search_cuda.json"  # issue 38: time to result on CUDA (contact: the QP on one thread)
+tail -n 6 "$out/global_search.log" >> "$out/summary.txt"
 part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0
 cat "$out/capture_probe.log" >> "$out/summary.txt"
