@@ -157,6 +157,18 @@ def _gif_frames(path) -> list[np.ndarray]:
         return [np.asarray(frame.convert("RGB")) for frame in ImageSequence.Iterator(im)]
 
 
+def test_a_long_fall_is_squeezed_not_drawn_as_a_thin_column(tmp_path):
+    # a 0.5 m sheet falling 1 m, and 100 m: equal scale on every axis would draw the second 20x smaller; its box is
+    # squeezed along z to MAX_ASPECT times its width instead, so the sheet keeps a size one can see
+    mesh = wc.grid_mesh(6, 6, 0.5, 0.5)
+    counts = []
+    for depth in (1.0, 100.0):
+        frames = mesh.positions[None] + np.linspace(0.0, 1.0, 10)[:, None, None] * np.array([0.0, 0.0, -depth])
+        write_preview(tmp_path / f"fall{depth:g}.gif", triangles=mesh.triangles, frames=frames, fps=10.0, size=3.0)
+        counts.append(_cloth_pixels(_gif_frames(tmp_path / f"fall{depth:g}.gif")[0]))
+    assert counts[0] > 200 and counts[1] > 0.2 * counts[0], counts
+
+
 def test_preview_gif(tmp_path):
     triangles, frames, obstacles = _trajectory(50)
     drawn = write_preview(tmp_path / "fall.gif", triangles=triangles, frames=frames, fps=50.0, obstacles=obstacles,

@@ -30,6 +30,9 @@ PREVIEW_FRAMES = {".gif": 36, ".mp4": 36, ".png": 9}
 CLOTH_COLOR = (0.85, 0.38, 0.18)
 OBSTACLE_COLOR = (0.55, 0.58, 0.65)
 OBSTACLE_ALPHA = 0.45
+MAX_ASPECT = 4.0
+"""The drawn box's longest side is at most this many times its middle one: a long fall or a high throw is squeezed
+along that axis, and the picture says so ("z not to scale"), instead of being drawn as a thin column."""
 _LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 _MIN_GIF_FRAME_MS = 20  # browsers play a GIF frame shorter than 20 ms at 100 ms
 
@@ -115,8 +118,13 @@ class _Scene:
         points = np.concatenate(points)
         lo, hi = points.min(axis=0), points.max(axis=0)
         extent = hi - lo
-        pad = np.maximum(0.05 * extent, 0.02 * max(float(extent.max()), 1e-3))  # a flat side still gets a depth
+        # a flat side still gets a depth, from the middle extent (the longest would pad a long fall's width by metres)
+        pad = np.maximum(0.05 * extent, 0.02 * max(float(np.sort(extent)[1]), 1e-3))
         self.lo, self.hi = lo - pad, hi + pad
+        box = self.hi - self.lo
+        self.aspect = np.minimum(box, MAX_ASPECT * np.sort(box)[1])
+        self.squeezed = [axis for axis, a, b in zip("xyz", self.aspect, box) if a < b]
+        """The axes drawn shorter than their length in metres (MAX_ASPECT)."""
 
     def polys(self, i: int):
         cloth = self.frames[i][self.tris]
@@ -132,7 +140,7 @@ class _Scene:
         ax.set_xlim(self.lo[0], self.hi[0])
         ax.set_ylim(self.lo[1], self.hi[1])
         ax.set_zlim(self.lo[2], self.hi[2])
-        ax.set_box_aspect(self.hi - self.lo, zoom=0.9)  # metres are metres along every axis; room for the labels
+        ax.set_box_aspect(self.aspect, zoom=0.9)  # metres are metres (but MAX_ASPECT); room for the labels
         ax.view_init(elev=view[0], azim=view[1])
         ax.set_xlabel("x [m]", fontsize=7)
         ax.set_ylabel("y [m]", fontsize=7)
@@ -168,7 +176,8 @@ def write_preview(
     """Draws a cloth trajectory and its obstacles with matplotlib: an animated GIF, an MP4 or a PNG contact sheet.
 
     Takes what :func:`warpcloth.usd.write_usd` takes, so one trajectory goes to both. The axes are fixed (z up,
-    equal scale on every axis) to the box that holds the cloth and the obstacles in every drawn frame.
+    equal scale on every axis) to the box that holds the cloth and the obstacles in every drawn frame; where that box
+    is more than :data:`MAX_ASPECT` times as long as it is wide, its long axis is squeezed and the title says so.
 
     Args:
         path: Output file, ``.gif``, ``.mp4`` (needs ffmpeg) or ``.png``; overwritten if it exists.
@@ -197,6 +206,8 @@ def write_preview(
     tris, frames, checked, max_frames = _checked(triangles, frames, fps, obstacles, max_frames, kind)
     indices = preview_frame_indices(len(frames), max_frames)
     scene = _Scene(tris, frames, checked, indices)
+    if scene.squeezed:  # say where metres are not metres
+        title = f"{title or ''} ({', '.join(scene.squeezed)} not to scale)".strip()
     prefix = f"{title}: " if title else ""
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
