@@ -49,6 +49,7 @@ pair launches and the taped copies) and evaluates scripted obstacle motions on t
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -62,6 +63,7 @@ from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
 from warpcloth.errors import CollisionError, ContactCapacityError
 from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
+from warpcloth.kernels.status import RECORD_SIZE
 from warpcloth.model import Model, State
 from warpcloth.tape import active_tape, record_adjoint
 
@@ -138,7 +140,7 @@ class CollisionStage:
         """Steps resolved by the second try, which keeps start gaps, over this stage's life."""
         self.last: CollisionReport | None = None
         """The report of the last step (diagnostics: no step reads it)."""
-        self.record = wp.zeros(10, dtype=wp.int32, device=self.device)
+        self.record = wp.zeros(RECORD_SIZE, dtype=wp.int32, device=self.device)
         """The failure record (kernels/status.py) the divergence guard on the stage's result latches into: the
         Simulator's (it also points ``detector.skip`` at it, so that candidate positions that diverged meet no
         contact); one of the stage's own otherwise."""
@@ -176,7 +178,7 @@ class CollisionStage:
         model = self.model
         recording = active_tape() is not None and model.requires_grad
         opt = self.options.collision
-        mass = _Lazy(mass if callable(mass) else (lambda masses=mass: masses))
+        mass = functools.cache(mass if callable(mass) else (lambda masses=mass: masses))  # made once, if at all
         backend = self.backends[opt.solver]
         report = CollisionReport(solver=opt.solver, x_hat=x_hat)
         # the step's start nodes and its unprojected end (every try's round 0), for detection: one launch
@@ -185,7 +187,7 @@ class CollisionStage:
                   inputs=[state_in.particle_x, obstacle_start, x_hat, obstacle_end, model.particle_count],
                   outputs=[start, self._reference], record_tape=False)
         # the step's start nodes taped, made at the first round that finds contacts (shared by the step's tries)
-        taped_start = _Lazy(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
+        taped_start = functools.cache(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
         # Each world's way through the step: the full thickness; where that fails, the second try keeping start
         # gaps; where that fails too, the fail-safe. A failure names its worlds, so only they move on: the others
         # redo their tries unchanged (worlds never interact), and each world ends as it would alone.
@@ -254,8 +256,8 @@ class CollisionStage:
         self.last = report
         return report
 
-    def _rounds(self, backend, start: wp.array, taped_start: _Lazy, x_hat: wp.array, obstacle_end: wp.array,
-                step: int, report: CollisionReport, recording: bool) -> wp.array:
+    def _rounds(self, backend, start: wp.array, taped_start: Callable[[], wp.array], x_hat: wp.array,
+                obstacle_end: wp.array, step: int, report: CollisionReport, recording: bool) -> wp.array:
         """The round loop: detect from the start positions to the current end positions, add the new contacts,
         project x̂ onto all of them; until detection finds nothing new. Returns the projected positions.
         ``start``: the start nodes (the stage's buffer); ``taped_start``: the same, taped, made when first needed."""
@@ -310,18 +312,6 @@ class CollisionStage:
                              self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)
         if error is not None:
             raise error
-
-
-class _Lazy:
-    """A value made by ``make()`` at its first call, the same one after."""
-
-    def __init__(self, make):
-        self._make, self._value = make, None
-
-    def __call__(self):
-        if self._value is None:
-            self._value = self._make()
-        return self._value
 
 
 def _world_reason(model: Model, world: int, reasons: list[str]) -> str:
