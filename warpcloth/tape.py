@@ -1,6 +1,5 @@
 """The one place that touches Warp's tape internals."""
 
-import functools
 import gc
 from contextlib import contextmanager
 
@@ -44,17 +43,6 @@ def paused_gc():
     finally:
         if enabled:
             gc.enable()
-
-
-def gc_paused(function):
-    """``function`` run with the cyclic garbage collector paused (:func:`paused_gc`); its signature and docs kept."""
-
-    @functools.wraps(function)
-    def paused(*args, **kwargs):
-        with paused_gc():
-            return function(*args, **kwargs)
-
-    return paused
 
 
 def capturing(device) -> bool:

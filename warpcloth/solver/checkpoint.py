@@ -21,13 +21,13 @@ from warpcloth.model import State
 from warpcloth.progress import progress_bar
 from warpcloth.solver.rollout import ControlSchedule, check_schedule, control_at
 from warpcloth.solver.simulator import Simulator
-from warpcloth.tape import gc_paused
+from warpcloth.tape import paused_gc
 
 StepLoss = Callable[[int, State, wp.array], None]
 """``loss(i, state_i, out)``: launch kernels that add step i's loss term (i = 1..steps) to ``out[0]``."""
 
 
-@gc_paused  # the garbage collector walks the tapes' records: warpcloth/tape.py paused_gc
+@paused_gc()  # the garbage collector walks the tapes' records: warpcloth/tape.py paused_gc
 def checkpointed_backward(
     sim: Simulator,
     state: State,
