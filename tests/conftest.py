@@ -44,6 +44,12 @@ def hanging_builder(*, res=4, size=0.5, material=None, gravity=(0.0, 0.0, -2.0),
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 """Every device the suite runs on: the CPU always, CUDA when present."""
 
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    """Each device of DEVICES in turn, for a test that takes ``device``: CI runs the CPU; the lent GPU runs both."""
+    return request.param
+
 SEED_DATA = Path(__file__).resolve().parents[2] / "shared" / "reference" / "liang2019"
 """The seed's reference data, in ../shared beside the checkout (as in CI)."""
 

@@ -55,11 +55,13 @@ def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10, integr
     cv = rng.standard_normal((model.particle_count, 3)) * 1e-3
 
     def run(x0, v0, transforms, tape=None):
-        vec3 = model.types.vec3
-        state = wc.State(wp.array(x0, dtype=vec3, requires_grad=True), wp.array(v0, dtype=vec3, requires_grad=True))
+        vec3, device = model.types.vec3, model.device
+        state = wc.State(wp.array(x0, dtype=vec3, device=device, requires_grad=True),
+                         wp.array(v0, dtype=vec3, device=device, requires_grad=True))
         control = model.control(requires_grad=True)
         if transforms is not None:
-            control.obstacle_transform = wp.array(transforms, dtype=model.types.transform, requires_grad=True)
+            control.obstacle_transform = wp.array(transforms, dtype=model.types.transform, device=device,
+                                                  requires_grad=True)
         keys = []
         traj = [state]
         for _ in range(steps):
@@ -70,7 +72,8 @@ def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10, integr
         x, v = traj[-1].particle_x.numpy(), traj[-1].particle_v.numpy()
         loss = float(np.sum(cx * x) + np.sum(cv * v))
         if tape is not None:
-            return loss, keys, traj, control, (wp.array(cx, dtype=vec3), wp.array(cv, dtype=vec3))
+            weights = (wp.array(cx, dtype=vec3, device=device), wp.array(cv, dtype=vec3, device=device))
+            return loss, keys, traj, control, weights
         return loss, keys
 
     return sim, run
@@ -108,8 +111,8 @@ def fd_check(run, base, grads, name, eps, rng, directions=2):
 
 
 @pytest.mark.parametrize("steps", [1, 3])
-def test_obstacle_contact_gradients_match_finite_differences(steps):
-    model = plane_scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+def test_obstacle_contact_gradients_match_finite_differences(steps, device):
+    model = plane_scene().finalize(device, requires_grad=True, dtype=wp.float64)
     sim, run = loss_fn(model, steps, 0.005)
     x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
     tf = model.obstacle_rest_transform.copy()
@@ -122,9 +125,9 @@ def test_obstacle_contact_gradients_match_finite_differences(steps):
 
 
 @pytest.mark.parametrize("solver", ["numpy", "device"])
-def test_bdf2_contact_gradients_match_finite_differences(solver):
+def test_bdf2_contact_gradients_match_finite_differences(solver, device):
     # BDF2 (steps 2 and 3 blend two states; the response's velocity change is over 2/3 dt): the same adjoints
-    model = plane_scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+    model = plane_scene().finalize(device, requires_grad=True, dtype=wp.float64)
     sim, run = loss_fn(model, 3, 0.005, solver=solver, integrator="bdf2")
     x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
     tf = model.obstacle_rest_transform.copy()
@@ -137,8 +140,8 @@ def test_bdf2_contact_gradients_match_finite_differences(solver):
     assert abs(loss - euler_loss) > 1e-9 * abs(loss)  # BDF2 was used
 
 
-def test_cloth_cloth_contact_gradients_match_finite_differences():
-    model = layers_scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+def test_cloth_cloth_contact_gradients_match_finite_differences(device):
+    model = layers_scene().finalize(device, requires_grad=True, dtype=wp.float64)
     sim, run = loss_fn(model, 1, 0.005)
     x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
     loss, keys, g = tape_gradients(model, run, x0, v0, None)
@@ -151,11 +154,11 @@ def test_cloth_cloth_contact_gradients_match_finite_differences():
 HEAVY = wc.Material.isotropic(density=0.8, stretch_stiffness=200.0, shear_stiffness=20.0, bend_stiffness=2e-5)
 
 
-def test_density_gradients_of_two_fabrics_in_contact_match_finite_differences():
+def test_density_gradients_of_two_fabrics_in_contact_match_finite_differences(device):
     # The projection weighs each particle's move by its mass: which fabric gives way depends on both densities.
     # The tape's dL/d(density) includes that dependence (collision/adjoint.py mass_gradient); without it this test
     # fails: the implicit step's share alone is 0.3 % off for the lower sheet.
-    model = layers_scene(top=HEAVY).finalize("cpu", requires_grad=True, dtype=wp.float64)
+    model = layers_scene(top=HEAVY).finalize(device, requires_grad=True, dtype=wp.float64)
     assert model.material_density.shape[0] == 2
     sim, run = loss_fn(model, 1, 0.005)
     x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
@@ -183,10 +186,10 @@ def test_density_gradients_of_two_fabrics_in_contact_match_finite_differences():
 
 
 @pytest.mark.parametrize("scene", [plane_scene, layers_scene])
-def test_qr_adjoint_equals_dense_kkt_adjoint_in_a_step(scene):
+def test_qr_adjoint_equals_dense_kkt_adjoint_in_a_step(scene, device):
     grads = {}
     for mode in ("qr", "kkt"):
-        model = scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+        model = scene().finalize(device, requires_grad=True, dtype=wp.float64)
         sim, run = loss_fn(model, 2, 0.005, adjoint=mode)
         tf = model.obstacle_rest_transform.copy() if model.obstacle_count else None
         _, _, grads[mode] = tape_gradients(model, run, model.particle_x0.numpy(), model.particle_v0.numpy(), tf)
@@ -196,12 +199,12 @@ def test_qr_adjoint_equals_dense_kkt_adjoint_in_a_step(scene):
 
 
 @pytest.mark.parametrize("scene", [plane_scene, layers_scene, lambda: layers_scene(top=HEAVY)])
-def test_device_projection_equals_the_numpy_one(scene):
+def test_device_projection_equals_the_numpy_one(scene, device):
     # CollisionOptions(solver="device"): Warp kernels over all contacts at once, no zones; the same z and, through
     # its CG adjoint on the active set, the same gradients as the zone-by-zone NumPy solver and its QR adjoint
     out = {}
     for solver in ("numpy", "device"):
-        model = scene().finalize("cpu", requires_grad=True, dtype=wp.float64)
+        model = scene().finalize(device, requires_grad=True, dtype=wp.float64)
         sim, run = loss_fn(model, 2, 0.005, solver=solver, qp_tol=1e-13)  # both solutions exact to round-off
         tf = model.obstacle_rest_transform.copy() if model.obstacle_count else None
         model.material_density.grad.zero_()
@@ -216,7 +219,7 @@ def test_device_projection_equals_the_numpy_one(scene):
                                    err_msg=name)
 
 
-def sheet_sliding_across_an_edge():
+def sheet_sliding_across_an_edge(device):
     """A 0.3 m sheet landing flat on a frictionless 30-degree plane, across the plane's diagonal edge. Repulsion
     off: the projection alone, and a density that cannot change the motion (the sheet never deforms)."""
     c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
@@ -227,17 +230,17 @@ def sheet_sliding_across_an_edge():
     mesh.positions = (mesh.positions + [-0.15, -0.15, 0.005]) @ R.T
     b.add_cloth_mesh(mesh, material=wc.preset("white-swim-solid", thicken=2))
     b.set_collision(obstacle_friction=0.0, repulsion_stiffness=0.0)
-    return b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    return b.finalize(device, requires_grad=True, dtype=wp.float64)
 
 
 @pytest.mark.parametrize("solver", ["numpy", "device"])
-def test_density_gradient_is_zero_where_density_cannot_change_the_motion(solver):
+def test_density_gradient_is_zero_where_density_cannot_change_the_motion(solver, device):
     # The plane's diagonal used to make edge-edge contacts with every cloth edge across it, dependent on the
     # vertex-face contacts of the edge's ends: the device adjoint's d_lam was 1e10 too large and dL/d(log density)
     # came out 3.6e-4 (central differences: 1e-12); with the dependence damped (kernels/projection.py
     # DEPENDENT_SHIFT) the multipliers' arbitrary split still moved dL/dx0 by 15 %. Flat obstacle edges no longer
     # make contacts (geometry.primitives.contact_edges).
-    model = sheet_sliding_across_an_edge()
+    model = sheet_sliding_across_an_edge(device)
     sim, run = loss_fn(model, 8, 0.01, solver=solver)
     x0, v0 = model.particle_x0.numpy(), model.particle_v0.numpy()
     tape = wp.Tape()
@@ -255,7 +258,7 @@ def test_density_gradient_is_zero_where_density_cannot_change_the_motion(solver)
 
 
 @pytest.mark.parametrize("solver", ["numpy", "device"])
-def test_gradients_through_the_rigid_impact_zone_fail_safe_match_finite_differences(solver):
+def test_gradients_through_the_rigid_impact_zone_fail_safe_match_finite_differences(solver, device):
     # A patch (of HEAVY) thrown onto a free sheet; the projection is refused (a strain limit of 1e-9 that any
     # projection passes) so the fail-safe moves the particles in contact as one rigid zone: its gradient
     # (kernels/failsafe.py, Warp's autodiff) reaches positions, velocities and both densities.
@@ -263,7 +266,7 @@ def test_gradients_through_the_rigid_impact_zone_fail_safe_match_finite_differen
     stretched_grid(b, 2, 0.2, pos=(-0.1, -0.1, 0.0))
     stretched_grid(b, 1, 0.06, pos=(-0.03, -0.05, 0.0008), vel=(0.01, 0.02, -0.3), material=HEAVY)
     b.set_collision(self_collision=True, repulsion_stiffness=0.0)
-    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    model = b.finalize(device, requires_grad=True, dtype=wp.float64)
     sim, run = loss_fn(model, 2, 0.005, solver=solver)
     sim.options = wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30, cg_max_iters=2000,
                                    collision=wc.CollisionOptions(solver=solver, max_projection_strain=1e-9))
@@ -311,13 +314,13 @@ def sandwich_builder() -> wc.ModelBuilder:
 
 
 @pytest.mark.parametrize("solver", ["numpy", "device"])
-def test_gradients_of_the_second_try_keeping_start_gaps_match_finite_differences(solver):
+def test_gradients_of_the_second_try_keeping_start_gaps_match_finite_differences(solver, device):
     # A stretched sheet starting between two planes 0.8 thickness apart, every vertex inside the thickness of both:
     # the first try (targets of a full thickness) is infeasible, the second keeps each pair's start gap as its
     # target (kernels/contact.py start_distance, differentiated): gradients reach the start positions through the
     # targets, and the planes' placement.
     delta = SANDWICH_THICKNESS
-    model = sandwich_builder().finalize("cpu", requires_grad=True, dtype=wp.float64)
+    model = sandwich_builder().finalize(device, requires_grad=True, dtype=wp.float64)
     sim, run = loss_fn(model, 2, 0.005, solver=solver)
     rng = np.random.default_rng(5)
     x0 = model.particle_x0.numpy() + [0.0, 0.0, 1.0] * rng.uniform(-0.15 * delta, 0.15 * delta, (model.particle_count,

@@ -20,7 +20,7 @@ def rotation_y(theta):
 
 
 def incline(theta_deg, mu, *, res=4, size=0.1, dtype=wp.float64, requires_grad=False, gap=REST_GAP, vel=None,
-            shear=0.0):
+            shear=0.0, device="cpu"):
     """A square patch lying on a plane tilted by theta about y (downhill: -x of the tilted frame), away from the
     plane's diagonal edge (where edge-edge pairs would add to the vertex-face ones)."""
     R = rotation_y(math.radians(theta_deg))
@@ -33,7 +33,7 @@ def incline(theta_deg, mu, *, res=4, size=0.1, dtype=wp.float64, requires_grad=F
         mesh.velocities = np.tile(np.asarray(vel, dtype=np.float64), (len(mesh.positions), 1))
     b.add_cloth_mesh(mesh, material=MATERIAL)
     b.set_collision(friction=mu, obstacle_friction=mu)
-    return b.finalize("cpu", dtype=dtype, requires_grad=requires_grad), R
+    return b.finalize(device, dtype=dtype, requires_grad=requires_grad), R
 
 
 def downhill_travel(theta_deg, mu, steps=100, dt=0.01):
@@ -289,12 +289,12 @@ def gradient_check(model, steps, dt, perturbations, *, eps=(1e-6, 1e-7), rtol=1e
     sim = wc.Simulator(model, dt, options=wc.SolverOptions(cg_tol=1e-13, cg_atol=1e-30, integrator=integrator))
     rng = np.random.default_rng(4)
     n = model.particle_count
-    cx = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d)
-    cv = wp.array(1e-2 * rng.standard_normal((n, 3)), dtype=wp.vec3d)
+    cx = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d, device=model.device)
+    cv = wp.array(1e-2 * rng.standard_normal((n, 3)), dtype=wp.vec3d, device=model.device)
 
     def run(state=None, control=None, tape=None):
         state = state or model.state()
-        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        out = wp.zeros(1, dtype=wp.float64, device=model.device, requires_grad=True)
         with tape or _null():
             final = wc.rollout(sim, state, control, steps=steps)[-1]
             wp.launch(_linear_loss, n, inputs=[final.particle_x, final.particle_v, cx, cv], outputs=[out])
@@ -349,23 +349,23 @@ def directions(model, rng):
 
 
 @pytest.mark.parametrize("theta, regime", [(10.0, "resting"), (30.0, "sliding")])
-def test_cloth_obstacle_gradients_match_central_differences(theta, regime):
+def test_cloth_obstacle_gradients_match_central_differences(theta, regime, device):
     # sheared a little: at zero shear the stretching lookup has a kink (see the cloth-cloth test)
-    model, _ = incline(theta, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4)
+    model, _ = incline(theta, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4, device=device)
     results, sim = gradient_check(model, 6, 0.01, directions(model, np.random.default_rng(1)))
     assert sim.proximity.last_count > 0
     assert all(abs(r[0]) > 0 for r in results.values())
 
 
-def test_bdf2_repulsion_and_friction_gradients_match_central_differences():
+def test_bdf2_repulsion_and_friction_gradients_match_central_differences(device):
     # BDF2's pairs: penalty and friction blocks over its 2/3 dt implicit step, found at its blend
-    model, _ = incline(30.0, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4)
+    model, _ = incline(30.0, 0.3, res=2, requires_grad=True, vel=(0.02, 0.01, 0.0), shear=5e-4, device=device)
     results, sim = gradient_check(model, 6, 0.01, directions(model, np.random.default_rng(1)), integrator="bdf2")
     assert sim.proximity.last_count > 0
     assert all(abs(r[0]) > 0 for r in results.values())
 
 
-def test_cloth_landing_on_a_sphere_gradients_match_central_differences():
+def test_cloth_landing_on_a_sphere_gradients_match_central_differences(device):
     # a curved obstacle: an 8x8 cloth lands on a sphere and wraps it for 10 steps (~160 pairs at the end). Longer
     # horizons stop being smooth here: by step 20 pairs appearing and stick/slip switches make dL/d(density) ~1e3
     # and central differences no longer converge (README, contact's known gaps).
@@ -377,7 +377,7 @@ def test_cloth_landing_on_a_sphere_gradients_match_central_differences():
     mesh.positions = mesh.positions + jitter + [-0.31, -0.29, 0.31]
     b.add_cloth_mesh(mesh, material=wc.preset("gray-interlock", thicken=2))
     b.add_obstacle_sphere(0.3, 3)
-    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    model = b.finalize(device, requires_grad=True, dtype=wp.float64)
     n = model.particle_count
     rng = np.random.default_rng(2)
     results, sim = gradient_check(model, 10, 0.01, [("x0", 1e-2 * rng.standard_normal((n, 3))),
@@ -389,7 +389,7 @@ def test_cloth_landing_on_a_sphere_gradients_match_central_differences():
 @pytest.mark.parametrize("regime, mu, vel", [("sliding, frictionless", 0.0, (0.03, 0.01, 0.0)),
                                               ("sliding, friction", 0.6, (0.03, 0.01, 0.0)),
                                               ("resting, friction", 0.6, (0.0, 0.0, 0.0))])
-def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel):
+def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel, device):
     # a small free sheet on a larger pinned one, under gravity: cloth-cloth vertex-face and edge-edge pairs
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -G))
     b.add_cloth_grid((2, 2), (0.2, 0.2), material=MATERIAL, pos=(-0.1, -0.1, 0.0))
@@ -404,7 +404,7 @@ def test_cloth_cloth_gradients_match_central_differences(regime, mu, vel):
     for p in range(9):
         b.add_pin(p)
     b.set_collision(self_collision=True, friction=mu)
-    model = b.finalize("cpu", dtype=wp.float64, requires_grad=True)
+    model = b.finalize(device, dtype=wp.float64, requires_grad=True)
     rng = np.random.default_rng(2)
     n = model.particle_count
     results, sim = gradient_check(model, 5, 0.01, [("x0", 1e-3 * rng.standard_normal((n, 3))),

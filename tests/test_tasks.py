@@ -118,10 +118,10 @@ def test_a_throw_task_on_another_model_does_not_batch_copies_of_the_scene():
 
 # -- control tasks on a user's scene ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["com", "positions"])
-def test_control_gradient_matches_central_differences_for_every_push(tmp_path, kind):
+def test_control_gradient_matches_central_differences_for_every_push(tmp_path, kind, device):
     loss = "{ com = [0.1, 0.0, -0.3] }" if kind == "com" else positions_target(tmp_path)
     path = small_scene(tmp_path, CONTROL.format(loss=loss, reg=0.01, more=""))
-    task = ControlTask.from_scene(path, device="cpu", dtype=wp.float64)
+    task = ControlTask.from_scene(path, device=device, dtype=wp.float64)
     assert task.n_params == 12 and task.steps == 12 and task.interval_steps == 5
     params = np.random.default_rng(1).normal(scale=2.0, size=task.n_params)
     value, grad, _ = task.loss_and_grad(params)

@@ -4,30 +4,34 @@
 # (or `sync`) as
 #   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu/checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
-# TESTS, SIZES, WORLDS and ITERS override what runs. The first CUDA compile of the kernel modules takes about a
-# minute on a fresh machine (2026-11-27, H200); the tests below took 123 s with it.
+# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS and ITERS override what runs. The first
+# CUDA compile of the kernel modules takes about a minute on a fresh machine (2026-11-27, H200); the tests below
+# took 123 s with it.
 set -u
 root=${1:?project root}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1
 py=python3
-part() {  # part NAME SECONDS COMMAND...
+parts=" ${PARTS:-tests graph_step estimate_cuda control_cuda global_search capture_probe} "
+part() {  # part NAME SECONDS COMMAND...: runs COMMAND if NAME is in PARTS
   local name=$1 limit=$2; shift 2
+  [[ $parts == *" $name "* ]] || return 0
   local t0=$SECONDS
   timeout "$limit" "$@" > "$out/$name.log" 2>&1
   echo "$name: rc=$? in $((SECONDS - t0)) s" | tee -a "$out/summary.txt"
 }
-part tests 240 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda and not contact}" \
+part tests 200 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda}" \
   "$root/tests/test_devices.py" "$root/tests/test_capture.py" "$root/tests/test_gradients.py" \
-  "$root/tests/test_worlds.py"
+  "$root/tests/test_worlds.py" "$root/tests/test_collision_gradients.py" "$root/tests/test_contact.py" \
+  "$root/tests/test_tasks.py"
 tail -n 5 "$out/tests.log" >> "$out/summary.txt"
-part graph_step 180 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
+part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --out "$out/graph_step_cuda.json"
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
-part estimate_cuda 60 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
+part estimate_cuda 45 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
 grep -E "runtime|simulation error" "$out/estimate_cuda.log" >> "$out/summary.txt"
-part control_cuda 120 warpcloth control --device cuda:0 --iters 2
+part control_cuda 90 warpcloth control --device cuda:0 --iters 2
 tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"
 part global_search 240 $py "$root/benchmarks/global_search.py" --device cuda:0 --optimizers cmaes --starts 1 \
   --iters 42 --out "$out/global_search_cuda.json"  # issue 38: time to result on CUDA (contact: the QP on one thread)
