@@ -14,10 +14,13 @@ sheet in one model (``ModelBuilder.replicate``).
     launches_per_step    kernel launches of an uncaptured step (warp.optim's included)
     allocs_per_step      Warp array allocations of an untaped step between two preallocated States (CPU only)
     fwd_bwd_s            a taped rollout and its backward pass, uncaptured and captured (single world only)
-    throw                the seed's basket throw (contact: not capturable yet), one forward + backward evaluation
-                         (ThrowTask.evaluate) at zero pushes (the cloth falls past everything: no contact, no
-                         repulsion pair) and at the open loop's best pushes of benchmarks/results/motion_control.json
-                         (it lands in the basket: contacts and pairs): seconds, Warp launches and arrays made per step
+    throw                the seed's basket throw, one forward + backward evaluation (ThrowTask.evaluate) at zero
+                         pushes (the cloth falls past everything: no contact, no repulsion pair) and at the open
+                         loop's best pushes of benchmarks/results/motion_control.json (it lands in the basket:
+                         contacts and pairs): a task's first evaluation (uncaptured: fwd_bwd_s, with its Warp
+                         launches and arrays made per step), its second (capturing_s: on the CPU it records one
+                         speculative graph a step, wc.CapturedRollout) and later ones (replayed_s, with the steps
+                         that met contact and ran uncaptured: rerun_steps)
     max_diff             largest difference between the captured and the uncaptured final positions [m] (and
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
@@ -141,18 +144,32 @@ def landing_pushes() -> np.ndarray | None:
 
 
 def throw_case(device: str, reps: int, steps: int | None, params: np.ndarray) -> dict:
-    """The throw's forward + backward at ``params``: what its steps cost in launches and allocations (issue 37)."""
+    """The throw's forward + backward at ``params`` (ThrowTask.evaluate): a task's first evaluation (uncaptured), its
+    second (it captures the graphs, on the CPU), and later ones (replays); launches and arrays a step."""
     from warpcloth.tasks.throw import ThrowTask
 
+    def task():
+        return ThrowTask(**({"steps": steps} if steps else {}))
+
     with wp.ScopedDevice(device):  # the task's model is made on the default device
-        task = ThrowTask(**({"steps": steps} if steps else {}))
-        error = task.error_pct(task.evaluate(params).positions)  # compiles
-        seconds = common.median_time(lambda: task.evaluate(params), reps=reps)
+        task().evaluate(params)  # compiles
+        first, capturing = [], []
+        for _ in range(reps):
+            replayed = task()
+            first.append(common.timed(lambda t=replayed: t.evaluate(params))[0])
+            capturing.append(common.timed(lambda t=replayed: t.evaluate(params))[0])
+        error = replayed.error_pct(replayed.evaluate(params).positions)
+        replay_s = common.median_time(lambda: replayed.evaluate(params), reps=reps)
         with common.launch_profile() as launches, common.alloc_profile() as allocs:
-            task.evaluate(params)
-    per_step = 1.0 / task.steps
-    return {"steps": task.steps, "particles": task.model.particle_count, "fwd_bwd_s": seconds, "error_pct": error,
+            task().evaluate(params)
+        with common.launch_profile() as replay_launches:
+            replayed.evaluate(params)
+    per_step = 1.0 / replayed.steps
+    return {"steps": replayed.steps, "particles": replayed.model.particle_count, "error_pct": error,
+            "fwd_bwd_s": float(np.median(first)), "capturing_s": float(np.median(capturing)),
+            "replayed_s": replay_s, "rerun_steps": len(replayed.rerun_steps),
             "launches_per_step": per_step * sum(calls for calls, _ in launches.values()),
+            "replay_launches_per_step": per_step * sum(calls for calls, _ in replay_launches.values()),
             "allocs_per_step": None if allocs["count"] is None else per_step * allocs["count"]}
 
 
@@ -191,9 +208,11 @@ def main():
         throws["the open loop's pushes"] = throw_case(args.device, args.reps, None, landing)
     for label, throw in throws.items():
         print(f"\nthe throw at {label} ({throw['steps']} steps, {throw['particles']} particles, error "
-              f"{throw['error_pct']:.1f} %): forward + backward {throw['fwd_bwd_s']:.3f} s, "
-              f"{throw['launches_per_step']:.1f} launches and {common.fmt(throw['allocs_per_step'], '.1f')} arrays "
-              "made per step (forward and backward)")
+              f"{throw['error_pct']:.1f} %): forward + backward {throw['fwd_bwd_s']:.3f} s uncaptured "
+              f"({throw['launches_per_step']:.1f} launches and {common.fmt(throw['allocs_per_step'], '.1f')} arrays "
+              f"a step), {throw['capturing_s']:.3f} s capturing, {throw['replayed_s']:.3f} s replayed "
+              f"({throw['rerun_steps']} steps in contact run uncaptured, "
+              f"{throw['replay_launches_per_step']:.1f} launches a step)")
     common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throws["zero pushes"],
                                "throw_landing": throws.get("the open loop's pushes")}, device=args.device)
 

@@ -799,10 +799,12 @@ def graph_step(d: dict) -> str:
         throw = d.get(key)
         if throw:
             allocs = "–" if throw["allocs_per_step"] is None else f"{throw['allocs_per_step']:.0f}"
-            out += ["", f"The seed's throw {where}, {throw['steps']} steps, {throw['particles']} particles, not "
-                    f"captured (contact scenes cannot be yet): forward + backward {throw['fwd_bwd_s']:.2f} s (issue "
-                    f"37's target 0.5 s: {met(throw['fwd_bwd_s'] <= 0.5)}), {throw['launches_per_step']:.0f} launches "
-                    f"and {allocs} arrays made per step, forward and backward together."]
+            out += ["", f"The seed's throw {where}, {throw['steps']} steps, {throw['particles']} particles, forward + "
+                    f"backward (`ThrowTask.evaluate`): a task's first evaluation, uncaptured, "
+                    f"{throw['fwd_bwd_s']:.2f} s ({throw['launches_per_step']:.0f} launches and {allocs} arrays made "
+                    f"a step); its second, which captures one speculative graph a step, {throw['capturing_s']:.2f} s; "
+                    f"later ones, replayed, {throw['replayed_s']:.2f} s, the {throw['rerun_steps']} steps that met "
+                    f"contact running uncaptured (issue 37's target 0.5 s: {met(throw['replayed_s'] <= 0.5)})."]
     out += ["", provenance(d)]
     return "\n".join(out)
 

@@ -40,10 +40,12 @@ def scene(device, **options):
 
 
 def exact_or_close(device):
-    """Bitwise on the CPU (the same kernels in the same order); on CUDA the warp backend's reductions may reorder."""
+    """Bitwise on the CPU (the same kernels in the same order); on CUDA the assembly's atomic additions reorder, and
+    float32 solves at cg_tol 1e-7 (at float32's rounding) stop at iterations that differ with them: gradients of
+    two runs there differed by up to 6.8e-5 relatively on an H100 (2026-11-27)."""
     if wp.get_device(device).is_cpu:
         return lambda a, b: np.testing.assert_array_equal(a, b)
-    return lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * max(np.abs(b).max(), 1e-12))
+    return lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-5 * max(np.abs(b).max(), 1e-12))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -116,13 +118,92 @@ def test_deferred_checks_name_the_failing_step(device):
     assert messages[0] == messages[1] == messages[2], messages  # the same step, whenever it is read
 
 
-def test_capture_refuses_a_scene_with_contact():
-    b = wc.ModelBuilder()
-    b.add_cloth_grid((3, 3), (0.3, 0.3), material=wc.preset("gray-interlock"), pos=(-0.15, -0.15, 0.2))
+def landing_scene(device, *, height=0.03, repulsion=True):
+    """A 4x4 sheet falling onto a sphere: free flight, then contacts and proximity pairs (repulsion, friction)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    mesh = wc.grid_mesh(4, 4, 0.3, 0.3)
+    jitter = np.random.default_rng(5).uniform(-2e-3, 2e-3, mesh.positions.shape)
+    mesh.positions = mesh.positions + jitter + [-0.15, -0.14, 0.1 + height]
+    b.add_cloth_mesh(mesh, material=wc.preset("gray-interlock", thicken=2))
     b.add_obstacle_sphere(0.1, 2)
+    settings = {} if repulsion else {"repulsion_stiffness": 0.0}
+    b.set_collision(friction=0.3, obstacle_friction=0.3, **settings)
+    model = b.finalize(device, requires_grad=True)
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7))
+    return model, sim
+
+
+@pytest.mark.parametrize("repulsion", [True, False])
+def test_a_contact_scene_replays_free_flight_and_reruns_the_steps_in_contact(repulsion, device):
+    model, sim = landing_scene(device, repulsion=repulsion)
+    assert (sim.proximity is not None) == repulsion
+    steps = 14
+    expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=steps)]
+    captured = wc.CapturedRollout(sim, model.state(), steps=steps)
+    same = exact_or_close(device)
+    for _ in range(2):
+        for a in captured.trajectory[1:]:
+            a.particle_x.zero_()
+        got = [s.particle_x.numpy() for s in captured.run()]
+        for a, b in zip(got, expected):
+            same(a, b)
+        assert 0 < len(captured.rerun_steps) < steps - 2  # it falls before it lands
+        assert captured.rerun_steps == list(range(captured.rerun_steps[0], steps))  # and stays on the sphere
+
+
+def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_parameter():
+    model, sim = landing_scene("cpu")
+    steps = 14
+    state, control = model.state(requires_grad=True), model.control(requires_grad=True, particle_force=True)
+    arrays = {"particle_x": state.particle_x, "particle_v": state.particle_v, "density": model.material_density,
+              "stretching": model.material_stretching, "bending": model.material_bending, "gravity": model.gravity,
+              "force": control.particle_force, "obstacle_transform": control.obstacle_transform,
+              "friction": model.contact_friction, "repulsion": model.contact_repulsion_stiffness}
+    tape = wp.Tape()
+    with tape:
+        loss = loss_of(wc.rollout(sim, state, control, steps=steps))
+    tape.backward(loss)
+    expected = {name: a.grad.numpy().copy() for name, a in arrays.items()}
+    tape.zero()
+    captured = wc.CapturedRollout(sim, state, control, steps=steps, loss=loss_of)
+    assert all(not np.any(a.grad.numpy()) for a in arrays.values())  # made with a run, then zeroed
+    for _ in range(2):  # the gradients are zeroed before each replay: the same, not twice as large
+        captured.run()
+        assert captured.rerun_steps and captured.rerun_steps[0] > 0
+        assert captured.loss.numpy()[0] == loss.numpy()[0]
+        for name, a in arrays.items():
+            assert np.any(expected[name]), name
+            np.testing.assert_array_equal(a.grad.numpy(), expected[name], err_msg=name)
+
+
+def test_a_scripted_obstacle_replays_its_motion():
+    # the sphere rises into the sheet: its vertices come from motions made per step time, which each step's graph
+    # must read from arrays made before its capture
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    b.add_cloth_grid((4, 4), (0.3, 0.3), material=wc.preset("gray-interlock", thicken=2), pos=(-0.15, -0.15, 0.12))
+    b.add_obstacle_sphere(0.1, 2, motion=[(0.0, (0, 0, 0), (0, 0, 0, 1)), (1.0, (0, 0, 1.0), (0, 0, 0, 1))])
     model = b.finalize("cpu")
     sim = wc.Simulator(model, 0.01)
-    with pytest.raises(ValueError, match="collision stage or proximity forces"):
+    steps = 10
+    expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=steps)]
+    captured = wc.CapturedRollout(sim, model.state(), steps=steps)
+    got = [s.particle_x.numpy() for s in captured.run()]
+    assert captured.rerun_steps and captured.rerun_steps[0] > 0
+    for k, (a, e) in enumerate(zip(got, expected)):
+        np.testing.assert_array_equal(a, e, err_msg=f"state {k}")
+
+
+def test_capturing_a_contact_step_by_hand_is_refused():
+    model, sim = landing_scene("cpu", height=0.0)
+    with pytest.raises(RuntimeError, match="captures such steps speculatively"):
+        with wp.ScopedCapture(device="cpu"):
+            sim.step(model.state(), model.empty_state())
+
+
+def test_capture_refuses_contact_with_bdf2():
+    model, _ = landing_scene("cpu")
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(integrator="bdf2"))
+    with pytest.raises(ValueError, match="BDF2 and the wind's lagged normals"):
         wc.CapturedRollout(sim, model.state(), steps=2)
 
 

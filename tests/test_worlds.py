@@ -86,8 +86,10 @@ def test_worlds_without_contact_equal_single_runs_states_and_gradients(solve, de
         if model.wind_velocity is not None:
             params.append(model.wind_velocity)
         xs, grads = loss_and_grads(model, sim, steps, weights[part], params=params)
+        # on CUDA the batch and the single world add their blocks with atomics in different orders: in float64
+        # their gradients differed by up to 1.5e-8 relatively on an H100 (2026-11-27)
         same = np.testing.assert_array_equal if device == "cpu" else \
-            (lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * max(np.abs(b).max(), 1.0)))
+            (lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-12 * max(np.abs(b).max(), 1.0)))
         same(x[part], xs)
         same(g_density[w], grads[0][0])
         same(g_gravity[w], grads[1][0])

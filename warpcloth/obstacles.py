@@ -146,6 +146,12 @@ def obstacle_motion_numpy(model: Model, t: float) -> np.ndarray:
     return out
 
 
+def obstacle_motion(model: Model, t: float) -> wp.array:
+    """The scripted motion of every obstacle at time ``t`` [s] (:func:`obstacle_motion_numpy`), as a new array of
+    transforms on the model's device."""
+    return wp.array(obstacle_motion_numpy(model, t), dtype=model.types.transform, device=model.device)
+
+
 def _check_transforms(model: Model, transforms) -> np.ndarray:
     tf = np.asarray(transforms, dtype=np.float64)
     if tf.shape != (model.obstacle_count, 7):
@@ -202,7 +208,8 @@ def obstacle_meshes_numpy(model: Model, times: Sequence[float], transforms=None)
     return out
 
 
-def obstacle_points(model: Model, control: Control, t: float, out: wp.array | None = None) -> wp.array:
+def obstacle_points(model: Model, control: Control, t: float, out: wp.array | None = None, *,
+                    motion: wp.array | None = None) -> wp.array:
     """World positions of all obstacle vertices at time ``t`` [s], computed on the model's device.
 
     ``x = motion(t) * (control.obstacle_transform[body] * local)``. The launch is recorded on an active ``wp.Tape``
@@ -217,6 +224,9 @@ def obstacle_points(model: Model, control: Control, t: float, out: wp.array | No
         out: optional output array, (obstacle_vertex_count,) vec3 of the model's scalar type, on its device.
             A new array (with a gradient when the inputs have one) when None. Do not reuse one array for two
             times while a tape records.
+        motion: the motions at ``t`` as made by :func:`obstacle_motion` (default: made now). A step captured as a
+            graph passes one made before the capture: an array made inside it from host values would be filled from
+            host memory at every replay, long after that memory is gone.
 
     Returns:
         The positions [m], shape (obstacle_vertex_count,) vec3.
@@ -243,7 +253,8 @@ def obstacle_points(model: Model, control: Control, t: float, out: wp.array | No
             f"obstacle_points: out must be ({n},) {wp.types.type_repr(t_.vec3)} on {model.device}, got shape "
             f"{out.shape}, dtype {wp.types.type_repr(out.dtype)} on {out.device}"
         )
-    motion = wp.array(obstacle_motion_numpy(model, t), dtype=t_.transform, device=model.device)
+    if motion is None:
+        motion = obstacle_motion(model, t)
     wp.launch(
         obstacle_kernels(model.scalar).world_points,
         dim=n,

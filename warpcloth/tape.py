@@ -52,3 +52,21 @@ def capturing(device) -> bool:
     if device.is_cuda:
         return device.is_capturing
     return wp._src.context.runtime._apic_capture is not None
+
+
+@contextmanager
+def arrays_kept(keep: list):
+    """Append every Warp array made inside to ``keep``. A graph captured inside reads and writes the arrays made
+    during its capture at every replay, but Warp's graphs (1.19) hold no reference to them: an array that only the
+    step's locals held would be freed and its memory reused under the graph."""
+    original = wp.array.__init__
+
+    def init(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        keep.append(self)
+
+    wp.array.__init__ = init
+    try:
+        yield keep
+    finally:
+        wp.array.__init__ = original

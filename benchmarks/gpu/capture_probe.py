@@ -11,6 +11,9 @@ gradient:
     preallocated       every State allocated before the capture (the step's own per-step buffers still inside)
     two_graphs         forward graph, then backward graph (what CapturedRollout does on the CPU)
     two_graphs_no_gc   the same with the garbage collector off
+    one_graph_kept     one_graph, every array made during the capture kept alive (warpcloth.tape.arrays_kept: Warp's
+                       graphs hold no reference to them, and on the CPU one freed under a graph was reused)
+    two_graphs_kept    two_graphs, the same
 
 Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME]
 (without --variant it runs every variant in a subprocess and prints a line each)
@@ -19,6 +22,8 @@ Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME]
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import gc
 import subprocess
 import sys
@@ -29,9 +34,11 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import warpcloth as wc  # noqa: E402
+from warpcloth.tape import arrays_kept  # noqa: E402
 from warpcloth.tasks import scenes  # noqa: E402
 
-VARIANTS = ("one_graph", "one_graph_no_gc", "preallocated", "two_graphs", "two_graphs_no_gc")
+VARIANTS = ("one_graph", "one_graph_no_gc", "preallocated", "two_graphs", "two_graphs_no_gc", "one_graph_kept",
+            "two_graphs_kept")
 STEPS = 6
 
 
@@ -76,24 +83,27 @@ def run_variant(variant: str, device: str) -> str:
     no_gc = variant.endswith("no_gc")
     if no_gc:
         gc.disable()
+    kept = contextlib.nullcontext
+    if variant.endswith("kept"):
+        kept = functools.partial(arrays_kept, keep)
     try:
-        if variant in ("one_graph", "one_graph_no_gc", "preallocated"):
+        if variant in ("one_graph", "one_graph_no_gc", "preallocated", "one_graph_kept"):
             states = [model.empty_state(requires_grad=True) for _ in range(STEPS)] if variant == "preallocated" \
                 else None
-            with wp.ScopedCapture(device=device) as capture:
+            with kept(), wp.ScopedCapture(device=device) as capture:
                 tape.zero()
                 tape2, loss2, traj = _forward(sim, state, states)
                 tape2.backward(loss2)
             graphs = [capture.graph]
             keep += [tape2, loss2, traj, states]
         else:
-            with wp.ScopedCapture(device=device) as capture:
+            with kept(), wp.ScopedCapture(device=device) as capture:
                 tape2, loss2, traj = _forward(sim, state)
             forward = capture.graph
-            with wp.ScopedCapture(device=device) as capture:
+            with kept(), wp.ScopedCapture(device=device) as capture:
                 tape2.backward(loss2)
             backward = capture.graph
-            with wp.ScopedCapture(device=device) as capture:
+            with kept(), wp.ScopedCapture(device=device) as capture:
                 tape2.zero()
             graphs = [capture.graph, forward, backward]
             keep += [tape2, loss2, traj]

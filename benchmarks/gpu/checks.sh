@@ -4,9 +4,9 @@
 # (or `sync`) as
 #   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu/checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
-# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS and ITERS override what runs. The first
-# CUDA compile of the kernel modules takes about a minute on a fresh machine (2026-11-27, H200); the tests below
-# took 123 s with it.
+# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, ITERS and VARIANT (capture_probe's) override
+# what runs. The first CUDA compile of the kernel modules takes about a minute on a fresh machine (2026-11-27, H200);
+# the tests below took 123 s with it.
 set -u
 root=${1:?project root}
 out=${OUT:-/tmp/out}
@@ -14,6 +14,7 @@ mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1
 py=python3
 parts=" ${PARTS:-tests graph_step estimate_cuda control_cuda global_search capture_probe} "
+# a hung test dumps its stack into tests.log (pytest's faulthandler) before the part's timeout
 part() {  # part NAME SECONDS COMMAND...: runs COMMAND if NAME is in PARTS
   local name=$1 limit=$2; shift 2
   [[ $parts == *" $name "* ]] || return 0
@@ -21,11 +22,11 @@ part() {  # part NAME SECONDS COMMAND...: runs COMMAND if NAME is in PARTS
   timeout "$limit" "$@" > "$out/$name.log" 2>&1
   echo "$name: rc=$? in $((SECONDS - t0)) s" | tee -a "$out/summary.txt"
 }
-part tests 200 $py -m pytest -q -p no:cacheprovider -k "${TESTS:-cuda}" \
+part tests 280 $py -m pytest -v -p no:cacheprovider -o faulthandler_timeout=150 --durations=15 -k "${TESTS:-cuda}" \
   "$root/tests/test_devices.py" "$root/tests/test_capture.py" "$root/tests/test_gradients.py" \
   "$root/tests/test_worlds.py" "$root/tests/test_collision_gradients.py" "$root/tests/test_contact.py" \
   "$root/tests/test_tasks.py"
-tail -n 5 "$out/tests.log" >> "$out/summary.txt"
+grep -E "PASSED|FAILED|ERROR|passed|failed" "$out/tests.log" | tail -n 40 >> "$out/summary.txt"
 part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --out "$out/graph_step_cuda.json"
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
@@ -36,5 +37,5 @@ tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"
 part global_search 240 $py "$root/benchmarks/global_search.py" --device cuda:0 --optimizers cmaes --starts 1 \
   --iters 42 --out "$out/global_search_cuda.json"  # issue 38: time to result on CUDA (contact: the QP on one thread)
 tail -n 6 "$out/global_search.log" >> "$out/summary.txt"
-part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0
+part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0 ${VARIANT:+--variant $VARIANT}
 cat "$out/capture_probe.log" >> "$out/summary.txt"

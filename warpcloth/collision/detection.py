@@ -223,10 +223,11 @@ class ContactDetector:
         """... their normals' sides, (capacity,) float64."""
         return self._sign
 
-    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> int:
+    def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
+                         read: bool = True) -> int | None:
         """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
         :attr:`sign`); returns their count. The one read back: :attr:`flags`, whose STRAINED slot carries the last
-        projection's strain-guard flag along."""
+        projection's strain-guard flag along; with ``read=False`` (a captured step) none, and None is returned."""
         k = self.kernels
         half = 0.5 * self.thickness
         if self._prims.shape[0]:
@@ -250,6 +251,8 @@ class ContactDetector:
                               wp.float64(self.thickness), self.world_mode, self.capacity, self.node_world,
                               self.grouped, self.skip],
                       outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
+        if not read:
+            return None
         count = int(self.read_flags()[FOUND])
         if count > self.capacity:
             raise ContactCapacityError(

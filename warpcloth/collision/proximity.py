@@ -128,6 +128,9 @@ class ProximityForces:
         self._free = wp.array(free, dtype=wp.int32, device=dev)
         self.last_count = 0
         """Pairs found in the last step (diagnostics only)."""
+        self.speculative = False
+        """Whether steps assume no pairs without reading the count (set while ``wc.CapturedRollout`` captures a
+        step; :meth:`found_any` then tells whether the assumption held)."""
         self._per_node = wp.zeros(n + V, dtype=wp.int32, device=dev)
 
     @property
@@ -174,7 +177,9 @@ class ProximityForces:
                 wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
                           inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, same, search],
                           record_tape=False)
-        count = int((self._count_host if self._count_host is not None else self._count.numpy())[0])
+        if self.speculative:  # a captured step: no read; the replay asks found_any
+            return 0
+        count = self._read_count()
         if count > self.capacity:
             raise ContactCapacityError(
                 f"proximity pair buffer overflow: {count} pairs found but the capacity is {self.capacity}; raise "
@@ -182,6 +187,13 @@ class ProximityForces:
         self.last_count = count
         self._sort_by_world(count)
         return count
+
+    def _read_count(self) -> int:
+        return int((self._count_host if self._count_host is not None else self._count.numpy())[0])
+
+    def found_any(self) -> bool:
+        """Whether the last detection found pairs (a read of the device: a speculative step's check)."""
+        return self._read_count() > 0
 
     def _sort_by_world(self, count: int) -> None:
         """Order the pairs by world, keeping each world's in the order found (so a world's pairs are those a model

@@ -44,7 +44,9 @@ and rounds left"):
   set by a kernel from the failure flags, the rounds run again), the fail-safe could not;
 * the projection's capacity grows on the host (``DeviceBackend.project``: a new DeviceProjection).
 Outside this stage, a contact scene's step also reads the device for its proximity pairs (their count sizes the
-pair launches and the taped copies) and evaluates scripted obstacle motions on the host into new arrays.
+pair launches and the taped copies). Until a contact step can be captured, ``wc.CapturedRollout`` captures each
+step speculatively (:attr:`CollisionStage.speculative`: detection without its read, x̂ kept as the result) and runs
+the steps whose detection found contacts again, uncaptured.
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision.backends import DeviceBackend, ZoneBackend, gather_nodes, timed
-from warpcloth.collision.detection import STRAINED, ContactDetector
+from warpcloth.collision.detection import FOUND, STRAINED, ContactDetector
 from warpcloth.collision.diagnostics import rounds_error, strain_error
 from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
 from warpcloth.errors import CollisionError, ContactCapacityError
@@ -65,7 +67,7 @@ from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.kernels.status import RECORD_SIZE
 from warpcloth.model import Model, State
-from warpcloth.tape import active_tape, record_adjoint
+from warpcloth.tape import active_tape, capturing, record_adjoint
 
 
 @dataclass
@@ -140,6 +142,10 @@ class CollisionStage:
         """Steps resolved by the second try, which keeps start gaps, over this stage's life."""
         self.last: CollisionReport | None = None
         """The report of the last step (diagnostics: no step reads it)."""
+        self.speculative = False
+        """Whether steps assume no contact without reading the detector (set while ``wc.CapturedRollout`` captures a
+        step; :meth:`found_any` then tells whether the assumption held)."""
+        self._full_thickness = np.zeros(model.world_count, dtype=np.int32)  # every world's detection mode
         self.record = wp.zeros(RECORD_SIZE, dtype=wp.int32, device=self.device)
         """The failure record (kernels/status.py) the divergence guard on the stage's result latches into: the
         Simulator's (it also points ``detector.skip`` at it, so that candidate positions that diverged meet no
@@ -186,6 +192,48 @@ class CollisionStage:
         wp.launch(contact_kernels(model.scalar).gather_two, start.shape[0], device=self.device,
                   inputs=[state_in.particle_x, obstacle_start, x_hat, obstacle_end, model.particle_count],
                   outputs=[start, self._reference], record_tape=False)
+        if self.speculative:
+            # a step being captured (wc.CapturedRollout) assumes no contact: detection runs without its read, x̂ is
+            # kept, and the replay reads the flags afterwards (found_any), running the step again where it found some
+            self.detector.set_world_modes(self._full_thickness)
+            self.detector.detect_on_device(start, self._reference, self._reference, read=False)
+            z = x_hat
+        elif capturing(self.device):
+            raise RuntimeError("a step with a collision stage reads the device, so it cannot be captured as it is; "
+                               "wc.CapturedRollout captures such steps speculatively")
+        else:
+            z = self._tries(backend, report, state_in, start, x_hat, obstacle_start, obstacle_end, step, mass,
+                            recording)
+        kernels = contact_kernels(model.scalar)
+        report.z = z
+        inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
+        unmoved = z is x_hat and recording  # no contact in any world, on a tape
+        wp.launch(kernels.apply_projection, model.particle_count, device=self.device,
+                  inputs=[x_hat, v_hat, z, inv_dt, model.scalar(self.options.max_speed), step],
+                  outputs=[state_out.particle_x, state_out.particle_v, self.record], record_tape=not unmoved)
+        if unmoved:
+            # No contact: the adjoint is that of z, a copy of x̂, projected by apply_projection (a world without
+            # contacts among worlds with some passes dL/dz on to dL/dx̂ so: position_gradients), in one hand-written
+            # kernel with the same arithmetic (kernels/contact.py unmoved_adjoint): no copy, no array for z.
+            def adjoint():
+                wp.launch(kernels.unmoved_adjoint, model.particle_count, device=self.device,
+                          inputs=[state_out.particle_x.grad, state_out.particle_v.grad, inv_dt],
+                          outputs=[x_hat.grad, v_hat.grad], record_tape=False)
+
+            record_adjoint(adjoint, arrays=[state_out.particle_x, state_out.particle_v])
+        self.last = report
+        return report
+
+    def found_any(self) -> bool:
+        """Whether the last detection found contacts (a read of the device: a speculative step's check)."""
+        return bool(self.detector.read_flags()[FOUND])
+
+    def _tries(self, backend, report: CollisionReport, state_in: State, start: wp.array, x_hat: wp.array,
+               obstacle_start: wp.array, obstacle_end: wp.array, step: int, mass: Callable[[], wp.array],
+               recording: bool) -> wp.array:
+        """Each world's tries at the step (the round loop at the full thickness, keeping start gaps, the fail-safe),
+        filling ``report``; returns the resolved positions."""
+        model, opt = self.model, self.options.collision
         # the step's start nodes taped, made at the first round that finds contacts (shared by the step's tries)
         taped_start = functools.cache(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
         # Each world's way through the step: the full thickness; where that fails, the second try keeping start
@@ -236,25 +284,7 @@ class CollisionStage:
             report.zones, report.projections = backend.zones, backend.projections
         else:
             report.device = backend.solver_stats
-        kernels = contact_kernels(model.scalar)
-        report.z = z
-        inv_dt = model.scalar(1.0 / (self.dt if implicit_dt is None else implicit_dt))
-        unmoved = z is x_hat and recording  # no contact in any world, on a tape
-        wp.launch(kernels.apply_projection, model.particle_count, device=self.device,
-                  inputs=[x_hat, v_hat, z, inv_dt, model.scalar(self.options.max_speed), step],
-                  outputs=[state_out.particle_x, state_out.particle_v, self.record], record_tape=not unmoved)
-        if unmoved:
-            # No contact: the adjoint is that of z, a copy of x̂, projected by apply_projection (a world without
-            # contacts among worlds with some passes dL/dz on to dL/dx̂ so: position_gradients), in one hand-written
-            # kernel with the same arithmetic (kernels/contact.py unmoved_adjoint): no copy, no array for z.
-            def adjoint():
-                wp.launch(kernels.unmoved_adjoint, model.particle_count, device=self.device,
-                          inputs=[state_out.particle_x.grad, state_out.particle_v.grad, inv_dt],
-                          outputs=[x_hat.grad, v_hat.grad], record_tape=False)
-
-            record_adjoint(adjoint, arrays=[state_out.particle_x, state_out.particle_v])
-        self.last = report
-        return report
+        return z
 
     def _rounds(self, backend, start: wp.array, taped_start: Callable[[], wp.array], x_hat: wp.array,
                 obstacle_end: wp.array, step: int, report: CollisionReport, recording: bool) -> wp.array:

@@ -4,26 +4,32 @@ Replaying a graph skips Python and the launch overhead of every kernel (on CUDA 
 a graph node; on the CPU 25 us against 0.25 us for a small kernel, issue #37), and on CUDA the CG loop runs as a
 conditional node, so the host never waits for the device inside a rollout. With a loss, the graph holds the
 forward pass, the loss and the whole backward pass, as Newton's differentiable-simulation examples capture them.
+A scene with contact is captured one speculative graph per step instead (_StepGraphs).
 """
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Callable
 
 import warp as wp
 
 from warpcloth.model import State
-from warpcloth.solver.rollout import ControlSchedule, check_schedule, rollout
+from warpcloth.solver.rollout import ControlSchedule, check_schedule, control_at, rollout
 from warpcloth.solver.simulator import Simulator, model_arrays
+from warpcloth.tape import arrays_kept, paused_gc
 
 
 class CapturedRollout:
     """``steps`` steps from ``state`` recorded as one graph; :meth:`run` replays it.
 
     Args:
-        sim: the Simulator (a scene without a collision stage or proximity forces: those still read the device
-            inside a step, so they cannot be captured yet).
+        sim: the Simulator. A scene with a collision stage or proximity forces is captured one graph per step,
+            speculatively: a captured step assumes that it meets no contact and no pair, and after its replay the
+            host reads whether detection found any (one small read a step); where it did, the step runs again,
+            uncaptured, from the same input (:attr:`rerun_steps`). Steps in free flight replay; steps in contact
+            cost what they cost uncaptured.
         state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
             ``wp.copy``) between replays; rebinding them has no effect on the graph.
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
@@ -60,14 +66,23 @@ class CapturedRollout:
         self.loss: wp.array | None = None
         """The loss array the graph writes (None without a loss)."""
         self.tape: wp.Tape | None = None
+        self.rerun_steps: list[int] = []
+        """The steps (0-based) of the last run that met contact and ran again uncaptured (a scene with a collision
+        stage or proximity forces; always empty otherwise)."""
+        self.graphs: list = []
+        """The graphs a replay launches in turn (empty where the rollout is not captured: see below)."""
+        self._steps = None
+        self._kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
+        if _stepwise(sim) and not (sim.device.is_cuda and loss is not None):
+            self._steps = _StepGraphs(sim, state, control, self.steps, loss)
+            self.trajectory = self._steps.states
+            return
         self._record_forward()  # an ordinary run: loads modules, builds the solver's lazily made buffers
         warmup = self.tape
         if warmup is not None:
             self._backward()
             warmup.zero()
         device = sim.device
-        self.graphs: list = []
-        """The graphs a replay launches in turn (empty where the rollout is not captured: see below)."""
         if device.is_cuda and warmup is not None:
             # On an H200 (Warp 1.19) a graph holding the taped forward pass and its backward pass failed to
             # instantiate ("invalid argument"), and as separate graphs the backward one crashed on replay
@@ -76,29 +91,29 @@ class CapturedRollout:
                           "instantiate with Warp 1.19); each run() records and differentiates it afresh",
                           RuntimeWarning, stacklevel=2)
         elif warmup is None:  # the forward pass alone: one graph
-            with wp.ScopedCapture(device=device) as capture:
+            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
                 self._record_forward()
             self.graphs = [capture.graph]
         else:
             # On the CPU (Warp 1.19) a graph holding both a recorded forward pass and the element adjoints'
             # launches crashed on replay; the forward pass, the backward pass and the zeroing of the gradients as
             # three graphs replay correctly.
-            with wp.ScopedCapture(device=device) as capture:
+            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
                 self._record_forward()
             forward = capture.graph
-            with wp.ScopedCapture(device=device) as capture:
+            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
                 self._backward()
             backward = capture.graph
-            with wp.ScopedCapture(device=device) as capture:
+            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
                 self.tape.zero()
             self.graphs = [capture.graph, forward, backward]
 
     @staticmethod
     def unsupported(sim: Simulator) -> str | None:
         """Why ``sim``'s steps cannot be captured, or None if they can."""
-        if sim.collision is not None or sim.proximity is not None:
-            return ("this scene has a collision stage or proximity forces, which still read the device inside a "
-                    "step and cannot be captured yet")
+        if _stepwise(sim) and (sim.options.integrator == "bdf2" or sim.model.wind_lagged_normals):
+            return ("with a collision stage or proximity forces, BDF2 and the wind's lagged normals hand a step's "
+                    "contacts on to the next step's arrays, which a speculatively captured step cannot know")
         if sim.linear_solver.backend == "warp" and sim.device.is_cpu:
             return ("the warp CG backend tests its convergence on the host on the CPU; use cg_backend 'sequential' "
                     "or 'tiled' there")
@@ -119,6 +134,12 @@ class CapturedRollout:
         """The recording tape's backward pass of the loss's sum (its seed: ones, made in the loss's recording)."""
         self.tape.backward(grads={self.loss: self._seed})
 
+    def current(self) -> bool:
+        """Whether the graphs still hold the Simulator's options and the model's arrays (:meth:`run` refuses to
+        replay them otherwise)."""
+        options, arrays = self._captured_with
+        return self.sim.options is options and model_arrays(self.sim.model) == arrays
+
     def run(self) -> list[State]:
         """Replay the rollout (and, with a loss, the backward pass); returns the trajectory. Raises ValueError where
         the Simulator's options were replaced or an array of the model rebound since the capture: the graph would
@@ -131,6 +152,11 @@ class CapturedRollout:
             raise ValueError("CapturedRollout.run: an array of the model was rebound since the capture, and the "
                              "graph reads the old one; assign values in place instead, or make a new "
                              "CapturedRollout")
+        if self._steps is not None:  # one speculative graph a step
+            self.rerun_steps = self._steps.run()
+            self.loss = self._steps.loss
+            self.sim.check(self.trajectory)
+            return self.trajectory
         if not self.graphs:  # not captured (CUDA with a loss): the ordinary forward and backward passes
             self.tape.zero()
             self._record_forward()
@@ -142,3 +168,121 @@ class CapturedRollout:
             self.sim._count_replayed(self.steps)  # noqa: SLF001 - the solver package's own bookkeeping
         self.sim.check(self.trajectory)
         return self.trajectory
+
+
+def _stepwise(sim: Simulator) -> bool:
+    """Whether ``sim``'s steps read the device for contacts (a collision stage, proximity forces): such a rollout is
+    captured one speculative graph per step."""
+    return sim.collision is not None or sim.proximity is not None
+
+
+class _StepGraphs:
+    """A rollout of a contact scene as one graph per step, each captured assuming no contact (Simulator._speculating).
+
+    After a step's replay the host asks whether detection found contacts or pairs; where it did, the step runs again
+    uncaptured from the same input State (the graph wrote only its output State and scratch), on a tape of its own
+    when there is a loss. The backward pass walks the steps back: a replayed step's recorded adjoint as a graph of
+    its own, a re-run step's tape as it is. The States are the same arrays at every run, so the graphs serve every
+    run. Made with an ordinary run of every step (it loads the kernels and makes, outside any capture, what steps
+    make lazily or per time), after which every graph is captured (a capture records without running) and every
+    gradient zeroed.
+    """
+
+    def __init__(self, sim: Simulator, state: State, control: ControlSchedule, steps: int,
+                 loss: Callable[[list[State]], wp.array] | None):
+        self.sim, self.loss_fn = sim, loss
+        self.states = [state] + [sim.model.empty_state() for _ in range(steps)]
+        self.controls = [control_at(control, k) for k in range(steps)]
+        self.kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
+        self.reruns: dict[int, wp.Tape | None] = {}  # the last run's uncaptured steps (their tapes, with a loss)
+        self.loss: wp.array | None = None
+        with paused_gc():
+            self.reruns = {k: self._rerun(k) for k in range(steps)}
+            if loss is not None:
+                first = wp.Tape()
+                with wp.ScopedDevice(sim.device), first:
+                    self.loss = loss(self.states)
+                first.backward(grads={self.loss: wp.ones_like(self.loss, requires_grad=False)})
+                self._backward()
+                first.zero()
+            self._capture_all(steps)
+            if self._zero is not None:
+                self._zero_reruns()
+                wp.capture_launch(self._zero)
+
+    def _capture_all(self, steps: int) -> None:
+        sim, taped = self.sim, self.loss_fn is not None
+        self.tapes = [wp.Tape() if taped else None for _ in range(steps)]  # what each graph's step recorded
+        self.forward = []  # each step's speculative graph
+        for k, tape in enumerate(self.tapes):
+            with sim._speculating(), self._capture() as capture:  # noqa: SLF001 - the solver package's own
+                with tape if taped else contextlib.nullcontext():
+                    sim.step(self.states[k], self.states[k + 1], self.controls[k])
+            self.forward.append(capture.graph)
+        self.loss_graphs, self.backward, self._zero = [], [], None
+        if not taped:
+            return
+        loss_tape = wp.Tape()
+        with self._capture() as capture:
+            with wp.ScopedDevice(sim.device), loss_tape:
+                self.loss = self.loss_fn(self.states)
+        self.loss_graphs.append(capture.graph)
+        seed = wp.ones_like(self.loss, requires_grad=False)
+        self.kept.append(seed)
+        with self._capture() as capture:
+            loss_tape.backward(grads={self.loss: seed})
+        self.loss_graphs.append(capture.graph)
+        for tape in self.tapes:  # its backward pass
+            with self._capture() as capture:
+                tape.backward()
+            self.backward.append(capture.graph)
+        with self._capture() as capture:  # every gradient the captured tapes reach
+            for tape in [*self.tapes, loss_tape]:
+                tape.zero()
+        self._zero = capture.graph
+
+    def run(self) -> list[int]:
+        """One run (forward, and with a loss the backward pass); returns the steps that ran again uncaptured."""
+        sim = self.sim
+        with paused_gc():
+            if self._zero is not None:
+                self._zero_reruns()
+                wp.capture_launch(self._zero)
+            self.reruns = {}
+            for k, graph in enumerate(self.forward):
+                wp.capture_launch(graph)
+                if sim._contact_found():  # noqa: SLF001
+                    self.reruns[k] = self._rerun(k)
+            sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
+            if self.loss_fn is not None:
+                sim.check(self.states)  # a diverged forward pass raises before its backward pass runs
+                for graph in self.loss_graphs:
+                    wp.capture_launch(graph)
+                self._backward()
+        return sorted(self.reruns)
+
+    @contextlib.contextmanager
+    def _capture(self):
+        with arrays_kept(self.kept), wp.ScopedCapture(device=self.sim.device) as capture:
+            yield capture
+
+    def _rerun(self, k: int) -> wp.Tape | None:
+        """Step k, uncaptured, on a tape of its own where there is a loss."""
+        tape = wp.Tape() if self.loss_fn is not None else None
+        with tape if tape is not None else contextlib.nullcontext():
+            self.sim.step(self.states[k], self.states[k + 1], self.controls[k])
+        return tape
+
+    def _backward(self) -> None:
+        """The steps' backward passes, last first: a re-run step's tape, a replayed step's graph."""
+        for k in reversed(range(len(self.states) - 1)):
+            if k in self.reruns:
+                self.reruns[k].backward()
+            else:
+                wp.capture_launch(self.backward[k])
+
+    def _zero_reruns(self) -> None:
+        """Zero the gradients the last run's re-run steps reached (arrays of their own, and shared ones such as the
+        friction coefficients that no captured step's tape records)."""
+        for tape in self.reruns.values():
+            tape.zero()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,7 @@ from warpcloth.collision.stage import CollisionReport
 from warpcloth.kernels import status as ks
 from warpcloth.kernels.implicit import implicit_kernels
 from warpcloth.model import Control, Model, State
-from warpcloth.obstacles import obstacle_points
+from warpcloth.obstacles import obstacle_motion, obstacle_points
 from warpcloth.solver.assembly import SystemAssembler
 from warpcloth.solver.diagnostics import StepDiagnostics
 from warpcloth.solver.linear import LinearSolver, SolveInfo
@@ -94,6 +95,7 @@ class Simulator:
         self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
         self._candidate = None  # the untaped steps' x̂, v̂ before the collision stage (_integrate)
         self._control_default = None
+        self._obstacle_motions: dict[float | None, wp.array] = {}  # _obstacle_motion
         # The step, as the stages this model needs, each with the phase it is timed under.
         stages = [("assembly", self._assemble)]
         if self.proximity is not None:
@@ -199,8 +201,13 @@ class Simulator:
         guess = state_in.particle_dv
         warm = self.options.warm_start and guess is not None and guess.shape == dv.shape and guess.dtype == dv.dtype
         recording = s.recording and s.values.requires_grad
-        if recording:
-            state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
+        if recording:  # the later step's adjoint hands its solution on here; a State stepped again keeps its array
+            adjoint = state_out.solve_adjoint
+            if adjoint is not None and adjoint.shape == dv.shape and adjoint.dtype == dv.dtype \
+                    and adjoint.device == dv.device:
+                adjoint.zero_()
+            else:
+                state_out.solve_adjoint = wp.zeros_like(dv, requires_grad=False)
 
         def after_adjoint() -> None:
             if self._sync_due(s.number):
@@ -381,7 +388,19 @@ class Simulator:
         if not model.collision.obstacles or model.obstacle_count == 0:
             empty = wp.zeros(0, dtype=model.types.vec3, device=self.device)
             return empty, empty
-        return obstacle_points(model, control, t_start), obstacle_points(model, control, t_start + self.dt)
+        return tuple(obstacle_points(model, control, t, motion=self._obstacle_motion(t))
+                     for t in (t_start, t_start + self.dt))
+
+    def _obstacle_motion(self, t: float) -> wp.array:
+        """The obstacles' scripted motions at time ``t``, kept per time (one array for all times where none moves):
+        a step recorded in a graph reads them from an array made before the capture, as the handles' and pins'
+        offsets (SystemAssembler.offsets)."""
+        model = self.model
+        key = float(t) if any(m is not None for m in model.obstacle_motion) else None
+        motion = self._obstacle_motions.get(key)
+        if motion is None:
+            motion = self._obstacle_motions[key] = obstacle_motion(model, 0.0 if key is None else t)
+        return motion
 
     def _default_control(self) -> Control:
         """``model.control()``, made again when the model's default targets or placements changed (host arrays a
@@ -443,6 +462,23 @@ class Simulator:
         graph is captured: its launches have not run)."""
         every = self.options.sync_every
         return bool(every) and step % every == 0 and not capturing(self.device)
+
+    @contextmanager
+    def _speculating(self):
+        """Steps inside assume that they meet no contact and no proximity pair, without reading the device (what
+        wc.CapturedRollout captures); :meth:`_contact_found` tells afterwards whether the assumption held."""
+        stages = [stage for stage in (self.collision, self.proximity) if stage is not None]
+        for stage in stages:
+            stage.speculative = True
+        try:
+            yield
+        finally:
+            for stage in stages:
+                stage.speculative = False
+
+    def _contact_found(self) -> bool:
+        """Whether the last step's detections found contacts or proximity pairs (reads the device)."""
+        return any(stage.found_any() for stage in (self.proximity, self.collision) if stage is not None)
 
     def _count_replayed(self, steps: int) -> None:
         """Count ``steps`` steps a graph replayed (CapturedRollout.run) in ``stats``."""

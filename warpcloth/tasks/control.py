@@ -182,6 +182,8 @@ class ControlTask:
         self.name = ""
         """The scene's name, where the task comes from one (:meth:`from_scene`)."""
         self._batched: dict[int, ControlTask] = {self.world_count: self}
+        self._capture: _CapturedEvaluation | None = None  # _captured
+        self._uncaptured = 0  # evaluations that could have been captured (_captured)
 
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None,
@@ -231,16 +233,17 @@ class ControlTask:
         return 100.0 * float(np.linalg.norm(positions - self.target_positions)
                              / np.linalg.norm(self.x_initial - self.target_positions))
 
-    def _forces(self, push: wp.array) -> list[wp.array]:
+    def _forces(self, push: wp.array, forces: list[wp.array] | None = None) -> list[wp.array]:
+        """Each interval's forces from the pushes: into new arrays, or into ``forces`` (made by an earlier call: it
+        writes the pushed particles' entries, the others stay zero)."""
         m = len(self.particles)
-        forces = []
-        for s in range(self.intervals):
-            f = wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
-                         requires_grad=True)
+        if forces is None:
+            forces = [wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
+                               requires_grad=True) for _ in range(self.intervals)]
+        for s, f in enumerate(forces):
             wp.launch(self._kernels.push_forces, self.world_count * m,
                       inputs=[push, s, self.intervals, self._particles, self._first,
                               self.model.scalar(self.push_mass)], outputs=[f], device=self.model.device)
-            forces.append(f)
         return forces
 
     def _control_fn(self, forces: list[wp.array]):
@@ -254,43 +257,52 @@ class ControlTask:
 
         return control
 
-    def _push_array(self, params) -> wp.array:
-        """The pushes of every world: ``params`` holds world_count sets of n_params numbers."""
+    def _push_values(self, params) -> np.ndarray:
+        """The pushes of every world as (world_count n_params / 3, 3) numbers: ``params`` holds world_count sets of
+        n_params numbers."""
         flat = [np.asarray(p, dtype=np.float64).reshape(-1) for p in params]
         for w, p in enumerate(flat):
             if p.shape != (self.n_params,) or not np.all(np.isfinite(p)):
                 where = f" (world {w})" if self.world_count > 1 else ""
                 raise ValueError(f"control parameters{where} must be {self.n_params} finite numbers, got shape "
                                  f"{p.shape}")
-        return wp.array(np.concatenate(flat).reshape(-1, 3), dtype=self.model.types.vec3, device=self.model.device,
+        return np.concatenate(flat).reshape(-1, 3)
+
+    def _push_array(self, params) -> wp.array:
+        """The pushes of every world (:meth:`_push_values`) as a new array."""
+        return wp.array(self._push_values(params), dtype=self.model.types.vec3, device=self.model.device,
                         requires_grad=True)
 
-    def _loss_fn(self, components: list[int | None], final: dict):
+    def _loss_values(self, state: wc.State, components: list[int | None]) -> wp.array:
+        """Launch the loss of every world on the final ``state`` into a new array of world_count values (no read)."""
         model, kernels = self.model, self._kernels
         W = self.world_count
+        values = wp.zeros(W, dtype=model.scalar, device=model.device, requires_grad=True)
+        if self.target_positions is not None:
+            n = self.world_particles
+            wp.launch(kernels.world_squared_distance, model.particle_count,
+                      inputs=[state.particle_x, self._target_positions, model.particle_world, self._first,
+                              model.scalar(0.5 / n)], outputs=[values], device=model.device)
+        else:  # the loss squares the mean: accumulate the mean first, then square it
+            com = wp.zeros(W, dtype=model.types.vec3, device=model.device, requires_grad=True)
+            wp.launch(kernels.centre_of_mass, model.particle_count,
+                      inputs=[state.particle_x, model.particle_world, self._com_weights],
+                      outputs=[com], device=model.device)
+            if components[0] is None:
+                wp.launch(kernels.point_squared_distance, W, inputs=[com, self._target_com, model.scalar(0.5)],
+                          outputs=[values], device=model.device)
+            else:
+                wp.launch(kernels.add_component, W, outputs=[values], device=model.device,
+                          inputs=[com, wp.array(components, dtype=wp.int32, device=model.device)])
+        return values
 
+    def _loss_fn(self, components: list[int | None], final: dict):
         def loss(i: int, state: wc.State, out: wp.array) -> None:
             if i != self.steps:
                 return
             final["positions"] = state.particle_x.numpy().astype(np.float64)
-            values = wp.zeros(W, dtype=model.scalar, device=model.device, requires_grad=True)
-            if self.target_positions is not None:
-                n = self.world_particles
-                wp.launch(kernels.world_squared_distance, model.particle_count,
-                          inputs=[state.particle_x, self._target_positions, model.particle_world, self._first,
-                                  model.scalar(0.5 / n)], outputs=[values], device=model.device)
-            else:  # the loss squares the mean: accumulate the mean first, then square it
-                com = wp.zeros(W, dtype=model.types.vec3, device=model.device, requires_grad=True)
-                wp.launch(kernels.centre_of_mass, model.particle_count,
-                          inputs=[state.particle_x, model.particle_world, self._com_weights],
-                          outputs=[com], device=model.device)
-                if components[0] is None:
-                    wp.launch(kernels.point_squared_distance, W, inputs=[com, self._target_com, model.scalar(0.5)],
-                              outputs=[values], device=model.device)
-                else:
-                    wp.launch(kernels.add_component, W, outputs=[values], device=model.device,
-                              inputs=[com, wp.array(components, dtype=wp.int32, device=model.device)])
-            wp.launch(kernels.add_sum, 1, inputs=[values], outputs=[out], device=model.device)
+            values = self._loss_values(state, components)
+            wp.launch(self._kernels.add_sum, 1, inputs=[values], outputs=[out], device=self.model.device)
             final["values"] = values.numpy().astype(np.float64)
 
         return loss
@@ -319,16 +331,21 @@ class ControlTask:
             if any(c not in (0, 1, 2) for c in components):
                 raise ValueError(f"components must all be None or all 0, 1 or 2, got {components}")
         t0 = time.perf_counter()
-        push = self._push_array(params)
-        tape = wp.Tape()
-        with tape:
-            forces = self._forces(push)
-        final: dict = {}
-        wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
-                                 steps=self.steps, loss=self._loss_fn(components, final),
-                                 segment_steps=self.segment_steps)
-        tape.backward(grads={f: f.grad for f in forces})
-        grads = push.grad.numpy().astype(np.float64).reshape(W, -1)
+        captured = self._captured() if all(c is None for c in components) else None
+        if captured is not None:
+            final = captured.run(self._push_values(params))
+            grads = final["grads"]
+        else:
+            push = self._push_array(params)
+            tape = wp.Tape()
+            with tape:
+                forces = self._forces(push)
+            final = {}
+            wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._control_fn(forces),
+                                     steps=self.steps, loss=self._loss_fn(components, final),
+                                     segment_steps=self.segment_steps)
+            tape.backward(grads={f: f.grad for f in forces})
+            grads = push.grad.numpy().astype(np.float64).reshape(W, -1)
         self.simulations += W
         self.batches += W > 1
         self.seconds += time.perf_counter() - t0
@@ -342,6 +359,30 @@ class ControlTask:
             positions = final["positions"][self.model.world_slice(w)]
             out.append(Evaluation(loss=value, grad=grad, com=self.com_weights @ positions, positions=positions))
         return out
+
+    def _captured(self) -> _CapturedEvaluation | None:
+        """:meth:`evaluate_worlds`' rollout recorded as graphs (``wc.CapturedRollout``: forward and backward, one
+        speculative graph a step with contact) where that can be: on the CPU (on CUDA a captured backward pass does
+        not replay yet: capture.py), for a rollout taped whole. Made at the second evaluation that can use it (and
+        again where the solver's options or an array of the model were replaced since): the evaluation that
+        captures costs about five uncaptured ones (the throw: 1.0 s uncaptured, 4.8-5.2 s capturing, 0.20-0.27 s
+        replayed; benchmarks/graph_step.py), so a task evaluated once is not made to capture."""
+        if not self.model.device.is_cpu or self.segment_steps < self.steps \
+                or wc.CapturedRollout.unsupported(self.sim) is not None:
+            return None
+        if self._capture is None or not self._capture.rollout.current():
+            self._capture = None
+            self._uncaptured += 1
+            if self._uncaptured < 2:
+                return None
+            self._capture = _CapturedEvaluation(self)
+        return self._capture
+
+    @property
+    def rerun_steps(self) -> list[int]:
+        """The steps of the last captured evaluation that met contact and ran uncaptured (``wc.CapturedRollout``'s
+        ``rerun_steps``); empty where no evaluation was captured yet."""
+        return [] if self._capture is None else list(self._capture.rollout.rerun_steps)
 
     def losses_worlds(self, params: list) -> list[Evaluation]:
         """Forward simulations alone (no tape): every world's loss with ``params[w]`` (``grad`` None), the same
@@ -617,6 +658,34 @@ class ControlTask:
         controller, else 50 for the open loop and 100 for the MLP."""
         own = self.iters if controller == self.controller else None
         return own or (50 if controller == "open-loop" else 100)
+
+
+class _CapturedEvaluation:
+    """A task's evaluation as graphs: fixed arrays for the pushes and forces, the rollout with its loss as a
+    ``wc.CapturedRollout``, and the pushes' forces on a tape of their own (recorded once) that carries the forces'
+    gradients back to the pushes."""
+
+    def __init__(self, task: ControlTask):
+        model, W = task.model, task.world_count
+        self.task = task
+        self.push = wp.zeros(W * task.n_params // 3, dtype=model.types.vec3, device=model.device, requires_grad=True)
+        self.tape = wp.Tape()
+        with self.tape:
+            self.forces = task._forces(self.push)
+        self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
+                                          steps=task.steps, loss=lambda t: task._loss_values(t[-1], [None] * W))
+
+    def run(self, push: np.ndarray) -> dict:
+        """The loss of every world, the final positions and the gradients with respect to the pushes."""
+        task = self.task
+        self.push.assign(push)
+        task._forces(self.push, self.forces)
+        self.rollout.run()
+        self.push.grad.zero_()
+        self.tape.backward(grads={f: f.grad for f in self.forces})
+        return {"values": self.rollout.loss.numpy().astype(np.float64),
+                "positions": self.rollout.trajectory[-1].particle_x.numpy().astype(np.float64),
+                "grads": self.push.grad.numpy().astype(np.float64).reshape(task.world_count, -1)}
 
 
 def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.SolverOptions | None = None,
