@@ -193,6 +193,30 @@ def test_a_scripted_obstacle_replays_its_motion():
         np.testing.assert_array_equal(a, e, err_msg=f"state {k}")
 
 
+@pytest.mark.parametrize("contact", [False, True])
+def test_a_backward_pass_from_other_seeds_repeats_the_runs(contact):
+    # one rollout, several reverse passes (a Jacobian's rows): the seed 2 gives twice the gradients, bitwise (every
+    # operation of the backward pass is linear in the seed, and doubling is exact); a run without its backward
+    # pass leaves the gradients zero
+    if contact:
+        model, sim = landing_scene("cpu")
+        state, control = model.state(requires_grad=True), model.control(requires_grad=True)
+    else:
+        model, sim, state, control = scene("cpu")
+    captured = wc.CapturedRollout(sim, state, control, steps=14 if contact else STEPS, loss=loss_of)
+    captured.run()
+    once = {name: a.grad.numpy().copy() for name, a in (("density", model.material_density),
+                                                         ("x0", state.particle_x))}
+    captured.backward({captured.loss: [2.0]})
+    for name, a in (("density", model.material_density), ("x0", state.particle_x)):
+        assert np.any(once[name])
+        np.testing.assert_array_equal(a.grad.numpy(), 2.0 * once[name], err_msg=name)
+    captured.run(backward=False)
+    assert not np.any(model.material_density.grad.numpy())
+    with pytest.raises(ValueError, match="needs a loss"):
+        wc.CapturedRollout(sim, state, control, steps=2).backward({})
+
+
 def test_capturing_a_contact_step_by_hand_is_refused():
     model, sim = landing_scene("cpu", height=0.0)
     with pytest.raises(RuntimeError, match="captures such steps speculatively"):

@@ -450,3 +450,27 @@ def test_add_world_refuses_a_builder_with_obstacles_or_settings_of_its_own():
     for outer, what in ((with_obstacle, "obstacles"), (damped, "damping")):
         with pytest.raises(ValueError, match=f"add_world: this builder has .*{what}"):
             outer.add_world(draped_builder())
+
+
+def test_a_tasks_replayed_simulations_equal_its_first_uncaptured_ones():
+    """A control task captures its rollouts at their second use (ControlTask._captured): the losses, gradients,
+    Jacobian rows and final positions of the uncaptured first call and of the replays are the same, bitwise, in
+    contact (the cloth on its sphere) and out of it (the throw in free flight)."""
+    rng = np.random.default_rng(9)
+    for make in (lambda: draped_task(steps=20), lambda: throw_task(steps=30)):
+        task = make()
+        p = rng.normal(0.0, 2.0, task.n_params)
+        evaluations = [task.evaluate(p) for _ in range(3)]
+        losses = [task.losses_worlds([p])[0] for _ in range(3)]
+        rows = [make().jacobian_worlds([p])[0]] + [task.jacobian_worlds([p])[0] for _ in range(2)]
+        for e in evaluations[1:] + losses:
+            assert e.loss == evaluations[0].loss
+            np.testing.assert_array_equal(e.positions, evaluations[0].positions)
+        for e in evaluations[1:]:
+            np.testing.assert_array_equal(e.grad, evaluations[0].grad)
+        for r in rows[1:]:
+            for c in range(3):
+                assert r[c].loss == rows[0][c].loss
+                np.testing.assert_array_equal(r[c].grad, rows[0][c].grad)
+        assert np.any(evaluations[0].grad) and np.any(rows[0][2].grad)
+    assert task.rerun_steps == []  # the throw's 30 steps are free flight

@@ -140,34 +140,71 @@ class CapturedRollout:
         options, arrays = self._captured_with
         return self.sim.options is options and model_arrays(self.sim.model) == arrays
 
-    def run(self) -> list[State]:
-        """Replay the rollout (and, with a loss, the backward pass); returns the trajectory. Raises ValueError where
-        the Simulator's options were replaced or an array of the model rebound since the capture: the graph would
-        still use the old ones (change values in place, or capture again)."""
-        options, arrays = self._captured_with
-        if self.sim.options is not options:
-            raise ValueError("CapturedRollout.run: the Simulator's options changed since the capture, and the graph "
-                             "holds the old ones; make a new CapturedRollout")
-        if model_arrays(self.sim.model) != arrays:
-            raise ValueError("CapturedRollout.run: an array of the model was rebound since the capture, and the "
-                             "graph reads the old one; assign values in place instead, or make a new "
-                             "CapturedRollout")
+    def run(self, *, backward: bool = True) -> list[State]:
+        """Replay the rollout (and, with a loss and ``backward``, the backward pass); returns the trajectory. Raises
+        ValueError where the Simulator's options were replaced or an array of the model rebound since the capture:
+        the graph would still use the old ones (change values in place, or capture again)."""
+        self._check_current("run")
+        taped = self._loss_fn is not None
         if self._steps is not None:  # one speculative graph a step
-            self.rerun_steps = self._steps.run()
+            self.rerun_steps = self._steps.run(backward=backward)
             self.loss = self._steps.loss
-            self.sim.check(self.trajectory)
-            return self.trajectory
-        if not self.graphs:  # not captured (CUDA with a loss): the ordinary forward and backward passes
+        elif not self.graphs:  # not captured (CUDA with a loss): the ordinary forward and backward passes
             self.tape.zero()
             self._record_forward()
-            self._backward()
-            self.sim.check()  # the adjoint solves' failures
-        for graph in self.graphs:
-            wp.capture_launch(graph)
-        if self.graphs:
+            if backward:
+                self._backward()
+                self.sim.check()  # the adjoint solves' failures
+        else:
+            for graph in self.graphs[:2] if taped and not backward else self.graphs:
+                wp.capture_launch(graph)
             self.sim._count_replayed(self.steps)  # noqa: SLF001 - the solver package's own bookkeeping
         self.sim.check(self.trajectory)
         return self.trajectory
+
+    def backward(self, grads: dict) -> None:
+        """The last run's backward pass again, from other seeds: every gradient is zeroed, each array of ``grads``
+        (the loss, or an array the loss function made and kept, such as an intermediate) takes its values (an
+        array-like of its shape) as its gradient, the loss's own gradient is zero unless given, and the pass leaves
+        the gradients in the ``.grad`` of the arrays as :meth:`run` does. One rollout, several reverse passes: the
+        rows of a Jacobian."""
+        self._check_current("backward")
+        if self._loss_fn is None or self.loss is None:
+            raise ValueError("CapturedRollout.backward needs a loss and a run before it")
+        if self._steps is not None:
+            self._steps.backward(grads)
+        else:
+            if self.graphs:
+                wp.capture_launch(self.graphs[0])
+            else:
+                self.tape.zero()
+            _seed(self._seed, self.loss, grads)
+            if self.graphs:
+                wp.capture_launch(self.graphs[2])
+            else:
+                self._backward()
+        self.sim.check()
+
+    def _check_current(self, name: str) -> None:
+        options, arrays = self._captured_with
+        if self.sim.options is not options:
+            raise ValueError(f"CapturedRollout.{name}: the Simulator's options changed since the capture, and the "
+                             "graph holds the old ones; make a new CapturedRollout")
+        if model_arrays(self.sim.model) != arrays:
+            raise ValueError(f"CapturedRollout.{name}: an array of the model was rebound since the capture, and the "
+                             "graph reads the old one; assign values in place instead, or make a new "
+                             "CapturedRollout")
+
+
+def _seed(seed: wp.array, loss: wp.array, grads: dict) -> None:
+    """Write the seeds of a backward pass: ``seed`` (what the pass copies into the loss's gradient) from
+    ``grads[loss]`` or zero, every other array's gradient from its entry (after the gradients were zeroed)."""
+    seed.zero_()
+    for array, values in grads.items():
+        target = seed if array is loss else array.grad
+        if target is None:
+            raise ValueError("CapturedRollout.backward: an array of grads has no gradient (requires_grad=False)")
+        target.assign(values)
 
 
 def _stepwise(sim: Simulator) -> bool:
@@ -203,7 +240,7 @@ class _StepGraphs:
                 with wp.ScopedDevice(sim.device), first:
                     self.loss = loss(self.states)
                 first.backward(grads={self.loss: wp.ones_like(self.loss, requires_grad=False)})
-                self._backward()
+                self._backward_steps()
                 first.zero()
             self._capture_all(steps)
             if self._zero is not None:
@@ -219,35 +256,33 @@ class _StepGraphs:
                 with tape if taped else contextlib.nullcontext():
                     sim.step(self.states[k], self.states[k + 1], self.controls[k])
             self.forward.append(capture.graph)
-        self.loss_graphs, self.backward, self._zero = [], [], None
+        self.loss_graphs, self.backward_graphs, self._zero = [], [], None
         if not taped:
             return
         loss_tape = wp.Tape()
         with self._capture() as capture:
             with wp.ScopedDevice(sim.device), loss_tape:
                 self.loss = self.loss_fn(self.states)
+            self._seed = wp.ones_like(self.loss, requires_grad=False)  # ones at every run; backward() writes others
         self.loss_graphs.append(capture.graph)
-        seed = wp.ones_like(self.loss, requires_grad=False)
-        self.kept.append(seed)
         with self._capture() as capture:
-            loss_tape.backward(grads={self.loss: seed})
+            loss_tape.backward(grads={self.loss: self._seed})
         self.loss_graphs.append(capture.graph)
         for tape in self.tapes:  # its backward pass
             with self._capture() as capture:
                 tape.backward()
-            self.backward.append(capture.graph)
+            self.backward_graphs.append(capture.graph)
         with self._capture() as capture:  # every gradient the captured tapes reach
             for tape in [*self.tapes, loss_tape]:
                 tape.zero()
         self._zero = capture.graph
 
-    def run(self) -> list[int]:
-        """One run (forward, and with a loss the backward pass); returns the steps that ran again uncaptured."""
+    def run(self, backward: bool = True) -> list[int]:
+        """One run (forward, and with a loss the backward pass unless ``backward`` is false); returns the steps that
+        ran again uncaptured."""
         sim = self.sim
         with paused_gc():
-            if self._zero is not None:
-                self._zero_reruns()
-                wp.capture_launch(self._zero)
+            self._zero_all()
             self.reruns = {}
             for k, graph in enumerate(self.forward):
                 wp.capture_launch(graph)
@@ -256,10 +291,23 @@ class _StepGraphs:
             sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
             if self.loss_fn is not None:
                 sim.check(self.states)  # a diverged forward pass raises before its backward pass runs
-                for graph in self.loss_graphs:
-                    wp.capture_launch(graph)
-                self._backward()
+                wp.capture_launch(self.loss_graphs[0])  # the loss (its seed: ones)
+                if backward:
+                    self._backward()
         return sorted(self.reruns)
+
+    def backward(self, grads: dict) -> None:
+        """The last run's backward pass again, from the seeds ``grads`` (CapturedRollout.backward)."""
+        with paused_gc():
+            self._zero_all()
+            _seed(self._seed, self.loss, grads)
+            self._backward()
+
+    def _zero_all(self) -> None:
+        """Zero every gradient the captured tapes and the last run's re-run steps reach."""
+        if self._zero is not None:
+            self._zero_reruns()
+            wp.capture_launch(self._zero)
 
     @contextlib.contextmanager
     def _capture(self):
@@ -274,12 +322,17 @@ class _StepGraphs:
         return tape
 
     def _backward(self) -> None:
-        """The steps' backward passes, last first: a re-run step's tape, a replayed step's graph."""
+        """The loss's backward pass from its seed, then the steps', last first: a re-run step's tape, a replayed
+        step's graph."""
+        wp.capture_launch(self.loss_graphs[1])
+        self._backward_steps()
+
+    def _backward_steps(self) -> None:
         for k in reversed(range(len(self.states) - 1)):
             if k in self.reruns:
                 self.reruns[k].backward()
             else:
-                wp.capture_launch(self.backward[k])
+                wp.capture_launch(self.backward_graphs[k])
 
     def _zero_reruns(self) -> None:
         """Zero the gradients the last run's re-run steps reached (arrays of their own, and shared ones such as the

@@ -182,8 +182,8 @@ class ControlTask:
         self.name = ""
         """The scene's name, where the task comes from one (:meth:`from_scene`)."""
         self._batched: dict[int, ControlTask] = {self.world_count: self}
-        self._capture: _CapturedEvaluation | None = None  # _captured
-        self._uncaptured = 0  # evaluations that could have been captured (_captured)
+        self._captures: dict = {}  # _captured's, by kind
+        self._uncaptured: dict[str, int] = {}  # calls that could have been captured, by kind (_captured)
 
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None,
@@ -273,10 +273,12 @@ class ControlTask:
         return wp.array(self._push_values(params), dtype=self.model.types.vec3, device=self.model.device,
                         requires_grad=True)
 
-    def _loss_values(self, state: wc.State, components: list[int | None]) -> wp.array:
-        """Launch the loss of every world on the final ``state`` into a new array of world_count values (no read)."""
+    def _loss_values(self, state: wc.State, components: list[int | None]) -> tuple[wp.array, wp.array | None]:
+        """Launch the loss of every world on the final ``state`` into a new array of world_count values (no read);
+        returns it and, for a centre-of-mass target, the centres of mass it is made from."""
         model, kernels = self.model, self._kernels
         W = self.world_count
+        com = None
         values = wp.zeros(W, dtype=model.scalar, device=model.device, requires_grad=True)
         if self.target_positions is not None:
             n = self.world_particles
@@ -294,14 +296,14 @@ class ControlTask:
             else:
                 wp.launch(kernels.add_component, W, outputs=[values], device=model.device,
                           inputs=[com, wp.array(components, dtype=wp.int32, device=model.device)])
-        return values
+        return values, com
 
     def _loss_fn(self, components: list[int | None], final: dict):
         def loss(i: int, state: wc.State, out: wp.array) -> None:
             if i != self.steps:
                 return
             final["positions"] = state.particle_x.numpy().astype(np.float64)
-            values = self._loss_values(state, components)
+            values, _ = self._loss_values(state, components)
             wp.launch(self._kernels.add_sum, 1, inputs=[values], outputs=[out], device=self.model.device)
             final["values"] = values.numpy().astype(np.float64)
 
@@ -331,7 +333,7 @@ class ControlTask:
             if any(c not in (0, 1, 2) for c in components):
                 raise ValueError(f"components must all be None or all 0, 1 or 2, got {components}")
         t0 = time.perf_counter()
-        captured = self._captured() if all(c is None for c in components) else None
+        captured = self._captured("evaluate") if all(c is None for c in components) else None
         if captured is not None:
             final = captured.run(self._push_values(params))
             grads = final["grads"]
@@ -360,29 +362,33 @@ class ControlTask:
             out.append(Evaluation(loss=value, grad=grad, com=self.com_weights @ positions, positions=positions))
         return out
 
-    def _captured(self) -> _CapturedEvaluation | None:
-        """:meth:`evaluate_worlds`' rollout recorded as graphs (``wc.CapturedRollout``: forward and backward, one
-        speculative graph a step with contact) where that can be: on the CPU (on CUDA a captured backward pass does
-        not replay yet: capture.py), for a rollout taped whole. Made at the second evaluation that can use it (and
-        again where the solver's options or an array of the model were replaced since): the evaluation that
-        captures costs about five uncaptured ones (the throw: 1.0 s uncaptured, 4.8-5.2 s capturing, 0.20-0.27 s
-        replayed; benchmarks/graph_step.py), so a task evaluated once is not made to capture."""
-        if not self.model.device.is_cpu or self.segment_steps < self.steps \
-                or wc.CapturedRollout.unsupported(self.sim) is not None:
+    def _captured(self, kind: str = "evaluate") -> _CapturedEvaluation | _CapturedLosses | None:
+        """The rollout of :meth:`evaluate_worlds` (``kind="evaluate"``: forward and backward) or of
+        :meth:`losses_worlds` (``"losses"``: forward) recorded as graphs (``wc.CapturedRollout``: one speculative
+        graph a step in a scene with contact) where that can be: the forward pass on any device, the backward pass
+        on the CPU (on CUDA its graph does not replay yet: capture.py) for a rollout taped whole. Made at the second
+        call that can use it (and again where the solver's options or an array of the model were replaced since):
+        the evaluation that captures costs about five uncaptured ones (the throw: 1.0 s uncaptured, 4.8-5.2 s
+        capturing, 0.20-0.27 s replayed; benchmarks/graph_step.py), so a task evaluated once is not made to
+        capture."""
+        if wc.CapturedRollout.unsupported(self.sim) is not None or kind == "evaluate" and (
+                not self.model.device.is_cpu or self.segment_steps < self.steps):
             return None
-        if self._capture is None or not self._capture.rollout.current():
-            self._capture = None
-            self._uncaptured += 1
-            if self._uncaptured < 2:
+        captured = self._captures.get(kind)
+        if captured is None or not captured.rollout.current():
+            self._captures[kind] = None
+            self._uncaptured[kind] = self._uncaptured.get(kind, 0) + 1
+            if self._uncaptured[kind] < 2:
                 return None
-            self._capture = _CapturedEvaluation(self)
-        return self._capture
+            captured = self._captures[kind] = (_CapturedEvaluation if kind == "evaluate" else _CapturedLosses)(self)
+        return captured
 
     @property
     def rerun_steps(self) -> list[int]:
         """The steps of the last captured evaluation that met contact and ran uncaptured (``wc.CapturedRollout``'s
         ``rerun_steps``); empty where no evaluation was captured yet."""
-        return [] if self._capture is None else list(self._capture.rollout.rerun_steps)
+        captured = self._captures.get("evaluate")
+        return [] if captured is None else list(captured.rollout.rerun_steps)
 
     def losses_worlds(self, params: list) -> list[Evaluation]:
         """Forward simulations alone (no tape): every world's loss with ``params[w]`` (``grad`` None), the same
@@ -391,17 +397,21 @@ class ControlTask:
         if len(params) != W:
             raise ValueError(f"losses_worlds takes one parameter set per world ({W}), got {len(params)}")
         t0 = time.perf_counter()
-        forces = self._forces(self._push_array(params))
-        final: dict = {}
-        loss = self._loss_fn([None] * W, final)
-        out = wp.zeros(1, dtype=self.model.scalar, device=self.model.device)
-        control = self._control_fn(forces)
-        trajectory = [self.model.state(requires_grad=False)]
-        for i in range(self.steps):
-            trajectory.append(self.model.empty_state(requires_grad=False))
-            self.sim.step(trajectory[-2], trajectory[-1], control(i))
-            loss(i + 1, trajectory[-1], out)
-            trajectory[-2] = None  # keep only the last state
+        captured = self._captured("losses")
+        if captured is not None:
+            final = captured.run(self._push_values(params))
+        else:
+            forces = self._forces(self._push_array(params))
+            final = {}
+            loss = self._loss_fn([None] * W, final)
+            out = wp.zeros(1, dtype=self.model.scalar, device=self.model.device)
+            control = self._control_fn(forces)
+            trajectory = [self.model.state(requires_grad=False)]
+            for i in range(self.steps):
+                trajectory.append(self.model.empty_state(requires_grad=False))
+                self.sim.step(trajectory[-2], trajectory[-1], control(i))
+                loss(i + 1, trajectory[-1], out)
+                trajectory[-2] = None  # keep only the last state
         self.simulations += W
         self.batches += W > 1
         self.seconds += time.perf_counter() - t0
@@ -438,6 +448,21 @@ class ControlTask:
             return [[rows[c][w] for c in range(3)] for w in range(W)]
         t0 = time.perf_counter()
         model = self.model
+        captured = self._captured("evaluate")
+        if captured is not None:
+            out = captured.run(self._push_values(params), backward=False)
+            positions = out["positions"]
+            coms = captured.com.numpy().astype(np.float64)
+            centres = [self.com_weights @ positions[model.world_slice(w)] for w in range(W)]
+            skip = worse_than is not None and all(
+                self._loss_of_com(centres[w], params[w]) >= worse_than[w] for w in range(W))
+            grads = [[None] * W] * 3 if skip else captured.com_rows()
+            self.reverse_passes += 0 if skip else 3 * W
+            self.simulations += W
+            self.batches += W > 1
+            self.seconds += time.perf_counter() - t0
+            return [[Evaluation(loss=float(coms[w, c]), grad=grads[c][w], com=centres[w],
+                                positions=positions[model.world_slice(w)]) for c in range(3)] for w in range(W)]
         push = self._push_array(params)
         outer = wp.Tape()
         with outer:
@@ -672,20 +697,66 @@ class _CapturedEvaluation:
         self.tape = wp.Tape()
         with self.tape:
             self.forces = task._forces(self.push)
+        self.com: wp.array | None = None  # the centres of mass the loss is made from (a centre-of-mass target)
+
+        def loss(trajectory):
+            values, self.com = task._loss_values(trajectory[-1], [None] * W)  # the last call's are the graph's
+            return values
+
         self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
-                                          steps=task.steps, loss=lambda t: task._loss_values(t[-1], [None] * W))
+                                          steps=task.steps, loss=loss)
+
+    def run(self, push: np.ndarray, *, backward: bool = True) -> dict:
+        """The loss of every world, the final positions and (with ``backward``) the gradients with respect to the
+        pushes."""
+        self.push.assign(push)
+        self.task._forces(self.push, self.forces)
+        self.rollout.run(backward=backward)
+        out = {"values": self.rollout.loss.numpy().astype(np.float64),
+               "positions": self.rollout.trajectory[-1].particle_x.numpy().astype(np.float64)}
+        if backward:
+            out["grads"] = self.push_gradients()
+        return out
+
+    def push_gradients(self) -> np.ndarray:
+        """The pushes' gradients from the forces' (what the rollout's backward pass left), one row a world."""
+        self.push.grad.zero_()
+        self.tape.backward(grads={f: f.grad for f in self.forces})
+        return self.push.grad.numpy().astype(np.float64).reshape(self.task.world_count, -1)
+
+    def com_rows(self) -> list[np.ndarray]:
+        """d com_c / d pushes of every world, c = 0, 1, 2: three reverse passes of the last run."""
+        W = self.task.world_count
+        rows = []
+        for c in range(3):
+            seed = np.zeros((W, 3))
+            seed[:, c] = 1.0
+            self.rollout.backward({self.com: seed})
+            rows.append(self.push_gradients())
+        return rows
+
+
+class _CapturedLosses:
+    """A task's forward simulations as graphs (:meth:`ControlTask.losses_worlds`): fixed arrays for the pushes and
+    forces, the rollout as a ``wc.CapturedRollout`` without a loss, the loss launched after each replay."""
+
+    def __init__(self, task: ControlTask):
+        model, W = task.model, task.world_count
+        self.task = task
+        self.push = wp.zeros(W * task.n_params // 3, dtype=model.types.vec3, device=model.device)
+        self.forces = task._forces(self.push)
+        self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
+                                          steps=task.steps)
 
     def run(self, push: np.ndarray) -> dict:
-        """The loss of every world, the final positions and the gradients with respect to the pushes."""
+        """The loss of every world and the final positions."""
         task = self.task
         self.push.assign(push)
         task._forces(self.push, self.forces)
-        self.rollout.run()
-        self.push.grad.zero_()
-        self.tape.backward(grads={f: f.grad for f in self.forces})
-        return {"values": self.rollout.loss.numpy().astype(np.float64),
-                "positions": self.rollout.trajectory[-1].particle_x.numpy().astype(np.float64),
-                "grads": self.push.grad.numpy().astype(np.float64).reshape(task.world_count, -1)}
+        final = self.rollout.run()[-1]
+        values, _ = task._loss_values(final, [None] * task.world_count)
+        return {"values": values.numpy().astype(np.float64),
+                "positions": final.particle_x.numpy().astype(np.float64)}
 
 
 def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.SolverOptions | None = None,
