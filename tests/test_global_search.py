@@ -153,6 +153,33 @@ def test_the_global_search_counts_every_trial_and_refines_from_its_best_point():
     assert again.losses == result.losses[:8]
 
 
+def test_the_smoothed_search_follows_the_mean_gradient_of_its_copies_and_refines_from_its_best_point():
+    # 20 steps of the throw in float64: two Adam steps on the smoothed loss, each from 4 perturbed copies (two
+    # antithetic pairs, one batch of worlds, each a simulation), then Gauss-Newton from the best copy
+    task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=20)
+    seen = []
+    sigma = 2.0
+    result = optimize_open_loop(task, iters=14, optimizer="smoothed", search=SearchSpec(population=4, sigma=sigma,
+                                                                                        refine=6, seed=1),
+                                callback=lambda k, loss, err, params: seen.append((loss, np.array(params))))
+    assert len(result.losses) == 14 and not result.failed_trials
+    copies = seen[:8]
+    np.testing.assert_allclose(copies[0][1] + copies[2][1], 0.0, atol=1e-12)  # antithetic around zero pushes
+    assert task.evaluate(copies[1][1]).loss == copies[1][0]  # each copy's loss is its own simulation's
+    # Adam's first step moves every push by its step, sigma / 4, against the mean gradient of the copies
+    grad = np.mean([task.evaluate(p).grad for _, p in copies[:4]], axis=0)
+    centre = 0.5 * (copies[4][1] + copies[6][1])
+    np.testing.assert_allclose(centre, -sigma / 4 * np.sign(grad), rtol=1e-9)
+    best = min(range(8), key=lambda k: result.errors_pct[k])
+    np.testing.assert_array_equal(seen[8][1], copies[best][1])  # the local stage starts at the best copy
+    assert result.error_pct == min(result.errors_pct)
+    for search, message in [(SearchSpec(population=3), r"search\.population must be even"),
+                            (SearchSpec(population=10, refine=6), "14 simulations, 6 of them left to the local "
+                                                                  "optimiser, make no step of 10 copies")]:
+        with pytest.raises(ValueError, match=f"smoothed: {message}"):
+            optimize_open_loop(task, iters=14, optimizer="smoothed", search=search)
+
+
 def test_the_multistart_interleaves_its_runs_and_keeps_the_best():
     # three Gauss-Newton runs of 4 simulations in lockstep, from zero and two random starts: each as it runs alone
     task = C.ThrowTask(S.basket_scene("cpu", dtype=wp.float64), steps=20)

@@ -81,8 +81,9 @@ def _parser() -> argparse.ArgumentParser:
                      "scene's")
     ctl.add_argument("--optimizer", default=None, choices=sorted({o for v in CONTROL_OPTIMIZERS.values() for o in v}),
                      help="the controller's optimiser (open loop: gauss-newton, lbfgs, or a global search over "
-                     "worlds: multistart, local runs from random starts in lockstep, or cmaes, then the local "
-                     "default; mlp: gauss-newton or adam) (default: the scene's)")
+                     "worlds: multistart, local runs from random starts in lockstep, or cmaes or smoothed (Adam "
+                     "on the Gaussian-smoothed loss), then the local default; mlp: gauss-newton or adam) (default: "
+                     "the scene's)")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
     ctl.add_argument("--warm-start", type=int, default=None, metavar="N",
                      help="the MLP: first optimise the pushes themselves with N simulations and fit the network to "

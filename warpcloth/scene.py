@@ -91,14 +91,16 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
     optimizer = "gauss-newton"         # optional: "gauss-newton" (default with com; for the MLP, without a
                                        #   regularizer), else "lbfgs" (open loop) or "adam" (MLP); open loop, a
                                        #   global search over worlds: "multistart" (local runs from random starts in
-                                       #   lockstep) or "cmaes" (CMA-ES, then the local default); see search
+                                       #   lockstep), "cmaes" (CMA-ES, then the local default) or "smoothed" (Adam
+                                       #   on the Gaussian-smoothed loss, then the local default); see search
     iters = 50                         # optional: simulations spent (default 50 open-loop, 100 mlp)
     search = { population = 8, sigma = 5.0, seed = 0 }
                                        # optional, with a global search, every key optional: multistart: starts
                                        #   (8) and their spread [m/s^2] (5); cmaes: points per generation (one
                                        #   simulation each, run as worlds of one batch; default 4 + 3 ln n), initial
                                        #   spread (5) and refine = simulations left to the local optimiser (a fifth
-                                       #   of iters); random seed (0)
+                                       #   of iters); smoothed: copies a step (8), their spread (2.5), refine
+                                       #   as cmaes's; random seed (0)
     warm_start = 20                    # optional, the MLP only: first optimise the pushes themselves with this many
                                        #   simulations and fit the network's output layer to them (default 0: none)
 
@@ -193,10 +195,10 @@ class ControlSpec:
         regularizer: Weight of ``1/2 |pushes|^2`` in the loss.
         controller: ``"open-loop"`` or ``"mlp"``.
         optimizer: The controller's optimiser (``CONTROL_OPTIMIZERS``): ``"gauss-newton"`` (a centre-of-mass target
-            only; for the MLP, without a regulariser), ``"lbfgs"`` (open loop), ``"cmaes"`` (open loop: global search,
-            then the local default) or ``"adam"`` (MLP).
+            only; for the MLP, without a regulariser), ``"lbfgs"`` (open loop), ``"multistart"``, ``"cmaes"`` or
+            ``"smoothed"`` (open loop: global searches, the last two then the local default) or ``"adam"`` (MLP).
         iters: Simulations the optimisation may spend.
-        search: The global stage's settings (``optimizer = "cmaes"``).
+        search: The global stage's settings (``optimizer = "multistart"``, ``"cmaes"`` or ``"smoothed"``).
         warm_start: The MLP's warm start: simulations of the open-loop optimisation it is first fitted to (0: none).
     """
 
@@ -948,8 +950,9 @@ def _parse_rigid_motion(value: Any, path: str) -> list:
 
 CONTROLLERS = ("open-loop", "mlp")
 """Controllers of a ``[control]`` task."""
-CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes"), "mlp": ("gauss-newton", "adam")}
-GLOBAL_OPTIMIZERS = ("multistart", "cmaes")
+CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes", "smoothed"),
+                      "mlp": ("gauss-newton", "adam")}
+GLOBAL_OPTIMIZERS = ("multistart", "cmaes", "smoothed")
 """The optimisers that take a ``search`` table."""
 """Optimisers of each controller of a ``[control]`` task (Gauss-Newton needs a centre-of-mass target, and for the MLP
 no regulariser)."""
@@ -1078,7 +1081,7 @@ def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchS
         raise _err(f"{path}.search", f"configures a global search ({' or '.join(GLOBAL_OPTIMIZERS)}), not optimizer = "
                                      f"{optimizer!r}")
     search = _table(table["search"], f"{path}.search")
-    refine_key = ("refine",) if optimizer == "cmaes" else ()  # the multistart has no local stage of its own
+    refine_key = ("refine",) if optimizer != "multistart" else ()  # the multistart has no local stage of its own
     _check_keys(search, f"{path}.search", ("population", "sigma", "seed") + refine_key)
     population = sigma = refine = None
     if "population" in search:

@@ -36,9 +36,10 @@ class CapturedRollout:
             its arrays, the model's and ``state``'s are read in place at every replay.
         steps: number of steps.
         loss: optional ``loss(trajectory) -> wp.array`` that launches kernels on the trajectory. With it, each
-            replay also runs the backward pass (of the sum of the loss array's entries, e.g. one loss per world):
-            gradients land in the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed at the
-            start of each replay), and :attr:`loss` holds the value.
+            replay also runs the backward pass (of the sum of the loss array's entries, e.g. one loss per world;
+            ``run(backward=False)`` skips it, :meth:`backward` runs it again from other seeds): gradients land in
+            the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed at the start of each replay),
+            and :attr:`loss` holds the value.
 
     The first run is an ordinary one (it loads the kernels and makes the arrays the step keeps), then the same
     rollout is captured (on the CPU with its backward pass as a graph of its own); each :meth:`run` replays it and
@@ -178,7 +179,7 @@ class CapturedRollout:
                 wp.capture_launch(self.graphs[0])
             else:
                 self.tape.zero()
-            _seed(self._seed, self.loss, grads)
+            _write_seeds(self._seed, self.loss, grads)
             if self.graphs:
                 wp.capture_launch(self.graphs[2])
             else:
@@ -196,7 +197,7 @@ class CapturedRollout:
                              "CapturedRollout")
 
 
-def _seed(seed: wp.array, loss: wp.array, grads: dict) -> None:
+def _write_seeds(seed: wp.array, loss: wp.array, grads: dict) -> None:
     """Write the seeds of a backward pass: ``seed`` (what the pass copies into the loss's gradient) from
     ``grads[loss]`` or zero, every other array's gradient from its entry (after the gradients were zeroed)."""
     seed.zero_()
@@ -300,7 +301,7 @@ class _StepGraphs:
         """The last run's backward pass again, from the seeds ``grads`` (CapturedRollout.backward)."""
         with paused_gc():
             self._zero_all()
-            _seed(self._seed, self.loss, grads)
+            _write_seeds(self._seed, self.loss, grads)
             self._backward()
 
     def _zero_all(self) -> None:

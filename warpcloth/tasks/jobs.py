@@ -128,8 +128,8 @@ class ControlJob:
     """A motion control run, as ``warpcloth control`` runs it: a scene's ``[control]`` task (by default the seed's
     throw). ``seed``: the start; for the open loop None is zero pushes (the seed's start) and a number random pushes
     (normal, :data:`START_SIGMA`, from ``numpy.random.default_rng(seed)``); for the MLP the seed of its initial
-    weights (None: 0). With a global search (``optimizer="multistart"`` or ``"cmaes"``) the seed also seeds the
-    search.
+    weights (None: 0). With a global search (``optimizer="multistart"``, ``"cmaes"`` or ``"smoothed"``) the seed
+    also seeds the search.
     ``optimizer``: the controller's optimiser (default: the task's, ``ControlTask.optimizer_for``);
     ``warm_start``: the MLP's (``train_mlp``; default: the task's)."""
 
