@@ -333,12 +333,13 @@ class ControlTask:
             if any(c not in (0, 1, 2) for c in components):
                 raise ValueError(f"components must all be None or all 0, 1 or 2, got {components}")
         t0 = time.perf_counter()
+        pushes = self._push_values(params)  # checked before anything runs
         captured = self._captured("evaluate") if all(c is None for c in components) else None
         if captured is not None:
-            final = captured.run(self._push_values(params))
+            final = captured.run(pushes)
             grads = final["grads"]
         else:
-            push = self._push_array(params)
+            push = wp.array(pushes, dtype=self.model.types.vec3, device=self.model.device, requires_grad=True)
             tape = wp.Tape()
             with tape:
                 forces = self._forces(push)
@@ -397,11 +398,12 @@ class ControlTask:
         if len(params) != W:
             raise ValueError(f"losses_worlds takes one parameter set per world ({W}), got {len(params)}")
         t0 = time.perf_counter()
+        pushes = self._push_values(params)  # checked before anything runs
         captured = self._captured("losses")
         if captured is not None:
-            final = captured.run(self._push_values(params))
+            final = captured.run(pushes)
         else:
-            forces = self._forces(self._push_array(params))
+            forces = self._forces(wp.array(pushes, dtype=self.model.types.vec3, device=self.model.device))
             final = {}
             loss = self._loss_fn([None] * W, final)
             out = wp.zeros(1, dtype=self.model.scalar, device=self.model.device)
@@ -448,9 +450,10 @@ class ControlTask:
             return [[rows[c][w] for c in range(3)] for w in range(W)]
         t0 = time.perf_counter()
         model = self.model
+        pushes = self._push_values(params)  # checked before anything runs
         captured = self._captured("evaluate")
         if captured is not None:
-            out = captured.run(self._push_values(params), backward=False)
+            out = captured.run(pushes, backward=False)
             positions = out["positions"]
             coms = captured.com.numpy().astype(np.float64)
             centres = [self.com_weights @ positions[model.world_slice(w)] for w in range(W)]
