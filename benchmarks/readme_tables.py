@@ -698,7 +698,19 @@ def global_search(d: dict) -> str:
         table(header, rows), "",
         f"`{d['scene']}`, {d['steps']} steps; error = |com_T − target| / |com_0 − target|; every simulation counted, "
         f"forward-only ones included. Target (issue 38): ≤ {target['error_pct']:g} % in ≤ {target['simulations']} "
-        f"simulations, median of the starts: {verdicts}.", "", provenance(d)])
+        f"simulations, median of the starts: {verdicts}.", "", provenance(d) + kept_runs(d["optimizers"])])
+
+
+def kept_runs(records: dict) -> str:
+    """Where records an earlier run left (a benchmark's records taken over from it, each with ``kept_meta``) came
+    from: " `name`, ... from the earlier run `command`, date, duration." ("" where none was kept)."""
+    runs: dict = {}
+    for name, r in records.items():
+        meta = r.get("kept_meta")
+        if meta:
+            runs.setdefault((meta["command"], meta["date"][:10], duration(meta["wall_s"])), []).append(name)
+    return "".join(f" {', '.join(f'`{n}`' for n in names)} from the earlier run `{command}`, {date}, {wall}."
+                   for (command, date, wall), names in runs.items())
 
 
 def memory(d: dict) -> str:
