@@ -232,9 +232,10 @@ class _StepGraphs:
         self.states = [state] + [sim.model.empty_state() for _ in range(steps)]
         self.controls = [control_at(control, k) for k in range(steps)]
         self.kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
+        self.motions: dict = {}  # the obstacles' motions the graphs read, one array a time
         self.reruns: dict[int, wp.Tape | None] = {}  # the last run's uncaptured steps (their tapes, with a loss)
         self.loss: wp.array | None = None
-        with paused_gc():
+        with paused_gc(), sim._keeping_motions(self.motions):  # noqa: SLF001 - the solver package's own
             self.reruns = {k: self._rerun(k) for k in range(steps)}
             if loss is not None:
                 first = wp.Tape()

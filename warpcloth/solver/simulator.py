@@ -95,7 +95,8 @@ class Simulator:
         self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
         self._candidate = None  # the untaped steps' x̂, v̂ before the collision stage (_integrate)
         self._control_default = None
-        self._obstacle_motions: dict[float | None, wp.array] = {}  # _obstacle_motion
+        self._static_motion = None  # the obstacles' motion where none moves (_obstacle_motion)
+        self._motion_store: dict[float, wp.array] | None = None  # where moving ones are kept (_keeping_motions)
         # The step, as the stages this model needs, each with the phase it is timed under.
         stages = [("assembly", self._assemble)]
         if self.proximity is not None:
@@ -392,15 +393,31 @@ class Simulator:
                      for t in (t_start, t_start + self.dt))
 
     def _obstacle_motion(self, t: float) -> wp.array:
-        """The obstacles' scripted motions at time ``t``, kept per time (one array for all times where none moves):
-        a step recorded in a graph reads them from an array made before the capture, as the handles' and pins'
-        offsets (SystemAssembler.offsets)."""
+        """The obstacles' scripted motions at time ``t``: one array for all times where none moves; else a new one,
+        or, inside :meth:`_keeping_motions`, one kept per time in its store."""
         model = self.model
-        key = float(t) if any(m is not None for m in model.obstacle_motion) else None
-        motion = self._obstacle_motions.get(key)
-        if motion is None:
-            motion = self._obstacle_motions[key] = obstacle_motion(model, 0.0 if key is None else t)
-        return motion
+        if not any(m is not None for m in model.obstacle_motion):
+            if self._static_motion is None:
+                self._static_motion = obstacle_motion(model, 0.0)
+            return self._static_motion
+        store = self._motion_store
+        if store is None:
+            return obstacle_motion(model, t)
+        if float(t) not in store:
+            store[float(t)] = obstacle_motion(model, t)
+        return store[float(t)]
+
+    @contextmanager
+    def _keeping_motions(self, store: dict):
+        """Steps inside take the obstacles' motions from ``store``, made there at a time's first use: a step recorded
+        in a graph reads them from arrays made before its capture (made inside it from host values, an array would
+        be filled from host memory at every replay, long after that memory is gone), kept by whoever keeps the
+        graph (as the handles' and pins' offsets: SystemAssembler.offsets)."""
+        self._motion_store = store
+        try:
+            yield
+        finally:
+            self._motion_store = None
 
     def _default_control(self) -> Control:
         """``model.control()``, made again when the model's default targets or placements changed (host arrays a
