@@ -217,6 +217,38 @@ def test_a_backward_pass_from_other_seeds_repeats_the_runs(contact):
         wc.CapturedRollout(sim, state, control, steps=2).backward({})
 
 
+def test_a_contact_scenes_replay_reports_a_divergence_naming_the_step():
+    model, sim = landing_scene("cpu")
+    state = model.state()
+    captured = wc.CapturedRollout(sim, state, steps=6)
+    state.particle_v.assign(np.full((model.particle_count, 3), 2e3, dtype=np.float32))  # over max_speed (1e3)
+    with pytest.raises(wc.SimulationError, match=r"diverged at step 1 "):
+        captured.run()
+
+
+def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch():
+    # two copies of the landing sheet, the second one higher: its contacts come later, and a step is run again
+    # when either world meets contact
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    for height in (0.03, 0.08):
+        mesh = wc.grid_mesh(4, 4, 0.3, 0.3)
+        mesh.positions = mesh.positions + [-0.15, -0.14, 0.1 + height]
+        world = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+        world.add_cloth_mesh(mesh, material=wc.preset("gray-interlock", thicken=2))
+        world.add_obstacle_sphere(0.1, 2)
+        world.set_collision(friction=0.3, obstacle_friction=0.3)
+        b.add_world(world)
+    batch = b.finalize("cpu", requires_grad=True)
+    sim = wc.Simulator(batch, 0.01, options=wc.SolverOptions(cg_tol=1e-7))
+    steps = 16
+    expected = [s.particle_x.numpy() for s in wc.rollout(sim, batch.state(), steps=steps)]
+    captured = wc.CapturedRollout(sim, batch.state(), steps=steps)
+    got = [s.particle_x.numpy() for s in captured.run()]
+    for a, e in zip(got, expected):
+        np.testing.assert_array_equal(a, e)
+    assert 0 < captured.rerun_steps[0] and captured.rerun_steps[-1] == steps - 1
+
+
 def test_capturing_a_contact_step_by_hand_is_refused():
     model, sim = landing_scene("cpu", height=0.0)
     with pytest.raises(RuntimeError, match="captures such steps speculatively"):
