@@ -25,9 +25,11 @@ sheet in one model (``ModelBuilder.replicate``).
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
 
-Each time is the median of --reps repetitions.
+Each time is the median of --reps repetitions. ``--preconditioners auto,block_jacobi`` times each grid with each
+(``SolverOptions.preconditioner``; the multigrid takes one world only), on the same device in one run.
 
 Usage: python benchmarks/graph_step.py [--quick] [--device cuda:0] [--sizes 16,64] [--worlds 1,64] [--steps 50]
+       [--preconditioners auto]
 """
 
 from __future__ import annotations
@@ -71,10 +73,10 @@ def spun_up(sim: wc.Simulator, steps: int) -> wc.State:
     return common.cold(common.advance(sim, sim.model.state(), steps))
 
 
-def case(res: int, worlds: int, device: str, steps: int, reps: int) -> dict:
+def case(res: int, worlds: int, device: str, steps: int, reps: int, preconditioner: str = "auto") -> dict:
     model = model_of(res, worlds, device)
     out = {"res": res, "worlds": worlds, "particles": model.particle_count, "steps": steps}
-    sim = wc.Simulator(model, common.DT)
+    sim = wc.Simulator(model, common.DT, options=wc.SolverOptions(preconditioner=preconditioner))
     out["backend"], out["preconditioner"] = sim.linear_solver.backend, sim.linear_solver.preconditioner
     start = spun_up(sim, SPINUP)
 
@@ -89,7 +91,7 @@ def case(res: int, worlds: int, device: str, steps: int, reps: int) -> dict:
         rollout()
     out["launches_per_step"] = sum(calls for calls, _ in launches.values()) / steps
 
-    sim0 = wc.Simulator(model, common.DT, options=wc.SolverOptions(sync_every=0))
+    sim0 = wc.Simulator(model, common.DT, options=wc.SolverOptions(sync_every=0, preconditioner=preconditioner))
     out["step_ms_sync0"] = 1e3 * common.median_time(lambda: wc.rollout(sim0, start, steps=steps), reps=reps) / steps
 
     captured = wc.CapturedRollout(sim, start, steps=steps)
@@ -175,7 +177,7 @@ def throw_case(device: str, reps: int, steps: int | None, params: np.ndarray) ->
 
 def main():
     args = common.parse_args(__doc__, quick={"sizes": "8", "worlds": "1,4", "steps": 5, "reps": 2},
-                             device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3)
+                             device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3, preconditioners="auto")
     sizes = [int(s) for s in args.sizes.split(",")]
     world_counts = [int(w) for w in args.worlds.split(",")]
     common.print_machine(common.machine_info(args.device))
@@ -185,9 +187,13 @@ def main():
         for worlds in world_counts:
             if worlds > 1 and res > 16:
                 continue  # many worlds: the 16x16 sheet only
-            r = case(res, worlds, args.device, args.steps, args.reps)
-            rows.append(r)
-            print(f"  {res}x{res} x{worlds}: {r['step_ms']:.3f} ms/step, captured {r['captured_ms']:.3f}", flush=True)
+            for preconditioner in args.preconditioners.split(","):
+                if preconditioner == "multigrid" and worlds > 1:
+                    continue  # one hierarchy spans one world
+                r = case(res, worlds, args.device, args.steps, args.reps, preconditioner)
+                rows.append(r)
+                print(f"  {res}x{res} x{worlds} {r['preconditioner']}: {r['step_ms']:.3f} ms/step, captured "
+                      f"{r['captured_ms']:.3f}", flush=True)
     common.print_table(
         ["grid", "worlds", "backend", "precond", "CG it", "launches", "allocs", "step ms", "sync0 ms", "captured ms",
          "world-steps/s", "max diff"],

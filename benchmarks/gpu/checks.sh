@@ -4,9 +4,10 @@
 # (or `sync`) as
 #   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu/checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
-# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, ITERS and VARIANT (capture_probe's) override
-# what runs. The first CUDA compile of the kernel modules takes about a minute on a fresh machine (2026-11-27, H200);
-# the tests below took 123 s with it.
+# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, PRECONDITIONERS, ITERS and VARIANT
+# (capture_probe's) override what runs. The first CUDA compile of the kernel modules takes about a minute on a fresh
+# machine (2026-11-27, H200). On an H100 (2026-11-27, cold kernel cache) the tests below took 164 s; all the parts
+# together take longer than one session's 15 minutes of device time: choose PARTS.
 set -u
 root=${1:?project root}
 out=${OUT:-/tmp/out}
@@ -28,7 +29,8 @@ part tests 280 $py -m pytest -v -p no:cacheprovider -o faulthandler_timeout=150 
   "$root/tests/test_tasks.py"
 grep -E "PASSED|FAILED|ERROR|passed|failed" "$out/tests.log" | tail -n 40 >> "$out/summary.txt"
 part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
-  --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --out "$out/graph_step_cuda.json"
+  --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --preconditioners "${PRECONDITIONERS:-auto,block_jacobi}" \
+  --out "$out/graph_step_cuda.json"  # the multigrid against block Jacobi at 64x64 on one card
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
 part estimate_cuda 45 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
 grep -E "runtime|simulation error" "$out/estimate_cuda.log" >> "$out/summary.txt"
