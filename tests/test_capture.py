@@ -249,6 +249,40 @@ def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch():
     assert 0 < captured.rerun_steps[0] and captured.rerun_steps[-1] == steps - 1
 
 
+@pytest.mark.parametrize("solver", ["device", "numpy"])
+def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(solver):
+    # a small sheet falling onto a pinned larger one: cloth-cloth contacts (vertex-face and edge-edge), repulsion
+    # and friction between them, through either projection backend
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    b.add_cloth_grid((2, 2), (0.2, 0.2), material=wc.preset("gray-interlock"), pos=(-0.1, -0.1, 0.0))
+    for p in range(9):
+        b.add_pin(p)
+    mesh = wc.grid_mesh(2, 2, 0.06, 0.06)
+    mesh.positions = mesh.positions + [-0.031, -0.027, 0.004]
+    mesh.velocities = np.tile([0.2, 0.1, 0.0], (len(mesh.positions), 1))  # sliding: friction acts
+    b.add_cloth_mesh(mesh, material=wc.preset("gray-interlock"))
+    b.set_collision(self_collision=True, friction=0.4)
+    model = b.finalize("cpu", requires_grad=True)
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7,
+                                                             collision=wc.CollisionOptions(solver=solver)))
+    steps = 12
+    state = model.state(requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        loss = loss_of(wc.rollout(sim, state, steps=steps))
+    tape.backward(loss)
+    expected = {"x0": state.particle_x.grad.numpy().copy(), "density": model.material_density.grad.numpy().copy(),
+                "friction": model.contact_friction.grad.numpy().copy()}
+    tape.zero()
+    captured = wc.CapturedRollout(sim, state, steps=steps, loss=loss_of)
+    captured.run()
+    assert captured.rerun_steps and captured.loss.numpy()[0] == loss.numpy()[0]
+    for name, a in (("x0", state.particle_x), ("density", model.material_density),
+                    ("friction", model.contact_friction)):
+        assert np.any(expected[name]), name
+        np.testing.assert_array_equal(a.grad.numpy(), expected[name], err_msg=name)
+
+
 def test_capturing_a_contact_step_by_hand_is_refused():
     model, sim = landing_scene("cpu", height=0.0)
     with pytest.raises(RuntimeError, match="captures such steps speculatively"):
