@@ -376,7 +376,7 @@ class ControlTask:
                 not self.model.device.is_cpu or self.segment_steps < self.steps):
             return None
         captured = self._captures.get(kind)
-        if captured is None or not captured.rollout.current():
+        if captured is None or not captured.current():
             self._captures[kind] = None
             self._uncaptured[kind] = self._uncaptured.get(kind, 0) + 1
             if self._uncaptured[kind] < 2:
@@ -688,14 +688,34 @@ class ControlTask:
         return own or (50 if controller == "open-loop" else 100)
 
 
-class _CapturedEvaluation:
+class _Captured:
+    """What both captured forms share: the task and the model's default targets and placements the controls were
+    made from (host arrays a user may edit between evaluations; the graphs hold the values they had)."""
+
+    def __init__(self, task: ControlTask):
+        self.task = task
+        self.defaults = _control_defaults(task.model)
+        self.rollout: wc.CapturedRollout | None = None
+
+    def current(self) -> bool:
+        """Whether the graphs still hold what an uncaptured evaluation would read now."""
+        return self.rollout.current() and all(
+            np.array_equal(a, b) for a, b in zip(self.defaults, _control_defaults(self.task.model)))
+
+
+def _control_defaults(model: wc.Model) -> list[np.ndarray]:
+    return [np.array(a) for a in (model.handle_rest_target, model.pin_rest_target, model.obstacle_rest_transform)
+            if a is not None]
+
+
+class _CapturedEvaluation(_Captured):
     """A task's evaluation as graphs: fixed arrays for the pushes and forces, the rollout with its loss as a
     ``wc.CapturedRollout``, and the pushes' forces on a tape of their own (recorded once) that carries the forces'
     gradients back to the pushes."""
 
     def __init__(self, task: ControlTask):
+        super().__init__(task)
         model, W = task.model, task.world_count
-        self.task = task
         self.push = wp.zeros(W * task.n_params // 3, dtype=model.types.vec3, device=model.device, requires_grad=True)
         self.tape = wp.Tape()
         with self.tape:
@@ -739,13 +759,13 @@ class _CapturedEvaluation:
         return rows
 
 
-class _CapturedLosses:
+class _CapturedLosses(_Captured):
     """A task's forward simulations as graphs (:meth:`ControlTask.losses_worlds`): fixed arrays for the pushes and
     forces, the rollout as a ``wc.CapturedRollout`` without a loss, the loss launched after each replay."""
 
     def __init__(self, task: ControlTask):
+        super().__init__(task)
         model, W = task.model, task.world_count
-        self.task = task
         self.push = wp.zeros(W * task.n_params // 3, dtype=model.types.vec3, device=model.device)
         self.forces = task._forces(self.push)
         self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
