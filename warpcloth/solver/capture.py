@@ -92,20 +92,20 @@ class CapturedRollout:
                           "instantiate with Warp 1.19); each run() records and differentiates it afresh",
                           RuntimeWarning, stacklevel=2)
         elif warmup is None:  # the forward pass alone: one graph
-            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
+            with _capture(device, self._kept) as capture:
                 self._record_forward()
             self.graphs = [capture.graph]
         else:
             # On the CPU (Warp 1.19) a graph holding both a recorded forward pass and the element adjoints'
             # launches crashed on replay; the forward pass, the backward pass and the zeroing of the gradients as
             # three graphs replay correctly.
-            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
+            with _capture(device, self._kept) as capture:
                 self._record_forward()
             forward = capture.graph
-            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
+            with _capture(device, self._kept) as capture:
                 self._backward()
             backward = capture.graph
-            with arrays_kept(self._kept), wp.ScopedCapture(device=device) as capture:
+            with _capture(device, self._kept) as capture:
                 self.tape.zero()
             self.graphs = [capture.graph, forward, backward]
 
@@ -208,6 +208,13 @@ def _write_seeds(seed: wp.array, loss: wp.array, grads: dict) -> None:
         target.assign(values)
 
 
+@contextlib.contextmanager
+def _capture(device, kept: list):
+    """A graph capture on ``device`` whose new arrays are appended to ``kept`` (tape.py arrays_kept says why)."""
+    with arrays_kept(kept), wp.ScopedCapture(device=device) as capture:
+        yield capture
+
+
 def _stepwise(sim: Simulator) -> bool:
     """Whether ``sim``'s steps read the device for contacts (a collision stage, proximity forces): such a rollout is
     captured one speculative graph per step."""
@@ -254,7 +261,7 @@ class _StepGraphs:
         self.tapes = [wp.Tape() if taped else None for _ in range(steps)]  # what each graph's step recorded
         self.forward = []  # each step's speculative graph
         for k, tape in enumerate(self.tapes):
-            with sim._speculating(), self._capture() as capture:  # noqa: SLF001 - the solver package's own
+            with sim._speculating(), _capture(self.sim.device, self.kept) as capture:  # noqa: SLF001 - the solver package's own
                 with tape if taped else contextlib.nullcontext():
                     sim.step(self.states[k], self.states[k + 1], self.controls[k])
             self.forward.append(capture.graph)
@@ -262,19 +269,19 @@ class _StepGraphs:
         if not taped:
             return
         loss_tape = wp.Tape()
-        with self._capture() as capture:
+        with _capture(self.sim.device, self.kept) as capture:
             with wp.ScopedDevice(sim.device), loss_tape:
                 self.loss = self.loss_fn(self.states)
             self._seed = wp.ones_like(self.loss, requires_grad=False)  # ones at every run; backward() writes others
         self.loss_graphs.append(capture.graph)
-        with self._capture() as capture:
+        with _capture(self.sim.device, self.kept) as capture:
             loss_tape.backward(grads={self.loss: self._seed})
         self.loss_graphs.append(capture.graph)
         for tape in self.tapes:  # its backward pass
-            with self._capture() as capture:
+            with _capture(self.sim.device, self.kept) as capture:
                 tape.backward()
             self.backward_graphs.append(capture.graph)
-        with self._capture() as capture:  # every gradient the captured tapes reach
+        with _capture(self.sim.device, self.kept) as capture:  # every gradient the captured tapes reach
             for tape in [*self.tapes, loss_tape]:
                 tape.zero()
         self._zero = capture.graph
@@ -310,11 +317,6 @@ class _StepGraphs:
         if self._zero is not None:
             self._zero_reruns()
             wp.capture_launch(self._zero)
-
-    @contextlib.contextmanager
-    def _capture(self):
-        with arrays_kept(self.kept), wp.ScopedCapture(device=self.sim.device) as capture:
-            yield capture
 
     def _rerun(self, k: int) -> wp.Tape | None:
         """Step k, uncaptured, on a tape of its own where there is a loss."""

@@ -15,6 +15,7 @@ rollout, so long horizons and large batches back-propagate with O(sqrt(T)) store
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -689,13 +690,27 @@ class ControlTask:
 
 
 class _Captured:
-    """What both captured forms share: the task and the model's default targets and placements the controls were
-    made from (host arrays a user may edit between evaluations; the graphs hold the values they had)."""
+    """What both captured forms share: fixed arrays for the pushes and forces, which the graphs read, and the model's
+    default targets and placements the controls were made from (host arrays a user may edit between evaluations;
+    the graphs hold the values they had)."""
 
-    def __init__(self, task: ControlTask):
+    def __init__(self, task: ControlTask, *, requires_grad: bool):
+        model = task.model
         self.task = task
-        self.defaults = _control_defaults(task.model)
+        self.defaults = _control_defaults(model)
+        self.push = wp.zeros(task.world_count * task.n_params // 3, dtype=model.types.vec3, device=model.device,
+                             requires_grad=requires_grad)
+        """The pushes the forces are made from (assigned at each run)."""
+        self.tape = wp.Tape() if requires_grad else None
+        """The forces' launches, recorded once: they carry the forces' gradients back to the pushes."""
+        with self.tape or contextlib.nullcontext():
+            self.forces = task._forces(self.push)
         self.rollout: wc.CapturedRollout | None = None
+
+    def set_pushes(self, push: np.ndarray) -> None:
+        """Write ``push`` into the pushes and their forces into the forces the graphs read."""
+        self.push.assign(push)
+        self.task._forces(self.push, self.forces)
 
     def current(self) -> bool:
         """Whether the graphs still hold what an uncaptured evaluation would read now."""
@@ -709,17 +724,12 @@ def _control_defaults(model: wc.Model) -> list[np.ndarray]:
 
 
 class _CapturedEvaluation(_Captured):
-    """A task's evaluation as graphs: fixed arrays for the pushes and forces, the rollout with its loss as a
-    ``wc.CapturedRollout``, and the pushes' forces on a tape of their own (recorded once) that carries the forces'
-    gradients back to the pushes."""
+    """A task's evaluation as graphs: the rollout with its loss as a ``wc.CapturedRollout``, its backward pass
+    carried on to the pushes by the forces' tape."""
 
     def __init__(self, task: ControlTask):
-        super().__init__(task)
+        super().__init__(task, requires_grad=True)
         model, W = task.model, task.world_count
-        self.push = wp.zeros(W * task.n_params // 3, dtype=model.types.vec3, device=model.device, requires_grad=True)
-        self.tape = wp.Tape()
-        with self.tape:
-            self.forces = task._forces(self.push)
         self.com: wp.array | None = None  # the centres of mass the loss is made from (a centre-of-mass target)
 
         def loss(trajectory):
@@ -732,8 +742,7 @@ class _CapturedEvaluation(_Captured):
     def run(self, push: np.ndarray, *, backward: bool = True) -> dict:
         """The loss of every world, the final positions and (with ``backward``) the gradients with respect to the
         pushes."""
-        self.push.assign(push)
-        self.task._forces(self.push, self.forces)
+        self.set_pushes(push)
         self.rollout.run(backward=backward)
         out = {"values": self.rollout.loss.numpy().astype(np.float64),
                "positions": self.rollout.trajectory[-1].particle_x.numpy().astype(np.float64)}
@@ -764,18 +773,15 @@ class _CapturedLosses(_Captured):
     forces, the rollout as a ``wc.CapturedRollout`` without a loss, the loss launched after each replay."""
 
     def __init__(self, task: ControlTask):
-        super().__init__(task)
-        model, W = task.model, task.world_count
-        self.push = wp.zeros(W * task.n_params // 3, dtype=model.types.vec3, device=model.device)
-        self.forces = task._forces(self.push)
+        super().__init__(task, requires_grad=False)
+        model = task.model
         self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
                                           steps=task.steps)
 
     def run(self, push: np.ndarray) -> dict:
         """The loss of every world and the final positions."""
         task = self.task
-        self.push.assign(push)
-        task._forces(self.push, self.forces)
+        self.set_pushes(push)
         final = self.rollout.run()[-1]
         values, _ = task._loss_values(final, [None] * task.world_count)
         return {"values": values.numpy().astype(np.float64),
