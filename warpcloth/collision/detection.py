@@ -53,6 +53,11 @@ def node_worlds(model: Model, obstacles: bool) -> np.ndarray:
         worlds.append(model.obstacle_world[model.obstacle_vertex_body.numpy()])
     return np.concatenate(worlds).astype(np.int32)
 
+BVH_CONSTRUCTOR = {"cpu": "median", "cuda": "lbvh"}
+"""The BVH build per device, one Warp 1.19 rebuilds in place (``Bvh.rebuild``; on CUDA Warp's default). On the CPU
+the median split rebuilds 2.5x faster than Warp's default SAH (this machine: 10 against 26 us at 128 boxes, 43
+against 109 us at 512)."""
+
 
 class PrimitiveSet:
     """Vertices, edges or triangles (node indices, one row each) with their bounding boxes and a BVH over them,
@@ -60,7 +65,7 @@ class PrimitiveSet:
     only its own world's primitives (kernels/geometry.py world_root)."""
 
     def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None,
-                 boxes: tuple[wp.array, wp.array] | None = None):
+                 boxes: tuple[wp.array, wp.array] | None = None, rebuild: bool = True):
         self.count = len(indices)
         self.corners = indices.shape[1]
         self.indices = wp.array(indices.astype(np.int32), dtype=wp.int32, device=device)
@@ -70,14 +75,20 @@ class PrimitiveSet:
         self.lowers, self.uppers = boxes
         """The boxes (count,) vec3: arrays of their own, or ``boxes``, views into a detector's boxes of all sets."""
         self.bvh: wp.Bvh | None = None
+        self._constructor = BVH_CONSTRUCTOR["cpu" if self.indices.device.is_cpu else "cuda"]
+        self.rebuild = rebuild
         self.groups = None
         if node_world is not None and self.count and node_world.max() > 0:
             self.groups = wp.array(node_world[indices[:, 0]], dtype=wp.int32, device=device)
 
     def update_bvh(self) -> None:
-        """Build the BVH over the current boxes, or refit it to them."""
+        """Build the BVH over the current boxes: a new one the first time, then in place (no allocation, the same
+        id, recorded by a graph capture), or refitted where ``rebuild`` is False (CollisionOptions.bvh). Its
+        topology orders the pairs a query finds, and so the rounding of their sums."""
         if self.bvh is None:
-            self.bvh = wp.Bvh(self.lowers, self.uppers, groups=self.groups)
+            self.bvh = wp.Bvh(self.lowers, self.uppers, groups=self.groups, constructor=self._constructor)
+        elif self.rebuild:
+            self.bvh.rebuild(self._constructor)
         else:
             self.bvh.refit()
 
@@ -100,9 +111,11 @@ class ContactDetector:
         capacity: most contacts one :meth:`detect` call may find.
         obstacles: detect cloth–obstacle contacts.
         self_collision: detect cloth–cloth contacts.
+        rebuild_bvh: rebuild the BVHs at each detection, else refit them (CollisionOptions.bvh).
     """
 
-    def __init__(self, model: Model, *, thickness: float, capacity: int, obstacles: bool, self_collision: bool):
+    def __init__(self, model: Model, *, thickness: float, capacity: int, obstacles: bool, self_collision: bool,
+                 rebuild_bvh: bool = True):
         self.device = dev = model.device
         self.thickness = float(thickness)
         self.capacity = int(capacity)
@@ -129,7 +142,7 @@ class ContactDetector:
         self._lowers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
         self._uppers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
         ends = [int(e) for e in np.cumsum([0] + [len(r) for r in rows])]
-        sets = [PrimitiveSet(r, dev, worlds, boxes=(self._lowers[lo:hi], self._uppers[lo:hi]))
+        sets = [PrimitiveSet(r, dev, worlds, boxes=(self._lowers[lo:hi], self._uppers[lo:hi]), rebuild=rebuild_bvh)
                 for r, lo, hi in zip(rows, ends[:-1], ends[1:])]
         for prims, lo in zip(sets, ends[:-1]):
             prims.offset = lo  # its first primitive's row in self._prims (and box in self._lowers, self._uppers)

@@ -55,9 +55,10 @@ class ProximityForces:
         dt: time step [s].
         capacity: most pairs one step may have (0: 8 per cloth particle and obstacle vertex; a crumpled cloth has
             about 5).
+        rebuild_bvh: rebuild the BVHs at each detection, else refit them (CollisionOptions.bvh).
     """
 
-    def __init__(self, model: Model, dt: float, *, capacity: int = 0):
+    def __init__(self, model: Model, dt: float, *, capacity: int = 0, rebuild_bvh: bool = True):
         settings = model.collision
         self.model = model
         self.dt = float(dt)
@@ -75,8 +76,8 @@ class ProximityForces:
         self._node_world = wp.array(worlds, dtype=wp.int32, device=dev)
         self.pair_world_start = wp.zeros(model.world_count + 1, dtype=wp.int32, device=dev)
         """First pair of each world of the last detection, and the count, (world_count + 1,) int32."""
-        cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds)
-        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds)
+        cloth_tris = PrimitiveSet(model.triangles_np, dev, worlds, rebuild=rebuild_bvh)
+        cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds, rebuild=rebuild_bvh)
         cloth_vertices = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=dev)
         # the primitives' areas, for the pairs' stiffness (kernels/proximity.py): the cloth's rest areas; obstacles
         # count as infinite, so a pair takes its cloth primitive's area and an obstacle's tessellation cannot change
@@ -92,8 +93,8 @@ class ProximityForces:
         # areas by node id) or edges (EE)
         self._queries = []
         if obstacles:
-            obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev, worlds)
-            obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev, worlds)
+            obstacle_tris = PrimitiveSet(model.obstacle_tri_indices.numpy() + n, dev, worlds, rebuild=rebuild_bvh)
+            obstacle_edges = PrimitiveSet(model.obstacle_edge_indices.numpy() + n, dev, worlds, rebuild=rebuild_bvh)
             infinite = wp.array(np.full(max(obstacle_tris.count, obstacle_edges.count), np.inf), dtype=scalar,
                                 device=dev)
             self._queries += [

@@ -124,7 +124,8 @@ class CollisionStage:
         V = model.obstacle_vertex_count if obstacles else 0
         capacity = options.collision.contact_capacity or 16 * (n + V)
         self.detector = ContactDetector(model, thickness=self.thickness, capacity=capacity, obstacles=obstacles,
-                                        self_collision=settings.self_collision)
+                                        self_collision=settings.self_collision,
+                                        rebuild_bvh=options.collision.bvh == "rebuild")
         if obstacles:
             self.detector.check_start_outside(model)
         self.phase_seconds = dict.fromkeys(("detection", "geometry", "projection", "adjoint", "fail_safe"), 0.0)

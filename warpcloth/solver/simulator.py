@@ -86,7 +86,8 @@ class Simulator:
         if self.collision is not None:  # its divergence guard latches here; its detection stops at an error
             self.collision.record = self.status.record
             self.collision.detector.skip = self.status.record[ks.ERROR:ks.ERROR + 1]
-        self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity)
+        self.proximity = (ProximityForces(model, self.dt, capacity=self.options.collision.contact_capacity,
+                                          rebuild_bvh=self.options.collision.bvh == "rebuild")
                           if ProximityForces.needed(model) else None)
         """Proximity repulsion and friction inside the implicit step, or None where the model has neither."""
         self._atol_checked = False  # the cg_atol floor is checked at the first skipped solve
