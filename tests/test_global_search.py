@@ -254,8 +254,8 @@ def test_search_settings_in_a_scene_and_on_the_command_line(tmp_path, capsys):
     assert "this run's controller: open-loop" in capsys.readouterr().err
 
 
-def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_with_lbfgs():
-    # a 3x3 hanging cloth, 6 steps, float64: two generations of 4 materials (forward only), then 4 L-BFGS evaluations
+def small_fit() -> E.TrajectoryFit:
+    """A 3x3 hanging cloth in the wind, 6 steps, float64, its targets simulated with tango-red-jet-set."""
     truth = wc.preset("tango-red-jet-set", thicken=2)
     b = wc.ModelBuilder()
     b.add_cloth_grid((3, 3), (0.3, 0.3), material=wc.preset("gray-interlock", thicken=2), rot=S.GRID_TO_YZ,
@@ -265,7 +265,12 @@ def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_w
     b.set_wind((3.0, 0.0, 0.0))
     model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
     options = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
-    fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=6), steps=6, options=options)
+    return E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=6), steps=6, options=options)
+
+
+def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_with_lbfgs():
+    # two generations of 4 materials (forward only), then 4 L-BFGS evaluations
+    fit = small_fit()
     search = SearchSpec(population=4, sigma=0.5, refine=4, seed=1)
     result = E.estimate_material(fit, optimizer="cmaes", iters=12, scan=None, search=search)
     assert len(result.losses) == 12 and not result.diverged
@@ -278,3 +283,47 @@ def test_a_material_fits_global_search_counts_its_forward_evaluations_and_ends_w
     with pytest.raises(ValueError, match="cmaes: 12 evaluations, 4 of them left to L-BFGS, make no generation of 9"):
         E.estimate_material(fit, optimizer="cmaes", iters=12, scan=None, search=SearchSpec(population=9, refine=4))
     assert (fit.evaluations, fit.seconds) == before  # refused before any simulation
+
+
+def test_a_materials_smoothed_search_follows_the_mean_gradient_of_its_copies_and_refines_from_its_best_point():
+    # two Adam steps on the smoothed loss, each from 4 perturbed materials (two antithetic pairs), then L-BFGS from
+    # the best of them: every material is the one the search's random numbers say, every loss its own simulation's
+    fit = small_fit()
+    sigma, n = 0.1, E.N_PARAMS
+    result = E.estimate_material(fit, optimizer="smoothed", iters=12, scan=None,
+                                 search=SearchSpec(population=4, sigma=sigma, refine=4, seed=3))
+    assert len(result.losses) == 12 and not result.diverged
+    param = E.MaterialParameterization(E.initial_guess())
+    rng = np.random.default_rng(3)
+    eps = rng.standard_normal((2, n))
+    first = [sigma * e for e in np.concatenate([eps, -eps])]
+    evaluations = [fit.loss_and_grad(param.decode(theta)) for theta in first]
+    assert [e[0] for e in evaluations] == result.losses[:4]
+    grad = np.mean([param.chain(theta, *e[1:]) for theta, e in zip(first, evaluations)], axis=0)
+    centre = -sigma / 4 * grad / (np.abs(grad) + 1e-12)  # Adam's first step: sigma / 4 against the mean gradient
+    eps = rng.standard_normal((2, n))
+    second = [centre + sigma * e for e in np.concatenate([eps, -eps])]
+    np.testing.assert_allclose([fit.loss(param.decode(theta)) for theta in second], result.losses[4:8], rtol=1e-12)
+    assert result.losses[8] == min(result.losses[:8])  # L-BFGS starts at the best copy and only accepts a decrease
+    assert fit.loss(result.material) == min(result.losses)
+    for search, message in [(SearchSpec(population=3), r"search\.population must be even"),
+                            (SearchSpec(population=10, refine=4), "12 evaluations, 4 of them left to L-BFGS, make "
+                                                                  "no step of 10 copies")]:
+        with pytest.raises(ValueError, match=f"smoothed: {message}"):
+            E.estimate_material(fit, optimizer="smoothed", iters=12, scan=None, search=search)
+
+
+def test_a_materials_multistart_runs_lbfgs_from_each_start_and_keeps_the_best():
+    # three L-BFGS runs of 3 evaluations, one after another: from the start, then from two random points around it
+    fit = small_fit()
+    result = E.estimate_material(fit, optimizer="multistart", iters=9, scan=None,
+                                 search=SearchSpec(population=3, sigma=0.3, seed=4))
+    assert len(result.losses) == 9 and not result.diverged
+    assert result.losses[:3] == E.estimate_material(fit, optimizer="lbfgs", iters=3, scan=None).losses
+    param = E.MaterialParameterization(E.initial_guess())
+    rng = np.random.default_rng(4)
+    starts = [rng.normal(0.0, 0.3, E.N_PARAMS) for _ in range(2)]
+    assert [result.losses[3], result.losses[6]] == [fit.loss(param.decode(s)) for s in starts]
+    assert fit.loss(result.material) == min(result.losses)
+    with pytest.raises(ValueError, match="multistart: 3 starts for 2 evaluations"):
+        E.estimate_material(fit, optimizer="multistart", iters=2, scan=None, search=SearchSpec(population=3))

@@ -111,9 +111,10 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
     steps = 50                         # optional: steps compared, default sim.steps
     start = "gray-interlock"           # optional material (the forms above); default the mean of 8 fabrics (the seed's)
     free = ["density", "stretching", "bending"]   # optional: what is fitted (default all); the rest stays at start
-    optimizer = "lbfgs"                # optional: "lbfgs" (default), "adam", "seed-sgd" or "cmaes" (global search,
-                                       #   then L-BFGS; a search table as [control]'s, sigma in the log-scale
-                                       #   parameters' units, default 0.5)
+    optimizer = "lbfgs"                # optional: "lbfgs" (default), "adam", "seed-sgd", or a global search with a
+                                       #   search table as [control]'s, sigma in the log-scale parameters' units:
+                                       #   "cmaes" (then L-BFGS; sigma 0.5), "multistart" (L-BFGS runs, one after
+                                       #   another; sigma 0.5) or "smoothed" (then L-BFGS; sigma 0.05)
     iters = 100                        # optional: forward + backward evaluations, default 100
 
 A push is a constant force ``(M / k) p`` on each of the k pushed particles over its interval (M the cloth's mass),
@@ -161,17 +162,20 @@ _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 @dataclass(frozen=True)
 class SearchSpec:
     """A global search's settings (a ``search`` table in ``[control]`` or ``[estimate]``). ``optimizer = "cmaes"``:
-    CMA-ES over the task's parameters, each generation simulated as one batch of worlds (forward only), then the
-    task's local optimiser from the best point found (``warpcloth.tasks.optim.cmaes``). ``optimizer =
-    "multistart"`` (control): local runs from random starts, in lockstep as batches of worlds.
+    CMA-ES over the task's parameters (a control task's generations simulated as batches of worlds, forward only),
+    then the task's local optimiser from the best point found (``warpcloth.tasks.optim.cmaes``). ``optimizer =
+    "multistart"``: local runs from random starts (a control task's in lockstep as batches of worlds, an estimation's
+    one after another). ``optimizer = "smoothed"``: Adam on the Gaussian-smoothed loss
+    (``warpcloth.tasks.optim.smoothed_descent``), then the local optimiser.
 
     Attributes:
         population: CMA-ES's points per generation, each one simulation (default 4 + floor(3 ln n), n parameters);
-            the multistart's starts (default 8).
-        sigma: CMA-ES's initial standard deviation, the multistart's spread of starts, in the parameters' units
-            (default: the task's, pushes 5 m/s^2 for control, 0.5 of the material's log-scale parameters for
-            estimation).
-        refine: CMA-ES: simulations left to the local optimiser (default a fifth of the budget).
+            the multistart's starts (default 8); the smoothed search's copies a step (default 8, even).
+        sigma: CMA-ES's initial standard deviation, the multistart's spread of starts, the smoothing's, in the
+            parameters' units (default: the task's; for control, pushes 5 m/s^2 and 2.5 smoothed; for estimation, 0.5
+            of the material's log-scale parameters and 0.05 smoothed).
+        refine: CMA-ES and the smoothed search: simulations left to the local optimiser (default a fifth of the
+            budget).
         seed: Seed of the search's random numbers.
     """
 
@@ -978,7 +982,7 @@ def check_control_optimizer(optimizer: str, controller: str, target_com, regular
     return None
 
 
-ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd", "cmaes")
+ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd", "cmaes", "multistart", "smoothed")
 """Optimisers of an ``[estimate]`` task."""
 MATERIAL_PARTS = ("density", "stretching", "bending")
 """The parts of a material an ``[estimate]`` task may free."""

@@ -19,7 +19,7 @@ import warpcloth as wc
 from warpcloth.progress import progress_bar
 from warpcloth.scene import SearchSpec, check_control_optimizer, default_control_optimizer
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
-from warpcloth.tasks.optim import adam, cmaes, lbfgs, smoothed_gradient
+from warpcloth.tasks.optim import MULTISTART_POPULATION, SMOOTHED_COPIES, cmaes, lbfgs, smoothed_descent
 
 if TYPE_CHECKING:
     from warpcloth.tasks.control import ControlTask, Evaluation
@@ -27,16 +27,10 @@ if TYPE_CHECKING:
 SEARCH_SIGMA = 5.0
 """The global search's default spread of the pushes [m/s^2] (``SearchSpec.sigma``): CMA-ES's initial one, the
 multistart's random starts' (half the push that holds the seed's cloth up)."""
-SMOOTHED_COPIES = 8
-"""The smoothed optimiser's perturbed copies a step (``SearchSpec.population``): four antithetic pairs."""
 SMOOTHED_SIGMA = 2.5
 """The smoothed optimiser's default spread [m/s^2] (``SearchSpec.sigma``). On ``tall-wall-throw`` from zero pushes
 with 240 simulations (2026-11-27): 2.5 ends at 0.75 %, 5 at 19 %, 10 at 7.1e3 % (its copies' steps throw the cloth
 away and the mean gradient follows them)."""
-SMOOTHED_STEP_FRACTION = 4.0
-"""The smoothed optimiser's Adam step is the smoothing's spread divided by this."""
-MULTISTART_POPULATION = 8
-"""The multistart's default number of starts (``SearchSpec.population``)."""
 
 
 @dataclass
@@ -90,9 +84,9 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
       the best point it met, for ``search.refine`` simulations (default a fifth of ``iters``). Each Adam step's
       gradient is the mean of the tape gradients of ``search.population`` (default 8) perturbed copies of the
       pushes, antithetic pairs of spread ``search.sigma`` [m/s^2] (default :data:`SMOOTHED_SIGMA`), run as one batch
-      of worlds (``warpcloth.tasks.optim.smoothed_gradient``); a copy counts a simulation, and each is a point the
-      result may be. Adam's step is ``sigma`` / :data:`SMOOTHED_STEP_FRACTION`: the smoothing is the scale on which
-      the gradient is worth following.
+      of worlds (``warpcloth.tasks.optim.smoothed_descent``); a copy counts a simulation, and each is a point the
+      result may be. Adam's step is ``sigma`` / ``optim.SMOOTHED_STEP_FRACTION``: the smoothing is the scale on
+      which the gradient is worth following.
 
     ``max_step`` [m/s^2] bounds how far one step moves any push. ``search``: the global search's settings (default:
     the task's, ``task.search``).
@@ -150,7 +144,6 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
             if bar is not None:
                 bar.close()
             raise ValueError(f"smoothed: {problem}")
-        rng = np.random.default_rng(search.seed)
 
         def batch(requests: list) -> list:
             out = run(requests)
@@ -161,14 +154,8 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
                     record(point, e.loss, task.error_pct(e.positions))
             return out
 
-        def smoothed(theta: np.ndarray) -> tuple[float, np.ndarray]:
-            try:
-                s = smoothed_gradient(batch, theta, scale=sigma, samples=copies, rng=rng)
-            except (wc.SimulationError, wc.CollisionError):  # every copy raised: momentum carries on
-                return math.inf, np.zeros(task.n_params)
-            return s.loss, s.grad
-
-        adam(smoothed, params, iters=steps, lr=sigma / SMOOTHED_STEP_FRACTION)
+        smoothed_descent(batch, params, sigma=sigma, copies=copies, steps=steps,
+                         rng=np.random.default_rng(search.seed), failures=(wc.SimulationError, wc.CollisionError))
         if math.isfinite(result.error_pct):
             params = result.params.reshape(-1).copy()  # the local stage starts from the best point
         optimizer = default_control_optimizer("open-loop", task.target_com, task.regularizer)

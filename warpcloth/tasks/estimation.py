@@ -32,7 +32,7 @@ from warpcloth.materials import (
 from warpcloth.progress import progress_bar
 from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
-from warpcloth.tasks.optim import adam, cmaes, lbfgs
+from warpcloth.tasks.optim import MULTISTART_POPULATION, SMOOTHED_COPIES, adam, cmaes, lbfgs, smoothed_descent
 from warpcloth.tasks.scenes import THICKEN
 
 # -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
@@ -372,7 +372,10 @@ A fit does not cross these ranges by gradient steps, and the two act together (R
 
 SEARCH_SIGMA = 0.5
 """The global search's default initial spread (``SearchSpec.sigma``) in the parameterization's units (log-scale for
-density, warp/weft stretch and bending: a factor of e^0.5 = 1.65)."""
+density, warp/weft stretch and bending: a factor of e^0.5 = 1.65): CMA-ES's, and the multistart's random starts'."""
+SMOOTHED_SIGMA = 0.05
+"""The smoothed optimiser's default spread (``SearchSpec.sigma``) in the parameterization's units (5 % on the
+log-scale parameters)."""
 
 
 @dataclass
@@ -413,6 +416,13 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     ``initial``'s values. ``cmaes``: a global search, CMA-ES (``warpcloth.tasks.optim.cmaes``) over the free
     parameters around the start with ``search.sigma`` (default :data:`SEARCH_SIGMA`), each point one forward
     evaluation, then L-BFGS from its best point with ``search.refine`` evaluations (default a fifth of ``iters``).
+    ``multistart``: L-BFGS from the start and from ``search.population - 1`` random points around it (normal,
+    ``search.sigma``, default :data:`SEARCH_SIGMA`, on the free parameters), one after another, each with an equal
+    share of the evaluations; the result is the point of least loss any of them met. ``smoothed``: Adam on the
+    Gaussian-smoothed loss (``warpcloth.tasks.optim.smoothed_descent``: each step the mean gradient of
+    ``search.population`` copies, default 8, in antithetic pairs of spread ``search.sigma``, default
+    :data:`SMOOTHED_SIGMA`), then L-BFGS from the point of least loss it met, for ``search.refine`` evaluations
+    (default a fifth of ``iters``). Each copy, start and CMA-ES point counts as an evaluation.
 
     ``scan`` (``{"density": factors, "stretch": factors}``, default ``START_SCAN``): before ``lbfgs`` or ``adam``, the
     loss (forward only) of ``initial`` with its density and its warp and weft stretch times every pair of factors
@@ -446,6 +456,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
             bar.update()
             bar.set_postfix(loss=f"{loss:.3e}", steps=steps)
 
+    best = [math.inf, None]  # the free parameters of least loss evaluated after the scan (the global searches')
+
     def objective(theta: np.ndarray, steps: int | None = None) -> tuple[float, np.ndarray]:
         steps = steps or fit.steps
         try:
@@ -457,6 +469,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
             record(math.inf, steps)
             return math.inf, np.zeros(N_PARAMS)
         record(loss, steps)
+        if loss < best[0]:
+            best[:] = [loss, theta[mask].copy()]
         return loss, param.chain(theta, gd, gs, gb)
 
     def objective_free(theta_free: np.ndarray) -> tuple[float, np.ndarray]:  # theta = 0 (the start) where fixed
@@ -464,6 +478,14 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         theta[mask] = theta_free
         loss, g = objective(theta)
         return loss, g[mask]
+
+    def copies(requests: list) -> list:
+        """The smoothed gradient's copies, one after another: (loss, gradient), or the divergence (left out)."""
+        out = []
+        for point, _ in requests:
+            loss, g = objective_free(point)
+            out.append(_Evaluated(loss, g) if math.isfinite(loss) else wc.SimulationError(result.diverged[-1]))
+        return out
 
     def loss_free(theta_free: np.ndarray) -> float:
         """The loss alone (a forward evaluation): the global search's."""
@@ -487,15 +509,28 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     cost = len(densities) * len(stretches)
     scanning = cost > 1 and optimizer != "seed-sgd" and iters >= 2 * cost
     theta0 = np.zeros(int(mask.sum()))
-    if optimizer == "cmaes":  # the search's budget, checked before any simulation
-        search = search or SearchSpec()
-        budget = iters - cost if scanning else iters
-        refine = budget // 5 if search.refine is None else min(search.refine, budget)
+    search = search or SearchSpec()
+    budget = iters - cost if scanning else iters
+    refine = budget // 5 if search.refine is None else min(search.refine, budget)
+    if optimizer == "cmaes":  # the searches' budgets, checked before any simulation
         population = search.population or 4 + int(3 * math.log(theta0.size))
         generations = (budget - refine) // population
         if not generations:
             raise ValueError(f"cmaes: {budget} evaluations, {refine} of them left to L-BFGS, make no generation of "
                              f"{population} points; raise iters or lower search.population/refine")
+    elif optimizer == "smoothed":
+        population = search.population or SMOOTHED_COPIES
+        smoothed_steps = (budget - refine) // population
+        if population % 2 or not smoothed_steps:
+            raise ValueError(f"smoothed: search.population must be even (antithetic pairs), got {population}"
+                             if population % 2 else
+                             f"smoothed: {budget} evaluations, {refine} of them left to L-BFGS, make no step of "
+                             f"{population} copies; raise iters or lower search.population/refine")
+    elif optimizer == "multistart":
+        population = search.population or MULTISTART_POPULATION
+        if population > budget:
+            raise ValueError(f"multistart: {population} starts for {budget} evaluations; each start needs one at "
+                             "least")
     if scanning:
         initial = _scan_start(fit, initial, densities, stretches, result, record)
         param = MaterialParameterization(initial)
@@ -506,6 +541,21 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     elif optimizer == "adam":
         theta = np.zeros(N_PARAMS)
         theta[mask] = adam(objective_free, theta0, iters=iters)
+    elif optimizer == "multistart":
+        rng = np.random.default_rng(search.seed)
+        sigma = search.sigma or SEARCH_SIGMA
+        starts = [theta0] + [rng.normal(0.0, sigma, theta0.size) for _ in range(population - 1)]
+        for k, start in enumerate(starts):  # an equal share each, the remainder to the first
+            lbfgs(objective_free, start, iters=iters // population + (k == 0) * (iters % population))
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = theta0 if best[1] is None else best[1]  # None: every evaluation diverged
+    elif optimizer == "smoothed":
+        smoothed_descent(copies, theta0, sigma=search.sigma or SMOOTHED_SIGMA, copies=population,
+                         steps=smoothed_steps, rng=np.random.default_rng(search.seed))
+        remaining = iters - smoothed_steps * population
+        start = theta0 if best[1] is None else best[1]  # None: every copy diverged
+        theta = np.zeros(N_PARAMS)
+        theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     elif optimizer == "cmaes":
         start = cmaes(lambda points: [loss_free(q) for q in points], theta0, sigma=search.sigma or SEARCH_SIGMA,
                       generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
@@ -521,6 +571,12 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     result.simulation_error_pct = fit.simulation_error(result.material)
     result.initial_simulation_error_pct = fit.simulation_error(result.initial)
     return result
+
+
+@dataclass
+class _Evaluated:
+    loss: float
+    grad: np.ndarray
 
 
 def _scan_start(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, densities: Sequence[float],
