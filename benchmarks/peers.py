@@ -13,7 +13,12 @@ wall second) that meets it, and how far each solver's reference ends from warpcl
 Part 2, Newton's differentiable-simulation cloth example (newton/examples/diffsim/example_diffsim_cloth.py: a
 16x16 cloth thrown so that its centre of mass reaches (0, 8, 0) after 2 s; loss |com - target|^2, gradient
 descent with rate 5 on the initial particle velocities), run as Newton ships it, and the same task in warpcloth.
-Time per optimisation iteration (forward + backward + update) and the loss after the same number of iterations.
+Time per optimisation iteration (forward + backward + update) and the loss after the same number of iterations;
+warpcloth both recorded on a tape at each iteration and replayed from a graph (``wc.CapturedRollout``, made in the
+first iteration).
+
+Part 1's ``warpcloth-captured`` is the default warpcloth with each run replayed from a graph (the same positions,
+bitwise), its step time the replay's over its steps, without making the graph (an ordinary run and a capture).
 
 Matching the models (Lame parameters mu, lambda [N/m]; warpcloth's energy per rest area is
 1/2 (k0 G00^2 + 2 k1 G00 G11 + k2 G11^2) + k3 G01^2, so linear elasticity is k0 = k2 = 2 mu + lambda, k1 = lambda,
@@ -97,14 +102,15 @@ SWEEPS = {
     "warpcloth": (20, 50, 100, 250, 500, 1000),
     "warpcloth-fast": (20, 50, 100, 250, 500, 1000),
     "warpcloth-bdf2": (20, 50, 100, 250, 500, 1000),
+    "warpcloth-captured": (20, 50, 100, 250, 500, 1000),
     "vbd": (60, 150, 300, 600),
     "style3d": (60, 120, 240),
     "xpbd": (600, 1200, 2400, 4800),  # its Jacobi-style constraint solve needs small steps once springs are stiff
     "semi_implicit": (960, 1920, 3840, 7680),
 }
 SOLVERS = tuple(SWEEPS)
-DEFAULT_SOLVERS = ("warpcloth", "warpcloth-bdf2", "vbd", "style3d", "xpbd", "semi_implicit")
-WARPCLOTH = ("warpcloth", "warpcloth-fast", "warpcloth-bdf2")
+DEFAULT_SOLVERS = ("warpcloth", "warpcloth-captured", "warpcloth-bdf2", "vbd", "style3d", "xpbd", "semi_implicit")
+WARPCLOTH = ("warpcloth", "warpcloth-fast", "warpcloth-bdf2", "warpcloth-captured")
 BLOWUP_M = 50.0  # a particle this far from the origin: the run diverged
 
 NEWTON_HINT = ('newton is not installed: pip install -e ".[bench]" (Newton 1.8.0); '
@@ -130,7 +136,7 @@ def pinned(res: int):
 
 
 # -- warpcloth -------------------------------------------------------------------------------------------------------
-def build_warpcloth(res: int, options: wc.SolverOptions):
+def build_warpcloth(res: int, options: wc.SolverOptions, captured: bool = False):
     positions, triangles = grid(res)
     mesh = wc.TriangleMesh(positions=positions, triangles=triangles, tri_uv=positions[triangles][:, :, :2].copy())
     material = wc.Material.isotropic(density=DENSITY, stretch_stiffness=2 * MU + LAMBDA, shear_stiffness=2 * MU,
@@ -145,6 +151,13 @@ def build_warpcloth(res: int, options: wc.SolverOptions):
     def simulate(k: int, steps: int, step_times: list):
         # one Simulator per dt (built once), states ping-ponged like Newton's examples do
         sim = sims.get(k) or sims.setdefault(k, wc.Simulator(model, 1.0 / k, options=options))
+        if captured:  # the run replayed from a graph (made by an ordinary run and a capture, not timed): each
+            # step's time is the replay's over its steps
+            replay = wc.CapturedRollout(sim, model.state(), steps=steps)
+            t0 = time.perf_counter()
+            x = replay.run()[-1].particle_x
+            step_times.extend([(time.perf_counter() - t0) / steps] * steps)
+            return None if diverged(x, steps - 1, steps) else x.numpy()
         a, b_ = model.state(), model.empty_state()  # a fresh State: every run starts cold
         for i in range(steps):
             t0 = time.perf_counter()
@@ -255,6 +268,8 @@ def build(solver: str, res: int):
         return build_warpcloth(res, wc.solver_preset("fast").options)
     if solver == "warpcloth-bdf2":  # the second-order integrator at the default tolerance
         return build_warpcloth(res, wc.SolverOptions(integrator="bdf2"))
+    if solver == "warpcloth-captured":  # the default, each run replayed as a graph (wc.CapturedRollout)
+        return build_warpcloth(res, wc.SolverOptions(), captured=True)
     return BUILDERS[solver](res)
 
 
@@ -528,7 +543,9 @@ def diffsim_warpcloth_model():
     return b.finalize("cpu", requires_grad=True)
 
 
-def diffsim_warpcloth(iters: int, dt_error: bool = True) -> dict:
+def diffsim_warpcloth(iters: int, dt_error: bool = True, captured: bool = False) -> dict:
+    """The task in warpcloth, each iteration recorded on a tape, or with ``captured`` replayed from a graph
+    (wc.CapturedRollout with the loss: forward and backward; made in the first iteration, which its time includes)."""
     d = DIFFSIM
     model = diffsim_warpcloth_model()
     sim = wc.Simulator(model, 1.0 / DIFFSIM_WC_FPS)
@@ -537,6 +554,22 @@ def diffsim_warpcloth(iters: int, dt_error: bool = True) -> dict:
     x0 = model.state().particle_x
     v0 = wp.clone(model.state().particle_v, requires_grad=True)
     target = wp.vec3(*d["target"])
+
+    def loss_of(trajectory):
+        com = wp.zeros(1, dtype=wp.vec3, requires_grad=True)
+        loss = wp.zeros(1, dtype=float, requires_grad=True)
+        wp.launch(mean_position, n, inputs=[trajectory[-1].particle_x, float(n)], outputs=[com])
+        wp.launch(squared_distance, 1, inputs=[com, target], outputs=[loss])
+        return loss
+
+    replay = []
+
+    def replayed():
+        if not replay:  # the rollout's graph reads x0 and v0 in place at every replay
+            replay.append(wc.CapturedRollout(sim, wc.State(x0, v0, 0.0), steps=steps, loss=loss_of))
+        replay[0].run()
+        wp.launch(descend, n, inputs=[v0, v0.grad, d["lr"]])
+        return float(replay[0].loss.numpy()[0]), None
 
     def iteration():
         com = wp.zeros(1, dtype=wp.vec3, requires_grad=True)
@@ -553,7 +586,7 @@ def diffsim_warpcloth(iters: int, dt_error: bool = True) -> dict:
 
     times, losses = [], []
     for _ in range(iters):
-        t, (value, _) = common.timed(iteration)
+        t, (value, _) = common.timed(replayed if captured else iteration)
         times.append(t)
         losses.append(value)
 
@@ -580,17 +613,21 @@ def diffsim(iters: int, with_newton: bool, dt_error: bool = True) -> dict:
     out = {"iters": iters, "task": {k: v for k, v in DIFFSIM.items()}}
     out["warpcloth"] = diffsim_warpcloth(iters, dt_error)
     print(f"  warpcloth: {out['warpcloth']['s_per_iter']:.3f} s/iteration", flush=True)
+    out["warpcloth_captured"] = diffsim_warpcloth(iters, dt_error=False, captured=True)
+    print(f"  warpcloth, replayed: {out['warpcloth_captured']['s_per_iter']:.3f} s/iteration", flush=True)
     if with_newton:
         out["newton"] = diffsim_newton(iters)
         print(f"  newton:    {out['newton']['s_per_iter']:.3f} s/iteration", flush=True)
-    w, nw = out["warpcloth"], out.get("newton")
-    rows = [["warpcloth", w["steps"], dt_label(DIFFSIM_WC_FPS), w["s_per_iter"], w["losses"][0], w["losses"][-1],
-             w["losses"][-1] / w["losses"][0]]]
+    w, wc_, nw = out["warpcloth"], out["warpcloth_captured"], out.get("newton")
+    rows = [[name, r["steps"], dt_label(DIFFSIM_WC_FPS), r["s_per_iter"], r["losses"][0], r["losses"][-1],
+             r["losses"][-1] / r["losses"][0]] for name, r in (("warpcloth", w), ("warpcloth, replayed", wc_))]
     if nw:
         rows.append(["newton SemiImplicit", nw["steps"], dt_label(round(1 / nw["dt"])), nw["s_per_iter"],
                      nw["losses"][0], nw["losses"][-1], nw["losses"][-1] / nw["losses"][0]])
         out["speedup"] = nw["s_per_iter"] / w["s_per_iter"]
+        out["speedup_replayed"] = nw["s_per_iter"] / wc_["s_per_iter"]
         out["speedup_met"] = out["speedup"] >= DIFFSIM_TARGET_SPEEDUP
+        out["speedup_replayed_met"] = out["speedup_replayed"] >= DIFFSIM_TARGET_SPEEDUP
         out["loss_met"] = w["losses"][-1] <= nw["losses"][-1]
     common.print_table(["simulator", "steps", "dt", "s / iteration", "first loss", f"loss at iteration {iters}",
                         "ratio"], rows, ["", "d", "", ".3f", ".2f", ".2f", ".3f"],
@@ -600,7 +637,8 @@ def diffsim(iters: int, with_newton: bool, dt_error: bool = True) -> dict:
               f"{w['com_dt_error_m'] * 100:.2f} cm; {w['cg_iters_per_step']:.1f} CG iterations per step")
     if nw:
         print(f"  target: warpcloth >= {DIFFSIM_TARGET_SPEEDUP:g}x faster per iteration: {out['speedup']:.1f}x "
-              f"{'MET' if out['speedup_met'] else 'NOT MET'}; loss <= Newton's after {iters}: "
+              f"{'MET' if out['speedup_met'] else 'NOT MET'} taped, {out['speedup_replayed']:.1f}x "
+              f"{'MET' if out['speedup_replayed_met'] else 'NOT MET'} replayed; loss <= Newton's after {iters}: "
               f"{w['losses'][-1]:.2f} vs {nw['losses'][-1]:.2f} {'MET' if out['loss_met'] else 'NOT MET'}")
         print("  (aerodynamics not matched, see diffsim_warpcloth_model: the two losses are of similar, not equal, "
               "tasks)")
@@ -612,7 +650,8 @@ def options(p) -> None:
     p.add_argument("--res", default=None, help="comma-separated grid resolutions (default 32,64; --quick: 8)")
     p.add_argument("--solvers", default=",".join(DEFAULT_SOLVERS),
                    help=f"comma-separated, from {','.join(SOLVERS)} (warpcloth-fast: the 'fast' preset, cg_tol 1e-3; "
-                        "warpcloth-bdf2: SolverOptions(integrator='bdf2'))")
+                        "warpcloth-bdf2: SolverOptions(integrator='bdf2'); warpcloth-captured: the default, each run "
+                        "replayed from a graph)")
     p.add_argument("--t-end", type=float, default=None, help=f"simulated time of every run [s] (default {T_END:g}; "
                    "--quick: 0.1)")
     p.add_argument("--sweep-points", type=int, default=None,

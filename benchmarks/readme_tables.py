@@ -414,6 +414,7 @@ def components(d: dict) -> str:
 
 
 PEER_NAMES = {"warpcloth": "warpcloth", "warpcloth-fast": "warpcloth `fast`", "warpcloth-bdf2": "warpcloth BDF2",
+              "warpcloth-captured": "warpcloth, replayed",
               "vbd": "Newton VBD", "style3d": "Newton Style3D", "xpbd": "Newton XPBD",
               "semi_implicit": "Newton SemiImplicit"}
 
@@ -462,10 +463,15 @@ def peers(d: dict) -> str:
     ds = d.get("diffsim")
     if ds and "newton" in ds:
         w, n = ds["warpcloth"], ds["newton"]
+        replayed = ""
+        if "warpcloth_captured" in ds:
+            replayed = (f", {g(ds['warpcloth_captured']['s_per_iter'], 2)} s replayed from a graph "
+                        f"(`wc.CapturedRollout`: {ds['speedup_replayed']:.1f}×, {met(ds['speedup_replayed_met'])})")
         out.append(f"Newton's diffsim cloth example ({ds['iters']} iterations): warpcloth {g(w['s_per_iter'], 2)} s "
                    f"per iteration against {g(n['s_per_iter'], 2)} s ({ds['speedup']:.1f}×; target "
-                   f"{5:g}×: {met(ds['speedup_met'])}); loss after {ds['iters']} iterations {g(w['losses'][-1])} "
-                   f"against {g(n['losses'][-1])} (first loss {g(w['losses'][0])} against {g(n['losses'][0])}). "
+                   f"{5:g}×: {met(ds['speedup_met'])}){replayed}; loss after {ds['iters']} iterations "
+                   f"{g(w['losses'][-1])} against {g(n['losses'][-1])} (first loss {g(w['losses'][0])} against "
+                   f"{g(n['losses'][0])}). "
                    f"warpcloth's dt 1/{round(1 / w['dt'])} moves the 2 s centre of mass by "
                    f"{g(100 * w['com_dt_error_m'], 2)} cm against Newton's dt 1/{round(1 / n['dt'])}.")
     newton = d.get("newton") or (d.get("machine") or {}).get("newton")
