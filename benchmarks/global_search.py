@@ -15,8 +15,8 @@ until the best result. The figures are the medians over the starts, every run li
   (5 m/s^2), ``--iters`` / 8 simulations each.
 * ``cmaes``: CMA-ES (population 4 + 3 ln 36 = 14, sigma 5 m/s^2, forward-only batches of worlds) for
   ``--iters`` minus a fifth, then Gauss-Newton from its best point.
-* ``smoothed``: Adam on the Gaussian-smoothed loss (8 perturbed copies a step, sigma 2.5 m/s^2, one batch of worlds
-  each, forward and backward), step 0.625 m/s^2, for ``--iters`` minus a fifth, then Gauss-Newton from its best
+* ``smoothed``: Adam on the Gaussian-smoothed loss (8 perturbed copies a step, sigma 5 m/s^2, one batch of worlds
+  each, forward and backward), step 5 m/s^2, for ``--iters`` minus a fifth, then Gauss-Newton from its best
   point.
 
 ``--optimizers`` naming some of them reruns those and keeps the others' records from the earlier result at

@@ -166,10 +166,11 @@ def test_the_smoothed_search_follows_the_mean_gradient_of_its_copies_and_refines
     copies = seen[:8]
     np.testing.assert_allclose(copies[0][1] + copies[2][1], 0.0, atol=1e-12)  # antithetic around zero pushes
     assert task.evaluate(copies[1][1]).loss == copies[1][0]  # each copy's loss is its own simulation's
-    # Adam's first step moves every push by its step, sigma / 4, against the mean gradient of the copies
+    # Adam's first step moves every push by its step, sigma (controllers.SMOOTHED_STEP_FRACTION is
+    # 1), against the mean gradient of the copies
     grad = np.mean([task.evaluate(p).grad for _, p in copies[:4]], axis=0)
     centre = 0.5 * (copies[4][1] + copies[6][1])
-    np.testing.assert_allclose(centre, -sigma / 4 * np.sign(grad), rtol=1e-9)
+    np.testing.assert_allclose(centre, -sigma * np.sign(grad), rtol=1e-9)
     best = min(range(8), key=lambda k: result.errors_pct[k])
     np.testing.assert_array_equal(seen[8][1], copies[best][1])  # the local stage starts at the best copy
     assert result.error_pct == min(result.errors_pct)

@@ -99,7 +99,7 @@ A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth est
                                        #   (8) and their spread [m/s^2] (5); cmaes: points per generation (one
                                        #   simulation each, run as worlds of one batch; default 4 + 3 ln n), initial
                                        #   spread (5) and refine = simulations left to the local optimiser (a fifth
-                                       #   of iters); smoothed: copies a step (8), their spread (2.5), refine
+                                       #   of iters); smoothed: copies a step (8), their spread (5), refine
                                        #   as cmaes's; random seed (0)
     warm_start = 20                    # optional, the MLP only: first optimise the pushes themselves with this many
                                        #   simulations and fit the network's output layer to them (default 0: none)
@@ -172,7 +172,7 @@ class SearchSpec:
         population: CMA-ES's points per generation, each one simulation (default 4 + floor(3 ln n), n parameters);
             the multistart's starts (default 8); the smoothed search's copies a step (default 8, even).
         sigma: CMA-ES's initial standard deviation, the multistart's spread of starts, the smoothing's, in the
-            parameters' units (default: the task's; for control, pushes 5 m/s^2 and 2.5 smoothed; for estimation, 0.5
+            parameters' units (default: the task's; for control, pushes 5 m/s^2, also smoothed; for estimation, 0.5
             of the material's log-scale parameters and 0.05 smoothed).
         refine: CMA-ES and the smoothed search: simulations left to the local optimiser (default a fifth of the
             budget).

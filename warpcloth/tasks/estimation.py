@@ -376,6 +376,8 @@ density, warp/weft stretch and bending: a factor of e^0.5 = 1.65): CMA-ES's, and
 SMOOTHED_SIGMA = 0.05
 """The smoothed optimiser's default spread (``SearchSpec.sigma``) in the parameterization's units (5 % on the
 log-scale parameters)."""
+SMOOTHED_STEP_FRACTION = 4.0
+"""The smoothed optimiser's Adam step is its spread divided by this."""
 
 
 @dataclass
@@ -421,7 +423,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     share of the evaluations; the result is the point of least loss any of them met. ``smoothed``: Adam on the
     Gaussian-smoothed loss (``warpcloth.tasks.optim.smoothed_descent``: each step the mean gradient of
     ``search.population`` copies, default 8, in antithetic pairs of spread ``search.sigma``, default
-    :data:`SMOOTHED_SIGMA`), then L-BFGS from the point of least loss it met, for ``search.refine`` evaluations
+    :data:`SMOOTHED_SIGMA`; Adam's step a quarter of it), then L-BFGS from the point of least loss it met, for
+    ``search.refine`` evaluations
     (default a fifth of ``iters``). Each copy, start and CMA-ES point counts as an evaluation.
 
     ``scan`` (``{"density": factors, "stretch": factors}``, default ``START_SCAN``): before ``lbfgs`` or ``adam``, the
@@ -550,7 +553,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         theta = np.zeros(N_PARAMS)
         theta[mask] = theta0 if best[1] is None else best[1]  # None: every evaluation diverged
     elif optimizer == "smoothed":
-        smoothed_descent(copies, theta0, sigma=search.sigma or SMOOTHED_SIGMA, copies=population,
+        sigma = search.sigma or SMOOTHED_SIGMA
+        smoothed_descent(copies, theta0, sigma=sigma, step=sigma / SMOOTHED_STEP_FRACTION, copies=population,
                          steps=smoothed_steps, rng=np.random.default_rng(search.seed))
         remaining = iters - smoothed_steps * population
         start = theta0 if best[1] is None else best[1]  # None: every copy diverged

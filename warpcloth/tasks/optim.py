@@ -138,15 +138,11 @@ SMOOTHED_COPIES = 8
 """The smoothed optimiser's perturbed copies a step (``SearchSpec.population``): four antithetic pairs."""
 MULTISTART_POPULATION = 8
 """The multistart's default number of starts (``SearchSpec.population``)."""
-SMOOTHED_STEP_FRACTION = 4.0
-""":func:`smoothed_descent`'s Adam step is the smoothing's spread divided by this: the smoothing is the scale on
-which the gradient is worth following."""
-
-
-def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, copies: int, steps: int,
+def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, step: float, copies: int, steps: int,
                      rng: np.random.Generator, failures: tuple[type[Exception], ...] = ()) -> np.ndarray:
-    """Adam on the Gaussian-smoothed loss L_s(p) = E[L(p + sigma eps)] from ``x0``, ``steps`` steps of
-    sigma / :data:`SMOOTHED_STEP_FRACTION`, each step's gradient from ``copies`` perturbed copies
+    """Adam on the Gaussian-smoothed loss L_s(p) = E[L(p + sigma eps)] from ``x0``, ``steps`` steps of Adam's
+    ``step`` (its learning rate: how far a step moves each parameter), each step's gradient from ``copies`` perturbed
+    copies
     (:func:`smoothed_gradient`, ``evaluate_many`` as there: its batch sees every copy, so the caller records them and
     keeps the best point it met). A step whose every copy raised one of ``failures`` has an infinite loss and no
     gradient: Adam's momentum carries on. Returns Adam's best iterate (the smoothed loss's, an estimate)."""
@@ -158,8 +154,7 @@ def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, copies: int
             return math.inf, np.zeros_like(theta)
         return s.loss, s.grad
 
-    return adam(smoothed, np.asarray(x0, dtype=np.float64).reshape(-1), iters=steps,
-                lr=sigma / SMOOTHED_STEP_FRACTION)
+    return adam(smoothed, np.asarray(x0, dtype=np.float64).reshape(-1), iters=steps, lr=step)
 
 
 def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int, rng: np.random.Generator,
