@@ -15,6 +15,7 @@ from warpcloth.tasks import scenes
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
 from warpcloth.tasks.control import WHOLE_TAPE_PARTICLE_STEPS, scene_task_args
+from warpcloth.tasks.optim import lbfgs
 
 EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
 
@@ -286,7 +287,31 @@ def test_a_batch_of_worlds_fits_each_world_as_it_fits_alone():
         assert fit.losses_and_grads(starts)[w][0] == alone.loss_and_grad(starts[w])[0]
         np.testing.assert_array_equal(fit.losses_and_grads(starts)[w][2], alone.loss_and_grad(starts[w])[2])
     assert results[0].losses != results[1].losses and all(len(r.losses) == 10 for r in results)
+    assert all(r.horizons == [6] * 4 + [2, 4] + [6] * 4 for r in results)  # the scan, then the curriculum's stages
     assert results[0].seconds > 0.0
+
+
+def test_lbfgs_fits_in_stages_of_growing_horizon():
+    """The default curriculum (E.CURRICULUM): L-BFGS on the first 2 steps' frames, then on 4, then on all 6, with
+    2 : 2 : 3 of the evaluations, each stage from where the one before ended; every loss the simulation's at its
+    horizon. Without a curriculum every evaluation is over the whole horizon; a bad curriculum is refused."""
+    truth = wc.preset("tango-red-jet-set", thicken=2)
+    fit = _fit_alone(S.hanging_cloth_builder(truth, res=3), truth)
+    result = E.estimate_material(fit, iters=14, scan=None)
+    assert result.horizons == [2] * 4 + [4] * 4 + [6] * 6
+    param = E.MaterialParameterization(E.initial_guess())
+    theta, losses = np.zeros(E.N_PARAMS), []
+    for steps, iters in ((2, 4), (4, 4), (6, 6)):
+        def objective(th, steps=steps):
+            loss, *grads = fit.loss_and_grad(param.decode(th), steps)
+            losses.append(loss)
+            return loss, param.chain(th, *grads)
+        theta = lbfgs(objective, theta, iters=iters)
+    assert losses == result.losses
+    assert fit.loss(result.material) == fit.loss(param.decode(theta)) < fit.loss(E.initial_guess())
+    assert E.estimate_material(fit, iters=5, scan=None, curriculum=None).horizons == [6] * 5
+    with pytest.raises(ValueError, match=r"curriculum: growing fractions of the horizon in \(0, 1\], the last 1"):
+        E.estimate_material(fit, iters=5, scan=None, curriculum=((0.7, 1.0), (0.4, 1.0)))
 
 
 def test_a_trial_that_fails_in_one_world_is_rejected_there_alone():

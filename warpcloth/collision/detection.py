@@ -53,6 +53,7 @@ def node_worlds(model: Model, obstacles: bool) -> np.ndarray:
         worlds.append(model.obstacle_world[model.obstacle_vertex_body.numpy()])
     return np.concatenate(worlds).astype(np.int32)
 
+
 BVH_CONSTRUCTOR = {"cpu": "median", "cuda": "lbvh"}
 """The BVH build per device, one Warp 1.19 rebuilds in place (``Bvh.rebuild``; on CUDA Warp's default). On the CPU
 the median split rebuilds 2.5x faster than Warp's default SAH (this machine: 10 against 26 us at 128 boxes, 43
