@@ -310,8 +310,10 @@ def test_lbfgs_fits_in_stages_of_growing_horizon():
     assert losses == result.losses
     assert fit.loss(result.material) == fit.loss(param.decode(theta)) < fit.loss(E.initial_guess())
     assert E.estimate_material(fit, iters=5, scan=None, curriculum=None).horizons == [6] * 5
+    before = fit.evaluations, fit.seconds
     with pytest.raises(ValueError, match=r"curriculum: growing fractions of the horizon in \(0, 1\], the last 1"):
-        E.estimate_material(fit, iters=5, scan=None, curriculum=((0.7, 1.0), (0.4, 1.0)))
+        E.estimate_material(fit, iters=50, curriculum=((0.7, 1.0), (0.4, 1.0)))  # with the start scan
+    assert (fit.evaluations, fit.seconds) == before  # refused before any simulation
 
 
 def test_a_trial_that_fails_in_one_world_is_rejected_there_alone():

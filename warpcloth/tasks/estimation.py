@@ -435,8 +435,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     Gaussian-smoothed loss (``warpcloth.tasks.optim.smoothed_descent``: each step the mean gradient of
     ``search.population`` copies, default 8, in antithetic pairs of spread ``search.sigma``, default
     :data:`SMOOTHED_SIGMA`; Adam's step a quarter of it), then L-BFGS from the point of least loss it met, for
-    ``search.refine`` evaluations
-    (default a fifth of ``iters``). Each copy, start and CMA-ES point counts as an evaluation.
+    ``search.refine`` evaluations (default a fifth of ``iters``). Each copy, start and CMA-ES point counts as an
+    evaluation.
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
@@ -549,13 +549,14 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         if population > budget:
             raise ValueError(f"multistart: {population} starts for {budget} evaluations; each start needs one at "
                              "least")
+    stages = _stages(fit, curriculum, budget) if optimizer == "lbfgs" else None  # checked before any simulation
     if scanning:
         initial = _scan_start(fit, initial, densities, stretches, result, record)
         param = MaterialParameterization(initial)
         iters -= cost
     if optimizer == "lbfgs":
         theta_free = theta0
-        for steps, evaluations in _stages(fit, curriculum, iters):  # L-BFGS starts afresh at each horizon
+        for steps, evaluations in stages:  # L-BFGS starts afresh at each horizon
             theta_free = lbfgs(lambda t, steps=steps: objective_free(t, steps), theta_free, iters=evaluations)
         theta = np.zeros(N_PARAMS)
         theta[mask] = theta_free
