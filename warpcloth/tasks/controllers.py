@@ -19,7 +19,7 @@ import warpcloth as wc
 from warpcloth.progress import progress_bar
 from warpcloth.scene import SearchSpec, check_control_optimizer, default_control_optimizer
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
-from warpcloth.tasks.optim import MULTISTART_POPULATION, SMOOTHED_COPIES, cmaes, lbfgs, smoothed_descent
+from warpcloth.tasks.optim import MULTISTART_POPULATION, SMOOTHED_COPIES, cmaes, lbfgs, smoothed_descent, smoothed_steps
 
 if TYPE_CHECKING:
     from warpcloth.tasks.control import ControlTask, Evaluation
@@ -143,14 +143,12 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
         refine = iters // 5 if search.refine is None else min(search.refine, iters)
         copies = search.population or SMOOTHED_COPIES
         sigma = search.sigma or SMOOTHED_SIGMA
-        steps = (iters - refine) // copies
-        problem = (f"search.population must be even (antithetic pairs), got {copies}" if copies % 2 else
-                   None if steps else f"{iters} simulations, {refine} of them left to the local optimiser, make no "
-                                      f"step of {copies} copies; raise iters or lower search.population/refine")
-        if problem:
+        try:
+            steps = smoothed_steps(iters, refine, copies, unit="simulations", local="the local optimiser")
+        except ValueError:
             if bar is not None:
                 bar.close()
-            raise ValueError(f"smoothed: {problem}")
+            raise
 
         def batch(requests: list) -> list:
             out = run(requests)

@@ -32,7 +32,15 @@ from warpcloth.materials import (
 from warpcloth.progress import progress_bar
 from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
-from warpcloth.tasks.optim import MULTISTART_POPULATION, SMOOTHED_COPIES, adam, cmaes, lbfgs, smoothed_descent
+from warpcloth.tasks.optim import (
+    MULTISTART_POPULATION,
+    SMOOTHED_COPIES,
+    adam,
+    cmaes,
+    lbfgs,
+    smoothed_descent,
+    smoothed_steps,
+)
 from warpcloth.tasks.scenes import THICKEN
 
 # -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
@@ -538,12 +546,7 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
                              f"{population} points; raise iters or lower search.population/refine")
     elif optimizer == "smoothed":
         population = search.population or SMOOTHED_COPIES
-        smoothed_steps = (budget - refine) // population
-        if population % 2 or not smoothed_steps:
-            raise ValueError(f"smoothed: search.population must be even (antithetic pairs), got {population}"
-                             if population % 2 else
-                             f"smoothed: {budget} evaluations, {refine} of them left to L-BFGS, make no step of "
-                             f"{population} copies; raise iters or lower search.population/refine")
+        adam_steps = smoothed_steps(budget, refine, population, unit="evaluations", local="L-BFGS")
     elif optimizer == "multistart":
         population = search.population or MULTISTART_POPULATION
         if population > budget:
@@ -574,8 +577,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     elif optimizer == "smoothed":
         sigma = search.sigma or SMOOTHED_SIGMA
         smoothed_descent(copies, theta0, sigma=sigma, step=sigma / SMOOTHED_STEP_FRACTION, copies=population,
-                         steps=smoothed_steps, rng=np.random.default_rng(search.seed))
-        remaining = iters - smoothed_steps * population
+                         steps=adam_steps, rng=np.random.default_rng(search.seed))
+        remaining = iters - adam_steps * population
         start = theta0 if best[1] is None else best[1]  # None: every copy diverged
         theta = np.zeros(N_PARAMS)
         theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start

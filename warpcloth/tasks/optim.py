@@ -138,6 +138,19 @@ SMOOTHED_COPIES = 8
 """The smoothed optimiser's perturbed copies a step (``SearchSpec.population``): four antithetic pairs."""
 MULTISTART_POPULATION = 8
 """The multistart's default number of starts (``SearchSpec.population``)."""
+def smoothed_steps(budget: int, refine: int, copies: int, *, unit: str, local: str) -> int:
+    """The Adam steps of :func:`smoothed_descent` that ``budget`` simulations make with ``refine`` of them left to the
+    ``local`` optimiser, ``copies`` a step; ValueError (naming the setting, the budget counted in ``unit``) where the
+    copies are not antithetic pairs or the budget makes no step: checked before any simulation."""
+    if copies % 2:
+        raise ValueError(f"smoothed: search.population must be even (antithetic pairs), got {copies}")
+    steps = (budget - refine) // copies
+    if not steps:
+        raise ValueError(f"smoothed: {budget} {unit}, {refine} of them left to {local}, make no step of {copies} "
+                         "copies; raise iters or lower search.population/refine")
+    return steps
+
+
 def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, step: float, copies: int, steps: int,
                      rng: np.random.Generator, failures: tuple[type[Exception], ...] = ()) -> np.ndarray:
     """Adam on the Gaussian-smoothed loss L_s(p) = E[L(p + sigma eps)] from ``x0``, ``steps`` steps of Adam's
