@@ -24,7 +24,7 @@ def loss_kernels(scalar):
     Returns:
         A namespace with the kernels ``squared_distance``, ``world_squared_distance``, ``centre_of_mass``,
         ``add_component``, ``point_squared_distance``, ``add_sum`` and ``push_forces`` (the ``world_`` kernels and
-        those after it sum each world of a model into its own entry).
+        those after it sum each world of a model into its own entry), and ``store_frame``.
     """
     vec3 = types(scalar).vec3
 
@@ -128,6 +128,21 @@ def loss_kernels(scalar):
         j = t - w * m
         force[first[w] + particles[j]] = scale * push[(w * blocks + block) * m + j]
 
+    @wp.kernel
+    def store_frame(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        frame: int,
+        # out:
+        xs: wp.array2d(dtype=vec3),
+        vs: wp.array2d(dtype=vec3),
+    ):
+        """xs[frame] = x, vs[frame] = v: one state into a trajectory's rows (the torch bridge's replayed rollouts
+        hand their trajectory over, and take its gradient back, through it); one thread per particle."""
+        i = wp.tid()
+        xs[frame, i] = x[i]
+        vs[frame, i] = v[i]
+
     return SimpleNamespace(
         squared_distance=squared_distance,
         world_squared_distance=world_squared_distance,
@@ -136,5 +151,6 @@ def loss_kernels(scalar):
         add_component=add_component,
         point_squared_distance=point_squared_distance,
         push_forces=push_forces,
+        store_frame=store_frame,
     )
 

@@ -427,6 +427,18 @@ def test_mlp_gauss_newton_training_improves_at_three_simulations_a_point():
     assert result.error_pct < 0.5 * errors[0]
 
 
+@pytest.mark.parametrize("optimizer", ["gauss-newton", "adam"])
+def test_mlp_training_replays_its_intervals_with_the_uncaptured_results(optimizer):
+    # every interval of every closed-loop simulation from its third call on is a replayed graph; the histories are
+    # the uncaptured training's, bitwise
+    pytest.importorskip("torch")
+    results = [C.train_mlp(C.ThrowTask(S.basket_scene("cpu"), steps=300), iters=7, optimizer=optimizer,
+                           zero_start=False, capture=capture) for capture in (False, True)]
+    assert results[0].errors_pct == results[1].errors_pct and results[0].losses == results[1].losses
+    np.testing.assert_array_equal(results[0].params, results[1].params)
+    assert len(set(results[0].errors_pct)) > 2  # the weights moved
+
+
 def test_mlp_optimizers_are_checked():
     pytest.importorskip("torch")
     task = C.ThrowTask(S.basket_scene("cpu"), steps=20)

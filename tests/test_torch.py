@@ -374,7 +374,158 @@ def test_tape_released_when_graph_dropped(small):
     assert rec.tape is None
 
 
-# -- 5. errors --------------------------------------------------------------------------------------------------------
+# -- 5. captured calls -----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def launches(monkeypatch):
+    """Counts the kernels launched from Python (a replayed graph launches none)."""
+    count = [0]
+    launch = wp.launch
+
+    def counting(*args, **kwargs):
+        count[0] += 1
+        return launch(*args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", counting)
+    return count
+
+
+def simulate_and_differentiate(problem, sim, inputs, capture, force_form="steps"):
+    """One call of simulate and the loss's backward: (x, v, the six inputs' gradients) as NumPy."""
+    t = problem.torch_inputs(force_form) if inputs is None else inputs()
+    x, v = wct.simulate(sim, t["x0"], t["v0"], steps=problem.steps, particle_force=t["particle_force"],
+                        density=t["density"], stretching=t["stretching"], bending=t["bending"], capture=capture)
+    problem.loss_torch(x, v).backward()
+    return x.detach().numpy(), v.detach().numpy(), {k: a.grad.numpy() for k, a in t.items()}
+
+
+def assert_same_call(got, expected):
+    np.testing.assert_array_equal(got[0], expected[0], err_msg="x")
+    np.testing.assert_array_equal(got[1], expected[1], err_msg="v")
+    for name, g in expected[2].items():
+        assert np.any(g), name
+        np.testing.assert_array_equal(got[2][name], g, err_msg=name)
+
+
+@pytest.mark.parametrize("force_form", ["steps", "shared"])
+def test_captured_calls_equal_uncaptured_ones_for_every_input(problem, force_form, launches):
+    # two sets of inputs in turn: the first call of each runs, the second records the graphs, later ones replay them
+    # (no launch from Python), each with its own inputs' trajectory and gradients, bitwise
+    other = Problem(seed=3)
+    expected = [simulate_and_differentiate(p, wc.Simulator(p.model, DT, options=OPTIONS), None, False, force_form)
+                for p in (problem, other)]
+    sim = wc.Simulator(build_model(), DT, options=OPTIONS)
+    for call in range(6):
+        p = (problem, other)[call % 2]
+        before = launches[0]
+        got = simulate_and_differentiate(p, sim, lambda p=p: p.torch_inputs(force_form), True, force_form)
+        assert_same_call(got, expected[call % 2])
+        assert (launches[0] == before) == (call >= 2), f"call {call}: {launches[0] - before} launches"
+
+
+def test_two_captured_calls_waiting_for_their_backward_passes(problem):
+    # the second call of one graph overwrites the first's trajectory in the graph's arrays: the first's backward
+    # replays its forward again, and both gradients are the uncaptured calls' (as is a second backward pass)
+    other = Problem(seed=3)
+
+    def two_calls(sim, capture):
+        inputs = [p.torch_inputs("steps") for p in (problem, other)]
+        xs = [wct.simulate(sim, t["x0"], t["v0"], steps=problem.steps, particle_force=t["particle_force"],
+                           density=t["density"], capture=capture) for t in inputs]
+        loss = problem.loss_torch(*xs[0]) + other.loss_torch(*xs[1])
+        loss.backward(retain_graph=True)
+        first = [{k: t[k].grad.clone().numpy() for k in ("x0", "v0", "particle_force", "density")} for t in inputs]
+        for t in inputs:
+            for a in t.values():
+                a.grad = None
+        (2.0 * loss).backward()
+        second = [{k: t[k].grad.numpy() for k in ("x0", "v0", "particle_force", "density")} for t in inputs]
+        return [x.detach().numpy() for x, _ in xs], first, second
+
+    expected = two_calls(wc.Simulator(build_model(), DT, options=OPTIONS), False)
+    sim = wc.Simulator(build_model(), DT, options=OPTIONS)
+    two_calls(sim, True)  # seen, then recorded
+    got = two_calls(sim, True)  # replayed
+    for a, b in zip(got[0], expected[0]):
+        np.testing.assert_array_equal(a, b)
+    for which in (1, 2):
+        for g, e in zip(got[which], expected[which]):
+            for name in e:
+                np.testing.assert_array_equal(g[name], e[name], err_msg=name)
+    for name in expected[1][0]:  # the seed doubled (not bitwise: the adjoint solves stop on an absolute tolerance too)
+        np.testing.assert_allclose(got[2][0][name], 2.0 * got[1][0][name], rtol=1e-9)
+
+
+def test_a_simulator_keeps_its_most_recent_captured_calls(problem, monkeypatch, launches):
+    monkeypatch.setattr(wct, "MAX_CAPTURES", 1)
+    sim = wc.Simulator(build_model(), DT, options=OPTIONS)
+    expected = simulate_and_differentiate(problem, wc.Simulator(build_model(), DT, options=OPTIONS), None, False,
+                                          "shared")
+
+    def call(steps):  # a call of `steps` steps; whether it replayed
+        before = launches[0]
+        t = problem.torch_inputs("shared")
+        x, v = wct.simulate(sim, t["x0"], t["v0"], steps=steps, particle_force=t["particle_force"],
+                            density=t["density"], stretching=t["stretching"], bending=t["bending"], capture=True)
+        if steps == problem.steps:
+            np.testing.assert_array_equal(x.detach().numpy(), expected[0])
+        return launches[0] == before
+
+    steps, other = problem.steps, problem.steps - 1
+    assert [call(steps), call(steps), call(steps)] == [False, False, True]
+    assert [call(other), call(other), call(other)] == [False, False, True]  # dropped the first one's graphs
+    assert [call(steps), call(steps), call(steps)] == [False, False, True]
+
+
+def test_captured_contact_calls_equal_uncaptured_ones(device):
+    # a sheet falling onto a sphere: captured one speculative graph a step, the steps in contact run again
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    mesh = wc.grid_mesh(4, 4, 0.3, 0.3)
+    mesh.positions = mesh.positions + np.random.default_rng(5).uniform(-2e-3, 2e-3, mesh.positions.shape)
+    mesh.positions = mesh.positions + [-0.15, -0.14, 0.13]
+    b.add_cloth_mesh(mesh, material=wc.preset("gray-interlock", thicken=2))
+    b.add_obstacle_sphere(0.1, 2)
+    b.set_collision(friction=0.3, obstacle_friction=0.3)
+    steps, n, rng = 14, len(mesh.positions), np.random.default_rng(2)
+    force = rng.normal(0.0, 1e-3, (steps, n, 3))
+    weights = rng.standard_normal((steps + 1, n, 3))
+
+    def run(sim, capture):
+        model = sim.model
+        dtype, dev = wct.torch_dtype(model), wct.torch_device(model)
+        t = [torch.tensor(a, dtype=dtype, device=dev, requires_grad=True)
+             for a in (model.particle_x0.numpy(), np.zeros((n, 3)), force, model.material_density.numpy())]
+        x, v = wct.simulate(sim, t[0], t[1], steps=steps, particle_force=t[2], density=t[3], capture=capture)
+        (x * torch.tensor(weights, dtype=dtype, device=dev)).sum().backward()
+        return [x.detach().cpu().numpy()] + [a.grad.cpu().numpy() for a in t]
+
+    def simulator():
+        return wc.Simulator(b.finalize(device, requires_grad=True), 0.01, options=wc.SolverOptions(cg_tol=1e-7))
+
+    expected = run(simulator(), False)
+    distance = np.linalg.norm(expected[0][-1], axis=1)  # from the sphere's centre: it landed on the sphere
+    assert distance.min() < 0.11 and expected[0][0, :, 2].min() > 0.12, (distance.min(), expected[0][0, :, 2].min())
+    sim = simulator()
+    same = np.testing.assert_array_equal if sim.device.is_cpu else (
+        lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-5 * np.abs(b).max()))
+    for _ in range(3):
+        for name, a, e in zip(("x", "x0", "v0", "force", "density"), run(sim, True), expected):
+            assert np.any(e), name
+            same(a, e)
+
+
+def test_capture_is_refused_where_the_steps_cannot_be_captured():
+    b = hanging_builder(res=3, material=MATERIAL)
+    b.add_obstacle_sphere(0.05, 1, pos=(0.0, 0.0, -2.0))
+    model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    sim = wc.Simulator(model, DT, options=wc.SolverOptions(integrator="bdf2"))
+    x0 = torch.tensor(model.particle_x0.numpy())
+    with pytest.raises(ValueError, match="capture=True, but with a collision stage .* BDF2"):
+        wct.simulate(sim, x0, torch.zeros_like(x0), steps=2, capture=True)
+
+
+# -- 6. errors --------------------------------------------------------------------------------------------------------
 
 
 def test_bad_inputs_name_the_argument(small):

@@ -23,11 +23,13 @@ except ImportError as exc:  # pragma: no cover - exercised in a subprocess by th
 import numpy as np
 import warp as wp
 
+from warpcloth.kernels.losses import loss_kernels
 from warpcloth.materials import check_material_values
 from warpcloth.model import Control, Model, State
+from warpcloth.solver.capture import CapturedRollout
 from warpcloth.solver.simulator import Simulator
 
-__all__ = ["simulate"]
+__all__ = ["MAX_CAPTURES", "simulate"]
 
 
 def torch_dtype(model: Model) -> torch.dtype:
@@ -51,6 +53,7 @@ def simulate(
     stretching: torch.Tensor | None = None,
     bending: torch.Tensor | None = None,
     time: float = 0.0,
+    capture: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Simulate ``steps`` steps from (x0, v0) and return the trajectory ``(x, v)``, each (steps+1, n, 3).
 
@@ -71,6 +74,15 @@ def simulate(
         density, stretching, bending: material tables in the shapes of the model's arrays, or None.
         time: simulated time of x0 [s]; scripted handle, pin and obstacle motion is keyed to it, so a chained call
             continues with ``time = previous start + previous steps * sim.dt``.
+        capture: replay the rollout from graphs (``wc.CapturedRollout``) when the same call comes again: the second
+            call with this Simulator, ``steps``, ``time`` and form of ``particle_force`` (none, (n, 3) or
+            (steps, n, 3)) records it, with its backward pass, and every later one replays it. The inputs are copied
+            into the graphs' arrays, the trajectory out of them; results and gradients are the uncaptured call's
+            (bitwise on the CPU). A training loop that simulates the same intervals at every iteration spends a
+            fraction of the launch overhead (``docs/concepts/torch.md`` has the figures). The Simulator keeps the
+            graphs of its last ``MAX_CAPTURES`` calls. Where two calls of one graph are both waiting for their
+            backward passes, the older one's forward pass is replayed again before its backward (as a checkpoint).
+            ValueError where the Simulator's steps cannot be captured (``wc.CapturedRollout.unsupported``).
 
     A batch dimension: for a model of W worlds of m particles each (``ModelBuilder.replicate``), x0 and v0 may be
     (W, m, 3), ``particle_force`` then (W, m, 3) or (W, steps, m, 3), and the trajectory comes back as
@@ -88,7 +100,7 @@ def simulate(
     steps = int(steps)
     model = sim.model
     if isinstance(x0, torch.Tensor) and x0.dim() == 3:
-        return _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time)
+        return _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time, capture)
     n = model.particle_count
     _check_tensor("x0", x0, model, [(n, 3)])
     _check_tensor("v0", v0, model, [(n, 3)])
@@ -106,10 +118,15 @@ def simulate(
     if needs_grad and not model.requires_grad:
         raise ValueError("simulate: a gradient was asked for but the model has none; build it with "
                          "ModelBuilder.finalize(..., requires_grad=True)")
-    return _Rollout.apply(_Config(sim, steps, float(time)), x0, v0, particle_force, density, stretching, bending)
+    if capture:
+        reason = CapturedRollout.unsupported(sim)
+        if reason is not None:
+            raise ValueError(f"simulate: capture=True, but {reason}")
+    config = _Config(sim, steps, float(time), bool(capture))
+    return _Rollout.apply(config, x0, v0, particle_force, density, stretching, bending)
 
 
-def _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time):
+def _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time, capture):
     """``simulate`` with a leading world dimension: the worlds' tensors flattened into the model's particle order
     (each world's particles are one contiguous range), the trajectory split back into worlds."""
     model = sim.model
@@ -125,7 +142,7 @@ def _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, ben
         _check_tensor("particle_force", force, model, [(W, m, 3), (W, steps, m, 3)])
         force = force.reshape(-1, 3) if force.dim() == 3 else force.transpose(0, 1).reshape(steps, W * m, 3)
     x, v = simulate(sim, x0.reshape(-1, 3), v0.reshape(-1, 3), steps=steps, particle_force=force, density=density,
-                    stretching=stretching, bending=bending, time=time)
+                    stretching=stretching, bending=bending, time=time, capture=capture)
     return (x.reshape(steps + 1, W, m, 3).transpose(0, 1), v.reshape(steps + 1, W, m, 3).transpose(0, 1))
 
 
@@ -147,28 +164,130 @@ def _check_tensor(name: str, t, model: Model, shapes: list[tuple[int, ...]]) -> 
 class _Config:
     """The non-tensor arguments of the autograd function."""
 
-    def __init__(self, sim: Simulator, steps: int, time: float):
-        self.sim, self.steps, self.time = sim, steps, time
+    def __init__(self, sim: Simulator, steps: int, time: float, capture: bool):
+        self.sim, self.steps, self.time, self.capture = sim, steps, time, capture
 
 
 _MATERIALS = ("density", "stretching", "bending")
 
+MAX_CAPTURES = 32
+"""How many captured calls (``simulate(capture=True)``) a Simulator keeps; the least recently used is dropped."""
+
 
 class _Recording:
-    """What the backward pass needs from the forward: the tape and the buffers its launches read and write.
+    """What the backward pass needs from the forward: the tape and the buffers its launches read and write (an
+    uncaptured call), or the replay whose graphs hold the rollout and the inputs to run it again (a captured one).
 
     Released (so the tape's per-step buffers are freed) as soon as torch frees the node's saved tensors: after a
     backward without retain_graph, or when the graph is dropped.
     """
 
-    def __init__(self, tape, grads, material_values, keep):
+    def __init__(self, tape, grads, material_values, keep, replay=None):
         self.tape = tape
         self.grads = grads  # torch gradient buffers the Warp views write: x, v (steps+1, n, 3) and force, or None
         self.material_values = material_values  # this call's model material values (wp arrays, no grad)
-        self.keep = keep  # arrays the tape's launches alias: trajectory storage, force tensor, states, controls
+        self.keep = keep  # uncaptured: arrays the tape's launches alias; captured: the inputs (x0, v0, force)
+        self.replay = replay
 
     def release(self):
-        self.tape = self.grads = self.material_values = self.keep = None
+        self.tape = self.grads = self.material_values = self.keep = self.replay = None
+
+
+class _Replay:
+    """One call of ``simulate`` recorded as graphs (wc.CapturedRollout) over arrays of its own: each call copies its
+    inputs in and the trajectory out. With gradients, the rollout's "loss" is its trajectory gathered into two
+    (steps+1, n) arrays (loss_kernels' ``store_frame``), so a backward pass seeds their gradients with torch's."""
+
+    def __init__(self, sim: Simulator, steps: int, time: float, force_form: str | None, x0, v0, force):
+        model = sim.model
+        vec3, n, grad = model.types.vec3, model.particle_count, model.requires_grad
+        self.steps, self.vec3 = steps, vec3
+        self.state = model.state(requires_grad=grad)
+        self.state.time = time
+        base = model.control(requires_grad=False)
+
+        def control(f):
+            return Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
+
+        self.force = None
+        if force_form is None:
+            controls = [control(None)] * steps
+        elif force_form == "shared":
+            self.force = wp.zeros(n, dtype=vec3, device=model.device, requires_grad=grad)
+            controls = [control(self.force)] * steps
+        else:
+            self.force = wp.zeros((steps, n), dtype=vec3, device=model.device, requires_grad=grad)
+            controls = [control(self.force[i]) for i in range(steps)]
+        self.store_frame = loss_kernels(model.scalar).store_frame
+        self.velocities: wp.array | None = None  # the gathered velocities (the positions are the rollout's loss)
+        self.owner: _Recording | None = None  # the call whose forward pass the graphs' arrays hold
+        self.load(x0, v0, force)  # the capture's first, ordinary run simulates these inputs
+        self.rollout = CapturedRollout(sim, self.state, controls, steps=steps, loss=self._gather if grad else None)
+
+    def _gather(self, trajectory: list[State]) -> wp.array:
+        first = trajectory[0].particle_x
+        shape = (len(trajectory), first.shape[0])
+        xs = wp.empty(shape, dtype=self.vec3, device=first.device, requires_grad=True)
+        vs = wp.empty(shape, dtype=self.vec3, device=first.device, requires_grad=True)
+        for k, s in enumerate(trajectory):
+            wp.launch(self.store_frame, dim=shape[1], inputs=[s.particle_x, s.particle_v, k], outputs=[xs, vs],
+                      device=first.device)
+        self.velocities = vs
+        return xs
+
+    def load(self, x0, v0, force) -> None:
+        wp.copy(self.state.particle_x, wp.from_torch(x0.detach().contiguous(), dtype=self.vec3))
+        wp.copy(self.state.particle_v, wp.from_torch(v0.detach().contiguous(), dtype=self.vec3))
+        if self.force is not None:
+            wp.copy(self.force, wp.from_torch(force.detach().contiguous(), dtype=self.vec3))
+
+    def forward(self, x0, v0, force, owner: _Recording | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Replay the rollout from these inputs; the trajectory (new tensors) and the graphs' owner set."""
+        self.load(x0, v0, force)
+        trajectory = self.rollout.run(backward=False)
+        self.owner = owner
+        if self.rollout.loss is not None:
+            return (wp.to_torch(self.rollout.loss, requires_grad=False).clone(),
+                    wp.to_torch(self.velocities, requires_grad=False).clone())
+        return (torch.stack([wp.to_torch(s.particle_x, requires_grad=False) for s in trajectory]),
+                torch.stack([wp.to_torch(s.particle_v, requires_grad=False) for s in trajectory]))
+
+    def backward(self, grad_x, grad_v) -> None:
+        """The recorded backward pass from the trajectory's gradients (None: zero)."""
+        seeds = {}
+        for array, g in ((self.rollout.loss, grad_x), (self.velocities, grad_v)):
+            if g is not None:
+                seeds[array] = wp.from_torch(g.contiguous(), dtype=self.vec3)
+        self.rollout.backward(seeds)
+
+
+class _Replays:
+    """A Simulator's captured calls, by (steps, time, force form): a call seen once is remembered, the second
+    captures it, later ones replay it."""
+
+    def __init__(self):
+        self.seen: dict = {}  # keys seen once (insertion order: the oldest are forgotten first)
+        self.graphs: dict = {}  # key -> _Replay, least recently used first
+
+    def get(self, sim: Simulator, steps: int, time: float, force_form, x0, v0, force) -> _Replay | None:
+        """The key's replay (captured now on its second call, again where the graphs went stale), or None on its
+        first call."""
+        key = (steps, time, force_form)
+        replay = self.graphs.pop(key, None)
+        if replay is None and self.seen.pop(key, None) is None:
+            self.seen[key] = True
+            while len(self.seen) > MAX_CAPTURES:
+                del self.seen[next(iter(self.seen))]
+            return None
+        if replay is None or not replay.rollout.current():
+            replay = _Replay(sim, steps, time, force_form, x0, v0, force)
+        self.graphs[key] = replay
+        while len(self.graphs) > MAX_CAPTURES:
+            del self.graphs[next(iter(self.graphs))]
+        return replay
+
+
+_replays: weakref.WeakKeyDictionary[Simulator, _Replays] = weakref.WeakKeyDictionary()
 
 
 def _vec3_view(t: torch.Tensor, vec3, grad: torch.Tensor | None) -> wp.array:
@@ -178,13 +297,27 @@ def _vec3_view(t: torch.Tensor, vec3, grad: torch.Tensor | None) -> wp.array:
     return wp.from_torch(t, dtype=vec3, requires_grad=True, grad=grad)
 
 
+@contextlib.contextmanager
+def _materials_of(model: Model, values: dict):
+    """The model's material arrays hold ``values`` (one call's) inside the block, their current values after it:
+    another simulate call may have overwritten them since that call's forward pass, and its recorded launches read
+    the arrays when they run."""
+    arrays = {name: getattr(model, f"material_{name}") for name in _MATERIALS}
+    current = {name: wp.clone(a, requires_grad=False) for name, a in arrays.items()}
+    try:
+        for name, a in arrays.items():
+            wp.copy(a, values[name])
+        yield arrays
+    finally:
+        for name, a in arrays.items():
+            wp.copy(a, current[name])
+
+
 class _Rollout(torch.autograd.Function):
     @staticmethod
     def forward(ctx, cfg: _Config, x0, v0, force, density, stretching, bending):
         sim, steps = cfg.sim, cfg.steps
         model = sim.model
-        vec3 = model.types.vec3
-        n = model.particle_count
         recording = any(ctx.needs_input_grad[1:]) and model.requires_grad
         ctx.set_materialize_grads(False)
 
@@ -194,49 +327,21 @@ class _Rollout(torch.autograd.Function):
                 wp.copy(getattr(model, f"material_{name}"),
                         wp.from_torch(value.detach().contiguous(), dtype=model.scalar, requires_grad=False))
 
-        x = torch.empty((steps + 1, n, 3), dtype=x0.dtype, device=x0.device)
-        v = torch.empty_like(x)
-        x[0].copy_(x0)
-        v[0].copy_(v0)
-        # Detached aliases share the storage but not the outputs' autograd history: the Warp views (and so the
-        # tape) keep the memory alive without a reference cycle through this node.
-        xd, vd = x.detach(), v.detach()
-        gx = torch.zeros_like(xd) if recording else None
-        gv = torch.zeros_like(vd) if recording else None
-        states = [
-            State(_vec3_view(xd[i], vec3, None if gx is None else gx[i]),
-                  _vec3_view(vd[i], vec3, None if gv is None else gv[i]))
-            for i in range(steps + 1)
-        ]
-        states[0].time = cfg.time
-
-        base = model.control(requires_grad=False)
-
-        def control(f):
-            return Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
-
-        gf = None
-        fd = None
-        if force is None:
-            controls = [control(None)] * steps
+        replay = None
+        fd = None if force is None else force.detach().contiguous()
+        if cfg.capture and steps > 0:
+            force_form = None if fd is None else "shared" if fd.dim() == 2 else "steps"
+            replays = _replays.setdefault(sim, _Replays())
+            replay = replays.get(sim, steps, cfg.time, force_form, x0, v0, fd)
+        if replay is not None:
+            rec = None
+            if recording:
+                rec = _Recording(None, None, _material_values(model), keep=(x0.detach(), v0.detach(), fd),
+                                 replay=replay)
+            x, v = replay.forward(x0, v0, fd, rec)
         else:
-            fd = force.detach().contiguous()
-            gf = torch.zeros_like(fd) if recording and ctx.needs_input_grad[3] else None
-            if fd.dim() == 2:  # one array for every step: Warp's adjoint accumulates the steps' gradients into gf
-                controls = [control(_vec3_view(fd, vec3, gf))] * steps
-            else:
-                controls = [control(_vec3_view(fd[i], vec3, None if gf is None else gf[i])) for i in range(steps)]
-
-        tape = wp.Tape() if recording else None
-        with tape if tape is not None else contextlib.nullcontext():
-            for i in range(steps):  # wc.rollout's loop, into preallocated States that alias x and v
-                sim.step(states[i], states[i + 1], controls[i])
-
-        if recording:
-            material_values = {name: wp.clone(getattr(model, f"material_{name}"), requires_grad=False)
-                               for name in _MATERIALS}
-            rec = _Recording(tape, {"x": gx, "v": gv, "force": gf}, material_values,
-                             keep=(xd, vd, fd, states, controls, base))
+            x, v, rec = _run(ctx, cfg, x0, v0, fd, recording)
+        if rec is not None:
             token = torch.empty(0)
             ctx.save_for_backward(x, v, token)  # x, v: torch's in-place check; token: lifetime of saved tensors
             weakref.finalize(token, rec.release)
@@ -255,35 +360,101 @@ class _Rollout(torch.autograd.Function):
                 "was released by the first backward; pass retain_graph=True to the first backward, or simulate again"
             ) from exc
         rec = ctx.rec
-        if rec.tape is None:
+        if rec.material_values is None:
             raise RuntimeError("warpcloth.torch.simulate: the rollout's Warp tape was already released")
-        model = ctx.cfg.sim.model
-        arrays = {name: getattr(model, f"material_{name}") for name in _MATERIALS}
-        # another simulate call may have overwritten the model's materials since this forward: the tape's
-        # launches read the arrays now, so put this call's values back for the backward, and restore after
-        current = {name: wp.clone(a, requires_grad=False) for name, a in arrays.items()}
-        try:
-            for name, a in arrays.items():
-                wp.copy(a, rec.material_values[name])
-            rec.tape.zero()  # a rerun (retain_graph) starts from clean intermediate gradients
+        needs = ctx.needs_input_grad
+        with _materials_of(ctx.cfg.sim.model, rec.material_values) as arrays:
             for a in arrays.values():
                 a.grad.zero_()
-            for g in rec.grads.values():
-                if g is not None:
-                    g.zero_()
-            if grad_x is not None:
-                rec.grads["x"].copy_(grad_x)
-            if grad_v is not None:
-                rec.grads["v"].copy_(grad_v)
-            rec.tape.backward()
-            needs = ctx.needs_input_grad
-            result = [None]  # cfg
-            result.append(rec.grads["x"][0].clone() if needs[1] else None)
-            result.append(rec.grads["v"][0].clone() if needs[2] else None)
-            result.append(rec.grads["force"].clone() if needs[3] and rec.grads["force"] is not None else None)
+            if rec.replay is not None:
+                force_grad = _replayed_backward(rec, grad_x, grad_v)
+                x0_grad, v0_grad = (wp.to_torch(a.grad, requires_grad=False).clone() if need else None
+                                    for a, need in ((rec.replay.state.particle_x, needs[1]),
+                                                    (rec.replay.state.particle_v, needs[2])))
+            else:
+                rec.tape.zero()  # a rerun (retain_graph) starts from clean intermediate gradients
+                for g in rec.grads.values():
+                    if g is not None:
+                        g.zero_()
+                if grad_x is not None:
+                    rec.grads["x"].copy_(grad_x)
+                if grad_v is not None:
+                    rec.grads["v"].copy_(grad_v)
+                rec.tape.backward()
+                x0_grad = rec.grads["x"][0].clone() if needs[1] else None
+                v0_grad = rec.grads["v"][0].clone() if needs[2] else None
+                force_grad = rec.grads["force"]
+            result = [None, x0_grad, v0_grad]  # cfg first
+            result.append(force_grad.clone() if needs[3] and force_grad is not None else None)
             for i, name in enumerate(_MATERIALS):
                 result.append(wp.to_torch(arrays[name].grad, requires_grad=False).clone() if needs[4 + i] else None)
-        finally:
-            for name, a in arrays.items():
-                wp.copy(a, current[name])
         return tuple(result)
+
+
+def _material_values(model: Model) -> dict:
+    """Copies of the model's material arrays: what this call simulated with."""
+    return {name: wp.clone(getattr(model, f"material_{name}"), requires_grad=False) for name in _MATERIALS}
+
+
+def _run(ctx, cfg: _Config, x0, v0, fd, recording: bool):
+    """An uncaptured call: the steps into States that alias the trajectory tensors, on a tape when recording.
+    Returns (x, v, its _Recording or None)."""
+    sim, steps = cfg.sim, cfg.steps
+    model = sim.model
+    vec3, n = model.types.vec3, model.particle_count
+    x = torch.empty((steps + 1, n, 3), dtype=x0.dtype, device=x0.device)
+    v = torch.empty_like(x)
+    x[0].copy_(x0)
+    v[0].copy_(v0)
+    # Detached aliases share the storage but not the outputs' autograd history: the Warp views (and so the
+    # tape) keep the memory alive without a reference cycle through this node.
+    xd, vd = x.detach(), v.detach()
+    gx = torch.zeros_like(xd) if recording else None
+    gv = torch.zeros_like(vd) if recording else None
+    states = [
+        State(_vec3_view(xd[i], vec3, None if gx is None else gx[i]),
+              _vec3_view(vd[i], vec3, None if gv is None else gv[i]))
+        for i in range(steps + 1)
+    ]
+    states[0].time = cfg.time
+
+    base = model.control(requires_grad=False)
+
+    def control(f):
+        return Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
+
+    gf = None
+    if fd is None:
+        controls = [control(None)] * steps
+    else:
+        gf = torch.zeros_like(fd) if recording and ctx.needs_input_grad[3] else None
+        if fd.dim() == 2:  # one array for every step: Warp's adjoint accumulates the steps' gradients into gf
+            controls = [control(_vec3_view(fd, vec3, gf))] * steps
+        else:
+            controls = [control(_vec3_view(fd[i], vec3, None if gf is None else gf[i])) for i in range(steps)]
+
+    tape = wp.Tape() if recording else None
+    with tape if tape is not None else contextlib.nullcontext():
+        for i in range(steps):  # wc.rollout's loop, into preallocated States that alias x and v
+            sim.step(states[i], states[i + 1], controls[i])
+    rec = None
+    if recording:
+        rec = _Recording(tape, {"x": gx, "v": gv, "force": gf}, _material_values(model),
+                         keep=(xd, vd, fd, states, controls, base))
+    return x, v, rec
+
+
+def _replayed_backward(rec: _Recording, grad_x, grad_v):
+    """A captured call's backward pass (its forward replayed again first where a later call of the same graphs ran
+    since); returns the force's gradient as a tensor (None without a force)."""
+    replay = rec.replay
+    if not replay.rollout.current():
+        raise RuntimeError("warpcloth.torch.simulate: the Simulator's options or a model array were replaced between "
+                           "this captured call and its backward pass, and its graphs hold the old ones; simulate "
+                           "again")
+    if replay.owner is not rec:
+        replay.forward(*rec.keep, rec)
+    replay.backward(grad_x, grad_v)
+    if replay.force is None:
+        return None
+    return wp.to_torch(replay.force.grad, requires_grad=False)

@@ -354,7 +354,7 @@ def _finish(result: ControlResult, bar, t0: float) -> ControlResult:
 
 def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = None, lr: float = 1e-3, hidden: int = 200,
               seed: int = 0, zero_start: bool = True, damping: float = 1e-3, max_step: float = 20.0,
-              warm_start: int = 0, progress: bool = False) -> ControlResult:
+              warm_start: int = 0, capture: bool = True, progress: bool = False) -> ControlResult:
     """Train a PyTorch MLP controller through the simulator (warpcloth.torch): at the start of every controlled
     interval the MLP maps the cloth's state (positions relative to the target and velocities of all particles) to
     the interval's pushes (the seed's "Ours + FC": Linear -> ReLU -> Linear).
@@ -397,6 +397,9 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
             PyTorch's random initialisation (a random start). A warm start sets the output layer either way.
         damping, max_step: Gauss-Newton's damping and step bound.
         warm_start: Simulations of the open-loop optimisation the network is first fitted to (0: none).
+        capture: Replay the simulator's intervals from graphs (``warpcloth.torch.simulate(capture=True)``) where
+            the task's steps can be captured (``wc.CapturedRollout.unsupported``): the same results (bitwise on the
+            CPU) for a fraction of the launch overhead.
         progress: Show a progress bar (tqdm).
 
     Returns:
@@ -437,6 +440,7 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
     com_weights = torch.tensor(task.com_weights, dtype=dtype, device=device)
     push_scale = 10.0  # network outputs of order one -> pushes of order gravity [m/s^2]
     controlled = min(task.intervals, -(-task.steps // task.interval_steps))
+    capture = capture and wc.CapturedRollout.unsupported(task.sim) is None
 
     def features(x, v):
         return torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
@@ -454,11 +458,12 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
             steps = min(task.interval_steps, task.steps - s * task.interval_steps)
             force = torch.zeros((n, 3), dtype=dtype, device=device).index_put((pushed,), task.push_mass * push)
             xs, vs = simulate(task.sim, x, v, steps=steps, time=s * task.interval_steps * task.dt,
-                              particle_force=force)
+                              particle_force=force, capture=capture)
             x, v = xs[-1], vs[-1]
         rest = task.steps - controlled * task.interval_steps
         if rest > 0:
-            xs, _ = simulate(task.sim, x, v, steps=rest, time=controlled * task.interval_steps * task.dt)
+            xs, _ = simulate(task.sim, x, v, steps=rest, time=controlled * task.interval_steps * task.dt,
+                             capture=capture)
             x = xs[-1]
         return x, pushes, inputs
 
