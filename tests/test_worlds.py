@@ -292,6 +292,19 @@ def test_replicate_scene_with_obstacles_and_handles():
     assert model.world_of(2 * n) == 2 and model.particle_name(n + 1) == f"particle {n + 1} (world 1, its particle 1)"
 
 
+def test_replicated_worlds_share_the_builders_materials_unless_asked_for_their_own():
+    base = hanging_builder()
+    shared, own = wc.ModelBuilder(), wc.ModelBuilder()
+    shared.replicate(base, 3)
+    own.replicate(base, 3, own_materials=True)
+    assert shared.finalize("cpu").material_count == 1
+    model = own.finalize("cpu")
+    assert model.material_count == 3
+    assert model.tri_material.numpy().reshape(3, -1).tolist() == [[w] * base.finalize("cpu").tri_count
+                                                                   for w in range(3)]
+    np.testing.assert_array_equal(model.material_stretching.numpy()[2], model.material_stretching.numpy()[0])
+
+
 def test_world_errors():
     base = hanging_builder()
     own = hanging_builder()

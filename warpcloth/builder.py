@@ -141,7 +141,7 @@ class ModelBuilder:
         return tuple(self._obstacles)
 
     # -- worlds ------------------------------------------------------------------------------------------------------
-    def add_world(self, builder: ModelBuilder) -> int:
+    def add_world(self, builder: ModelBuilder, *, own_materials: bool = False) -> int:
         """Add a copy of everything ``builder`` holds (cloths, materials, handles, pins, obstacles and their motions,
         gravity and wind) as a new world of this builder's model, and return the world's index.
 
@@ -153,7 +153,9 @@ class ModelBuilder:
         settings (damping, collision settings, the wind's lagged normals) must be the same in every world. A
         builder holds either its own scene or worlds added here, not both; its own ``gravity`` is not used once it
         holds worlds. Obstacles are renamed ``<name>_<world>`` (names stay unique). ``builder`` may itself hold
-        worlds: each becomes a world here.
+        worlds: each becomes a world here. A material object is registered once, so worlds added from builders that
+        share one share it; ``own_materials`` registers copies of ``builder``'s materials instead, so that this
+        world's can be set on their own (a material fitted per world: ``estimation.TrajectoryFit``).
 
         Raises:
             ValueError: this builder has a scene of its own (a cloth, obstacles, wind, damping or collision
@@ -188,7 +190,7 @@ class ModelBuilder:
                                                     first_obstacle=len(self._obstacles) + source.first_obstacle))
         first_world = len(self._worlds) - len(sources)
         offset = self._particle_count
-        materials = [self.add_material(m) for m in builder._materials]
+        materials = [self.add_material(m.copy() if own_materials else m) for m in builder._materials]
         self._positions += [p.copy() for p in builder._positions]
         self._velocities += [v.copy() for v in builder._velocities]
         self._triangles += [t + offset for t in builder._triangles]
@@ -204,15 +206,15 @@ class ModelBuilder:
         self._particle_count += builder.particle_count
         return len(self._worlds) - 1
 
-    def replicate(self, builder: ModelBuilder, count: int) -> range:
-        """Add ``count`` copies of ``builder`` as worlds (``add_world``, after Newton's ``replicate``); returns
-        their world indices."""
+    def replicate(self, builder: ModelBuilder, count: int, *, own_materials: bool = False) -> range:
+        """Add ``count`` copies of ``builder`` as worlds (``add_world``, after Newton's ``replicate``; with
+        ``own_materials``, each world its own copies of the materials); returns their world indices."""
         if not _is_integer(count) or count < 1:
             raise ValueError(f"replicate: count must be a positive integer, got {count!r}")
         self._check_size(builder.particle_count * int(count), f"{count} worlds")
         first = len(self._worlds)
         for _ in range(int(count)):
-            self.add_world(builder)
+            self.add_world(builder, own_materials=own_materials)
         return range(first, len(self._worlds))
 
     @property

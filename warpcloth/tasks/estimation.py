@@ -165,7 +165,7 @@ class TrajectoryFit:
 
     def __init__(self, model: wc.Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
                  frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None,
-                 capture: bool = True):
+                 capture: bool = True, template: wc.ModelBuilder | None = None):
         worlds = model.world_count
         if model.material_count != worlds:
             raise ValueError(f"TrajectoryFit estimates one material per world; the model has {model.material_count} "
@@ -209,10 +209,36 @@ class TrajectoryFit:
         self._requests: dict = {}  # evaluations asked for, per horizon and kind
         self.evaluations = 0
         self.seconds = 0.0
+        self.template = template
+        """The one-world builder ``model`` was finalised from, or None: with it :meth:`worlds` makes copies of the
+        fit, whose worlds a global search evaluates as one batch."""
+        self._init = {"steps": steps, "frame_stride": frame_stride, "dt": dt, "options": self.sim.options,
+                      "capture": capture}
+        self._targets_np = [np.asarray(x, dtype=np.float64) for x in targets[: frames + 1]]
+        self._batched: dict[int, TrajectoryFit] = {}
 
     @property
     def world_count(self) -> int:
         return self.model.world_count
+
+    def worlds(self, count: int) -> TrajectoryFit | None:
+        """This fit over ``count`` copies of its scene, each world with its own material and this fit's targets
+        (made once, then kept); None without a ``template`` or for a fit of several worlds. Its solver is this
+        one's options on a model of ``count`` worlds, so ``preconditioner="auto"`` is block SSOR there (multigrid
+        takes one world, and an explicit ``"multigrid"`` becomes ``"auto"``): its losses agree with this fit's to the
+        CG tolerance, and bitwise with a ``"block_ssor"`` fit's."""
+        if self.template is None or self.world_count != 1:
+            return None
+        if count not in self._batched:
+            builder = wc.ModelBuilder()
+            builder.replicate(self.template, count, own_materials=True)
+            model = builder.finalize(self.model.device, requires_grad=True, dtype=self.model.scalar)
+            targets = [np.tile(x, (count, 1)) for x in self._targets_np]
+            init = dict(self._init)
+            if init["options"].preconditioner == "multigrid":  # it takes one world; "auto" picks block SSOR
+                init["options"] = replace(init["options"], preconditioner="auto")
+            self._batched[count] = TrajectoryFit(model, targets, **init)
+        return self._batched[count]
 
     @staticmethod
     def simulate_targets(model: wc.Model, truth: wc.Material | Sequence[wc.Material], *, steps: int = STEPS,
@@ -426,7 +452,7 @@ class EstimationResult:
 def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
-                      curriculum: Sequence[tuple[float, float]] | None = CURRICULUM,
+                      curriculum: Sequence[tuple[float, float]] | None = CURRICULUM, batch: bool = True,
                       progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
@@ -445,6 +471,12 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     :data:`SMOOTHED_SIGMA`; Adam's step a quarter of it), then L-BFGS from the point of least loss it met, for
     ``search.refine`` evaluations (default a fifth of ``iters``). Each copy, start and CMA-ES point counts as an
     evaluation.
+
+    ``batch`` (the global searches, on a TrajectoryFit with a ``template``: :meth:`TrajectoryFit.worlds`): CMA-ES's
+    generations, the smoothed search's copies and the multistart's L-BFGS runs (in lockstep: each evaluation waits
+    for the other runs' and all are one simulation) are simulated as worlds of one batch, not one after another.
+    The same search either way: the batch's solver treats each world on its own (block SSOR, not the one-world
+    multigrid: its losses agree with one world's to the CG tolerance, bitwise under ``preconditioner="block_ssor"``).
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
@@ -499,26 +531,92 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
             best[:] = [loss, theta[mask].copy()]
         return loss, param.chain(theta, gd, gs, gb)
 
-    def objective_free(theta_free: np.ndarray, steps: int | None = None) -> tuple[float, np.ndarray]:
+    def full(theta_free: np.ndarray) -> np.ndarray:
         theta = np.zeros(N_PARAMS)  # theta = 0 (the start) where fixed
         theta[mask] = theta_free
-        loss, g = objective(theta, steps)
+        return theta
+
+    def objective_free(theta_free: np.ndarray, steps: int | None = None) -> tuple[float, np.ndarray]:
+        loss, g = objective(full(theta_free), steps)
         return loss, g[mask]
 
-    def copies(requests: list) -> list:
-        """The smoothed gradient's copies, one after another: (loss, gradient), or the divergence (left out)."""
+    batched_seconds = [0.0]
+
+    def points_batch(count: int):
+        """The global search's batch of ``count`` worlds (a :class:`_BatchFit`), or None: one after another."""
+        worlds = getattr(fit, "worlds", None)
+        copies_fit = worlds(count) if batch and worlds is not None else None
+        return None if copies_fit is None else _BatchFit(copies_fit, None)
+
+    def evaluate_points(points: list[np.ndarray], grad: bool, batch_fit: _BatchFit) -> list:
+        """Each point's (free parameters) loss, with ``grad`` an _Evaluated (loss and free gradient), or the
+        SimulationError that rejected it: one simulation of ``batch_fit``'s worlds, recorded in the points' order."""
+        t0 = time.perf_counter()
+        answers = batch_fit._evaluate({k: (param.decode(full(q)), grad, fit.steps) for k, q in enumerate(points)})
+        batched_seconds[0] += time.perf_counter() - t0
         out = []
-        for point, _ in requests:
+        for k, q in enumerate(points):
+            answer = answers[k]
+            if isinstance(answer, BaseException):
+                if not result.losses:  # the first evaluation of all: as objective's
+                    raise answer
+                result.diverged.append(str(answer))
+                record(math.inf, fit.steps)
+                out.append(answer)
+                continue
+            loss = answer[0] if grad else answer
+            record(loss, fit.steps)
+            if loss < best[0]:
+                best[:] = [loss, np.array(q, dtype=float)]
+            out.append(_Evaluated(loss, param.chain(full(q), *answer[1:])[mask]) if grad else loss)
+        return out
+
+    def copies(requests: list) -> list:
+        """The smoothed gradient's copies, as one batch where there is one, else one after another: (loss,
+        gradient), or the divergence (left out)."""
+        points = [point for point, _ in requests]
+        copies_batch = points_batch(len(points))
+        if copies_batch is not None:
+            return evaluate_points(points, True, copies_batch)
+        out = []
+        for point in points:
             loss, g = objective_free(point)
             out.append(_Evaluated(loss, g) if math.isfinite(loss) else wc.SimulationError(result.diverged[-1]))
         return out
 
+    def population_losses(points: list) -> list[float]:
+        """CMA-ES's generation: forward losses (infinite for a divergence), as one batch where there is one."""
+        population_batch = points_batch(len(points))
+        if population_batch is None:
+            return [loss_free(q) for q in points]
+        return [math.inf if isinstance(a, BaseException) else a
+                for a in evaluate_points(points, False, population_batch)]
+
+    def multistart(starts: list[np.ndarray], shares: list[int]) -> None:
+        """L-BFGS from each start with its share of the evaluations: in lockstep as one batch of worlds where there
+        is one, else one after another."""
+        starts_batch = points_batch(len(starts))
+        if starts_batch is None:
+            for start, share in zip(starts, shares):
+                lbfgs(objective_free, start, iters=share)
+            return
+
+        def evaluate(requests: dict) -> dict:
+            answers = evaluate_points(list(requests.values()), True, starts_batch)
+            return {run: (math.inf, np.zeros(int(mask.sum()))) if isinstance(a, BaseException) else (a.loss, a.grad)
+                    for run, a in zip(requests, answers)}
+
+        lock = Lockstep(len(starts), evaluate)
+        outcomes = run_in_lockstep(lock, len(starts), lambda run: lbfgs(
+            lambda t: lock.ask(run, t), starts[run], iters=shares[run]))
+        failed = [r for r in outcomes if isinstance(r, BaseException)]
+        if failed:
+            raise failed[0]
+
     def loss_free(theta_free: np.ndarray) -> float:
         """The loss alone (a forward evaluation): the global search's."""
-        theta = np.zeros(N_PARAMS)
-        theta[mask] = theta_free
         try:
-            loss = fit.loss(param.decode(theta))
+            loss = fit.loss(param.decode(full(theta_free)))
         except wc.SimulationError as exc:  # a diverging trial: an infinite loss
             result.diverged.append(str(exc))
             loss = math.inf
@@ -570,8 +668,7 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         rng = np.random.default_rng(search.seed)
         sigma = search.sigma or SEARCH_SIGMA
         starts = [theta0] + [rng.normal(0.0, sigma, theta0.size) for _ in range(population - 1)]
-        for k, start in enumerate(starts):  # an equal share each, the remainder to the first
-            lbfgs(objective_free, start, iters=iters // population + (k == 0) * (iters % population))
+        multistart(starts, [iters // population + (k == 0) * (iters % population) for k in range(population)])
         theta = np.zeros(N_PARAMS)
         theta[mask] = theta0 if best[1] is None else best[1]  # None: every evaluation diverged
     elif optimizer == "smoothed":
@@ -583,14 +680,14 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         theta = np.zeros(N_PARAMS)
         theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     elif optimizer == "cmaes":
-        start = cmaes(lambda points: [loss_free(q) for q in points], theta0, sigma=search.sigma or SEARCH_SIGMA,
+        start = cmaes(population_losses, theta0, sigma=search.sigma or SEARCH_SIGMA,
                       generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
         remaining = iters - generations * population
         theta = np.zeros(N_PARAMS)
         theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     else:
         theta = _seed_sgd(fit, param, objective, iters)
-    result.seconds += fit.seconds - seconds0
+    result.seconds += fit.seconds - seconds0 + batched_seconds[0]
     if bar is not None:
         bar.close()
     result.material = param.decode(theta, name=f"estimate ({optimizer})")
@@ -831,7 +928,7 @@ class EstimationTask:
                                                      dt=scene.dt, options=scene.solver_options)
             source = f"{truth.name} simulated by warpcloth"
         fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
-                            options=scene.solver_options)
+                            options=scene.solver_options, template=scene.model_builder)
         return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters,
                    search=spec.search, truth=truth, source=source)
 

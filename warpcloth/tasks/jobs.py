@@ -68,7 +68,7 @@ class EstimateJob:
         from warpcloth.mesh_io import load_obj_sequence, obj_sequence_files
         from warpcloth.scene import load_scene
         from warpcloth.tasks import estimation as E
-        from warpcloth.tasks.scenes import THICKEN, hanging_cloth
+        from warpcloth.tasks.scenes import THICKEN, hanging_cloth_builder
 
         if sum(x is not None for x in (self.scene, self.target, self.mesh)) > 1:
             raise ValueError("an estimation job takes one of scene, target and mesh")
@@ -76,17 +76,19 @@ class EstimateJob:
             if self.material is not None:
                 raise ValueError("a target sequence is the truth: no material with target")
             files = obj_sequence_files(self.target)
-            model = hanging_cloth(E.initial_guess(), mesh_path=files[0], handles=list(self.handles),
-                                  device=self.device)
-            fit = E.TrajectoryFit(model, load_obj_sequence(files), steps=self.steps or E.STEPS)
+            builder = hanging_cloth_builder(E.initial_guess(), mesh_path=files[0], handles=list(self.handles))
+            model = builder.finalize(self.device, requires_grad=True)
+            fit = E.TrajectoryFit(model, load_obj_sequence(files), steps=self.steps or E.STEPS, template=builder)
             return E.EstimationTask(fit, source=self.target)
         if self.mesh is not None:
             if self.material is None:
                 raise ValueError("an estimation job on a mesh needs the material that makes its targets")
             truth = preset(self.material, thicken=THICKEN)
-            model = hanging_cloth(truth, mesh_path=self.mesh, handles=list(self.handles), device=self.device)
+            builder = hanging_cloth_builder(truth, mesh_path=self.mesh, handles=list(self.handles))
+            model = builder.finalize(self.device, requires_grad=True)
             steps = self.steps or E.STEPS
-            fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=steps), steps=steps)
+            fit = E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=steps), steps=steps,
+                                  template=builder)
             return E.EstimationTask(fit, truth=truth, source=f"{truth.name} simulated by warpcloth")
         scene = load_scene(self.scene or ESTIMATE_SCENE)
         truth = None if self.material is None else preset(self.material, thicken=scene.cloth_material.thicken)
