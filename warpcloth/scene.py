@@ -161,12 +161,13 @@ _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 
 @dataclass(frozen=True)
 class SearchSpec:
-    """A global search's settings (a ``search`` table in ``[control]`` or ``[estimate]``). Each search simulates
-    its candidates as worlds of one batch (a task made from a scene). ``optimizer = "cmaes"``: CMA-ES over the
-    task's parameters (its generations forward only), then the task's local optimiser from the best point found
-    (``warpcloth.tasks.optim.cmaes``). ``optimizer = "multistart"``: local runs from random starts, in lockstep.
-    ``optimizer = "smoothed"``: Adam on the Gaussian-smoothed loss (``warpcloth.tasks.optim.smoothed_descent``),
-    then the local optimiser.
+    """A global search's settings (a ``search`` table in ``[control]`` or ``[estimate]``). A control task's search
+    simulates its candidates as worlds of one batch; an estimation's one after another (``estimate_material(...,
+    batch=True)`` batches them: slower on the CPU). ``optimizer = "cmaes"``: CMA-ES over the task's parameters (its
+    generations forward only), then the task's local optimiser from the best point found
+    (``warpcloth.tasks.optim.cmaes``). ``optimizer = "multistart"``: local runs from random starts (in lockstep when
+    batched). ``optimizer = "smoothed"``: Adam on the Gaussian-smoothed loss
+    (``warpcloth.tasks.optim.smoothed_descent``), then the local optimiser.
 
     Attributes:
         population: CMA-ES's points per generation, each one simulation (default 4 + floor(3 ln n), n parameters);

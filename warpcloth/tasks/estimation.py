@@ -452,7 +452,7 @@ class EstimationResult:
 def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Material | None = None,
                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
-                      curriculum: Sequence[tuple[float, float]] | None = CURRICULUM, batch: bool = True,
+                      curriculum: Sequence[tuple[float, float]] | None = CURRICULUM, batch: bool = False,
                       progress: bool = False) -> EstimationResult:
     """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
 
@@ -477,6 +477,10 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     for the other runs' and all are one simulation) are simulated as worlds of one batch, not one after another.
     The same search either way: the batch's solver treats each world on its own (block SSOR, not the one-world
     multigrid: its losses agree with one world's to the CG tolerance, bitwise under ``preconditioner="block_ssor"``).
+    Off by default: on a 2-core CPU the batch was slower, because block SSOR needs more CG iterations than the
+    multigrid: the smoothed search over Table 2's ten fabrics took a median 1.42x the time per step and evaluation
+    (0.0038 against 0.0027 s), and in float32 some soft trials missed cg_tol 1e-6 after 1000 iterations
+    (2026-11-27). On CUDA, where worlds share each launch, it is meant to pay; not measured there yet.
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
