@@ -120,13 +120,18 @@ def linear_kernels(scalar):
 
     @wp.struct
     class Multigrid:
-        # An aggregation hierarchy (warpcloth/solver/multigrid.py) for the multigrid preconditioner. Nodes of all
-        # levels are numbered in one flat range: level l is [level_start[l], level_start[l + 1]), level 0 the
-        # model's particles. The coarse levels' rows (flat node f >= level_start[1]) are row f - level_start[1] of
-        # offsets/diag_slot, with flat column ids and sorted columns; their blocks are Galerkin sums P^T A P for a
-        # piecewise-constant P, so every fine block just adds into one coarse slot.
+        # The aggregation hierarchies of a model's worlds (warpcloth/solver/multigrid.py WorldHierarchies) for the
+        # multigrid preconditioner. Nodes of all levels are numbered in one flat range: level l is
+        # [level_start[l], level_start[l + 1]), level 0 the model's particles, and world w's part of level l is
+        # [world_level_lo[w, l], world_level_hi[w, l]) (world w has world_levels[w] levels). The coarse levels' rows
+        # (flat node f >= level_start[1]) are row f - level_start[1] of offsets/diag_slot, with flat column ids and
+        # sorted columns; their blocks are Galerkin sums P^T A P for a piecewise-constant P, so every fine block
+        # just adds into one coarse slot. World w's blocks of level l are those of its rows there.
         levels: int
         level_start: wp.array(dtype=wp.int32)
+        world_levels: wp.array(dtype=wp.int32)
+        world_level_lo: wp.array2d(dtype=wp.int32)
+        world_level_hi: wp.array2d(dtype=wp.int32)
         aggregate: wp.array(dtype=wp.int32)  # flat node -> its aggregate on the next level (-1: pinned, none)
         fine_slot: wp.array(dtype=wp.int32)  # fine block -> level-1 block (-1: a pinned row or column)
         coarse_slot: wp.array(dtype=wp.int32)  # coarse block -> next level's block (-1 on the coarsest level)
@@ -134,12 +139,12 @@ def linear_kernels(scalar):
         columns: wp.array(dtype=wp.int32)
         diag_slot: wp.array(dtype=wp.int32)
         values: wp.array(dtype=mat33)
-        factor: wp.array2d(dtype=wp.float64)  # the coarsest level as a dense matrix, then its Cholesky factor
+        factor: wp.array3d(dtype=wp.float64)  # per world: its coarsest level as a dense matrix, then its Cholesky
         # scratch: the coarse levels' right-hand sides and corrections (flat; the fine part is unused), and the
-        # dense solve's vector
+        # dense solve's vector (per world)
         b: wp.array(dtype=vec3)
         x: wp.array(dtype=vec3)
-        work: wp.array(dtype=wp.float64)
+        work: wp.array2d(dtype=wp.float64)
 
     @wp.func
     def smooth_down(
@@ -201,14 +206,15 @@ def linear_kernels(scalar):
             x[i] = x[i] + dinv[i] * s
 
     @wp.func
-    def factor_coarsest(mg: Multigrid):
-        """The coarsest level as a dense float64 matrix in ``mg.factor``, then its Cholesky factor (lower). Returns
-        False if a pivot is not positive."""
+    def factor_coarsest(mg: Multigrid, w: int):
+        """World w's coarsest level as a dense float64 matrix in ``mg.factor[w]``, then its Cholesky factor (lower).
+        Returns False if a pivot is not positive."""
         n0 = mg.level_start[1]
-        total = mg.level_start[mg.levels]
-        lo = mg.level_start[mg.levels - 1]
+        coarsest = mg.world_levels[w] - 1
+        lo = mg.world_level_lo[w, coarsest]
+        total = mg.world_level_hi[w, coarsest]
         m = 3 * (total - lo)
-        F = mg.factor
+        F = mg.factor[w]
         for a in range(m):
             for b in range(m):
                 F[a, b] = wp.float64(0.0)
@@ -238,13 +244,14 @@ def linear_kernels(scalar):
         return ok
 
     @wp.func
-    def solve_coarsest(mg: Multigrid, b: wp.array(dtype=vec3), x: wp.array(dtype=vec3)):
-        """x = (the coarsest level's matrix)^-1 b on the coarsest level's flat nodes, by the factor of
+    def solve_coarsest(mg: Multigrid, world: int, b: wp.array(dtype=vec3), x: wp.array(dtype=vec3)):
+        """x = (the coarsest level's matrix)^-1 b on world ``world``'s coarsest flat nodes, by the factor of
         factor_coarsest (one thread; the level has at most MAX_COARSEST nodes)."""
-        total = mg.level_start[mg.levels]
-        lo = mg.level_start[mg.levels - 1]
+        coarsest = mg.world_levels[world] - 1
+        lo = mg.world_level_lo[world, coarsest]
+        total = mg.world_level_hi[world, coarsest]
         m = 3 * (total - lo)
-        F, w = mg.factor, mg.work
+        F, w = mg.factor[world], mg.work[world]
         for i in range(m):
             s = wp.float64(b[lo + i // 3][i % 3])
             for k in range(i):
@@ -261,50 +268,54 @@ def linear_kernels(scalar):
             x[f] = vec3(scalar(w[j]), scalar(w[j + 1]), scalar(w[j + 2]))
 
     @wp.func
-    def multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33)):
-        """The coarse levels' blocks (Galerkin sums), their diagonal inverses, and the Cholesky factor of the
+    def multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), w: int):
+        """World w's coarse levels' blocks (Galerkin sums), their diagonal inverses, and the Cholesky factor of its
         coarsest level. Returns False if a pivot is not positive (A is not positive definite)."""
         n0 = mg.level_start[1]
-        total = mg.level_start[mg.levels]
+        levels = mg.world_levels[w]
         zero = mat33()
-        for k in range(mg.values.shape[0]):
-            mg.values[k] = zero
-        for k in range(A.offsets[n0]):
+        for level in range(1, levels):  # the world's blocks of each level: those of its rows there
+            for k in range(mg.offsets[mg.world_level_lo[w, level] - n0], mg.offsets[mg.world_level_hi[w, level] - n0]):
+                mg.values[k] = zero
+        for k in range(A.offsets[mg.world_level_lo[w, 0]], A.offsets[mg.world_level_hi[w, 0]]):
             slot = mg.fine_slot[k]
             if slot >= 0:
                 mg.values[slot] = mg.values[slot] + A.values[k]
-        # a level's blocks all precede the next level's, so one pass in order completes each level before it is read
-        for k in range(mg.values.shape[0]):
-            slot = mg.coarse_slot[k]
-            if slot >= 0:
-                mg.values[slot] = mg.values[slot] + mg.values[k]
-        for f in range(n0, total):
-            dinv[f] = wp.inverse(mg.values[mg.diag_slot[f - n0]])
-        return factor_coarsest(mg)
+        # level by level, so each level is complete before it is read
+        for level in range(1, levels):
+            for k in range(mg.offsets[mg.world_level_lo[w, level] - n0], mg.offsets[mg.world_level_hi[w, level] - n0]):
+                slot = mg.coarse_slot[k]
+                if slot >= 0:
+                    mg.values[slot] = mg.values[slot] + mg.values[k]
+        for level in range(1, levels):
+            for f in range(mg.world_level_lo[w, level], mg.world_level_hi[w, level]):
+                dinv[f] = wp.inverse(mg.values[mg.diag_slot[f - n0]])
+        return factor_coarsest(mg, w)
 
     @wp.func
     def multigrid_apply(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), r: wp.array(dtype=vec3),
-                        z: wp.array(dtype=vec3)):
-        """z = one symmetric V-cycle on r (forward Gauss-Seidel down, a dense solve on the coarsest level,
-        backward Gauss-Seidel up). Returns r.z (float64)."""
+                        z: wp.array(dtype=vec3), w: int):
+        """z = one symmetric V-cycle on world w's part of r (forward Gauss-Seidel down, a dense solve on the
+        coarsest level, backward Gauss-Seidel up). Returns r.z over the world's rows (float64)."""
         n0 = mg.level_start[1]
-        total = mg.level_start[mg.levels]
-        last = mg.levels - 1
+        last = mg.world_levels[w] - 1
+        lo, hi = mg.world_level_lo[w, 0], mg.world_level_hi[w, 0]
         zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        for f in range(n0, total):
-            mg.b[f] = zero
-        smooth_down(A.offsets, A.columns, A.diag_slot, A.values, 0, 0, n0, dinv, r, z, mg.aggregate, mg.b)
+        for level in range(1, last + 1):
+            for f in range(mg.world_level_lo[w, level], mg.world_level_hi[w, level]):
+                mg.b[f] = zero
+        smooth_down(A.offsets, A.columns, A.diag_slot, A.values, 0, lo, hi, dinv, r, z, mg.aggregate, mg.b)
         for level in range(1, last):
-            smooth_down(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.level_start[level],
-                        mg.level_start[level + 1], dinv, mg.b, mg.x, mg.aggregate, mg.b)
-        solve_coarsest(mg, mg.b, mg.x)
+            smooth_down(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.world_level_lo[w, level],
+                        mg.world_level_hi[w, level], dinv, mg.b, mg.x, mg.aggregate, mg.b)
+        solve_coarsest(mg, w, mg.b, mg.x)
         for level_down in range(1, last):
             level = last - level_down
-            smooth_up(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.level_start[level],
-                      mg.level_start[level + 1], dinv, mg.b, mg.x, mg.aggregate, mg.x)
-        smooth_up(A.offsets, A.columns, A.diag_slot, A.values, 0, 0, n0, dinv, r, z, mg.aggregate, mg.x)
+            smooth_up(mg.offsets, mg.columns, mg.diag_slot, mg.values, n0, mg.world_level_lo[w, level],
+                      mg.world_level_hi[w, level], dinv, mg.b, mg.x, mg.aggregate, mg.x)
+        smooth_up(A.offsets, A.columns, A.diag_slot, A.values, 0, lo, hi, dinv, r, z, mg.aggregate, mg.x)
         rz = wp.float64(0.0)
-        for i in range(n0):
+        for i in range(lo, hi):
             rz += wp.float64(wp.dot(r[i], z[i]))
         return rz
 
@@ -365,13 +376,13 @@ def linear_kernels(scalar):
         for i in range(lo, hi):
             rr += wp.float64(wp.dot(r[i], r[i]))
         if multigrid:
-            if not multigrid_setup(A, mg, precond):
+            if not multigrid_setup(A, mg, precond, w):
                 # a coarse pivot <= 0: A is not positive definite; report it as a non-finite residual
                 info[w, 0] = wp.float64(0.0)
                 info[w, 1] = wp.float64(wp.nan)
                 info[w, 2] = wp.float64(0.0)
                 return
-            rz = multigrid_apply(A, mg, precond, r, z)
+            rz = multigrid_apply(A, mg, precond, r, z, w)
         elif ssor:
             rz = ssor_apply(A, precond, omega, r, q, z, lo, hi)
         else:
@@ -411,7 +422,7 @@ def linear_kernels(scalar):
                     z[i] = precond[i] * r[i]
                     rz_new += wp.float64(wp.dot(r[i], z[i]))
             if multigrid:
-                rz_new = multigrid_apply(A, mg, precond, r, z)
+                rz_new = multigrid_apply(A, mg, precond, r, z, w)
             elif ssor:
                 rz_new = ssor_apply(A, precond, omega, r, q, z, lo, hi)
             beta = scalar(rz_new / rz)
@@ -597,8 +608,8 @@ def linear_kernels(scalar):
     def mg_factor(mg: Multigrid):
         # the coarsest level's Cholesky factor (one thread); a matrix that is not positive definite poisons it
         # with a NaN, so the CG reports a non-finite residual as the sequential multigrid does
-        if not factor_coarsest(mg):
-            mg.factor[0, 0] = wp.float64(wp.nan)
+        if not factor_coarsest(mg, 0):
+            mg.factor[0, 0, 0] = wp.float64(wp.nan)
 
     @wp.kernel
     def mg_smooth_first(dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), lo: int, omega: scalar,
@@ -631,7 +642,7 @@ def linear_kernels(scalar):
 
     @wp.kernel
     def mg_solve_coarsest(mg: Multigrid, b: wp.array(dtype=vec3), x: wp.array(dtype=vec3)):
-        solve_coarsest(mg, b, x)
+        solve_coarsest(mg, 0, b, x)
 
     @wp.kernel
     def mg_prolong(aggregate: wp.array(dtype=wp.int32), lo: int, x_coarse: wp.array(dtype=vec3),

@@ -8,7 +8,7 @@ import warp as wp
 
 import warpcloth as wc
 from warpcloth.errors import SimulationError
-from warpcloth.solver.multigrid import MAX_COARSEST, Hierarchy
+from warpcloth.solver.multigrid import MAX_COARSEST, WorldHierarchies
 
 ROT_XZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
@@ -24,8 +24,7 @@ def hanging(res, dtype=wp.float64, pins=(0,)):
 
 
 def hierarchy_of(model):
-    return Hierarchy(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
-                     model.particle_pin.numpy() >= 0)
+    return WorldHierarchies.of_model(model)
 
 
 def prolongations(h):

@@ -14,6 +14,8 @@ import warpcloth as wc
 SSOR = dict(preconditioner="block_ssor", cg_tol=1e-10)
 TILED = {**SSOR, "preconditioner": "block_jacobi", "cg_backend": "tiled"}
 """The GPU's CG backend (one thread block per world; one thread on the CPU): the same per-world independence."""
+MULTIGRID = {**SSOR, "preconditioner": "multigrid", "cg_backend": "sequential"}
+"""The CPU's default: a multigrid hierarchy per world, each world's V-cycle on its world's thread."""
 
 
 @wp.kernel
@@ -58,7 +60,7 @@ WORLDS = [("gray-interlock", (0.5, 2.0, 0.0), (0.0, 0.0, -2.0)),
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("solve", [SSOR, TILED], ids=["sequential", "tiled"])
+@pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID], ids=["sequential", "tiled", "multigrid"])
 def test_worlds_without_contact_equal_single_runs_states_and_gradients(solve, device):
     """Per-world materials, wind and gravity: each world's state and gradients (its material, wind, gravity and
     initial velocities) equal a single-world model's, bitwise on the CPU (the same kernels, and each world's CG on
@@ -110,7 +112,7 @@ def draped_builder():
     return b
 
 
-@pytest.mark.parametrize("solve", [SSOR, TILED], ids=["sequential", "tiled"])
+@pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID], ids=["sequential", "tiled", "multigrid"])
 def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve):
     """A cloth dropped on a sphere (projection, repulsion, friction) replicated with a different push per world:
     states and the gradients of every parameter (forces, density, stretching, bending, x0, v0, the sphere's
@@ -325,10 +327,20 @@ def test_world_errors():
     with pytest.raises(ValueError, match="world 3 out of range"):
         composed.finalize("cpu").world_slice(3)
     composed.add_world(base)
-    with pytest.raises(ValueError, match="'multigrid' takes a model of one world"):
-        wc.Simulator(composed.finalize("cpu"), 0.01, options=wc.SolverOptions(preconditioner="multigrid"))
-    # "auto" picks block SSOR, which each world's solve runs on its own
+    with pytest.raises(ValueError, match="'multigrid' with the warp CG backend takes a model of one world"):
+        wc.Simulator(composed.finalize("cpu"), 0.01, options=wc.SolverOptions(preconditioner="multigrid",
+                                                                              cg_backend="warp"))
+    # "auto" on the CPU: a multigrid hierarchy per world, each world's V-cycle on its own thread
+    solver = wc.Simulator(composed.finalize("cpu"), 0.01).linear_solver
+    assert solver.preconditioner == "multigrid" and solver.multigrid_levels[0] == 2 * base.particle_count
+    pinned = wc.ModelBuilder()
+    pinned.add_cloth_grid((2, 2), (0.2, 0.2), material=wc.preset("gray-interlock"))
+    for p in range(pinned.particle_count):
+        pinned.add_pin(p)
+    composed.add_world(pinned)  # a world with nothing to coarsen: block SSOR for all
     assert wc.Simulator(composed.finalize("cpu"), 0.01).linear_solver.preconditioner == "block_ssor"
+    with pytest.raises(ValueError, match="world 2: the multigrid preconditioner needs at least one particle"):
+        wc.Simulator(composed.finalize("cpu"), 0.01, options=wc.SolverOptions(preconditioner="multigrid"))
 
 
 # -- the control task's batches ---------------------------------------------------------------------------------------

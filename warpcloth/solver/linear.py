@@ -22,7 +22,7 @@ from warpcloth.errors import SimulationError
 from warpcloth.kernels import status as ks
 from warpcloth.kernels.linear import linear_kernels
 from warpcloth.model import Model
-from warpcloth.solver.multigrid import Hierarchy, ParallelMultigrid
+from warpcloth.solver.multigrid import ParallelMultigrid, WorldHierarchies
 from warpcloth.solver.options import SolverOptions
 from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
@@ -87,17 +87,21 @@ class LinearSolver:
         """What was mapped to run on this device (empty if nothing was): the CLI prints it."""
         preconditioner = options.preconditioner
         if preconditioner == "auto":
-            # a model whose particles are all pinned has nothing to coarsen; one hierarchy spans one world
-            coarsen = (model.particle_pin.numpy() < 0).any() and model.world_count == 1
+            # a world whose particles are all pinned has nothing to coarsen; the sequential backend runs a hierarchy
+            # per world (each world's V-cycle on its thread), the parallel form one hierarchy over one world
+            free = model.particle_pin.numpy() < 0
+            coarsen = all(free[a:b].any() for a, b in zip(model.world_particle_start[:-1],
+                                                         model.world_particle_start[1:]))
             if backend == "tiled":
                 preconditioner = "block_jacobi"
             elif backend == "warp":
-                preconditioner = "multigrid" if coarsen else "block_jacobi"
+                preconditioner = "multigrid" if coarsen and model.world_count == 1 else "block_jacobi"
             else:
                 preconditioner = "multigrid" if coarsen else "block_ssor"
-        if preconditioner == "multigrid" and model.world_count > 1:
-            raise ValueError(f"SolverOptions.preconditioner 'multigrid' takes a model of one world (this one has "
-                             f"{model.world_count}); use 'block_ssor', which each world's solve runs on its own")
+        if preconditioner == "multigrid" and model.world_count > 1 and backend != "sequential":
+            raise ValueError(f"SolverOptions.preconditioner 'multigrid' with the {backend} CG backend takes a model "
+                             f"of one world (this one has {model.world_count}); the sequential backend runs one "
+                             "per world, or use 'block_jacobi'")
         sequential_only = ("block_ssor", "multigrid") if backend == "tiled" else ("block_ssor",)
         if preconditioner in sequential_only and backend != "sequential":
             if not chosen_by_device:
@@ -115,14 +119,14 @@ class LinearSolver:
         self._scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
         self._parallel_multigrid = None
         if preconditioner == "multigrid":
-            hierarchy = Hierarchy(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
-                                  model.particle_pin.numpy() >= 0)
+            hierarchy = WorldHierarchies.of_model(model)
             self._multigrid = hierarchy.multigrid(self.kernels, model.scalar, self.device)
             if backend == "warp":  # the same hierarchy in parallel form: Jacobi smoothing, a thread per node
                 self._parallel_multigrid = ParallelMultigrid(hierarchy, self._multigrid, self.kernels, model,
                                                              self.device)
             self.multigrid_levels = tuple(hierarchy.sizes)
-            """Nodes per level of the multigrid hierarchy, the particles first (empty without multigrid)."""
+            """Nodes per level of the multigrid hierarchy, the particles first (all worlds' together; empty without
+            multigrid)."""
         else:
             self._multigrid = self.kernels.Multigrid()  # unused: an empty hierarchy
             self._multigrid.levels = 0

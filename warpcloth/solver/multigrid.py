@@ -80,8 +80,8 @@ def _neighbours(n: int, rows: np.ndarray, cols: np.ndarray) -> list[list[int]]:
 
 
 class Hierarchy:
-    """The levels of the aggregation hierarchy as flat arrays (the layout ``Multigrid`` in kernels/linear.py
-    reads), built from a model's block pattern, triangles and pins."""
+    """The levels of the aggregation hierarchy of one world, level-local, built from its block pattern, triangles
+    and pins (:class:`WorldHierarchies` lays the worlds' out flat for the kernels)."""
 
     def __init__(self, offsets: np.ndarray, columns: np.ndarray, triangles: np.ndarray, pinned: np.ndarray):
         n0 = len(offsets) - 1
@@ -120,21 +120,103 @@ class Hierarchy:
             active = np.ones(count, dtype=bool)
         self.sizes = sizes
         """Nodes per level, the particles first."""
-        start = np.concatenate([[0], np.cumsum(sizes)])
-        self.level_start = start
-        block_counts = [len(p[1]) for p in patterns]
-        block_start = np.concatenate([[0], np.cumsum(block_counts)])
-        # flat ids: a level-l node i is start[l] + i; a coarse level-l block k is block_start[l - 1] + k
-        self.aggregate = np.concatenate(
-            [np.where(a >= 0, a + start[level + 1], -1) for level, a in enumerate(aggregates)])
-        self.fine_slot = slot_maps[0]
-        coarse_slot = [np.where(s >= 0, s + block_start[level], -1) for level, s in enumerate(slot_maps[1:], 1)]
-        coarse_slot.append(np.full(block_counts[-1], -1))
-        self.coarse_slot = np.concatenate(coarse_slot)
-        self.offsets = np.concatenate(
-            [p[0][:-1] + block_start[level] for level, p in enumerate(patterns)] + [[block_start[-1]]])
-        self.columns = np.concatenate([p[1] + start[level + 1] for level, p in enumerate(patterns)])
-        self.diag_slot = np.concatenate([p[2] + block_start[level] for level, p in enumerate(patterns)])
+        self.aggregates = aggregates
+        """Per level but the coarsest: each node's aggregate on the next level (level-local ids, -1: none)."""
+        self.slot_maps = slot_maps
+        """Per level but the coarsest: each of its blocks' slot among the next level's blocks (-1: none)."""
+        self.patterns = patterns
+        """Per coarse level: its block pattern (offsets, columns, diagonal slots), level-local."""
+
+
+class WorldHierarchies:
+    """The hierarchies of a model's worlds in the flat layout ``Multigrid`` (kernels/linear.py) reads: one
+    :class:`Hierarchy` per world (worlds never share a block, so none spans two), their nodes numbered level by
+    level and, within a level, world by world (level 0: the particles); coarse blocks likewise. World w's nodes of
+    level l are ``[world_level_lo[w, l], world_level_hi[w, l])``, so one thread per world runs its own V-cycle over
+    its own ranges (cg_sequential) and gets bitwise what a model of that world alone gets. Worlds of one shape share
+    one Hierarchy (built once)."""
+
+    def __init__(self, offsets: np.ndarray, columns: np.ndarray, triangles: np.ndarray, pinned: np.ndarray,
+                 world_particle_start: np.ndarray):
+        offsets, columns = np.asarray(offsets, dtype=np.int64), np.asarray(columns, dtype=np.int64)
+        triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        pinned = np.asarray(pinned, dtype=bool)
+        starts = [int(p) for p in world_particle_start]
+        W = len(starts) - 1
+        built: dict = {}
+        self.worlds: list[Hierarchy] = []
+        for w in range(W):
+            p0, p1 = starts[w], starts[w + 1]
+            local = (offsets[p0:p1 + 1] - offsets[p0], columns[offsets[p0]:offsets[p1]] - p0,
+                     triangles[(triangles[:, 0] >= p0) & (triangles[:, 0] < p1)] - p0, pinned[p0:p1])
+            key = tuple(a.tobytes() for a in local)
+            if key not in built:
+                try:
+                    built[key] = Hierarchy(*local)
+                except ValueError as exc:
+                    raise ValueError(f"world {w}: {exc}" if W > 1 else str(exc)) from exc
+            self.worlds.append(built[key])
+        L = max(len(h.sizes) for h in self.worlds)
+        sizes = [sum(h.sizes[level] for h in self.worlds if level < len(h.sizes)) for level in range(L)]
+        self.sizes = sizes
+        """Nodes per level over all worlds, the particles first."""
+        self.level_start = np.concatenate([[0], np.cumsum(sizes)])
+        n0, total = sizes[0], int(self.level_start[-1])
+
+        def blocks(h: Hierarchy, level: int) -> int:
+            return len(h.patterns[level - 1][1]) if 0 < level < len(h.sizes) else 0
+
+        block_level_start = np.concatenate([[0], np.cumsum([sum(blocks(h, level) for h in self.worlds)
+                                                            for level in range(1, L)])])
+        node_lo = np.zeros((W, L), dtype=np.int64)
+        block_lo = np.zeros((W, L), dtype=np.int64)
+        for level in range(L):
+            node, block = (0, 0) if level == 0 else (int(self.level_start[level]), int(block_level_start[level - 1]))
+            for w, h in enumerate(self.worlds):
+                node_lo[w, level] = starts[w] if level == 0 else node
+                block_lo[w, level] = block
+                if level > 0 and level < len(h.sizes):
+                    node += h.sizes[level]
+                    block += blocks(h, level)
+        coarse_blocks = int(block_level_start[-1])
+        self.aggregate = np.full(total, -1, dtype=np.int64)
+        self.fine_slot = np.full(int(offsets[n0]), -1, dtype=np.int64)
+        self.coarse_slot = np.full(coarse_blocks, -1, dtype=np.int64)
+        self.offsets = np.zeros(total - n0 + 1, dtype=np.int64)
+        self.offsets[-1] = coarse_blocks
+        self.columns = np.zeros(coarse_blocks, dtype=np.int64)
+        self.diag_slot = np.zeros(total - n0, dtype=np.int64)
+        self.world_levels = np.array([len(h.sizes) for h in self.worlds], dtype=np.int64)
+        self.world_level_lo = np.zeros((W, L), dtype=np.int64)
+        self.world_level_hi = np.zeros((W, L), dtype=np.int64)
+        for w, h in enumerate(self.worlds):
+            levels = len(h.sizes)
+            for level in range(levels):
+                lo = node_lo[w, level]
+                self.world_level_lo[w, level], self.world_level_hi[w, level] = lo, lo + h.sizes[level]
+                if level + 1 < levels:
+                    agg = h.aggregates[level]
+                    self.aggregate[lo:lo + h.sizes[level]] = np.where(agg >= 0, agg + node_lo[w, level + 1], -1)
+                if level == 0:
+                    slots = h.slot_maps[0]
+                    self.fine_slot[offsets[starts[w]]:offsets[starts[w + 1]]] = np.where(
+                        slots >= 0, slots + block_lo[w, 1], -1)
+                    continue
+                b0 = block_lo[w, level]
+                coffsets, ccolumns, cdiag = h.patterns[level - 1]
+                rows = slice(lo - n0, lo - n0 + h.sizes[level])
+                self.offsets[rows] = coffsets[:-1] + b0
+                self.diag_slot[rows] = cdiag + b0
+                self.columns[b0:b0 + len(ccolumns)] = ccolumns + lo
+                if level + 1 < levels:
+                    slots = h.slot_maps[level]
+                    self.coarse_slot[b0:b0 + len(slots)] = np.where(slots >= 0, slots + block_lo[w, level + 1], -1)
+
+    @classmethod
+    def of_model(cls, model) -> WorldHierarchies:
+        """The hierarchies of ``model``'s worlds, from its block pattern, triangles and pins."""
+        return cls(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
+                   model.particle_pin.numpy() >= 0, model.world_particle_start)
 
     def multigrid(self, kernels, scalar, device):
         """The ``Multigrid`` struct of ``kernels`` (linear_kernels(scalar)) with these arrays and its scratch."""
@@ -146,15 +228,17 @@ class Hierarchy:
         mg = kernels.Multigrid()
         mg.levels = len(self.sizes)
         mg.level_start = ints(self.level_start)
+        mg.world_levels = ints(self.world_levels)
+        mg.world_level_lo, mg.world_level_hi = ints(self.world_level_lo), ints(self.world_level_hi)
         mg.aggregate, mg.fine_slot, mg.coarse_slot = ints(self.aggregate), ints(self.fine_slot), ints(self.coarse_slot)
         mg.offsets, mg.columns, mg.diag_slot = ints(self.offsets), ints(self.columns), ints(self.diag_slot)
         mg.values = wp.zeros(len(self.columns), dtype=mat33, device=device)
-        m = 3 * self.sizes[-1]
-        mg.factor = wp.zeros((m, m), dtype=wp.float64, device=device)
+        m = 3 * max(h.sizes[-1] for h in self.worlds)
+        mg.factor = wp.zeros((len(self.worlds), m, m), dtype=wp.float64, device=device)
         total = int(self.level_start[-1])
         mg.b = wp.zeros(total, dtype=vec3, device=device)
         mg.x = wp.zeros(total, dtype=vec3, device=device)
-        mg.work = wp.zeros(m, dtype=wp.float64, device=device)
+        mg.work = wp.zeros((len(self.worlds), m), dtype=wp.float64, device=device)
         return mg
 
 

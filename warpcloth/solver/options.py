@@ -99,8 +99,9 @@ class SolverOptions:
     block SSOR's 84 on the 64x64 hanging sheet at dt 0.02, 1.8x faster per step, benchmarks/step_time.py),
     ``"block_ssor"`` (symmetric block Gauss-Seidel sweeps; sequential backend only: ~3x fewer iterations than block
     Jacobi at 64x64, benchmarks/cg_solvers.py), ``"block_jacobi"`` (inverse 3x3 diagonal blocks), ``"jacobi"``
-    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential and warp backends for a model of one
-    world, block SSOR and block Jacobi for several; block Jacobi with the tiled backend).
+    (inverse scalar diagonal) or ``"auto"`` (multigrid with the sequential backend, a hierarchy per world, and with
+    the warp backend for a model of one world; block Jacobi with the tiled backend and for several worlds with the
+    warp backend; block SSOR where a world has no free particle).
     Where the mass dominates the system (small dt), block SSOR is the faster one: measured on warm solves of the
     hanging sheet in the wind and of benchmarks/peers.py's pinned sheet, 16x16 to 128x128, dt 1/50 to 1/4000, the
     multigrid won every system that block SSOR needed more than 23 iterations for (by up to 2.1x: 128x128 at

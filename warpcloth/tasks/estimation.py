@@ -224,9 +224,10 @@ class TrajectoryFit:
     def worlds(self, count: int) -> TrajectoryFit | None:
         """This fit over ``count`` copies of its scene, each world with its own material and this fit's targets
         (made once, then kept); None without a ``template`` or for a fit of several worlds. Its solver is this
-        one's options on a model of ``count`` worlds, so ``preconditioner="auto"`` is block SSOR there (multigrid
-        takes one world, and an explicit ``"multigrid"`` becomes ``"auto"``): its losses agree with this fit's to the
-        CG tolerance, and bitwise with a ``"block_ssor"`` fit's."""
+        one's options on a model of ``count`` worlds: on the CPU each world has its own multigrid hierarchy, so each
+        world's loss is bitwise this fit's; on CUDA ``"auto"`` is block Jacobi for several worlds (and an explicit
+        ``"multigrid"``, which the parallel form runs for one world only, becomes ``"auto"``), so they agree to the
+        CG tolerance."""
         if self.template is None or self.world_count != 1:
             return None
         if count not in self._batched:
@@ -235,8 +236,8 @@ class TrajectoryFit:
             model = builder.finalize(self.model.device, requires_grad=True, dtype=self.model.scalar)
             targets = [np.tile(x, (count, 1)) for x in self._targets_np]
             init = dict(self._init)
-            if init["options"].preconditioner == "multigrid":  # it takes one world; "auto" picks block SSOR
-                init["options"] = replace(init["options"], preconditioner="auto")
+            if init["options"].preconditioner == "multigrid" and self.sim.linear_solver.backend != "sequential":
+                init["options"] = replace(init["options"], preconditioner="auto")  # its parallel form: one world
             self._batched[count] = TrajectoryFit(model, targets, **init)
         return self._batched[count]
 
@@ -475,12 +476,13 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     ``batch`` (the global searches, on a TrajectoryFit with a ``template``: :meth:`TrajectoryFit.worlds`): CMA-ES's
     generations, the smoothed search's copies and the multistart's L-BFGS runs (in lockstep: each evaluation waits
     for the other runs' and all are one simulation) are simulated as worlds of one batch, not one after another.
-    The same search either way: the batch's solver treats each world on its own (block SSOR, not the one-world
-    multigrid: its losses agree with one world's to the CG tolerance, bitwise under ``preconditioner="block_ssor"``).
-    Off by default: on a 2-core CPU the batch was slower, because block SSOR needs more CG iterations than the
-    multigrid: the smoothed search over Table 2's ten fabrics took a median 1.42x the time per step and evaluation
-    (0.0038 against 0.0027 s), and in float32 some soft trials missed cg_tol 1e-6 after 1000 iterations
-    (2026-11-27). On CUDA, where worlds share each launch, it is meant to pay; not measured there yet.
+    The same search either way, bitwise on the CPU: the batch's solver treats each world on its own (each with its
+    own multigrid hierarchy; :meth:`TrajectoryFit.worlds`). Off by default: on this 2-core CPU, where the hanging
+    cloth's steps are bound by arithmetic on one thread, the batch is slower. Fitting tango-red-jet-set from the
+    seed's motion with 150 evaluations (two runs each, 2026-11-27): the smoothed search 18.9 against 17.2 s, CMA-ES
+    15.4 against 13.2 s, the multistart 27 against 19 s (its lockstep waits for the slowest run, and worlds whose
+    run is done or waiting simulate anyway). On CUDA, where worlds share each launch, it is meant to pay; not
+    measured there yet.
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
@@ -765,7 +767,8 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
     seed's mean). The fits run in lockstep: each evaluation waits until every unfinished fit has asked for one, and
     then all of them are one simulation of the batch (forward and backward where one of them needs a gradient).
     Each world's result is the one its fit gives alone on a model of that world (the worlds never interact), where
-    the solver treats one world as several (``preconditioner="block_ssor"``: multigrid spans one world).
+    the solver treats one world as several: on the CPU (the sequential CG backend) always, each world with its own
+    multigrid hierarchy; on CUDA with ``preconditioner="block_jacobi"``.
 
     A trial whose simulation raises a SimulationError naming its worlds (``SimulationError.worlds``) is rejected
     for those worlds alone, the batch simulated again without it; an error that names no world rejects every
