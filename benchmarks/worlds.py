@@ -7,8 +7,9 @@ Scenes, each world a copy made with ``ModelBuilder.replicate``/``add_world``:
 - hanging: a 16x16 hanging cloth in a 5 m/s wind (the seed's material-estimation scene made in code), the world's
   material the seed's fabric number ``world mod 10``: a fabric library in one model. No contact.
 Forward: ``steps`` steps without a tape. Forward + backward: ``grad_steps`` steps on a wp.Tape and one backward pass
-of a random linear loss of the final positions (float32, the default). Every configuration solves with block SSOR
-(the preconditioner of several worlds; a single world's default is multigrid). Each configuration is timed after a
+of a random linear loss of the final positions (float32, the default). Every configuration solves with one
+preconditioner (``same_solver``: on the CPU the multigrid, a hierarchy per world, the default of one world and of
+many). Each configuration is timed after a
 warm-up (kernels compiled, two steps), the median of three runs. World-steps per second = worlds x steps / wall time.
 
 Optimisation (``--opt-iters``): the throw's open loop (Gauss-Newton, ``--opt-iters`` simulations a run, the full
@@ -48,20 +49,23 @@ from warpcloth.tasks import throw as C
 
 TARGET_SPEEDUP = 10.0
 """Issue 25: 64 throw worlds at >= 10x the world-steps per second of one world (this 2-core CPU)."""
-SAME_SOLVER = {"preconditioner": "block_ssor"}
-"""Every configuration solves with block SSOR: a model of several worlds cannot use the multigrid preconditioner
-(one hierarchy spans one world), which a single world gets by default (``"auto"``)."""
+def same_solver(device: str) -> dict:
+    """The preconditioner of every configuration, one world or many: on the CPU the multigrid (a hierarchy per
+    world, each world's V-cycle on its thread: the default for one world and for many), on CUDA block Jacobi
+    (the tiled backend's, which several worlds get there; the parallel multigrid spans one world)."""
+    return {"preconditioner": "multigrid" if wp.get_device(device).is_cpu else "block_jacobi"}
 TARGET_OPT_SPEEDUP = 3.0
 """Issue 25: one full throw optimisation (the open loop) >= 3x faster in wall time batched than not, same result."""
 PUSH_SIGMA = 5.0
 """Standard deviation of the corners' push [m/s^2] (a force of the corner's mass times this)."""
 
 
-def throw_builder(world_count: int) -> tuple[wc.ModelBuilder, float, wc.SolverOptions, list[int]]:
+def throw_builder(world_count: int, device: str) -> tuple[wc.ModelBuilder, float, wc.SolverOptions, list[int]]:
     scene = load_scene("basket-throw")
     builder = wc.ModelBuilder()
     builder.replicate(scene.model_builder, world_count)
-    return builder, scene.dt, dataclasses.replace(scene.solver_options, **SAME_SOLVER), list(scene.control.particles)
+    return (builder, scene.dt, dataclasses.replace(scene.solver_options, **same_solver(device)),
+            list(scene.control.particles))
 
 
 def hanging_world(material: wc.Material) -> wc.ModelBuilder:
@@ -74,12 +78,12 @@ def hanging_world(material: wc.Material) -> wc.ModelBuilder:
     return b
 
 
-def hanging_builder(world_count: int) -> tuple[wc.ModelBuilder, float, wc.SolverOptions, list[int]]:
+def hanging_builder(world_count: int, device: str) -> tuple[wc.ModelBuilder, float, wc.SolverOptions, list[int]]:
     names = list(wc.PRESET_NAMES)
     builder = wc.ModelBuilder()
     for w in range(world_count):
         builder.add_world(hanging_world(wc.preset(names[w % len(names)], thicken=S.THICKEN)))
-    return builder, 0.02, wc.SolverOptions(**SAME_SOLVER), []
+    return builder, 0.02, wc.SolverOptions(**same_solver(device)), []
 
 
 SCENES = {"throw": throw_builder, "hanging": hanging_builder}
@@ -122,7 +126,7 @@ def median_seconds(run, device: str) -> float:
 
 
 def measure(scene: str, worlds: int, steps: int, grad_steps: int, device: str) -> dict:
-    builder, dt, options, pushed = SCENES[scene](worlds)
+    builder, dt, options, pushed = SCENES[scene](worlds, device)
     record = {"scene": scene, "worlds": worlds, "particles": builder.particle_count}
 
     # forward
@@ -192,7 +196,7 @@ def fabric_fits(iters: int, steps: int, fabrics: int, device: str) -> dict:
     """The fabrics fitted one after another, then as one batch of worlds (module docstring)."""
     names = list(wc.PRESET_NAMES)[:fabrics]
     mesh = common.seed_dir() / "meshes" / "demo_wind.obj"
-    options = wc.SolverOptions(cg_tol=1e-6, **SAME_SOLVER)  # the fit's tolerance (TrajectoryFit's default)
+    options = wc.SolverOptions(cg_tol=1e-6, **same_solver(device))  # the fit's tolerance (TrajectoryFit's default)
 
     def fit_of(builders, truths):
         composed = wc.ModelBuilder()
