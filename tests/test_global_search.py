@@ -255,7 +255,7 @@ def test_search_settings_in_a_scene_and_on_the_command_line(tmp_path, capsys):
     assert "this run's controller: open-loop" in capsys.readouterr().err
 
 
-def small_fit(preconditioner: str = "auto", template: bool = False) -> E.TrajectoryFit:
+def small_fit(template: bool = False) -> E.TrajectoryFit:
     """A 3x3 hanging cloth in the wind, 6 steps, float64, its targets simulated with tango-red-jet-set (with its
     builder as the fit's ``template`` where asked)."""
     truth = wc.preset("tango-red-jet-set", thicken=2)
@@ -266,7 +266,7 @@ def small_fit(preconditioner: str = "auto", template: bool = False) -> E.Traject
     b.add_handle(15)
     b.set_wind((3.0, 0.0, 0.0))
     model = b.finalize("cpu", requires_grad=True, dtype=wp.float64)
-    options = wc.SolverOptions(cg_tol=1e-12, warm_start=False, preconditioner=preconditioner)
+    options = wc.SolverOptions(cg_tol=1e-12, warm_start=False)
     return E.TrajectoryFit(model, E.TrajectoryFit.simulate_targets(model, truth, steps=6), steps=6, options=options,
                            template=b if template else None)
 
@@ -334,12 +334,13 @@ def test_a_materials_multistart_runs_lbfgs_from_each_start_and_keeps_the_best():
 
 @pytest.mark.parametrize("optimizer", ["cmaes", "smoothed", "multistart"])
 def test_a_materials_global_search_runs_its_trials_as_worlds_of_one_batch(optimizer):
-    # the same search as one evaluation after another: each trial's loss and the material found, bitwise (block SSOR
-    # either way: the batch's solver treats each world on its own), its trials simulated as worlds of the fit's copies
+    # the same search as one evaluation after another: each trial's loss and the material found, bitwise (the
+    # default solver: the batch's gives each world its own multigrid), its trials simulated as worlds of the fit's
+    # copies
     search = SearchSpec(population=4, sigma=0.3, refine=4, seed=2)
     results, fits = [], []
     for batch in (False, True):
-        fits.append(small_fit("block_ssor", template=True))
+        fits.append(small_fit(template=True))
         results.append(E.estimate_material(fits[-1], optimizer=optimizer, iters=12, scan=None, search=search,
                                            batch=batch))
     one_by_one, batched = results
@@ -351,5 +352,6 @@ def test_a_materials_global_search_runs_its_trials_as_worlds_of_one_batch(optimi
     for part in ("density", "stretching", "bending"):
         np.testing.assert_array_equal(getattr(batched.material, part), getattr(one_by_one.material, part))
     copies = fits[1].worlds(4)
+    assert copies.sim.linear_solver.preconditioner == fits[1].sim.linear_solver.preconditioner == "multigrid"
     assert copies.world_count == 4 and copies.seconds > 0.0 and fits[0].worlds(4).seconds == 0.0
     assert batched.seconds >= copies.seconds

@@ -201,3 +201,39 @@ def test_the_parallel_multigrid_takes_about_the_sequential_ones_iterations():
 def test_the_parallel_multigrid_reports_a_system_that_is_not_positive_definite():
     _, info = solve_negative_definite("warp")
     assert not np.isfinite(info.residual)
+
+
+def test_worlds_of_different_meshes_each_solve_with_their_own_hierarchy():
+    # a 3x3 and a 14x14 sheet (hierarchies of different depths, pins in one): each world's steps and solves are
+    # bitwise the ones its model alone gives, and the flat layout holds each world's levels where it says
+    builders = []
+    for res, pins in ((3, (0,)), (14, (0, 5))):
+        b = wc.ModelBuilder()
+        b.add_cloth_grid((res, res), (0.5, 0.5), material=wc.preset("gray-interlock", thicken=2), rot=ROT_XZ)
+        for p in pins:
+            b.add_pin(p)
+        b.add_handle(res)
+        b.set_wind((0.0, 4.0, 1.0))
+        builders.append(b)
+    composed = wc.ModelBuilder()
+    for b in builders:
+        composed.add_world(b)
+    batch = composed.finalize("cpu", dtype=wp.float64)
+    h = hierarchy_of(batch)
+    depths = [len(w.sizes) for w in h.worlds]
+    assert depths[0] < depths[1], depths
+    for w, world in enumerate(h.worlds):
+        for level, size in enumerate(world.sizes):
+            assert h.world_level_hi[w, level] - h.world_level_lo[w, level] == size
+            assert h.level_start[level] <= h.world_level_lo[w, level] <= h.world_level_hi[w, level] \
+                <= h.level_start[level + 1]
+    sim = wc.Simulator(batch, 0.02, options=wc.SolverOptions(cg_tol=1e-10))
+    assert sim.linear_solver.preconditioner == "multigrid"
+    x = [s.particle_x.numpy() for s in wc.rollout(sim, batch.state(), steps=3)]
+    iterations = sim.linear_solver.world_info[:, 0]
+    for w, b in enumerate(builders):
+        alone = wc.Simulator(b.finalize("cpu", dtype=wp.float64), 0.02, options=wc.SolverOptions(cg_tol=1e-10))
+        xs = [s.particle_x.numpy() for s in wc.rollout(alone, alone.model.state(), steps=3)]
+        for k, (a, e) in enumerate(zip(x, xs)):
+            np.testing.assert_array_equal(a[batch.world_slice(w)], e, err_msg=f"world {w}, state {k}")
+        assert iterations[w] == alone.linear_solver.world_info[0, 0]
