@@ -39,5 +39,8 @@ tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"
 part global_search 240 $py "$root/benchmarks/global_search.py" --device cuda:0 --optimizers cmaes --starts 1 \
   --iters 42 --out "$out/global_search_cuda.json"  # issue 38: time to result on CUDA (contact: the QP on one thread)
 tail -n 6 "$out/global_search.log" >> "$out/summary.txt"
+part estimation_batch 240 $py "$root/benchmarks/estimation_batch.py" --device cuda:0 --reps 1 \
+  --fabrics tango-red-jet-set --iters 60 --out "$out/estimation_batch_cuda.json"  # issue 38: a search's trials as worlds
+tail -n 7 "$out/estimation_batch.log" >> "$out/summary.txt"
 part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0 ${VARIANT:+--variant $VARIANT}
 cat "$out/capture_probe.log" >> "$out/summary.txt"

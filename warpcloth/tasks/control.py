@@ -79,8 +79,10 @@ class ControlTask:
             keeps the seed's vertex mean.
         target_positions: Every particle's target [m], shape (particles of a world, 3).
         regularizer: Weight of ``1/2 |p|^2`` in the loss.
-        options: Solver options (default: SolverOptions()). An ``"auto"`` preconditioner is block SSOR here, so
-            that a batch of worlds solves each world as one world alone does (multigrid spans one world).
+        options: Solver options (default: SolverOptions()). An ``"auto"`` preconditioner is block SSOR here: a
+            batch of worlds solves each world as one world alone does with it (on CUDA too), and on the throw it is
+            the faster one (64 worlds 5.5k world-steps/s against 4.7k with a multigrid per world, one world 1709
+            against 1648: benchmarks/worlds.py, 2026-11-27).
         segment_steps: Checkpoint segment length. By default the whole horizon (one taped forward pass, no
             re-simulation) where the tape stays small, ``particle_count * steps <= WHOLE_TAPE_PARTICLE_STEPS``,
             else ceil(sqrt(steps)) (O(sqrt(T)) stored states; each segment but the last simulated twice).

@@ -480,9 +480,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     own multigrid hierarchy; :meth:`TrajectoryFit.worlds`). Off by default: on this 2-core CPU, where the hanging
     cloth's steps are bound by arithmetic on one thread, the batch is slower. Fitting tango-red-jet-set from the
     seed's motion with 150 evaluations (two runs each, 2026-11-27): the smoothed search 18.9 against 17.2 s, CMA-ES
-    15.4 against 13.2 s, the multistart 27 against 19 s (its lockstep waits for the slowest run, and worlds whose
-    run is done or waiting simulate anyway). On CUDA, where worlds share each launch, it is meant to pay; not
-    measured there yet.
+    15.4 against 13.2 s, the multistart 27 against 19 s (benchmarks/estimation_batch.py measures it again). On
+    CUDA, where worlds share each launch, it is meant to pay; not measured there yet.
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
@@ -601,14 +600,13 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     def multistart(starts: list[np.ndarray], shares: list[int]) -> None:
         """L-BFGS from each start with its share of the evaluations: in lockstep as one batch of worlds where there
         is one, else one after another."""
-        starts_batch = points_batch(len(starts))
-        if starts_batch is None:
+        if points_batch(len(starts)) is None:
             for start, share in zip(starts, shares):
                 lbfgs(objective_free, start, iters=share)
             return
 
-        def evaluate(requests: dict) -> dict:
-            answers = evaluate_points(list(requests.values()), True, starts_batch)
+        def evaluate(requests: dict) -> dict:  # the runs still going: a batch of as many worlds
+            answers = evaluate_points(list(requests.values()), True, points_batch(len(requests)))
             return {run: (math.inf, np.zeros(int(mask.sum()))) if isinstance(a, BaseException) else (a.loss, a.grad)
                     for run, a in zip(requests, answers)}
 
