@@ -478,10 +478,9 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     for the other runs' and all are one simulation) are simulated as worlds of one batch, not one after another.
     The same search either way, bitwise on the CPU: the batch's solver treats each world on its own (each with its
     own multigrid hierarchy; :meth:`TrajectoryFit.worlds`). Off by default: on this 2-core CPU, where the hanging
-    cloth's steps are bound by arithmetic on one thread, the batch is slower. Fitting tango-red-jet-set from the
-    seed's motion with 150 evaluations (two runs each, 2026-11-27): the smoothed search 18.9 against 17.2 s, CMA-ES
-    15.4 against 13.2 s, the multistart 27 against 19 s (benchmarks/estimation_batch.py measures it again). On
-    CUDA, where worlds share each launch, it is meant to pay; not measured there yet.
+    cloth's steps are bound by arithmetic on one thread, the batch took 8 to 15 % longer (benchmarks/
+    estimation_batch.py: two fabrics, each search with 150 evaluations, 0.85x to 0.92x, 2026-11-27; the cause was
+    not looked into). On CUDA, where worlds share each launch, it is meant to pay; not measured there yet.
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
