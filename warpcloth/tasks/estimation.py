@@ -479,8 +479,11 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     The same search either way, bitwise on the CPU: the batch's solver treats each world on its own (each with its
     own multigrid hierarchy; :meth:`TrajectoryFit.worlds`). Off by default: on this 2-core CPU, where the hanging
     cloth's steps are bound by arithmetic on one thread, the batch took 8 to 15 % longer (benchmarks/
-    estimation_batch.py: two fabrics, each search with 150 evaluations, 0.85x to 0.92x, 2026-11-27; the cause was
-    not looked into). On CUDA, where worlds share each launch, it is meant to pay; not measured there yet.
+    estimation_batch.py: two fabrics, each search with 150 evaluations, 0.85x to 0.92x, 2026-11-27). Replayed, 8
+    evaluations cost the same either way (0.95 against 0.97 s; uncaptured the batch saves 16 %, 1.07 against
+    1.27 s): the extra time is the batch's own graph captures (about 1.3 s for 8 worlds with the backward pass),
+    made on top of the one-world fit's. On CUDA, where worlds share each launch, it is meant to pay; not measured
+    there yet.
 
     ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
     each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
