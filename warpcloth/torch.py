@@ -204,20 +204,15 @@ class _Replay:
         self.steps, self.vec3 = steps, vec3
         self.state = model.state(requires_grad=grad)
         self.state.time = time
-        base = model.control(requires_grad=False)
-
-        def control(f):
-            return Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
-
         self.force = None
         if force_form is None:
-            controls = [control(None)] * steps
+            controls = _controls(model, steps, None)
         elif force_form == "shared":
             self.force = wp.zeros(n, dtype=vec3, device=model.device, requires_grad=grad)
-            controls = [control(self.force)] * steps
+            controls = _controls(model, steps, self.force)
         else:
             self.force = wp.zeros((steps, n), dtype=vec3, device=model.device, requires_grad=grad)
-            controls = [control(self.force[i]) for i in range(steps)]
+            controls = _controls(model, steps, [self.force[i] for i in range(steps)])
         self.store_frame = loss_kernels(model.scalar).store_frame
         self.velocities: wp.array | None = None  # the gathered velocities (the positions are the rollout's loss)
         self.owner: _Recording | None = None  # the call whose forward pass the graphs' arrays hold
@@ -288,6 +283,19 @@ class _Replays:
 
 
 _replays: weakref.WeakKeyDictionary[Simulator, _Replays] = weakref.WeakKeyDictionary()
+
+
+def _controls(model: Model, steps: int, force) -> list[Control]:
+    """A Control a step with the model's default targets and placements and the forces ``force``: None, one array
+    for every step, or a list of one array a step."""
+    base = model.control(requires_grad=False)
+
+    def control(f):
+        return Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
+
+    if isinstance(force, list):
+        return [control(f) for f in force]
+    return [control(force)] * steps
 
 
 def _vec3_view(t: torch.Tensor, vec3, grad: torch.Tensor | None) -> wp.array:
@@ -418,20 +426,16 @@ def _run(ctx, cfg: _Config, x0, v0, fd, recording: bool):
     ]
     states[0].time = cfg.time
 
-    base = model.control(requires_grad=False)
-
-    def control(f):
-        return Control(f, base.handle_target, base.pin_target, obstacle_transform=base.obstacle_transform)
-
     gf = None
     if fd is None:
-        controls = [control(None)] * steps
+        controls = _controls(model, steps, None)
     else:
         gf = torch.zeros_like(fd) if recording and ctx.needs_input_grad[3] else None
         if fd.dim() == 2:  # one array for every step: Warp's adjoint accumulates the steps' gradients into gf
-            controls = [control(_vec3_view(fd, vec3, gf))] * steps
+            controls = _controls(model, steps, _vec3_view(fd, vec3, gf))
         else:
-            controls = [control(_vec3_view(fd[i], vec3, None if gf is None else gf[i])) for i in range(steps)]
+            controls = _controls(model, steps, [_vec3_view(fd[i], vec3, None if gf is None else gf[i])
+                                                for i in range(steps)])
 
     tape = wp.Tape() if recording else None
     with tape if tape is not None else contextlib.nullcontext():
@@ -440,7 +444,7 @@ def _run(ctx, cfg: _Config, x0, v0, fd, recording: bool):
     rec = None
     if recording:
         rec = _Recording(tape, {"x": gx, "v": gv, "force": gf}, _material_values(model),
-                         keep=(xd, vd, fd, states, controls, base))
+                         keep=(xd, vd, fd, states, controls))
     return x, v, rec
 
 
