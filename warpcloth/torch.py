@@ -342,11 +342,13 @@ class _Rollout(torch.autograd.Function):
             replays = _replays.setdefault(sim, _Replays())
             replay = replays.get(sim, steps, cfg.time, force_form, x0, v0, fd)
         if replay is not None:
-            rec = None
-            if recording:
-                rec = _Recording(None, None, _material_values(model), keep=(x0.detach(), v0.detach(), fd),
-                                 replay=replay)
+            rec = _Recording(None, None, _material_values(model), keep=None, replay=replay) if recording else None
             x, v = replay.forward(x0, v0, fd, rec)
+            if rec is not None:
+                # the inputs to replay this call again (another call of the graphs may run before its backward):
+                # the trajectory's first frame (saved below, so torch refuses a backward after an in-place change)
+                # and a copy of the forces
+                rec.keep = (x.detach()[0], v.detach()[0], None if fd is None else fd.clone())
         else:
             x, v, rec = _run(ctx, cfg, x0, v0, fd, recording)
         if rec is not None:
