@@ -360,3 +360,19 @@ def test_a_materials_global_search_runs_its_trials_as_worlds_of_one_batch(optimi
     assert copies.sim.linear_solver.preconditioner == fits[1].sim.linear_solver.preconditioner == "multigrid"
     assert copies.world_count == 4 and copies.seconds > 0.0 and fits[0].worlds(4).seconds == 0.0
     assert batched.seconds >= copies.seconds
+
+
+def test_a_batch_is_refused_where_there_is_nothing_to_batch_or_nothing_to_batch_on():
+    fit = small_fit()  # no template: no copies to run trials on
+    with pytest.raises(ValueError, match=r"batch=True needs a TrajectoryFit .* template=builder"):
+        E.estimate_material(fit, optimizer="smoothed", iters=12, scan=None, batch=True)
+    with pytest.raises(ValueError, match="batch=True simulates a global search's trials .*; lbfgs has none"):
+        E.estimate_material(small_fit(template=True), optimizer="lbfgs", iters=12, scan=None, batch=True)
+    assert fit.evaluations == 0 and fit.seconds == 0.0  # refused before any simulation
+    with pytest.raises(ValueError, match="count must be a positive integer, got 0"):
+        small_fit(template=True).worlds(0)
+    other = wc.ModelBuilder()
+    other.add_cloth_grid((2, 2), (0.3, 0.3), material=wc.preset("gray-interlock", thicken=2))
+    with pytest.raises(ValueError, match="the template has 1 world.* of 9 particles in all; it must be the one-world "
+                                         r"builder the model \(1 world\(s\), 16 particles\)"):
+        E.TrajectoryFit(fit.model, [np.zeros((16, 3))] * 4, steps=6, template=other)

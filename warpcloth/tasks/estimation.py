@@ -30,7 +30,7 @@ from warpcloth.materials import (
     STRETCHING_SHAPE,
 )
 from warpcloth.progress import progress_bar
-from warpcloth.scene import ESTIMATION_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
+from warpcloth.scene import ESTIMATION_OPTIMIZERS, GLOBAL_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
 from warpcloth.tasks.optim import (
     MULTISTART_POPULATION,
@@ -209,6 +209,10 @@ class TrajectoryFit:
         self._requests: dict = {}  # evaluations asked for, per horizon and kind
         self.evaluations = 0
         self.seconds = 0.0
+        if template is not None and (template.world_count != 1 or template.particle_count != model.particle_count):
+            raise ValueError(f"TrajectoryFit: the template has {template.world_count} world(s) of "
+                             f"{template.particle_count} particles in all; it must be the one-world builder the "
+                             f"model ({worlds} world(s), {model.particle_count} particles) was finalised from")
         self.template = template
         """The one-world builder ``model`` was finalised from, or None: with it :meth:`worlds` makes copies of the
         fit, whose worlds a global search evaluates as one batch."""
@@ -230,6 +234,8 @@ class TrajectoryFit:
         CG tolerance."""
         if self.template is None or self.world_count != 1:
             return None
+        if int(count) != count or count < 1:
+            raise ValueError(f"TrajectoryFit.worlds: count must be a positive integer, got {count!r}")
         if count not in self._batched:
             builder = wc.ModelBuilder()
             builder.replicate(self.template, count, own_materials=True)
@@ -501,6 +507,12 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if optimizer == "seed-sgd" and isinstance(fit, MultiMotionFit):
         raise ValueError("the seed-sgd optimiser grows one motion's horizon; use lbfgs or adam with a MultiMotionFit")
+    if batch and optimizer not in GLOBAL_OPTIMIZERS:
+        raise ValueError(f"batch=True simulates a global search's trials as worlds ({', '.join(GLOBAL_OPTIMIZERS)}); "
+                         f"{optimizer} has none")
+    if batch and (not isinstance(fit, TrajectoryFit) or fit.worlds(1) is None):
+        raise ValueError("batch=True needs a TrajectoryFit of one world made with its scene's builder "
+                         "(TrajectoryFit(..., template=builder)), whose copies the trials run on")
     unknown = [p for p in free if p not in MATERIAL_PARTS]
     if unknown or not free:
         raise ValueError(f"free must name some of {', '.join(MATERIAL_PARTS)}, got {list(free)}")
