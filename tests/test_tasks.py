@@ -348,6 +348,16 @@ def test_cli_runs_a_scenes_tasks(tmp_path, capsys):
     assert "or --target, not both" in capsys.readouterr().err
     assert main(["estimate", str(path), "--optimizer", "seed-sgd", "--iters", "1"]) == 2  # it fits every part
     assert "seed-sgd optimiser fits the whole material" in capsys.readouterr().err
+    # a global search's trials as worlds of one batch: the same search as without --batch
+    records = []
+    for batch in ([], ["--batch"]):
+        assert main(["estimate", str(path), "--optimizer", "smoothed", "--iters", "16", "--material", "royal-target",
+                     "--json", str(out), *batch]) == 0
+        records.append(json.loads(out.read_text()))
+    assert [r["batch"] for r in records] == [False, True]
+    assert records[0]["losses"] == records[1]["losses"] and records[0]["estimate"] == records[1]["estimate"]
+    assert main(["estimate", str(path), "--batch", "--iters", "2"]) == 2  # lbfgs: no trials to batch
+    assert "batch=True simulates a global search's trials" in capsys.readouterr().err
 
 
 def test_cli_lists_the_scenes_tasks(capsys):

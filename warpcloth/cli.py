@@ -64,6 +64,9 @@ def _parser() -> argparse.ArgumentParser:
                      "shape with vt coordinates, one frame per 0.04 s, such as the seed's targets); repeat it for "
                      "one fit per sequence")
     est.add_argument("--optimizer", default=None, choices=ESTIMATION_OPTIMIZERS, help="default: the scene's (lbfgs)")
+    est.add_argument("--batch", action="store_true",
+                     help="a global search (cmaes, multistart, smoothed) simulates its trials as worlds of one batch: "
+                     "the same search; on a CPU 8-15 %% slower (benchmarks/estimation_batch.py), meant for a GPU")
     est.add_argument("--iters", type=int, default=None, help="forward+backward evaluations (default: the scene's)")
     est.add_argument("--steps", type=int, default=None, help="steps compared (default: the scene's)")
     est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
@@ -293,7 +296,7 @@ def _estimate_jobs(args: argparse.Namespace) -> list:
     """One EstimateJob per --target, else per scene and --material."""
     from warpcloth.tasks.jobs import EstimateJob
 
-    common = dict(optimizer=args.optimizer, iters=args.iters, steps=args.steps, device=args.device)
+    common = dict(optimizer=args.optimizer, iters=args.iters, steps=args.steps, device=args.device, batch=args.batch)
     if args.target:
         if args.scene or args.material:
             raise ValueError("give scenes (and --material) or --target, not both")
@@ -330,7 +333,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
           f"{iters} simulations, fitting {', '.join(task.free)}, start: {task.start.name}")
     _print_solver_note(fit.sim)
     try:
-        result = task.run(optimizer=optimizer, iters=iters, progress=True)
+        result = task.run(optimizer=optimizer, iters=iters, batch=job.batch, progress=True)
     except SimulationError as exc:
         return _error(str(exc), _RUNTIME_ERROR)
     except ValueError as exc:  # an optimiser that cannot fit the task (checked before any simulation)

@@ -951,11 +951,13 @@ class EstimationTask:
         return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters,
                    search=spec.search, truth=truth, source=source)
 
-    def run(self, *, optimizer: str | None = None, iters: int | None = None, progress: bool = False
-            ) -> EstimationResult:
-        """:func:`estimate_material` with the task's settings (``optimizer``, ``iters`` override them)."""
+    def run(self, *, optimizer: str | None = None, iters: int | None = None, batch: bool = False,
+            progress: bool = False) -> EstimationResult:
+        """:func:`estimate_material` with the task's settings (``optimizer``, ``iters`` override them; ``batch``:
+        a global search's trials as worlds of one batch)."""
         return estimate_material(self.fit, initial=self.start, optimizer=optimizer or self.optimizer,
-                                 iters=iters or self.iters, free=self.free, search=self.search, progress=progress)
+                                 iters=iters or self.iters, free=self.free, search=self.search, batch=batch,
+                                 progress=progress)
 
 
 def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:

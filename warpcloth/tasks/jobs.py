@@ -61,6 +61,7 @@ class EstimateJob:
     iters: int | None = None
     steps: int | None = None
     device: str | None = None
+    batch: bool = False
 
     def task(self):
         """The EstimationTask; ValueError or OSError for settings that do not make one (before any fit)."""
@@ -104,8 +105,9 @@ class EstimateJob:
 
         optimizer, iters = self.settings(task)
         m = result.material
-        record = {"source": task.source, "optimizer": optimizer, "iters": iters, "steps": task.fit.steps,
-                  "free": list(task.free), "runtime_s_per_step_iter": result.seconds_per_step_iter,
+        record = {"source": task.source, "optimizer": optimizer, "iters": iters, "batch": self.batch,
+                  "steps": task.fit.steps, "free": list(task.free),
+                  "runtime_s_per_step_iter": result.seconds_per_step_iter,
                   "sim_err_pct_initial": result.initial_simulation_error_pct,
                   "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
                   "scan": [list(p) for p in result.scan], "scan_factors": result.scan_factors,
@@ -118,7 +120,7 @@ class EstimateJob:
     def run(self, progress: bool = False) -> dict:
         task = self.task()
         optimizer, iters = self.settings(task)
-        return self.record(task, task.run(optimizer=optimizer, iters=iters, progress=progress))
+        return self.record(task, task.run(optimizer=optimizer, iters=iters, batch=self.batch, progress=progress))
 
     def label(self) -> str:
         what = self.target or self.mesh or self.scene or ESTIMATE_SCENE
