@@ -13,14 +13,18 @@ from warpcloth.solver.multigrid import MAX_COARSEST, WorldHierarchies
 ROT_XZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
-def hanging(res, dtype=wp.float64, pins=(0,)):
+def hanging_builder(res, pins=(0,)):
     b = wc.ModelBuilder()
     b.add_cloth_grid((res, res), (0.5, 0.5), material=wc.preset("gray-interlock", thicken=2), rot=ROT_XZ)
     for p in pins:
         b.add_pin(p)
     b.add_handle(res)
     b.set_wind((0.0, 4.0, 1.0))
-    return b.finalize("cpu", dtype=dtype)
+    return b
+
+
+def hanging(res, dtype=wp.float64, pins=(0,)):
+    return hanging_builder(res, pins).finalize("cpu", dtype=dtype)
 
 
 def hierarchy_of(model):
@@ -206,15 +210,7 @@ def test_the_parallel_multigrid_reports_a_system_that_is_not_positive_definite()
 def test_worlds_of_different_meshes_each_solve_with_their_own_hierarchy():
     # a 3x3 and a 14x14 sheet (hierarchies of different depths, pins in one): each world's steps and solves are
     # bitwise the ones its model alone gives, and the flat layout holds each world's levels where it says
-    builders = []
-    for res, pins in ((3, (0,)), (14, (0, 5))):
-        b = wc.ModelBuilder()
-        b.add_cloth_grid((res, res), (0.5, 0.5), material=wc.preset("gray-interlock", thicken=2), rot=ROT_XZ)
-        for p in pins:
-            b.add_pin(p)
-        b.add_handle(res)
-        b.set_wind((0.0, 4.0, 1.0))
-        builders.append(b)
+    builders = [hanging_builder(3, (0,)), hanging_builder(14, (0, 5))]
     composed = wc.ModelBuilder()
     for b in builders:
         composed.add_world(b)
