@@ -218,7 +218,6 @@ class TrajectoryFit:
         fit, whose worlds a global search evaluates as one batch."""
         self._init = {"steps": steps, "frame_stride": frame_stride, "dt": dt, "options": self.sim.options,
                       "capture": capture}
-        self._targets_np = [np.asarray(x, dtype=np.float64) for x in targets[: frames + 1]]
         self._batched: dict[int, TrajectoryFit] = {}
 
     @property
@@ -240,7 +239,7 @@ class TrajectoryFit:
             builder = wc.ModelBuilder()
             builder.replicate(self.template, count, own_materials=True)
             model = builder.finalize(self.model.device, requires_grad=True, dtype=self.model.scalar)
-            targets = [np.tile(x, (count, 1)) for x in self._targets_np]
+            targets = [np.tile(x.numpy(), (count, 1)) for x in self.targets]
             init = dict(self._init)
             if init["options"].preconditioner == "multigrid" and self.sim.linear_solver.backend != "sequential":
                 init["options"] = replace(init["options"], preconditioner="auto")  # its parallel form: one world

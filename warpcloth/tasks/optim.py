@@ -138,6 +138,8 @@ SMOOTHED_COPIES = 8
 """The smoothed optimiser's perturbed copies a step (``SearchSpec.population``): four antithetic pairs."""
 MULTISTART_POPULATION = 8
 """The multistart's default number of starts (``SearchSpec.population``)."""
+
+
 def smoothed_steps(budget: int, refine: int, copies: int, *, unit: str, local: str) -> int:
     """The Adam steps of :func:`smoothed_descent` that ``budget`` simulations make with ``refine`` of them left to the
     ``local`` optimiser, ``copies`` a step; ValueError (naming the setting, the budget counted in ``unit``) where the
@@ -155,10 +157,9 @@ def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, step: float
                      rng: np.random.Generator, failures: tuple[type[Exception], ...] = ()) -> np.ndarray:
     """Adam on the Gaussian-smoothed loss L_s(p) = E[L(p + sigma eps)] from ``x0``, ``steps`` steps of Adam's
     ``step`` (its learning rate: how far a step moves each parameter), each step's gradient from ``copies`` perturbed
-    copies
-    (:func:`smoothed_gradient`, ``evaluate_many`` as there: its batch sees every copy, so the caller records them and
-    keeps the best point it met). A step whose every copy raised one of ``failures`` has an infinite loss and no
-    gradient: Adam's momentum carries on. Returns Adam's best iterate (the smoothed loss's, an estimate)."""
+    copies (:func:`smoothed_gradient`, ``evaluate_many`` as there: its batch sees every copy, so the caller records
+    them and keeps the best point it met). A step whose every copy raised one of ``failures`` has an infinite loss
+    and no gradient: Adam's momentum carries on. Returns Adam's best iterate (the smoothed loss's, an estimate)."""
 
     def smoothed(theta: np.ndarray) -> tuple[float, np.ndarray]:
         try:
