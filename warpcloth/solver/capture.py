@@ -28,8 +28,9 @@ class CapturedRollout:
         sim: the Simulator. A scene with a collision stage or proximity forces is captured one graph per step,
             speculatively: a captured step assumes that it meets no contact and no pair, and after its replay the
             host reads whether detection found any (one small read a step); where it did, the step runs again,
-            uncaptured, from the same input (:attr:`rerun_steps`). Steps in free flight replay; steps in contact
-            cost what they cost uncaptured.
+            uncaptured, from the same input (:attr:`rerun_steps`). A step that met contact in the last run runs
+            uncaptured at once, without its graph. Steps in free flight replay; steps in contact cost what they
+            cost uncaptured.
         state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
             ``wp.copy``) between replays; rebinding them has no effect on the graph.
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
@@ -68,8 +69,9 @@ class CapturedRollout:
         """The loss array the graph writes (None without a loss)."""
         self.tape: wp.Tape | None = None
         self.rerun_steps: list[int] = []
-        """The steps (0-based) of the last run that met contact and ran again uncaptured (a scene with a collision
-        stage or proximity forces; always empty otherwise)."""
+        """The steps (0-based) of the last run that ran uncaptured (a scene with a collision stage or proximity
+        forces; always empty otherwise): those whose replay met contact, run again, and those that met contact in
+        the run before, run uncaptured without a replay."""
         self.graphs: list = []
         """The graphs a replay launches in turn (empty where the rollout is not captured: see below)."""
         self._steps = None
@@ -226,7 +228,8 @@ class _StepGraphs:
 
     After a step's replay the host asks whether detection found contacts or pairs; where it did, the step runs again
     uncaptured from the same input State (the graph wrote only its output State and scratch), on a tape of its own
-    when there is a loss. The backward pass walks the steps back: a replayed step's recorded adjoint as a graph of
+    when there is a loss. A step that met contact in the last run runs uncaptured at once, without its graph (a
+    cloth resting on an obstacle would otherwise pay every step twice). The backward pass walks the steps back: a replayed step's recorded adjoint as a graph of
     its own, a re-run step's tape as it is. The States are the same arrays at every run, so the graphs serve every
     run. Made with an ordinary run of every step (it loads the kernels and makes, outside any capture, what steps
     make lazily or per time), after which every graph is captured (a capture records without running) and every
@@ -241,9 +244,14 @@ class _StepGraphs:
         self.kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
         self.motions: dict = {}  # the obstacles' motions the graphs read, one array a time
         self.reruns: dict[int, wp.Tape | None] = {}  # the last run's uncaptured steps (their tapes, with a loss)
+        self.in_contact: set[int] = set()  # the steps that met contact in the last run: the next run runs them
+        # uncaptured without replaying their graphs first
         self.loss: wp.array | None = None
         with paused_gc(), sim._keeping_motions(self.motions):  # noqa: SLF001 - the solver package's own
-            self.reruns = {k: self._rerun(k) for k in range(steps)}
+            for k in range(steps):
+                self.reruns[k] = self._rerun(k)
+                if sim._met_contact():  # noqa: SLF001
+                    self.in_contact.add(k)
             if loss is not None:
                 first = wp.Tape()
                 with wp.ScopedDevice(sim.device), first:
@@ -288,15 +296,25 @@ class _StepGraphs:
 
     def run(self, backward: bool = True) -> list[int]:
         """One run (forward, and with a loss the backward pass unless ``backward`` is false); returns the steps that
-        ran again uncaptured."""
+        ran uncaptured."""
         sim = self.sim
         with paused_gc():
             self._zero_all()
             self.reruns = {}
+            in_contact = set()
             for k, graph in enumerate(self.forward):
+                if k in self.in_contact:
+                    # it met contact in the last run: run it uncaptured at once, not its graph first (a replay that
+                    # finds contact is wasted: a cloth resting on an obstacle would pay every step twice)
+                    self.reruns[k] = self._rerun(k)
+                    if sim._met_contact():  # noqa: SLF001
+                        in_contact.add(k)
+                    continue
                 wp.capture_launch(graph)
                 if sim._contact_found():  # noqa: SLF001
                     self.reruns[k] = self._rerun(k)
+                    in_contact.add(k)
+            self.in_contact = in_contact
             sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
             if self.loss_fn is not None:
                 sim.check(self.states)  # a diverged forward pass raises before its backward pass runs

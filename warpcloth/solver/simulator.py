@@ -498,6 +498,12 @@ class Simulator:
         """Whether the last step's detections found contacts or proximity pairs (reads the device)."""
         return any(stage.found_any() for stage in (self.proximity, self.collision) if stage is not None)
 
+    def _met_contact(self) -> bool:
+        """Whether the last step, run uncaptured, met contacts or proximity pairs (what it reported: no read)."""
+        collided = self.collision is not None and self.collision.last is not None and (
+            self.collision.last.contacts > 0 or self.collision.last.rounds > 0)
+        return collided or (self.proximity is not None and self.proximity.last_count > 0)
+
     def _count_replayed(self, steps: int) -> None:
         """Count ``steps`` steps a graph replayed (CapturedRollout.run) in ``stats``."""
         self._steps += steps
