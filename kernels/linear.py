@@ -699,8 +699,11 @@ def linear_kernels(scalar):
 
     @wp.kernel
     def pair_product(A: BlockMatrix, x: wp.array(dtype=vec3), alpha: scalar, z: wp.array(dtype=vec3)):
-        # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term)
-        add_pair_product(A, wp.tid(), x, z, alpha)
+        # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term); a
+        # captured step launches at its budget of pairs, more threads than pairs
+        k = wp.tid()
+        if k < A.pair_world_start[A.pair_world_start.shape[0] - 1]:
+            add_pair_product(A, k, x, z, alpha)
 
     @wp.kernel
     def solve_adjoint_scatter(

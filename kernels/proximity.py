@@ -230,6 +230,8 @@ def proximity_kernels(scalar):
         cloth_count: int
         thickness: scalar
         dt: scalar
+        count: wp.array(dtype=wp.int32)  # [0]: the pairs held, at most the launches' size (a captured step
+        # launches its pair kernels at its budget of pairs, and the threads past the count return at once)
 
     @wp.func
     def pair_weights(p: PairInputs, k: int):
@@ -338,6 +340,8 @@ def proximity_kernels(scalar):
         # per free cloth particle, what its cloth-obstacle pairs press on it: the normal impulse's size (load) and
         # vector (push), and the load-weighted velocity of the obstacle points it touches (motion)
         k = wp.tid()
+        if k >= p.count[0]:
+            return
         idx, w, wf, n, f_n, h, u, obstacle = pair_normal(p, k)
         if obstacle:
             # the normal force at the step's start (ARCSim's): the step's own normal impulse, which depends on the
@@ -389,10 +393,10 @@ def proximity_kernels(scalar):
         change[i] = c
 
     @wp.kernel(enable_backward=False)
-    def cloth_pair_counts(p: PairInputs, count: int, per_node: wp.array(dtype=wp.int32)):
+    def cloth_pair_counts(p: PairInputs, per_node: wp.array(dtype=wp.int32)):
         # how many cloth-cloth pairs each free particle is in (the sweeps' mass splitting)
         k = wp.tid()
-        if k < count:
+        if k < p.count[0]:
             idx, w, gap = pair_weights(p, k)
             cloth = True
             for a in range(4):
@@ -420,6 +424,8 @@ def proximity_kernels(scalar):
         # its slip at the velocities so far (dv + base + change_in), with each particle's mass split among its
         # pairs, keeps its total within Coulomb's disk mu j_n, and scatters it onto its nodes (change_out, zeroed)
         k = wp.tid()
+        if k >= p.count[0]:
+            return
         idx, w, wf, n, f_n, h, u, obstacle = pair_normal(p, k)
         impulse = vec3()
         zero = scalar(0.0)
@@ -456,6 +462,8 @@ def proximity_kernels(scalar):
         pair_k: wp.array(dtype=mat33),
     ):
         k = wp.tid()
+        if k >= p.count[0]:
+            return
         idx, wf, K, R = pair_terms(p, k)
         for a in range(4):
             if wf[a] != scalar(0.0):
@@ -475,6 +483,8 @@ def proximity_kernels(scalar):
         # the pairs' share of the solve's adjoint, sum_i lam_i . b_i - sum_ij lam_i^T A_ij dv_j, whose gradient (lam
         # and dv held constant) Warp takes (as the element kernels' potential, kernels/implicit.py)
         k = wp.tid()
+        if k >= p.count[0]:
+            return
         idx, wf, K, R = pair_terms(p, k)
         L = vec3()
         D = vec3()
@@ -523,6 +533,47 @@ def proximity_kernels(scalar):
                 inv = scalar(1.0) / mass[i]
         inv_mass[i] = inv
 
+    @wp.kernel(enable_backward=False)
+    def sort_pairs(found: wp.array(dtype=wp.int32), size: int, node_world: wp.array(dtype=wp.int32),
+                   nodes: wp.array2d(dtype=wp.int32), world_count: int,
+                   # out:
+                   start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
+                   count: wp.array(dtype=wp.int32), spill: wp.array(dtype=wp.int32)):
+        # one thread: a stable counting sort of the first min(found, size) pairs by world (each world's in the order
+        # found, so a world's pairs are those a model of that world alone finds), each world's first pair (start),
+        # the count held, and whether more were found than the launches hold (a captured step's budget)
+        held = wp.min(found[0], size)
+        count[0] = held
+        spill[0] = wp.where(found[0] > size, 1, 0)
+        for w in range(world_count + 1):
+            start[w] = 0
+        for k in range(held):
+            w = node_world[nodes[k, 0]]
+            start[w + 1] = start[w + 1] + 1
+        for w in range(world_count):
+            start[w + 1] = start[w + 1] + start[w]
+        for k in range(held):  # start[w] walks world w's slots, then the shift below restores it
+            w = node_world[nodes[k, 0]]
+            order[start[w]] = k
+            start[w] = start[w] + 1
+        for w in range(world_count, 0, -1):
+            start[w] = start[w - 1]
+        start[0] = 0
+
+    @wp.kernel(enable_backward=False)
+    def gather_pairs(order: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                     nodes: wp.array2d(dtype=wp.int32), kind: wp.array(dtype=wp.int32), area: wp.array(dtype=scalar),
+                     # out:
+                     sorted_nodes: wp.array2d(dtype=wp.int32), sorted_kind: wp.array(dtype=wp.int32),
+                     sorted_area: wp.array(dtype=scalar)):
+        k = wp.tid()
+        if k < count[0]:
+            j = order[k]
+            for c in range(4):
+                sorted_nodes[k, c] = nodes[j, c]
+            sorted_kind[k] = kind[j]
+            sorted_area[k] = area[j]
+
     @wp.kernel
     def add_friction(dv: wp.array(dtype=vec3), obstacle: wp.array(dtype=vec3), cloth: wp.array(dtype=vec3),
                      out: wp.array(dtype=vec3)):
@@ -535,5 +586,5 @@ def proximity_kernels(scalar):
         pairs_potential=pairs_potential, node_state=node_state, cloth_pair_counts=cloth_pair_counts,
         friction_sweep=friction_sweep, obstacle_friction_loads=obstacle_friction_loads,
         obstacle_friction=obstacle_friction, inverse_mass=inverse_mass,
-        add_friction=add_friction,
+        add_friction=add_friction, sort_pairs=sort_pairs, gather_pairs=gather_pairs,
     )

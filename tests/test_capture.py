@@ -147,14 +147,20 @@ def test_a_contact_scene_replays_free_flight_and_reruns_the_steps_in_contact(rep
         got = [s.particle_x.numpy() for s in captured.run()]
         for a, b in zip(got, expected):
             same(a, b)
-        assert 0 < len(captured.rerun_steps) < steps - 2  # it falls before it lands
-        assert captured.rerun_steps == list(range(captured.rerun_steps[0], steps))  # and stays on the sphere
+        if repulsion:  # the pairs hold it off the sphere: every step replays, those with pairs at their budget
+            assert captured.rerun_steps == []
+            budgets = captured.pair_budgets
+            assert budgets[0] == 0 and budgets[-1] > 0  # it falls before it lands
+            assert all(b > 0 for b in budgets[budgets.index(max(budgets)):])  # and stays on the sphere
+        else:  # contacts: those steps run uncaptured
+            assert 0 < len(captured.rerun_steps) < steps - 2  # it falls before it lands
+            assert captured.rerun_steps == list(range(captured.rerun_steps[0], steps))  # and stays on the sphere
 
 
 def test_steps_in_contact_at_the_last_run_skip_their_graphs(monkeypatch):
     # a step that met contact in the run before runs uncaptured at once: its graph is not replayed first (a cloth
     # resting on an obstacle would pay every step twice), and the result stays the uncaptured rollout's
-    model, sim = landing_scene("cpu")
+    model, sim = landing_scene("cpu", repulsion=False)
     steps = 14
     expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=steps)]
     captured = wc.CapturedRollout(sim, model.state(), steps=steps)
@@ -171,14 +177,59 @@ def test_steps_in_contact_at_the_last_run_skip_their_graphs(monkeypatch):
         assert len(launched) == steps - len(captured.rerun_steps)
 
 
-def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_parameter():
+@pytest.mark.parametrize("taped", [False, True])
+def test_steps_whose_pairs_outgrow_their_budgets_run_again_and_are_captured_anew(taped):
+    # captured from one height, replayed from a lower one: the pairs come earlier, the steps whose graphs hold too
+    # few run uncaptured once, and their graphs (and backward passes) are captured again with budgets for them
     model, sim = landing_scene("cpu")
+    state = model.state(requires_grad=taped)
+    steps = 12
+    captured = wc.CapturedRollout(sim, state, steps=steps, loss=loss_of if taped else None)
+    before = captured.pair_budgets
+    lower = state.particle_x.numpy() - np.array([0.0, 0.0, 0.02], dtype=np.float32)
+    state.particle_x.assign(lower)
+    start = model.state(requires_grad=taped)
+    start.particle_x.assign(lower)
+    tape = wp.Tape()
+    with tape:
+        trajectory = wc.rollout(sim, start, steps=steps)
+        loss = loss_of(trajectory) if taped else None
+    expected = [s.particle_x.numpy() for s in trajectory]
+    if taped:
+        tape.backward(loss)
+        gradients = {"x0": (start.particle_x.grad.numpy().copy(), state.particle_x),
+                     "density": (model.material_density.grad.numpy().copy(), model.material_density)}
+        tape.zero()
+    for run in range(2):
+        got = [s.particle_x.numpy() for s in captured.run()]
+        for k, (a, e) in enumerate(zip(got, expected)):
+            np.testing.assert_array_equal(a, e, err_msg=f"run {run}, state {k}")
+        if taped:
+            for name, (value, array) in gradients.items():
+                assert np.any(value), name
+                np.testing.assert_array_equal(array.grad.numpy(), value, err_msg=f"run {run}, {name}")
+        if run == 0:
+            assert captured.rerun_steps, "some steps meet more pairs than their budgets"
+            grown = captured.rerun_steps
+        else:
+            assert captured.rerun_steps == []
+    after = captured.pair_budgets
+    assert all(after[k] > before[k] for k in grown)
+    assert all(after[k] == before[k] for k in range(steps) if k not in grown)
+
+
+@pytest.mark.parametrize("repulsion", [True, False])
+def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_parameter(repulsion):
+    # with repulsion the steps near the sphere replay with their pairs (repulsion and friction in the graph);
+    # without, the steps in contact run uncaptured on tapes of their own
+    model, sim = landing_scene("cpu", repulsion=repulsion)
     steps = 14
     state, control = model.state(requires_grad=True), model.control(requires_grad=True, particle_force=True)
     arrays = {"particle_x": state.particle_x, "particle_v": state.particle_v, "density": model.material_density,
               "stretching": model.material_stretching, "bending": model.material_bending, "gravity": model.gravity,
-              "force": control.particle_force, "obstacle_transform": control.obstacle_transform,
-              "friction": model.contact_friction, "repulsion": model.contact_repulsion_stiffness}
+              "force": control.particle_force, "obstacle_transform": control.obstacle_transform}
+    if repulsion:  # friction acts through the pairs
+        arrays.update(friction=model.contact_friction, repulsion=model.contact_repulsion_stiffness)
     tape = wp.Tape()
     with tape:
         loss = loss_of(wc.rollout(sim, state, control, steps=steps))
@@ -189,7 +240,10 @@ def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_
     assert all(not np.any(a.grad.numpy()) for a in arrays.values())  # made with a run, then zeroed
     for _ in range(2):  # the gradients are zeroed before each replay: the same, not twice as large
         captured.run()
-        assert captured.rerun_steps and captured.rerun_steps[0] > 0
+        if repulsion:
+            assert captured.rerun_steps == [] and max(captured.pair_budgets) > 0
+        else:
+            assert captured.rerun_steps and captured.rerun_steps[0] > 0
         assert captured.loss.numpy()[0] == loss.numpy()[0]
         for name, a in arrays.items():
             assert np.any(expected[name]), name
@@ -246,9 +300,11 @@ def test_a_contact_scenes_replay_reports_a_divergence_naming_the_step():
         captured.run()
 
 
-def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch():
-    # two copies of the landing sheet, the second one higher: its contacts come later, and a step is run again
-    # when either world meets contact
+@pytest.mark.parametrize("repulsion", [True, False])
+def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch(repulsion):
+    # two copies of the landing sheet, the second one higher: its pairs or contacts come later. With repulsion the
+    # pairs of both worlds replay (sorted by world on the device); without, a step is run again when either world
+    # meets contact
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
     for height in (0.03, 0.08):
         mesh = wc.grid_mesh(4, 4, 0.3, 0.3)
@@ -256,7 +312,7 @@ def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch():
         world = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
         world.add_cloth_mesh(mesh, material=wc.preset("gray-interlock", thicken=2))
         world.add_obstacle_sphere(0.1, 2)
-        world.set_collision(friction=0.3, obstacle_friction=0.3)
+        world.set_collision(friction=0.3, obstacle_friction=0.3, **({} if repulsion else {"repulsion_stiffness": 0.0}))
         b.add_world(world)
     batch = b.finalize("cpu", requires_grad=True)
     sim = wc.Simulator(batch, 0.01, options=wc.SolverOptions(cg_tol=1e-7))
@@ -266,13 +322,17 @@ def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch():
     got = [s.particle_x.numpy() for s in captured.run()]
     for a, e in zip(got, expected):
         np.testing.assert_array_equal(a, e)
-    assert 0 < captured.rerun_steps[0] and captured.rerun_steps[-1] == steps - 1
+    if repulsion:
+        assert captured.rerun_steps == [] and captured.pair_budgets[0] == 0 and captured.pair_budgets[-1] > 0
+    else:
+        assert 0 < captured.rerun_steps[0] and captured.rerun_steps[-1] == steps - 1
 
 
-@pytest.mark.parametrize("solver", ["device", "numpy"])
-def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(solver):
-    # a small sheet falling onto a pinned larger one: cloth-cloth contacts (vertex-face and edge-edge), repulsion
-    # and friction between them, through either projection backend
+@pytest.mark.parametrize(("solver", "repulsion"), [("device", True), ("device", False), ("numpy", False)])
+def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(solver, repulsion):
+    # a small sheet falling onto a pinned larger one: with repulsion, cloth-cloth proximity pairs (vertex-face and
+    # edge-edge) and friction between them, which keep the sheets apart: every step replays with its pairs; without,
+    # cloth-cloth contacts from the third step on, through either projection backend, run uncaptured
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
     b.add_cloth_grid((2, 2), (0.2, 0.2), material=wc.preset("gray-interlock"), pos=(-0.1, -0.1, 0.0))
     for p in range(9):
@@ -281,7 +341,7 @@ def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(sol
     mesh.positions = mesh.positions + [-0.031, -0.027, 0.004]
     mesh.velocities = np.tile([0.2, 0.1, 0.0], (len(mesh.positions), 1))  # sliding: friction acts
     b.add_cloth_mesh(mesh, material=wc.preset("gray-interlock"))
-    b.set_collision(self_collision=True, friction=0.4)
+    b.set_collision(self_collision=True, friction=0.4, **({} if repulsion else {"repulsion_stiffness": 0.0}))
     model = b.finalize("cpu", requires_grad=True)
     sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7,
                                                              collision=wc.CollisionOptions(solver=solver)))
@@ -291,14 +351,19 @@ def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(sol
     with tape:
         loss = loss_of(wc.rollout(sim, state, steps=steps))
     tape.backward(loss)
-    expected = {"x0": state.particle_x.grad.numpy().copy(), "density": model.material_density.grad.numpy().copy(),
-                "friction": model.contact_friction.grad.numpy().copy()}
+    arrays = {"x0": state.particle_x, "density": model.material_density}
+    if repulsion:
+        arrays["friction"] = model.contact_friction
+    expected = {name: a.grad.numpy().copy() for name, a in arrays.items()}
     tape.zero()
     captured = wc.CapturedRollout(sim, state, steps=steps, loss=loss_of)
     captured.run()
-    assert captured.rerun_steps and captured.loss.numpy()[0] == loss.numpy()[0]
-    for name, a in (("x0", state.particle_x), ("density", model.material_density),
-                    ("friction", model.contact_friction)):
+    assert captured.loss.numpy()[0] == loss.numpy()[0]
+    if repulsion:
+        assert captured.rerun_steps == [] and min(captured.pair_budgets) > 0
+    else:
+        assert captured.rerun_steps == list(range(2, steps))
+    for name, a in arrays.items():
         assert np.any(expected[name]), name
         np.testing.assert_array_equal(a.grad.numpy(), expected[name], err_msg=name)
 

@@ -33,7 +33,8 @@ class ProximityPairs:
     """The pairs of one step, as the linear solver applies them: A_ij += weight_i weight_j stiffness."""
 
     count: int
-    """Number of pairs [-], scalar (host)."""
+    """The size of the pair kernels' launches [-] (host): the number of pairs, or a captured step's budget of pairs
+    (:attr:`held` says how many it holds)."""
     nodes: wp.array
     """Node ids of each pair [-], (>= count, 4) int32 (cloth particles, then obstacle vertices)."""
     weights: wp.array
@@ -42,6 +43,8 @@ class ProximityPairs:
     """The pair's 3x3 block K (dt^2 h n n^T) [kg], (>= count,) mat33."""
     world_start: wp.array
     """First pair of each world, and the count [-], (world_count + 1,) int32: the pairs are sorted by world."""
+    held: wp.array
+    """The number of pairs [-], (1,) int32 on the device."""
     inputs: object = None
     """What the pair kernels read (kernels/proximity.py PairInputs): the friction impulses read it after the
     solve; None without pairs."""
@@ -117,21 +120,29 @@ class ProximityForces:
         ends = [int(e) for e in np.cumsum([0] + [t.count for t in self._targets])]
         for t, lo, hi in zip(self._targets, ends[:-1], ends[1:]):
             t.lowers, t.uppers = self._lowers[lo:hi], self._uppers[lo:hi]
-        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._count = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs found (may pass the capacity)
         self._count_host = self._count.numpy() if dev.is_cpu else None
+        self._held = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs held (sort_pairs)
+        self._spill = wp.zeros(1, dtype=wp.int32, device=dev)  # found more than a captured step's budget
+        # the pairs as found, and (several worlds) sorted by world, or a taped step's own copies
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self._pair_area = wp.zeros(self.capacity, dtype=scalar, device=dev)
+        self._order = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self._sorted = ((wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
+                         wp.zeros(self.capacity, dtype=wp.int32, device=dev),
+                         wp.zeros(self.capacity, dtype=scalar, device=dev)) if model.world_count > 1 else None)
         self._weights = wp.empty(self.capacity, dtype=model.types.vec4, device=dev)
         self._stiffness = wp.empty(self.capacity, dtype=model.types.mat33, device=dev)
         free = np.zeros(n + V, dtype=np.int32)
         free[:n] = model.particle_pin.numpy() < 0
         self._free = wp.array(free, dtype=wp.int32, device=dev)
         self.last_count = 0
-        """Pairs found in the last step (diagnostics only)."""
-        self.speculative = False
-        """Whether steps assume no pairs without reading the count (set while ``wc.CapturedRollout`` captures a
-        step; :meth:`found_any` then tells whether the assumption held)."""
+        """Pairs found in the last step (diagnostics only; a captured step does not set it)."""
+        self.budget: int | None = None
+        """None: a step reads the number of pairs it found and launches its pair kernels at that size. An int (set
+        while ``wc.CapturedRollout`` captures a step): the step reads nothing and launches at this size, holding
+        up to this many pairs (0: none, no pair kernel runs); :meth:`exceeded` then tells whether it found more."""
         self._per_node = wp.zeros(n + V, dtype=wp.int32, device=dev)
 
     @property
@@ -149,8 +160,8 @@ class ProximityForces:
         return bool(np.any(model.contact_repulsion_stiffness.numpy() > 0.0))
 
     def detect(self, x: wp.array) -> int:
-        """Find the pairs among node positions ``x`` (cloth particles, then obstacle vertices); returns their
-        count."""
+        """Find the pairs among node positions ``x`` (cloth particles, then obstacle vertices), ordered by world;
+        returns the size of the pair kernels' launches: the number of pairs, or, in a captured step, the budget."""
         k = self.kernels
         m = self.model
         radius = 2.0 * self.thickness
@@ -178,40 +189,28 @@ class ProximityForces:
                 wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
                           inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, same, search],
                           record_tape=False)
-        if self.speculative:  # a captured step: no read; the replay asks found_any
-            return 0
-        count = self._read_count()
-        if count > self.capacity:
-            raise ContactCapacityError(
-                f"proximity pair buffer overflow: {count} pairs found but the capacity is {self.capacity}; raise "
-                f"CollisionOptions.contact_capacity to at least {count}")
-        self.last_count = count
-        self._sort_by_world(count)
-        return count
+        if self.budget is not None:  # a captured step: no read; the replay asks exceeded()
+            size = self.budget
+        else:
+            size = self._read_count()
+            if size > self.capacity:
+                raise ContactCapacityError(
+                    f"proximity pair buffer overflow: {size} pairs found but the capacity is {self.capacity}; "
+                    f"raise CollisionOptions.contact_capacity to at least {size}")
+            self.last_count = size
+        # each world's pairs in the order found (so a world's pairs are those a model of that world alone finds, in
+        # the same order), each world's first pair (each world's CG reads its own range), the number held
+        wp.launch(k.sort_pairs, 1, device=self.device,
+                  inputs=[self._count, size, self._node_world, self._nodes, m.world_count],
+                  outputs=[self.pair_world_start, self._order, self._held, self._spill], record_tape=False)
+        return size
 
     def _read_count(self) -> int:
         return int((self._count_host if self._count_host is not None else self._count.numpy())[0])
 
-    def found_any(self) -> bool:
-        """Whether the last detection found pairs (a read of the device: a speculative step's check)."""
-        return self._read_count() > 0
-
-    def _sort_by_world(self, count: int) -> None:
-        """Order the pairs by world, keeping each world's in the order found (so a world's pairs are those a model
-        of that world alone finds, in the same order), and write each world's first pair to ``pair_world_start``:
-        each world's CG reads its own range. One world: nothing moves."""
-        W = self.model.world_count
-        if W == 1:
-            self.pair_world_start.assign(np.array([0, count], dtype=np.int32))
-            return
-        found = [a[:count] for a in (self._nodes, self._kind, self._pair_area)]  # the pairs found, not the capacity
-        nodes, kind, area = (a.numpy() for a in found)
-        world = self._node_world_host[nodes[:, 0]]
-        order = np.argsort(world, kind="stable")
-        for array, values in zip(found, (nodes, kind, area)):
-            if count:
-                array.assign(values[order])
-        self.pair_world_start.assign(np.searchsorted(world[order], np.arange(W + 1)).astype(np.int32))
+    def exceeded(self) -> bool:
+        """Whether the last step, captured with a budget of pairs, found more (a read of the device)."""
+        return bool(self._spill.numpy()[0])
 
     def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,
                  dv: wp.array, values: wp.array, rhs: wp.array, recording: bool,
@@ -235,15 +234,24 @@ class ProximityForces:
         count = self.detect(x)
         nodes, kind, area = self._nodes, self._kind, self._pair_area
         weights, stiffness = self._weights, self._stiffness
-        if recording:  # the backward pass reads this step's pairs: arrays that later steps do not overwrite
-            nodes, kind, area = wp.clone(nodes[:count]), wp.clone(kind[:count]), wp.clone(area[:count])
-            weights = wp.empty(max(count, 1), dtype=model.types.vec4, device=dev)
-            stiffness = wp.empty(max(count, 1), dtype=model.types.mat33, device=dev)
-        world_start = wp.clone(self.pair_world_start) if recording else self.pair_world_start
-        pairs = ProximityPairs(count, nodes, weights, stiffness, world_start)
+        world_start, held = self.pair_world_start, self._held
         if count == 0:
-            return pairs
-        inputs = self.pair_inputs(x, velocity, nodes, kind, area, implicit_dt)
+            return ProximityPairs(0, nodes, weights, stiffness, world_start, held)
+        if recording:  # the backward pass reads this step's pairs: arrays that later steps do not overwrite
+            nodes = wp.empty((count, 4), dtype=wp.int32, device=dev)
+            kind = wp.empty(count, dtype=wp.int32, device=dev)
+            area = wp.empty(count, dtype=model.scalar, device=dev)
+            weights = wp.empty(count, dtype=model.types.vec4, device=dev)
+            stiffness = wp.empty(count, dtype=model.types.mat33, device=dev)
+            world_start, held = wp.clone(world_start), wp.clone(held)
+        elif self._sorted is not None:
+            nodes, kind, area = self._sorted
+        if nodes is not self._nodes:  # the pairs in world order (one world: as found)
+            wp.launch(k.gather_pairs, count, device=dev,
+                      inputs=[self._order, held, self._nodes, self._kind, self._pair_area],
+                      outputs=[nodes, kind, area], record_tape=False)
+        pairs = ProximityPairs(count, nodes, weights, stiffness, world_start, held)
+        inputs = self.pair_inputs(x, velocity, nodes, kind, area, held, implicit_dt)
         pairs.inputs = inputs
         wp.launch(k.assemble_pairs, count, device=dev, inputs=[inputs, model.particle_diag_slot],
                   outputs=[values, rhs, weights, stiffness], record_tape=False)
@@ -285,7 +293,7 @@ class ProximityForces:
         between_cloth = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
         if self.model.collision.self_collision:
             self._per_node.zero_()
-            wp.launch(k.cloth_pair_counts, count, device=dev, inputs=[p, count, self._per_node], record_tape=False)
+            wp.launch(k.cloth_pair_counts, count, device=dev, inputs=[p, self._per_node], record_tape=False)
             per_node = wp.clone(self._per_node) if recording else self._per_node
             impulse = wp.zeros(count, dtype=vec3, device=dev, requires_grad=recording)
             for _ in range(FRICTION_SWEEPS):  # each sweep in new arrays: the tape keeps every one
@@ -300,11 +308,13 @@ class ProximityForces:
         return out
 
     def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array, area: wp.array,
-                    implicit_dt: float | None = None):
-        """What the pair kernels read (kernels/proximity.py PairInputs); ``implicit_dt`` as in :meth:`assemble`."""
+                    held: wp.array, implicit_dt: float | None = None):
+        """What the pair kernels read (kernels/proximity.py PairInputs); ``held``: the number of pairs, (1,) int32 on
+        the device; ``implicit_dt`` as in :meth:`assemble`."""
         model = self.model
         p = self.kernels.PairInputs()
         p.nodes, p.kind, p.x, p.velocity, p.free, p.area = nodes, kind, x, velocity, self._free, area
+        p.count = held
         p.stiffness, p.friction = model.contact_repulsion_stiffness, model.contact_friction
         p.cloth_count = self.cloth_count
         p.thickness = model.scalar(self.thickness)

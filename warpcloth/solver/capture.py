@@ -26,11 +26,12 @@ class CapturedRollout:
 
     Args:
         sim: the Simulator. A scene with a collision stage or proximity forces is captured one graph per step,
-            speculatively: a captured step assumes that it meets no contact and no pair, and after its replay the
-            host reads whether detection found any (one small read a step); where it did, the step runs again,
-            uncaptured, from the same input (:attr:`rerun_steps`). A step that met contact in the last run runs
-            uncaptured at once, without its graph. Steps in free flight replay; steps in contact cost what they
-            cost uncaptured.
+            speculatively: a captured step assumes that it meets no contact and at most a budget of proximity pairs
+            (:attr:`pair_budgets`, from the pairs the step found before), and after its replay the host reads
+            whether it held (one small read a step); where it did not, the step runs again, uncaptured, from the
+            same input (:attr:`rerun_steps`), and a step whose pairs outgrew its budget is captured again. A step
+            that met contact in the last run runs uncaptured at once, without its graph. Steps in free flight or
+            with proximity pairs alone replay; steps in contact cost what they cost uncaptured.
         state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
             ``wp.copy``) between replays; rebinding them has no effect on the graph.
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
@@ -121,6 +122,13 @@ class CapturedRollout:
             return ("the warp CG backend tests its convergence on the host on the CPU; use cg_backend 'sequential' "
                     "or 'tiled' there")
         return None
+
+    @property
+    def pair_budgets(self) -> list[int]:
+        """Each step's budget of proximity pairs in its graph: how many pairs its pair kernels launch for, twice
+        what its last uncaptured run found, rounded up to a power of two (0: none, no pair kernel runs). Empty
+        where the rollout is not captured one graph a step (a scene without contact)."""
+        return [] if self._steps is None else list(self._steps.pair_budget)
 
     def _record_forward(self) -> None:
         sim = self.sim
@@ -224,16 +232,20 @@ def _stepwise(sim: Simulator) -> bool:
 
 
 class _StepGraphs:
-    """A rollout of a contact scene as one graph per step, each captured assuming no contact (Simulator._speculating).
+    """A rollout of a contact scene as one graph per step, each captured assuming no contact and at most a budget of
+    proximity pairs (Simulator._speculating).
 
-    After a step's replay the host asks whether detection found contacts or pairs; where it did, the step runs again
-    uncaptured from the same input State (the graph wrote only its output State and scratch), on a tape of its own
-    when there is a loss. A step that met contact in the last run runs uncaptured at once, without its graph (a
-    cloth resting on an obstacle would otherwise pay every step twice). The backward pass walks the steps back: a replayed step's recorded adjoint as a graph of
-    its own, a re-run step's tape as it is. The States are the same arrays at every run, so the graphs serve every
-    run. Made with an ordinary run of every step (it loads the kernels and makes, outside any capture, what steps
-    make lazily or per time), after which every graph is captured (a capture records without running) and every
-    gradient zeroed.
+    A step's budget of pairs is a power of two, at least twice what its last uncaptured run found (0 where it found
+    none: no pair kernel runs); its pair kernels launch at the budget and hold as many pairs as were found. After a
+    step's replay the host asks whether detection found contacts, or more pairs than the budget; where it did, the
+    step runs again uncaptured from the same input State (the graph wrote only its output State and scratch), on a
+    tape of its own when there is a loss. A step whose pairs outgrew its budget is captured again, with a budget
+    for them, after the run (with its backward pass). A step that met contact in the last run runs uncaptured at
+    once, without its graph (a cloth resting on an obstacle would otherwise pay every step twice). The backward pass
+    walks the steps back: a replayed step's recorded adjoint as a graph of its own, a re-run step's tape as it is.
+    The States are the same arrays at every run, so the graphs serve every run. Made with an ordinary run of every
+    step (it loads the kernels and makes, outside any capture, what steps make lazily or per time), after which
+    every graph is captured (a capture records without running) and every gradient zeroed.
     """
 
     def __init__(self, sim: Simulator, state: State, control: ControlSchedule, steps: int,
@@ -241,56 +253,83 @@ class _StepGraphs:
         self.sim, self.loss_fn = sim, loss
         self.states = [state] + [sim.model.empty_state() for _ in range(steps)]
         self.controls = [control_at(control, k) for k in range(steps)]
-        self.kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
+        # the arrays made during each capture (tape.py arrays_kept says why), released with its graph
+        self.kept: dict = {}
         self.motions: dict = {}  # the obstacles' motions the graphs read, one array a time
         self.reruns: dict[int, wp.Tape | None] = {}  # the last run's uncaptured steps (their tapes, with a loss)
         self.in_contact: set[int] = set()  # the steps that met contact in the last run: the next run runs them
         # uncaptured without replaying their graphs first
+        self.pair_budget = [0] * steps  # each step's graph's budget of proximity pairs
         self.loss: wp.array | None = None
+        taped = loss is not None
+        self.tapes = [None] * steps  # what each graph's step recorded
+        self.forward = [None] * steps  # each step's speculative graph
+        self.backward_graphs = [None] * steps  # each step's recorded adjoint
+        self.loss_graphs, self._zero = [], None
         with paused_gc(), sim._keeping_motions(self.motions):  # noqa: SLF001 - the solver package's own
+            grown = set()
             for k in range(steps):
                 self.reruns[k] = self._rerun(k)
-                if sim._met_contact():  # noqa: SLF001
-                    self.in_contact.add(k)
-            if loss is not None:
+                self._note(k, grown)
+            if taped:
                 first = wp.Tape()
                 with wp.ScopedDevice(sim.device), first:
                     self.loss = loss(self.states)
                 first.backward(grads={self.loss: wp.ones_like(self.loss, requires_grad=False)})
                 self._backward_steps()
                 first.zero()
-            self._capture_all(steps)
-            if self._zero is not None:
+            for k in range(steps):
+                self._capture_step(k)
+            if taped:
+                self._capture_loss()
+                self._capture_zero()
                 self._zero_reruns()
                 wp.capture_launch(self._zero)
 
-    def _capture_all(self, steps: int) -> None:
-        sim, taped = self.sim, self.loss_fn is not None
-        self.tapes = [wp.Tape() if taped else None for _ in range(steps)]  # what each graph's step recorded
-        self.forward = []  # each step's speculative graph
-        for k, tape in enumerate(self.tapes):
-            with sim._speculating(), _capture(self.sim.device, self.kept) as capture:  # noqa: SLF001 - the solver package's own
-                with tape if taped else contextlib.nullcontext():
-                    sim.step(self.states[k], self.states[k + 1], self.controls[k])
-            self.forward.append(capture.graph)
-        self.loss_graphs, self.backward_graphs, self._zero = [], [], None
-        if not taped:
+    def _note(self, k: int, grown: set) -> None:
+        """After step k ran uncaptured: whether it met contact (the next run runs it uncaptured at once), and whether
+        its pairs outgrew its graph's budget (added to ``grown``, its budget raised)."""
+        sim = self.sim
+        if sim._met_contact():  # noqa: SLF001
+            self.in_contact.add(k)
             return
-        loss_tape = wp.Tape()
-        with _capture(self.sim.device, self.kept) as capture:
-            with wp.ScopedDevice(sim.device), loss_tape:
-                self.loss = self.loss_fn(self.states)
-            self._seed = wp.ones_like(self.loss, requires_grad=False)  # ones at every run; backward() writes others
-        self.loss_graphs.append(capture.graph)
-        with _capture(self.sim.device, self.kept) as capture:
-            loss_tape.backward(grads={self.loss: self._seed})
-        self.loss_graphs.append(capture.graph)
-        for tape in self.tapes:  # its backward pass
-            with _capture(self.sim.device, self.kept) as capture:
+        pairs = sim._pairs_needed()  # noqa: SLF001
+        if pairs > self.pair_budget[k]:
+            self.pair_budget[k] = 1 << max(4, (2 * pairs - 1).bit_length())  # a power of two >= 2 pairs, >= 16
+            grown.add(k)
+
+    def _capture_step(self, k: int) -> None:
+        """Capture step k's graph (and, with a loss, its recorded adjoint's) at its budget of pairs."""
+        sim, device = self.sim, self.sim.device
+        kept = self.kept[k] = []
+        tape = self.tapes[k] = wp.Tape() if self.loss_fn is not None else None
+        with sim._speculating(self.pair_budget[k]), _capture(device, kept) as capture:  # noqa: SLF001
+            with tape if tape is not None else contextlib.nullcontext():
+                sim.step(self.states[k], self.states[k + 1], self.controls[k])
+        self.forward[k] = capture.graph
+        if tape is not None:
+            with _capture(device, kept) as capture:
                 tape.backward()
-            self.backward_graphs.append(capture.graph)
-        with _capture(self.sim.device, self.kept) as capture:  # every gradient the captured tapes reach
-            for tape in [*self.tapes, loss_tape]:
+            self.backward_graphs[k] = capture.graph
+
+    def _capture_loss(self) -> None:
+        """Capture the loss and its backward pass (its seed: ones at every run; backward() writes others)."""
+        sim, kept = self.sim, self.kept.setdefault("loss", [])
+        self._loss_tape = wp.Tape()
+        with _capture(sim.device, kept) as capture:
+            with wp.ScopedDevice(sim.device), self._loss_tape:
+                self.loss = self.loss_fn(self.states)
+            self._seed = wp.ones_like(self.loss, requires_grad=False)
+        self.loss_graphs.append(capture.graph)
+        with _capture(sim.device, kept) as capture:
+            self._loss_tape.backward(grads={self.loss: self._seed})
+        self.loss_graphs.append(capture.graph)
+
+    def _capture_zero(self) -> None:
+        """Capture the zeroing of every gradient the captured tapes reach."""
+        self.kept["zero"] = []
+        with _capture(self.sim.device, self.kept["zero"]) as capture:
+            for tape in [*self.tapes, self._loss_tape]:
                 tape.zero()
         self._zero = capture.graph
 
@@ -301,26 +340,27 @@ class _StepGraphs:
         with paused_gc():
             self._zero_all()
             self.reruns = {}
-            in_contact = set()
+            predicted, self.in_contact = self.in_contact, set()
+            grown = set()
             for k, graph in enumerate(self.forward):
-                if k in self.in_contact:
-                    # it met contact in the last run: run it uncaptured at once, not its graph first (a replay that
-                    # finds contact is wasted: a cloth resting on an obstacle would pay every step twice)
-                    self.reruns[k] = self._rerun(k)
-                    if sim._met_contact():  # noqa: SLF001
-                        in_contact.add(k)
-                    continue
-                wp.capture_launch(graph)
-                if sim._contact_found():  # noqa: SLF001
-                    self.reruns[k] = self._rerun(k)
-                    in_contact.add(k)
-            self.in_contact = in_contact
+                if k not in predicted:
+                    wp.capture_launch(graph)
+                    if not sim._speculation_failed():  # noqa: SLF001
+                        continue
+                self.reruns[k] = self._rerun(k)
+                self._note(k, grown)
             sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
             if self.loss_fn is not None:
                 sim.check(self.states)  # a diverged forward pass raises before its backward pass runs
                 wp.capture_launch(self.loss_graphs[0])  # the loss (its seed: ones)
                 if backward:
                     self._backward()
+            if grown:  # the steps whose pairs outgrew their budgets, captured again (the re-run tapes kept)
+                with sim._keeping_motions(self.motions):  # noqa: SLF001
+                    for k in grown:
+                        self._capture_step(k)
+                if self.loss_fn is not None:
+                    self._capture_zero()
         return sorted(self.reruns)
 
     def backward(self, grads: dict) -> None:

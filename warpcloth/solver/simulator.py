@@ -482,27 +482,36 @@ class Simulator:
         return bool(every) and step % every == 0 and not capturing(self.device)
 
     @contextmanager
-    def _speculating(self):
-        """Steps inside assume that they meet no contact and no proximity pair, without reading the device (what
-        wc.CapturedRollout captures); :meth:`_contact_found` tells afterwards whether the assumption held."""
-        stages = [stage for stage in (self.collision, self.proximity) if stage is not None]
-        for stage in stages:
-            stage.speculative = True
+    def _speculating(self, pair_budget: int = 0):
+        """Steps inside assume that they meet no contact and at most ``pair_budget`` proximity pairs, without reading
+        the device (what wc.CapturedRollout captures): their pair kernels launch at the budget.
+        :meth:`_speculation_failed` tells afterwards whether the assumption held."""
+        if self.collision is not None:
+            self.collision.speculative = True
+        if self.proximity is not None:
+            self.proximity.budget = min(int(pair_budget), self.proximity.capacity)
         try:
             yield
         finally:
-            for stage in stages:
-                stage.speculative = False
+            if self.collision is not None:
+                self.collision.speculative = False
+            if self.proximity is not None:
+                self.proximity.budget = None
 
-    def _contact_found(self) -> bool:
-        """Whether the last step's detections found contacts or proximity pairs (reads the device)."""
-        return any(stage.found_any() for stage in (self.proximity, self.collision) if stage is not None)
+    def _speculation_failed(self) -> bool:
+        """Whether the last step, captured by :meth:`_speculating`, met contacts or more proximity pairs than its
+        budget (reads the device)."""
+        return (self.collision is not None and self.collision.found_any()) or (
+            self.proximity is not None and self.proximity.exceeded())
+
+    def _pairs_needed(self) -> int:
+        """The proximity pairs the last step, run uncaptured, found (0 without proximity forces)."""
+        return 0 if self.proximity is None else self.proximity.last_count
 
     def _met_contact(self) -> bool:
-        """Whether the last step, run uncaptured, met contacts or proximity pairs (what it reported: no read)."""
-        collided = self.collision is not None and self.collision.last is not None and (
+        """Whether the last step, run uncaptured, met contacts (what it reported: no read)."""
+        return self.collision is not None and self.collision.last is not None and (
             self.collision.last.contacts > 0 or self.collision.last.rounds > 0)
-        return collided or (self.proximity is not None and self.proximity.last_count > 0)
 
     def _count_replayed(self, steps: int) -> None:
         """Count ``steps`` steps a graph replayed (CapturedRollout.run) in ``stats``."""
