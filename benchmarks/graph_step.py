@@ -21,6 +21,11 @@ sheet in one model (``ModelBuilder.replicate``).
                          launches and arrays made per step), its second (capturing_s: on the CPU it records one
                          speculative graph a step, wc.CapturedRollout) and later ones (replayed_s, with the steps
                          that met contact and ran uncaptured: rerun_steps)
+    drape                the drape-sphere scene (24x24 cloth dropped onto a sphere, 100 steps, proximity pairs from
+                         its 14th step): the rollout uncaptured and replayed per step (drape_ms, captured_ms), the
+                         steps whose graphs held proximity pairs (pair_steps) and those that met contact and ran
+                         uncaptured (rerun_steps); the same with a loss on the final height, forward + backward
+                         (fwd_bwd_s, fwd_bwd_captured_s)
     max_diff             largest difference between the captured and the uncaptured final positions [m] (and
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
@@ -175,6 +180,39 @@ def throw_case(device: str, reps: int, steps: int | None, params: np.ndarray) ->
             "allocs_per_step": None if allocs["count"] is None else per_step * allocs["count"]}
 
 
+def drape_case(device: str, reps: int, steps: int | None) -> dict:
+    """The drape-sphere scene, uncaptured and replayed one graph a step, forward and forward + backward."""
+    from warpcloth.scene import load_scene
+
+    scene = load_scene("drape-sphere")
+    steps = steps or scene.steps
+    model = scene.finalize(device=device, requires_grad=True)
+    sim = wc.Simulator(model, scene.dt, options=scene.solver_options)
+    out = {"steps": steps, "particles": model.particle_count}
+    with wp.ScopedDevice(device):
+        state = model.state()
+        expected = wc.rollout(sim, state, steps=steps)[-1].particle_x.numpy()
+        out["drape_ms"] = 1e3 / steps * common.median_time(lambda: wc.rollout(sim, state, steps=steps), reps=reps)
+        captured = wc.CapturedRollout(sim, state, steps=steps)
+        out["captured_ms"] = 1e3 / steps * common.median_time(captured.run, reps=reps)
+        out["max_diff"] = float(np.max(np.abs(captured.trajectory[-1].particle_x.numpy() - expected)))
+        out["rerun_steps"] = len(captured.rerun_steps)
+        out["pair_steps"] = sum(b > 0 for k, b in enumerate(captured.pair_budgets) if k not in captured.rerun_steps)
+        taped = model.state(requires_grad=True)
+
+        def uncaptured():
+            tape = wp.Tape()
+            with tape:
+                loss = _loss(wc.rollout(sim, taped, steps=steps))
+            tape.backward(loss)
+            tape.zero()
+
+        out["fwd_bwd_s"] = common.median_time(uncaptured, reps=reps)
+        replayed = wc.CapturedRollout(sim, taped, steps=steps, loss=_loss)
+        out["fwd_bwd_captured_s"] = common.median_time(replayed.run, reps=reps)
+    return out
+
+
 def main():
     args = common.parse_args(__doc__, quick={"sizes": "8", "worlds": "1,4", "steps": 5, "reps": 2},
                              device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3, preconditioners="auto")
@@ -219,8 +257,14 @@ def main():
               f"a step), {throw['capturing_s']:.3f} s capturing, {throw['replayed_s']:.3f} s replayed "
               f"({throw['rerun_steps']} steps in contact run uncaptured, "
               f"{throw['replay_launches_per_step']:.1f} launches a step)")
+    drape = drape_case(args.device, args.reps, 10 if args.quick else None)
+    print(f"\ndrape-sphere ({drape['steps']} steps, {drape['particles']} particles): {drape['drape_ms']:.2f} ms a step "
+          f"uncaptured, {drape['captured_ms']:.2f} replayed ({drape['pair_steps']} steps replayed with proximity "
+          f"pairs, {drape['rerun_steps']} in contact run uncaptured; max diff {drape['max_diff']:.1e}); forward + "
+          f"backward {drape['fwd_bwd_s']:.3f} s, replayed {drape['fwd_bwd_captured_s']:.3f} s")
     common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throws["zero pushes"],
-                               "throw_landing": throws.get("the open loop's pushes")}, device=args.device)
+                               "throw_landing": throws.get("the open loop's pushes"), "drape": drape},
+                        device=args.device)
 
 
 if __name__ == "__main__":

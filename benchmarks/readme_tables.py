@@ -823,6 +823,14 @@ def graph_step(d: dict) -> str:
                     f"a step); its second, which captures one speculative graph a step, {throw['capturing_s']:.2f} s; "
                     f"later ones, replayed, {throw['replayed_s']:.2f} s, the {throw['rerun_steps']} steps that met "
                     f"contact running uncaptured (issue 37's target 0.5 s: {met(throw['replayed_s'] <= 0.5)})."]
+    drape = d.get("drape")
+    if drape:
+        out += ["", f"The drape-sphere scene, {drape['steps']} steps, {drape['particles']} particles: "
+                f"{drape['drape_ms']:.2f} ms a step uncaptured, {drape['captured_ms']:.2f} ms replayed one graph a "
+                f"step ({drape['pair_steps']} steps replayed with their proximity pairs in the graph, "
+                f"{drape['rerun_steps']} in contact run uncaptured; captured − uncaptured {_diff(drape['max_diff'])} "
+                f"m); with a loss, forward + backward {drape['fwd_bwd_s']:.2f} s uncaptured, "
+                f"{drape['fwd_bwd_captured_s']:.2f} s replayed."]
     out += ["", provenance(d)]
     return "\n".join(out)
 

@@ -541,10 +541,15 @@ def proximity_kernels(scalar):
                    count: wp.array(dtype=wp.int32), spill: wp.array(dtype=wp.int32)):
         # one thread: a stable counting sort of the first min(found, size) pairs by world (each world's in the order
         # found, so a world's pairs are those a model of that world alone finds), each world's first pair (start),
-        # the count held, and whether more were found than the launches hold (a captured step's budget)
+        # the count held, and whether more were found than the launches hold (a captured step's budget). One world:
+        # no sort (gather_pairs then reads the pairs in the order found), so one thread does not walk every pair
         held = wp.min(found[0], size)
         count[0] = held
         spill[0] = wp.where(found[0] > size, 1, 0)
+        if world_count == 1:
+            start[0] = 0
+            start[1] = held
+            return
         for w in range(world_count + 1):
             start[w] = 0
         for k in range(held):
@@ -561,14 +566,17 @@ def proximity_kernels(scalar):
         start[0] = 0
 
     @wp.kernel(enable_backward=False)
-    def gather_pairs(order: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+    def gather_pairs(order: wp.array(dtype=wp.int32), sorted: int, count: wp.array(dtype=wp.int32),
                      nodes: wp.array2d(dtype=wp.int32), kind: wp.array(dtype=wp.int32), area: wp.array(dtype=scalar),
                      # out:
                      sorted_nodes: wp.array2d(dtype=wp.int32), sorted_kind: wp.array(dtype=wp.int32),
                      sorted_area: wp.array(dtype=scalar)):
+        # the held pairs in world order (sorted != 0: sort_pairs's order), or as found
         k = wp.tid()
         if k < count[0]:
-            j = order[k]
+            j = k
+            if sorted != 0:
+                j = order[k]
             for c in range(4):
                 sorted_nodes[k, c] = nodes[j, c]
             sorted_kind[k] = kind[j]

@@ -128,7 +128,7 @@ class ProximityForces:
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self._pair_area = wp.zeros(self.capacity, dtype=scalar, device=dev)
-        self._order = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self._order = wp.zeros(self.capacity if model.world_count > 1 else 1, dtype=wp.int32, device=dev)
         self._sorted = ((wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
                          wp.zeros(self.capacity, dtype=wp.int32, device=dev),
                          wp.zeros(self.capacity, dtype=scalar, device=dev)) if model.world_count > 1 else None)
@@ -248,7 +248,8 @@ class ProximityForces:
             nodes, kind, area = self._sorted
         if nodes is not self._nodes:  # the pairs in world order (one world: as found)
             wp.launch(k.gather_pairs, count, device=dev,
-                      inputs=[self._order, held, self._nodes, self._kind, self._pair_area],
+                      inputs=[self._order, int(model.world_count > 1), held, self._nodes, self._kind,
+                              self._pair_area],
                       outputs=[nodes, kind, area], record_tape=False)
         pairs = ProximityPairs(count, nodes, weights, stiffness, world_start, held)
         inputs = self.pair_inputs(x, velocity, nodes, kind, area, held, implicit_dt)

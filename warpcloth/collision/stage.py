@@ -43,10 +43,10 @@ and rounds left"):
   (failsafe.py: rigid impact zones, NumPy) runs on the host; the second try could run on the device (world modes
   set by a kernel from the failure flags, the rounds run again), the fail-safe could not;
 * the projection's capacity grows on the host (``DeviceBackend.project``: a new DeviceProjection).
-Outside this stage, a contact scene's step also reads the device for its proximity pairs (their count sizes the
-pair launches and the taped copies). Until a contact step can be captured, ``wc.CapturedRollout`` captures each
-step speculatively (:attr:`CollisionStage.speculative`: detection without its read, x̂ kept as the result) and runs
-the steps whose detection found contacts again, uncaptured.
+(The proximity pairs outside this stage are captured: a captured step launches their kernels at a budget and
+keeps their count on the device, collision/proximity.py.) Until a contact step can be captured,
+``wc.CapturedRollout`` captures each step speculatively (:attr:`CollisionStage.speculative`: detection without its
+read, x̂ kept as the result) and runs the steps whose detection found contacts again, uncaptured.
 """
 
 from __future__ import annotations
