@@ -23,9 +23,9 @@ sheet in one model (``ModelBuilder.replicate``).
                          that met contact and ran uncaptured: rerun_steps)
     drape                the drape-sphere scene (24x24 cloth dropped onto a sphere, 100 steps, proximity pairs from
                          its 14th step): the rollout uncaptured and replayed per step (drape_ms, captured_ms), the
-                         steps whose graphs held proximity pairs (pair_steps) and those that met contact and ran
-                         uncaptured (rerun_steps); the same with a loss on the final height, forward + backward
-                         (fwd_bwd_s, fwd_bwd_captured_s)
+                         steps replayed with proximity pairs (pair_steps) and with contacts (contact_steps) in their
+                         graphs, and those that ran uncaptured (rerun_steps); the same with a loss on the final
+                         height, forward + backward (fwd_bwd_s, fwd_bwd_captured_s)
     max_diff             largest difference between the captured and the uncaptured final positions [m] (and
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
@@ -197,7 +197,9 @@ def drape_case(device: str, reps: int, steps: int | None) -> dict:
         out["captured_ms"] = 1e3 / steps * common.median_time(captured.run, reps=reps)
         out["max_diff"] = float(np.max(np.abs(captured.trajectory[-1].particle_x.numpy() - expected)))
         out["rerun_steps"] = len(captured.rerun_steps)
-        out["pair_steps"] = sum(b > 0 for k, b in enumerate(captured.pair_budgets) if k not in captured.rerun_steps)
+        replayed = [k for k in range(steps) if k not in captured.rerun_steps]
+        out["pair_steps"] = sum(captured.pair_budgets[k] > 0 for k in replayed)
+        out["contact_steps"] = sum(bool(captured.contact_plans[k]) for k in replayed)
         taped = model.state(requires_grad=True)
 
         def uncaptured():
@@ -260,7 +262,8 @@ def main():
     drape = drape_case(args.device, args.reps, 10 if args.quick else None)
     print(f"\ndrape-sphere ({drape['steps']} steps, {drape['particles']} particles): {drape['drape_ms']:.2f} ms a step "
           f"uncaptured, {drape['captured_ms']:.2f} replayed ({drape['pair_steps']} steps replayed with proximity "
-          f"pairs, {drape['rerun_steps']} in contact run uncaptured; max diff {drape['max_diff']:.1e}); forward + "
+          f"pairs, {drape['contact_steps']} with contacts, {drape['rerun_steps']} run uncaptured; max diff "
+          f"{drape['max_diff']:.1e}); forward + "
           f"backward {drape['fwd_bwd_s']:.3f} s, replayed {drape['fwd_bwd_captured_s']:.3f} s")
     common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throws["zero pushes"],
                                "throw_landing": throws.get("the open loop's pushes"), "drape": drape},

@@ -828,8 +828,9 @@ def graph_step(d: dict) -> str:
         out += ["", f"The drape-sphere scene, {drape['steps']} steps, {drape['particles']} particles: "
                 f"{drape['drape_ms']:.2f} ms a step uncaptured, {drape['captured_ms']:.2f} ms replayed one graph a "
                 f"step ({drape['pair_steps']} steps replayed with their proximity pairs in the graph, "
-                f"{drape['rerun_steps']} in contact run uncaptured; captured − uncaptured {_diff(drape['max_diff'])} "
-                f"m); with a loss, forward + backward {drape['fwd_bwd_s']:.2f} s uncaptured, "
+                f"{drape.get('contact_steps', 0)} with their contacts, {drape['rerun_steps']} run uncaptured; "
+                f"captured − uncaptured {_diff(drape['max_diff'])} m); with a loss, forward + backward "
+                f"{drape['fwd_bwd_s']:.2f} s uncaptured, "
                 f"{drape['fwd_bwd_captured_s']:.2f} s replayed."]
     out += ["", provenance(d)]
     return "\n".join(out)

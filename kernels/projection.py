@@ -477,6 +477,36 @@ def active_set(r: Rows, z: wp.array(dtype=wp.vec3d), lam: wp.array(dtype=wp.floa
     active[j] = wp.where(on and r.diag[j] > wp.float64(0.0), 1, 0)
 
 
+FOUND, DEGENERATE, FAILED, STRAINED = 0, 1, 2, 3
+"""The slots of the collision detector's round flags (warpcloth/collision/detection.py ContactDetector.flags)."""
+
+
+@wp.kernel(enable_backward=False)
+def expect_found(flags: wp.array(dtype=wp.int32), expected: int, check_strain: int, mismatch: wp.array(dtype=wp.int32)):
+    # a planned (captured) step's detection must find the contacts its plan expects, and its last one, where the
+    # step had contacts, must see no projection that stretched the cloth past the limit (collision/stage.py)
+    if flags[FOUND] != expected or (check_strain != 0 and flags[STRAINED] != 0):
+        mismatch[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def expect_solved(flags: wp.array(dtype=wp.int32), found: int, mismatch: wp.array(dtype=wp.int32)):
+    # a planned step's projection must meet no degenerate contact among the round's found and no failed solve
+    if flags[DEGENERATE] - 1 < found or flags[FAILED] != 0:
+        mismatch[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def worst_residual(info: wp.array2d(dtype=wp.float64), worst: wp.array(dtype=wp.float64)):
+    # the largest relative residual of the adjoint CG of any world (a non-finite one counts as infinite), kept over
+    # the adjoints of a captured backward pass, which cannot read each one back
+    for w in range(info.shape[0]):
+        r = info[w, 1]
+        if not wp.isfinite(r):
+            r = wp.float64(wp.inf)
+        worst[0] = wp.max(worst[0], r)
+
+
 @per_precision
 def device_round_kernels(scalar):
     """Kernels that move the collision stage's data between the model's precision and the projection's float64,

@@ -118,7 +118,7 @@ def test_deferred_checks_name_the_failing_step(device):
     assert messages[0] == messages[1] == messages[2], messages  # the same step, whenever it is read
 
 
-def landing_scene(device, *, height=0.03, repulsion=True):
+def landing_scene(device, *, height=0.03, repulsion=True, solver="device"):
     """A 4x4 sheet falling onto a sphere: free flight, then contacts and proximity pairs (repulsion, friction)."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
     mesh = wc.grid_mesh(4, 4, 0.3, 0.3)
@@ -129,13 +129,15 @@ def landing_scene(device, *, height=0.03, repulsion=True):
     settings = {} if repulsion else {"repulsion_stiffness": 0.0}
     b.set_collision(friction=0.3, obstacle_friction=0.3, **settings)
     model = b.finalize(device, requires_grad=True)
-    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7))
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7, collision=wc.CollisionOptions(solver=solver)))
     return model, sim
 
 
-@pytest.mark.parametrize("repulsion", [True, False])
-def test_a_contact_scene_replays_free_flight_and_reruns_the_steps_in_contact(repulsion, device):
-    model, sim = landing_scene(device, repulsion=repulsion)
+@pytest.mark.parametrize(("repulsion", "solver"), [(True, "device"), (False, "device"), (False, "numpy")])
+def test_a_contact_scene_replays_its_steps_with_their_pairs_and_contacts(repulsion, solver, device):
+    # with repulsion the pairs hold the sheet off the sphere; without, it meets contacts, which the device
+    # projection replays as its plan says and the NumPy one runs uncaptured
+    model, sim = landing_scene(device, repulsion=repulsion, solver=solver)
     assert (sim.proximity is not None) == repulsion
     steps = 14
     expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=steps)]
@@ -147,20 +149,27 @@ def test_a_contact_scene_replays_free_flight_and_reruns_the_steps_in_contact(rep
         got = [s.particle_x.numpy() for s in captured.run()]
         for a, b in zip(got, expected):
             same(a, b)
-        if repulsion:  # the pairs hold it off the sphere: every step replays, those with pairs at their budget
+        if repulsion:  # every step replays, those with pairs at their budget
             assert captured.rerun_steps == []
             budgets = captured.pair_budgets
             assert budgets[0] == 0 and budgets[-1] > 0  # it falls before it lands
             assert all(b > 0 for b in budgets[budgets.index(max(budgets)):])  # and stays on the sphere
-        else:  # contacts: those steps run uncaptured
+        elif solver == "device":  # every step replays, those in contact with their plans
+            assert captured.rerun_steps == []
+            plans = captured.contact_plans
+            assert plans[0] == [] and plans[-1]  # it falls before it lands
+            first = next(k for k, plan in enumerate(plans) if plan)
+            assert all(plans[first:]) and all(n > 0 for plan in plans for n in plan)  # and stays on the sphere
+        else:  # contacts the NumPy projection resolves: those steps run uncaptured
             assert 0 < len(captured.rerun_steps) < steps - 2  # it falls before it lands
             assert captured.rerun_steps == list(range(captured.rerun_steps[0], steps))  # and stays on the sphere
 
 
-def test_steps_in_contact_at_the_last_run_skip_their_graphs(monkeypatch):
-    # a step that met contact in the run before runs uncaptured at once: its graph is not replayed first (a cloth
-    # resting on an obstacle would pay every step twice), and the result stays the uncaptured rollout's
-    model, sim = landing_scene("cpu", repulsion=False)
+def test_steps_whose_contacts_a_graph_cannot_follow_skip_their_graphs(monkeypatch):
+    # the NumPy projection's steps in contact cannot be captured: a step that met contact in the run before runs
+    # uncaptured at once, its graph not replayed first (a cloth resting on an obstacle would pay every step twice),
+    # and the result stays the uncaptured rollout's
+    model, sim = landing_scene("cpu", repulsion=False, solver="numpy")
     steps = 14
     expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=steps)]
     captured = wc.CapturedRollout(sim, model.state(), steps=steps)
@@ -177,16 +186,22 @@ def test_steps_in_contact_at_the_last_run_skip_their_graphs(monkeypatch):
         assert len(launched) == steps - len(captured.rerun_steps)
 
 
-@pytest.mark.parametrize("taped", [False, True])
-def test_steps_whose_pairs_outgrow_their_budgets_run_again_and_are_captured_anew(taped):
-    # captured from one height, replayed from a lower one: the pairs come earlier, the steps whose graphs hold too
-    # few run uncaptured once, and their graphs (and backward passes) are captured again with budgets for them
-    model, sim = landing_scene("cpu")
+def lowered(state, height):
+    """``state``'s positions lowered by ``height`` [m], as float32 positions."""
+    return state.particle_x.numpy() - np.array([0.0, 0.0, height], dtype=np.float32)
+
+
+@pytest.mark.parametrize(("repulsion", "taped"), [(True, False), (True, True), (False, False), (False, True)])
+def test_steps_that_leave_their_plans_run_again_and_are_captured_anew(repulsion, taped):
+    # captured from one height, replayed from a lower one: the sheet comes near the sphere earlier, with other pairs
+    # (repulsion) or other contacts (none). The steps whose graphs hold too few pairs or expect other contacts run
+    # uncaptured once, and their graphs (and backward passes) are captured again with budgets and plans for them
+    model, sim = landing_scene("cpu", repulsion=repulsion)
     state = model.state(requires_grad=taped)
     steps = 12
     captured = wc.CapturedRollout(sim, state, steps=steps, loss=loss_of if taped else None)
-    before = captured.pair_budgets
-    lower = state.particle_x.numpy() - np.array([0.0, 0.0, 0.02], dtype=np.float32)
+    before = captured.pair_budgets if repulsion else captured.contact_plans
+    lower = lowered(state, 0.02)
     state.particle_x.assign(lower)
     start = model.state(requires_grad=taped)
     start.particle_x.assign(lower)
@@ -209,20 +224,49 @@ def test_steps_whose_pairs_outgrow_their_budgets_run_again_and_are_captured_anew
                 assert np.any(value), name
                 np.testing.assert_array_equal(array.grad.numpy(), value, err_msg=f"run {run}, {name}")
         if run == 0:
-            assert captured.rerun_steps, "some steps meet more pairs than their budgets"
-            grown = captured.rerun_steps
+            assert captured.rerun_steps, "some steps leave their plans"
+            changed = captured.rerun_steps
         else:
             assert captured.rerun_steps == []
-    after = captured.pair_budgets
-    assert all(after[k] > before[k] for k in grown)
-    assert all(after[k] == before[k] for k in range(steps) if k not in grown)
+    after = captured.pair_budgets if repulsion else captured.contact_plans
+    if repulsion:
+        assert all(after[k] > before[k] for k in changed)
+    else:
+        assert all(after[k] != before[k] for k in changed)
+    assert all(after[k] == before[k] for k in range(steps) if k not in changed)
 
 
-@pytest.mark.parametrize("repulsion", [True, False])
-def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_parameter(repulsion):
+def test_a_step_that_leaves_its_plan_twice_runs_uncaptured_from_then_on():
+    # the start alternates between two heights: each change sends the steps in contact off their plans; after
+    # MAX_MISSES such runs they run uncaptured at once, and every run is still the uncaptured rollout's
+    model, sim = landing_scene("cpu", repulsion=False)
+    state = model.state()
+    steps = 12
+    captured = wc.CapturedRollout(sim, state, steps=steps)
+    starts = [state.particle_x.numpy().copy(), lowered(state, 0.02)]
+    expected = []
+    for x in starts:
+        start = model.state()
+        start.particle_x.assign(x)
+        expected.append([s.particle_x.numpy() for s in wc.rollout(sim, start, steps=steps)])
+    reruns = []
+    for run in range(5):
+        state.particle_x.assign(starts[(run + 1) % 2])
+        got = [s.particle_x.numpy() for s in captured.run()]
+        for k, (a, e) in enumerate(zip(got, expected[(run + 1) % 2])):
+            np.testing.assert_array_equal(a, e, err_msg=f"run {run}, state {k}")
+        reruns.append(set(captured.rerun_steps))
+    missed_twice = reruns[0] & reruns[1]
+    assert missed_twice, "the steps in contact leave their plans at each change of height"
+    assert missed_twice <= reruns[2] and missed_twice <= reruns[3] and missed_twice <= reruns[4]
+
+
+@pytest.mark.parametrize(("repulsion", "solver"), [(True, "device"), (False, "device"), (False, "numpy")])
+def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_parameter(repulsion, solver):
     # with repulsion the steps near the sphere replay with their pairs (repulsion and friction in the graph);
-    # without, the steps in contact run uncaptured on tapes of their own
-    model, sim = landing_scene("cpu", repulsion=repulsion)
+    # without, the steps in contact replay their contacts and the projection's adjoint (device projection) or run
+    # uncaptured on tapes of their own (NumPy projection)
+    model, sim = landing_scene("cpu", repulsion=repulsion, solver=solver)
     steps = 14
     state, control = model.state(requires_grad=True), model.control(requires_grad=True, particle_force=True)
     arrays = {"particle_x": state.particle_x, "particle_v": state.particle_v, "density": model.material_density,
@@ -242,6 +286,8 @@ def test_contact_scene_gradients_of_a_replay_equal_the_taped_rollouts_for_every_
         captured.run()
         if repulsion:
             assert captured.rerun_steps == [] and max(captured.pair_budgets) > 0
+        elif solver == "device":
+            assert captured.rerun_steps == [] and captured.contact_plans[-1]
         else:
             assert captured.rerun_steps and captured.rerun_steps[0] > 0
         assert captured.loss.numpy()[0] == loss.numpy()[0]
@@ -262,7 +308,7 @@ def test_a_scripted_obstacle_replays_its_motion():
     expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=steps)]
     captured = wc.CapturedRollout(sim, model.state(), steps=steps)
     got = [s.particle_x.numpy() for s in captured.run()]
-    assert captured.rerun_steps and captured.rerun_steps[0] > 0
+    assert captured.rerun_steps == [] and captured.pair_budgets[0] == 0 and captured.pair_budgets[-1] > 0
     for k, (a, e) in enumerate(zip(got, expected)):
         np.testing.assert_array_equal(a, e, err_msg=f"state {k}")
 
@@ -322,17 +368,19 @@ def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch(repulsion):
     got = [s.particle_x.numpy() for s in captured.run()]
     for a, e in zip(got, expected):
         np.testing.assert_array_equal(a, e)
+    assert captured.rerun_steps == []
     if repulsion:
-        assert captured.rerun_steps == [] and captured.pair_budgets[0] == 0 and captured.pair_budgets[-1] > 0
+        assert captured.pair_budgets[0] == 0 and captured.pair_budgets[-1] > 0
     else:
-        assert 0 < captured.rerun_steps[0] and captured.rerun_steps[-1] == steps - 1
+        assert captured.contact_plans[0] == [] and captured.contact_plans[-1]
 
 
 @pytest.mark.parametrize(("solver", "repulsion"), [("device", True), ("device", False), ("numpy", False)])
 def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(solver, repulsion):
     # a small sheet falling onto a pinned larger one: with repulsion, cloth-cloth proximity pairs (vertex-face and
     # edge-edge) and friction between them, which keep the sheets apart: every step replays with its pairs; without,
-    # cloth-cloth contacts from the third step on, through either projection backend, run uncaptured
+    # cloth-cloth contacts from the third step on, which the device projection replays and the NumPy one runs
+    # uncaptured
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
     b.add_cloth_grid((2, 2), (0.2, 0.2), material=wc.preset("gray-interlock"), pos=(-0.1, -0.1, 0.0))
     for p in range(9):
@@ -361,6 +409,8 @@ def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(sol
     assert captured.loss.numpy()[0] == loss.numpy()[0]
     if repulsion:
         assert captured.rerun_steps == [] and min(captured.pair_budgets) > 0
+    elif solver == "device":
+        assert captured.rerun_steps == [] and all(captured.contact_plans[2:]) and not any(captured.contact_plans[:2])
     else:
         assert captured.rerun_steps == list(range(2, steps))
     for name, a in arrays.items():

@@ -17,6 +17,7 @@ Both solve the same problem to the same tolerance (the NumPy solver is the devic
 from __future__ import annotations
 
 import time
+import warnings
 from contextlib import contextmanager
 
 import numpy as np
@@ -24,13 +25,14 @@ import warp as wp
 
 from warpcloth.collision import projection
 from warpcloth.collision.detection import DEGENERATE, FAILED, ContactDetector, Contacts
-from warpcloth.collision.device_projection import DeviceProjection
+from warpcloth.collision.device_projection import ADJOINT_WARN, DeviceProjection
 from warpcloth.collision.linalg import small_blas
 from warpcloth.errors import CollisionError
+from warpcloth.kernels import projection as kp
 from warpcloth.kernels.contact import contact_kernels
 from warpcloth.kernels.projection import device_round_kernels
 from warpcloth.model import Model
-from warpcloth.tape import record_adjoint
+from warpcloth.tape import capturing, record_adjoint
 
 
 @contextmanager
@@ -224,6 +226,14 @@ class DeviceBackend:
                                    wp.zeros(node_count, dtype=wp.float64, device=dev))
         self._untaped_z = wp.zeros(self.cloth_count, dtype=model.types.vec3, device=dev)
         self._untaped_geometry = _geometry_arrays(model, max(detector.capacity, 1), False)
+        self._retired = []  # the solvers and contact lists that grown ones replaced: a captured step's graph may
+        # still read them
+        self.mismatch: wp.array | None = None
+        """Set by the stage for a planned (captured) step: the flag that the step's checks raise where detection
+        finds other counts than the plan's or a projection fails, instead of reading the device."""
+        self.adjoint_residual = wp.zeros(1, dtype=wp.float64, device=dev)
+        """The largest relative residual of the adjoint CGs recorded while a graph was captured (they cannot read
+        theirs back); :meth:`check_adjoints` warns where it is too large."""
         self.begin(None, None, None, False)
 
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
@@ -241,8 +251,19 @@ class DeviceBackend:
     def count(self) -> int:
         return self._total
 
-    def detect(self, start: wp.array, end: wp.array, reference: wp.array) -> int:
-        self._found = self.detector.detect_on_device(start, end, reference)
+    def detect(self, start: wp.array, end: wp.array, reference: wp.array, expected: int | None = None,
+               last: bool = False) -> int:
+        """As :meth:`ZoneBackend.detect`; in a planned step (``expected``: the count the plan expects, ``last``: the
+        detection that must find none after the step's projections) without a read: the check goes to
+        :attr:`mismatch`, and the expected count is returned."""
+        if expected is None:
+            self._found = self.detector.detect_on_device(start, end, reference)
+            return self._found
+        self.detector.detect_on_device(start, end, reference, read=False)
+        wp.launch(kp.expect_found, 1, device=self.model.device,
+                  inputs=[self.detector.flags, int(expected), int(last and self._total > 0), self.mismatch],
+                  record_tape=False)
+        self._found = int(expected)
         return self._found
 
     def first_found(self) -> tuple[np.ndarray, int]:
@@ -303,6 +324,7 @@ class DeviceBackend:
             self._solver = DeviceProjection(dev, self.node_count, max(2 * total, 1024), self.detector.node_world,
                                             model.world_count)
         elif self._solver.capacity < total:  # grown in the step: its multipliers and positions go along
+            self._retired.append(self._solver)
             self._solver = self._solver.grown(max(2 * total, 1024))
         positions, free, inv_mass = self._constants
         solution = self._solver.project(
@@ -311,9 +333,13 @@ class DeviceBackend:
             resume=self._solution is not None, tol=opt.qp_tol, keep=self._recording, failed=self.detector.failed)
         self._solution = solution
         self.solver_stats = _SolverStats(solution)
+        found = self._rounds[-1][1]
+        if self.mismatch is not None:  # a planned step: checked on the device, read after its replay
+            wp.launch(kp.expect_solved, 1, device=dev, inputs=[self.detector.flags, found, self.mismatch],
+                      record_tape=False)
+            return self._positions(solution)
         # the round's one read: its degenerate contact, if any, and whether a world's solve failed
         flags = self.detector.read_flags()
-        found = self._rounds[-1][1]
         j = int(flags[DEGENERATE]) - 1
         if j < found:
             raise _degenerate(step, self.detector.nodes.numpy()[j], self.detector)
@@ -359,6 +385,7 @@ class DeviceBackend:
         if have:
             for new, old in zip(lists, (self._nodes, self._normals, self._weights, self._targets)):
                 wp.copy(new, old)
+            self._retired.append((self._nodes, self._normals, self._weights, self._targets))
         self._nodes, self._normals, self._weights, self._targets = lists
 
     def _record_adjoint(self, solution, z) -> None:
@@ -384,7 +411,7 @@ class DeviceBackend:
                 grad_w, grad_n, grad_target = work.grad_w[:m], work.grad_n[:m], work.grad_target[:m]
                 wp.launch(kr.scaled_gradient, N, device=dev, inputs=[z.grad, inv_mass, n], outputs=[d_z])
                 wp.copy(d_z_in, d_z)
-                d_lam = solver.adjoint_on_device(solution, d_z)
+                d_lam = solver.adjoint_on_device(solution, d_z, worst=self.adjoint_residual if capturing(dev) else None)
                 grad_const.zero_()
                 wp.launch(kr.push_contacts, count, device=dev,
                           inputs=[nodes, weights, normals, free, solution.z, d_z, solution.lam, d_lam],
@@ -402,6 +429,16 @@ class DeviceBackend:
                                   outputs=[normal.grad, weight.grad, target.grad])
 
         record_adjoint(adjoint, arrays=[z])
+
+
+    def check_adjoints(self) -> None:
+        """Warn where an adjoint CG recorded in a captured backward pass stopped above ADJOINT_WARN (read after the
+        pass's replay), and start the record again."""
+        residual = float(self.adjoint_residual.numpy()[0])
+        if not residual <= ADJOINT_WARN:
+            warnings.warn(f"the device projection's adjoint CG of a replayed step stopped at relative residual "
+                          f"{residual:.2e}: its gradient is that inexact", RuntimeWarning, stacklevel=3)
+        self.adjoint_residual.zero_()
 
 
 class _SolverStats(dict):

@@ -10,6 +10,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.errors import ContactCapacityError
+from warpcloth.kernels import projection as kp
 from warpcloth.kernels.collision import collision_kernels
 from warpcloth.model import Model
 from warpcloth.obstacles import obstacle_points_numpy
@@ -94,7 +95,7 @@ class PrimitiveSet:
             self.bvh.refit()
 
 
-FOUND, DEGENERATE, FAILED, STRAINED = 0, 1, 2, 3
+FOUND, DEGENERATE, FAILED, STRAINED = kp.FOUND, kp.DEGENERATE, kp.FAILED, kp.STRAINED
 """The slots of :attr:`ContactDetector.flags`: contacts the last detection found (beyond the capacity, only
 counted); 1 + the first contact of the last round whose normal is degenerate (the round's count + 1: none); 1 where
 the last projection failed in a world; 1 where the projection stretched an edge past

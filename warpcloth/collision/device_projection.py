@@ -242,10 +242,12 @@ class DeviceProjection:
         return self._lam
 
     def adjoint_on_device(self, solution: DeviceSolution, d_z: wp.array, *, active_tol: float = 1.0e-9,
-                          rtol: float = 1.0e-13) -> wp.array:
+                          rtol: float = 1.0e-13, worst: wp.array | None = None) -> wp.array:
         """In place on the device: ``d_z`` (node_count,) vec3d holds W⁻¹ ∂L/∂z on entry (0 for constant nodes) and
         W⁻¹(∂L/∂z − G_Aᵀd_λ) on return; returns the kernels' d_λ (count,) in the caller's order (the negative of
-        :mod:`warpcloth.collision.adjoint`'s), in this object's buffer: valid until the next call."""
+        :mod:`warpcloth.collision.adjoint`'s), in this object's buffer: valid until the next call. The CG's
+        residual is read back, and warned of above ADJOINT_WARN; with ``worst`` (a (1,) float64 array, for a
+        graph's capture) it is not read but kept there, the largest of the calls."""
         r = solution.rows
         dev = self.device
         m = max(r.count, 1)
@@ -267,11 +269,14 @@ class DeviceProjection:
         if r.count:
             wp.launch(kp.scatter, r.count, device=dev, inputs=[sorted_d_lam, r.order], outputs=[d_lam],
                       record_tape=False)
+        if worst is not None:
+            wp.launch(kp.worst_residual, 1, device=dev, inputs=[info, worst], record_tape=False)
+            return d_lam
         info = info.numpy()
-        worst = int(np.argmax(np.where(np.isfinite(info[:, 1]), info[:, 1], np.inf)))
-        iterations, residual = info[worst]
+        world = int(np.argmax(np.where(np.isfinite(info[:, 1]), info[:, 1], np.inf)))
+        iterations, residual = info[world]
         if not residual <= ADJOINT_WARN:
-            where = f" in world {worst}" if self.world_count > 1 else ""
+            where = f" in world {world}" if self.world_count > 1 else ""
             warnings.warn(f"the device projection's adjoint CG stopped at relative residual {residual:.2e} after "
                           f"{int(iterations)} iterations{where} ({r.count} contacts): its gradient is that inexact",
                           RuntimeWarning, stacklevel=3)

@@ -28,25 +28,19 @@ What the host does in a step (issue 37). Detection reads one small array (the de
 and the last projection's strain-guard flag); a round with contacts reads it once more after its projection (a
 degenerate normal, a failed solve). A step without contacts therefore reads one value, runs four launches (the
 nodes, the swept boxes, every query, the result) and the BVH refits, and, taped, records one hand-written adjoint
-(one launch) and nothing else; an untaped step allocates nothing here (tests/test_collision.py). What still
-keeps a contact step from being captured as a graph (``wp.capture_while`` over a device flag "found new contacts
-and rounds left"):
-* launch sizes and offsets from the host: a round's geometry, append and copy launches and the projection's
-  sort, prepare, gather and scatter launches are sized by the contact counts read back (``found``, ``total``),
-  and the device projection's ``Rows.count`` is a host int; they would become launches of the capacity that
-  return past a count held on the device (bitwise the same per contact: the CPU runs threads in order);
-* the tape: each round records launches on arrays of its own sized by its count (the contacts' geometry, the
-  solution kept for the adjoint), and the adjoint closure launches with those counts. A device-side round loop
-  needs per-step storage for the most rounds (rounds x capacity) and an adjoint that walks the rounds back with
-  the same device count, which Warp's tape cannot record (it replays a fixed list of launches);
-* the tries: a failed world's second try and the fail-safe branch on the host, and the fail-safe
-  (failsafe.py: rigid impact zones, NumPy) runs on the host; the second try could run on the device (world modes
-  set by a kernel from the failure flags, the rounds run again), the fail-safe could not;
-* the projection's capacity grows on the host (``DeviceBackend.project``: a new DeviceProjection).
-(The proximity pairs outside this stage are captured: a captured step launches their kernels at a budget and
-keeps their count on the device, collision/proximity.py.) Until a contact step can be captured,
-``wc.CapturedRollout`` captures each step speculatively (:attr:`CollisionStage.speculative`: detection without its
-read, x̂ kept as the result) and runs the steps whose detection found contacts again, uncaptured.
+(one launch) and nothing else; an untaped step allocates nothing here (tests/test_collision.py).
+
+A step is captured as a graph (``wc.CapturedRollout``) by following a plan (:attr:`CollisionStage.plan`): the
+counts its detection rounds found when it last ran uncaptured. Every host decision of a step with the device
+projection is made from those counts (launch sizes, the rounds, the arrays the tape keeps) or from flags, so a
+replay that finds the same counts and raises no flag is the uncaptured step, bitwise on the CPU. The checks run on
+the device (kernels/projection.py expect_found, expect_solved: other counts, a degenerate contact, a failed solve,
+a stretched edge) and raise one flag that the replay reads once; where it is up, the step runs again, uncaptured,
+and so raises, tries again keeping start gaps, or falls back to the fail-safe as it would. What is not captured:
+steps resolved by a second try or the fail-safe (their worlds' tries branch on the host, and the fail-safe runs in
+NumPy) and the NumPy zone solver's steps; they run uncaptured. A true device-side round loop (``wp.capture_while``
+over "found new contacts") would need launches sized by a capacity with counts held on the device, and a tape that
+walks a device-counted number of rounds back, which Warp's tape (a fixed list of launches) cannot record.
 """
 
 from __future__ import annotations
@@ -59,12 +53,12 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision.backends import DeviceBackend, ZoneBackend, gather_nodes, timed
-from warpcloth.collision.detection import FOUND, STRAINED, ContactDetector
+from warpcloth.collision.detection import STRAINED, ContactDetector
 from warpcloth.collision.diagnostics import rounds_error, strain_error
 from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
 from warpcloth.errors import CollisionError, ContactCapacityError
 from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
-from warpcloth.kernels.projection import device_round_kernels
+from warpcloth.kernels.projection import device_round_kernels, expect_found
 from warpcloth.kernels.status import RECORD_SIZE
 from warpcloth.model import Model, State
 from warpcloth.tape import active_tape, capturing, record_adjoint
@@ -83,6 +77,9 @@ class CollisionReport:
     kept_start_gaps: str | None = None
     """Why the projection with the full thickness failed, where the step was resolved by its second try, which keeps
     the start gaps of pairs that start inside the thickness; else None."""
+    found: list[int] = field(default_factory=list)
+    """Contacts each round's detection found, of the try that resolved the step (a captured step's plan: what its
+    graph expects)."""
     zones: list[dict] = field(default_factory=list)
     """The NumPy backend's per-zone records of its last round (sizes, iterations, timings; after a backward pass
     also the adjoint's)."""
@@ -144,8 +141,16 @@ class CollisionStage:
         self.last: CollisionReport | None = None
         """The report of the last step (diagnostics: no step reads it)."""
         self.speculative = False
-        """Whether steps assume no contact without reading the detector (set while ``wc.CapturedRollout`` captures a
-        step; :meth:`found_any` then tells whether the assumption held)."""
+        """Whether steps follow :attr:`plan` without reading the detector (set while ``wc.CapturedRollout`` captures
+        a step; :meth:`failed_plan` then tells whether the step kept to it)."""
+        self.plan: list[int] = []
+        """The contacts each detection round of a speculative step expects ([]: none: the step keeps x̂), from the
+        step's last run (:attr:`CollisionReport.found`). A step with contacts is planned on the device projection
+        only, at the full thickness in every world: its launches are sized by the plan, and a check on the device
+        raises a flag where detection finds other counts or a projection fails; the replay then runs the step
+        again, uncaptured."""
+        self.mismatch = wp.zeros(1, dtype=wp.int32, device=self.device)
+        """The flag of a speculative step that did not keep to its plan (zeroed at the step's start)."""
         self._full_thickness = np.zeros(model.world_count, dtype=np.int32)  # every world's detection mode
         self.record = wp.zeros(RECORD_SIZE, dtype=wp.int32, device=self.device)
         """The failure record (kernels/status.py) the divergence guard on the stage's result latches into: the
@@ -194,11 +199,19 @@ class CollisionStage:
                   inputs=[state_in.particle_x, obstacle_start, x_hat, obstacle_end, model.particle_count],
                   outputs=[start, self._reference], record_tape=False)
         if self.speculative:
+            self.mismatch.zero_()
+        if self.speculative and not self.plan:
             # a step being captured (wc.CapturedRollout) assumes no contact: detection runs without its read, x̂ is
-            # kept, and the replay reads the flags afterwards (found_any), running the step again where it found some
+            # kept, and the replay reads the check afterwards (failed_plan), running the step again where it found
+            # some
             self.detector.set_world_modes(self._full_thickness)
             self.detector.detect_on_device(start, self._reference, self._reference, read=False)
+            wp.launch(expect_found, 1, device=self.device, inputs=[self.detector.flags, 0, 0, self.mismatch],
+                      record_tape=False)
             z = x_hat
+        elif self.speculative:
+            z = self._planned_rounds(report, state_in, start, x_hat, obstacle_start, obstacle_end, step, mass,
+                                     recording)
         elif capturing(self.device):
             raise RuntimeError("a step with a collision stage reads the device, so it cannot be captured as it is; "
                                "wc.CapturedRollout captures such steps speculatively")
@@ -225,9 +238,35 @@ class CollisionStage:
         self.last = report
         return report
 
-    def found_any(self) -> bool:
-        """Whether the last detection found contacts (a read of the device: a speculative step's check)."""
-        return bool(self.detector.read_flags()[FOUND])
+    def failed_plan(self) -> bool:
+        """Whether the last speculative step did not keep to its plan: it found contacts where it expected none, or
+        other counts than its plan's, or a projection failed (a read of the device)."""
+        return bool(self.mismatch.numpy()[0])
+
+    def check_adjoints(self) -> None:
+        """Warn where a projection's adjoint replayed from a graph did not converge (CollisionStage: read once, after
+        a captured backward pass)."""
+        self.backends["device"].check_adjoints()
+
+    def _planned_rounds(self, report: CollisionReport, state_in: State, start: wp.array, x_hat: wp.array,
+                        obstacle_start: wp.array, obstacle_end: wp.array, step: int, mass: Callable[[], wp.array],
+                        recording: bool) -> wp.array:
+        """A step being captured that follows :attr:`plan`: the round loop of the device projection at the full
+        thickness, its launches sized by the plan's counts, with no read: its checks raise :attr:`mismatch`."""
+        model = self.model
+        backend = self.backends["device"]
+        taped_start = functools.cache(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
+        self.detector.set_world_modes(self._full_thickness)
+        backend.mismatch = self.mismatch
+        try:
+            backend.begin(x_hat, obstacle_end, mass, recording)
+            z = self._rounds(backend, start, taped_start, x_hat, obstacle_end, step, report, recording,
+                             plan=self.plan)
+        finally:
+            backend.mismatch = None
+        report.contacts = backend.count
+        report.device = backend.solver_stats
+        return z
 
     def _tries(self, backend, report: CollisionReport, state_in: State, start: wp.array, x_hat: wp.array,
                obstacle_start: wp.array, obstacle_end: wp.array, step: int, mass: Callable[[], wp.array],
@@ -288,23 +327,32 @@ class CollisionStage:
         return z
 
     def _rounds(self, backend, start: wp.array, taped_start: Callable[[], wp.array], x_hat: wp.array,
-                obstacle_end: wp.array, step: int, report: CollisionReport, recording: bool) -> wp.array:
+                obstacle_end: wp.array, step: int, report: CollisionReport, recording: bool,
+                plan: list[int] | None = None) -> wp.array:
         """The round loop: detect from the start positions to the current end positions, add the new contacts,
         project x̂ onto all of them; until detection finds nothing new. Returns the projected positions.
-        ``start``: the start nodes (the stage's buffer); ``taped_start``: the same, taped, made when first needed."""
+        ``start``: the start nodes (the stage's buffer); ``taped_start``: the same, taped, made when first needed;
+        ``plan``: each round's count, expected without a read (a captured step; the device backend checks it)."""
         opt = self.options.collision
         phases = self.phase_seconds
         z = x_hat
         reference = self._reference  # the unprojected end: the side of pairs touching at the start
+        report.found = []
         for round_index in range(opt.rounds + 1):
             with timed(phases, "detection"):
                 if round_index == 0:
                     end = reference  # gathered with the start (resolve)
                 else:
                     end = gather_nodes(self.model, z, obstacle_end, recording, out=self._end)
-                found = backend.detect(start, end, reference)
+                if plan is None:
+                    found = backend.detect(start, end, reference)
+                else:
+                    last = round_index >= len(plan)
+                    found = backend.detect(start, end, reference, expected=0 if last else plan[round_index],
+                                           last=last)
             if found == 0:
                 break
+            report.found.append(found)
             if opt.rounds == 0:
                 raise CollisionError(f"step {step}: CollisionOptions.rounds is 0: no projection, {found} contacts",
                                      worlds=backend.found_worlds())
@@ -320,7 +368,7 @@ class CollisionStage:
                 z = backend.project(step, opt)
                 self._test_strain(x_hat, z)
             report.rounds = round_index + 1
-        if backend.count and self.detector.last_flags[STRAINED]:  # as the last detection's read saw it
+        if plan is None and backend.count and self.detector.last_flags[STRAINED]:  # as the last read saw it
             self._strain_error(x_hat, z, step)
         return z
 

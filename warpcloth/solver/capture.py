@@ -26,12 +26,13 @@ class CapturedRollout:
 
     Args:
         sim: the Simulator. A scene with a collision stage or proximity forces is captured one graph per step,
-            speculatively: a captured step assumes that it meets no contact and at most a budget of proximity pairs
-            (:attr:`pair_budgets`, from the pairs the step found before), and after its replay the host reads
-            whether it held (one small read a step); where it did not, the step runs again, uncaptured, from the
-            same input (:attr:`rerun_steps`), and a step whose pairs outgrew its budget is captured again. A step
-            that met contact in the last run runs uncaptured at once, without its graph. Steps in free flight or
-            with proximity pairs alone replay; steps in contact cost what they cost uncaptured.
+            speculatively: a captured step expects the contacts its last uncaptured run found, round by round
+            (:attr:`contact_plans`), and at most a budget of proximity pairs (:attr:`pair_budgets`), and after its
+            replay the host reads whether it kept to that (one small read a step). Where it did not, the step runs
+            again, uncaptured, from the same input (:attr:`rerun_steps`), and is captured again after the run with
+            what it found; a step that left its plan twice, or whose contacts the graph cannot follow (the NumPy
+            projection, a second try keeping start gaps, the fail-safe), runs uncaptured from then on, without
+            its graph.
         state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
             ``wp.copy``) between replays; rebinding them has no effect on the graph.
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
@@ -129,6 +130,13 @@ class CapturedRollout:
         what its last uncaptured run found, rounded up to a power of two (0: none, no pair kernel runs). Empty
         where the rollout is not captured one graph a step (a scene without contact)."""
         return [] if self._steps is None else list(self._steps.pair_budget)
+
+    @property
+    def contact_plans(self) -> list[list[int]]:
+        """Each step's contacts in its graph: the contacts each detection round of the collision stage is to find,
+        as the step's last uncaptured run found them ([]: none). A replay that finds others runs the step again,
+        uncaptured. Empty where the rollout is not captured one graph a step."""
+        return [] if self._steps is None else [list(p) for p in self._steps.plans]
 
     def _record_forward(self) -> None:
         sim = self.sim
@@ -231,17 +239,23 @@ def _stepwise(sim: Simulator) -> bool:
     return sim.collision is not None or sim.proximity is not None
 
 
-class _StepGraphs:
-    """A rollout of a contact scene as one graph per step, each captured assuming no contact and at most a budget of
-    proximity pairs (Simulator._speculating).
+MAX_MISSES = 2
+"""A step whose graph left its plan (other contacts, more pairs) this many times runs uncaptured from then on,
+without its graph: capturing it again costs several uncaptured steps."""
 
-    A step's budget of pairs is a power of two, at least twice what its last uncaptured run found (0 where it found
-    none: no pair kernel runs); its pair kernels launch at the budget and hold as many pairs as were found. After a
-    step's replay the host asks whether detection found contacts, or more pairs than the budget; where it did, the
-    step runs again uncaptured from the same input State (the graph wrote only its output State and scratch), on a
-    tape of its own when there is a loss. A step whose pairs outgrew its budget is captured again, with a budget
-    for them, after the run (with its backward pass). A step that met contact in the last run runs uncaptured at
-    once, without its graph (a cloth resting on an obstacle would otherwise pay every step twice). The backward pass
+
+class _StepGraphs:
+    """A rollout of a contact scene as one graph per step, each captured following a plan: the contacts of each
+    detection round and a budget of proximity pairs (Simulator._speculating).
+
+    A step's plan is what its last uncaptured run found (CollisionStage.plan); its budget of pairs a power of two, at
+    least twice the pairs that run found (0 where it found none: no pair kernel runs), its pair kernels launched at
+    the budget and holding as many pairs as were found. After a step's replay the host asks whether it kept to the
+    plan; where it did not, the step runs again uncaptured from the same input State (the graph wrote only its output
+    State and scratch), on a tape of its own when there is a loss, and is captured again after the run (with its
+    backward pass) with what it found. A step whose graph left its plan MAX_MISSES times, or whose contacts cannot
+    be planned, runs uncaptured at once from then on, without its graph (a cloth pressed into an obstacle whose
+    contacts change at every run would otherwise pay every step twice and a capture). The backward pass
     walks the steps back: a replayed step's recorded adjoint as a graph of its own, a re-run step's tape as it is.
     The States are the same arrays at every run, so the graphs serve every run. Made with an ordinary run of every
     step (it loads the kernels and makes, outside any capture, what steps make lazily or per time), after which
@@ -257,9 +271,11 @@ class _StepGraphs:
         self.kept: dict = {}
         self.motions: dict = {}  # the obstacles' motions the graphs read, one array a time
         self.reruns: dict[int, wp.Tape | None] = {}  # the last run's uncaptured steps (their tapes, with a loss)
-        self.in_contact: set[int] = set()  # the steps that met contact in the last run: the next run runs them
-        # uncaptured without replaying their graphs first
+        self.uncaptured: set[int] = set()  # the steps the next run runs uncaptured at once, without their graphs
+        # (contacts a graph cannot follow, or a graph that left its plan MAX_MISSES times)
         self.pair_budget = [0] * steps  # each step's graph's budget of proximity pairs
+        self.plans: list[list[int]] = [[] for _ in range(steps)]  # each step's graph's contact plan
+        self.misses = [0] * steps  # how often each step's graph left its plan
         self.loss: wp.array | None = None
         taped = loss is not None
         self.tapes = [None] * steps  # what each graph's step recorded
@@ -287,15 +303,20 @@ class _StepGraphs:
                 wp.capture_launch(self._zero)
 
     def _note(self, k: int, grown: set) -> None:
-        """After step k ran uncaptured: whether it met contact (the next run runs it uncaptured at once), and whether
-        its pairs outgrew its graph's budget (added to ``grown``, its budget raised)."""
+        """After step k ran uncaptured: its contact plan and pairs. A step whose plan changed or whose pairs outgrew
+        its budget is added to ``grown`` (its graph is captured again after the run), unless its graph has left its
+        plan twice already or its contacts cannot be planned: then the next run runs it uncaptured at once."""
         sim = self.sim
-        if sim._met_contact():  # noqa: SLF001
-            self.in_contact.add(k)
+        plan = sim._contact_plan()  # noqa: SLF001
+        if plan is None or self.misses[k] >= MAX_MISSES:
+            self.uncaptured.add(k)
             return
         pairs = sim._pairs_needed()  # noqa: SLF001
         if pairs > self.pair_budget[k]:
             self.pair_budget[k] = 1 << max(4, (2 * pairs - 1).bit_length())  # a power of two >= 2 pairs, >= 16
+            grown.add(k)
+        if plan != self.plans[k]:
+            self.plans[k] = plan
             grown.add(k)
 
     def _capture_step(self, k: int) -> None:
@@ -303,7 +324,7 @@ class _StepGraphs:
         sim, device = self.sim, self.sim.device
         kept = self.kept[k] = []
         tape = self.tapes[k] = wp.Tape() if self.loss_fn is not None else None
-        with sim._speculating(self.pair_budget[k]), _capture(device, kept) as capture:  # noqa: SLF001
+        with sim._speculating(self.pair_budget[k], self.plans[k]), _capture(device, kept) as capture:  # noqa: SLF001
             with tape if tape is not None else contextlib.nullcontext():
                 sim.step(self.states[k], self.states[k + 1], self.controls[k])
         self.forward[k] = capture.graph
@@ -340,13 +361,14 @@ class _StepGraphs:
         with paused_gc():
             self._zero_all()
             self.reruns = {}
-            predicted, self.in_contact = self.in_contact, set()
+            predicted, self.uncaptured = self.uncaptured, set()
             grown = set()
             for k, graph in enumerate(self.forward):
                 if k not in predicted:
                     wp.capture_launch(graph)
                     if not sim._speculation_failed():  # noqa: SLF001
                         continue
+                    self.misses[k] += 1
                 self.reruns[k] = self._rerun(k)
                 self._note(k, grown)
             sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
@@ -355,6 +377,7 @@ class _StepGraphs:
                 wp.capture_launch(self.loss_graphs[0])  # the loss (its seed: ones)
                 if backward:
                     self._backward()
+                    sim._check_replayed_adjoints()  # noqa: SLF001
             if grown:  # the steps whose pairs outgrew their budgets, captured again (the re-run tapes kept)
                 with sim._keeping_motions(self.motions):  # noqa: SLF001
                     for k in grown:
@@ -369,6 +392,7 @@ class _StepGraphs:
             self._zero_all()
             _write_seeds(self._seed, self.loss, grads)
             self._backward()
+            self.sim._check_replayed_adjoints()  # noqa: SLF001
 
     def _zero_all(self) -> None:
         """Zero every gradient the captured tapes and the last run's re-run steps reach."""

@@ -482,36 +482,48 @@ class Simulator:
         return bool(every) and step % every == 0 and not capturing(self.device)
 
     @contextmanager
-    def _speculating(self, pair_budget: int = 0):
-        """Steps inside assume that they meet no contact and at most ``pair_budget`` proximity pairs, without reading
-        the device (what wc.CapturedRollout captures): their pair kernels launch at the budget.
-        :meth:`_speculation_failed` tells afterwards whether the assumption held."""
+    def _speculating(self, pair_budget: int = 0, contact_plan: list[int] | None = None):
+        """Steps inside follow a plan without reading the device (what wc.CapturedRollout captures): the collision
+        stage's detection rounds find ``contact_plan``'s counts (none: no contact; CollisionStage.plan) and the
+        proximity pairs are at most ``pair_budget``, their kernels launched at the budget.
+        :meth:`_speculation_failed` tells afterwards whether the step kept to it."""
         if self.collision is not None:
-            self.collision.speculative = True
+            self.collision.speculative, self.collision.plan = True, list(contact_plan or [])
         if self.proximity is not None:
             self.proximity.budget = min(int(pair_budget), self.proximity.capacity)
         try:
             yield
         finally:
             if self.collision is not None:
-                self.collision.speculative = False
+                self.collision.speculative, self.collision.plan = False, []
             if self.proximity is not None:
                 self.proximity.budget = None
 
     def _speculation_failed(self) -> bool:
-        """Whether the last step, captured by :meth:`_speculating`, met contacts or more proximity pairs than its
-        budget (reads the device)."""
-        return (self.collision is not None and self.collision.found_any()) or (
+        """Whether the last step, captured by :meth:`_speculating`, left its plan: other contacts, a failed
+        projection, or more proximity pairs than its budget (reads the device)."""
+        return (self.collision is not None and self.collision.failed_plan()) or (
             self.proximity is not None and self.proximity.exceeded())
 
     def _pairs_needed(self) -> int:
         """The proximity pairs the last step, run uncaptured, found (0 without proximity forces)."""
         return 0 if self.proximity is None else self.proximity.last_count
 
-    def _met_contact(self) -> bool:
-        """Whether the last step, run uncaptured, met contacts (what it reported: no read)."""
-        return self.collision is not None and self.collision.last is not None and (
-            self.collision.last.contacts > 0 or self.collision.last.rounds > 0)
+    def _contact_plan(self) -> list[int] | None:
+        """The contact plan (CollisionStage.plan) of the last step, run uncaptured: each round's count ([]: no
+        contact), or None where its contacts cannot be planned (the NumPy projection, a second try, the
+        fail-safe)."""
+        report = None if self.collision is None else self.collision.last
+        if report is None or not (report.contacts or report.rounds):
+            return []
+        if report.solver != "device" or report.kept_start_gaps is not None or report.fail_safe is not None:
+            return None
+        return list(report.found)
+
+    def _check_replayed_adjoints(self) -> None:
+        """Warn where an adjoint solve of a replayed backward pass did not converge (read once after it)."""
+        if self.collision is not None:
+            self.collision.check_adjoints()
 
     def _count_replayed(self, steps: int) -> None:
         """Count ``steps`` steps a graph replayed (CapturedRollout.run) in ``stats``."""
