@@ -821,8 +821,8 @@ def graph_step(d: dict) -> str:
                     f"backward (`ThrowTask.evaluate`): a task's first evaluation, uncaptured, "
                     f"{throw['fwd_bwd_s']:.2f} s ({throw['launches_per_step']:.0f} launches and {allocs} arrays made "
                     f"a step); its second, which captures one speculative graph a step, {throw['capturing_s']:.2f} s; "
-                    f"later ones, replayed, {throw['replayed_s']:.2f} s, the {throw['rerun_steps']} steps that met "
-                    f"contact running uncaptured (issue 37's target 0.5 s: {met(throw['replayed_s'] <= 0.5)})."]
+                    f"later ones, replayed, {throw['replayed_s']:.2f} s, {throw['rerun_steps']} of its steps "
+                    f"running uncaptured (issue 37's target 0.5 s: {met(throw['replayed_s'] <= 0.5)})."]
     drape = d.get("drape")
     if drape:
         out += ["", f"The drape-sphere scene, {drape['steps']} steps, {drape['particles']} particles: "
