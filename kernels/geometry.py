@@ -112,6 +112,29 @@ def triangle_barycentric(p: Any, a: Any, b: Any, c: Any):
 
 
 @wp.func
+def sort_rows_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(dtype=wp.int32), count: int,
+                       world_count: int, start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32)):
+    """In one thread: a stable counting sort of rows 0..count-1 (contacts, proximity pairs: all nodes of a row are
+    of one world) by the world of their first node: ``order[k]``, the row in sorted slot k; ``start[w]``, world
+    w's first slot (``start[world_count]``: count). Each world's rows keep the order found, so they are those a
+    model of that world alone finds."""
+    for w in range(world_count + 1):
+        start[w] = 0
+    for j in range(count):
+        w = node_world[nodes[j, 0]]
+        start[w + 1] = start[w + 1] + 1
+    for w in range(world_count):
+        start[w + 1] = start[w + 1] + start[w]
+    for j in range(count):  # start[w] walks world w's slots, then the shift below restores it
+        w = node_world[nodes[j, 0]]
+        order[start[w]] = j
+        start[w] = start[w] + 1
+    for w in range(world_count, 0, -1):
+        start[w] = start[w - 1]
+    start[0] = 0
+
+
+@wp.func
 def world_root(bvh: wp.uint64, grouped: int, world: int):
     """The BVH node a query of a primitive in ``world`` starts from: the root of that world's group in a BVH grouped
     by world (``grouped`` != 0), so it meets only its own world's primitives; -1 (the global root) otherwise, and

@@ -27,6 +27,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from warpcloth.kernels.geometry import sort_rows_by_world
 from warpcloth.kernels.types import per_precision, types
 
 CONVERGED = 0
@@ -85,26 +86,13 @@ class Rows:
 def sort_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(dtype=wp.int32), count: int,
                   first_new: int, world_count: int, start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
                   solve_world: wp.array(dtype=wp.int32)):
-    # one thread: a stable counting sort of the contacts by world (a contact's nodes are all of one world), and
-    # which worlds have a contact at or after first_new (the others keep their last solution)
-    for w in range(world_count + 1):
-        start[w] = 0
+    # one thread: the contacts sorted by world, and which worlds have a contact at or after first_new (the others
+    # keep their last solution)
     for w in range(world_count):
         solve_world[w] = 0
-    for j in range(count):
-        w = node_world[nodes[j, 0]]
-        start[w + 1] = start[w + 1] + 1
-        if j >= first_new:
-            solve_world[w] = 1
-    for w in range(world_count):
-        start[w + 1] = start[w + 1] + start[w]
-    for j in range(count):  # start[w] walks world w's slots, then the shift below restores it
-        w = node_world[nodes[j, 0]]
-        order[start[w]] = j
-        start[w] = start[w] + 1
-    for w in range(world_count, 0, -1):
-        start[w] = start[w - 1]
-    start[0] = 0
+    for j in range(first_new, count):
+        solve_world[node_world[nodes[j, 0]]] = 1
+    sort_rows_by_world(nodes, node_world, count, world_count, start, order)
 
 
 @wp.kernel(enable_backward=False)

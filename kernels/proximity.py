@@ -44,7 +44,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric, world_root
+from warpcloth.kernels.geometry import segment_parameters, sort_rows_by_world, triangle_barycentric, world_root
 from warpcloth.kernels.types import per_precision, types
 
 COINCIDENT = 1.0e-9
@@ -539,31 +539,17 @@ def proximity_kernels(scalar):
                    # out:
                    start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
                    count: wp.array(dtype=wp.int32), spill: wp.array(dtype=wp.int32)):
-        # one thread: a stable counting sort of the first min(found, size) pairs by world (each world's in the order
-        # found, so a world's pairs are those a model of that world alone finds), each world's first pair (start),
-        # the count held, and whether more were found than the launches hold (a captured step's budget). One world:
-        # no sort (gather_pairs then reads the pairs in the order found), so one thread does not walk every pair
+        # one thread: the first min(found, size) pairs sorted by world (geometry.py sort_rows_by_world), the count
+        # held, and whether more were found than the launches hold (a captured step's budget). One world: no sort
+        # (gather_pairs then reads the pairs in the order found), so one thread does not walk every pair
         held = wp.min(found[0], size)
         count[0] = held
         spill[0] = wp.where(found[0] > size, 1, 0)
         if world_count == 1:
             start[0] = 0
             start[1] = held
-            return
-        for w in range(world_count + 1):
-            start[w] = 0
-        for k in range(held):
-            w = node_world[nodes[k, 0]]
-            start[w + 1] = start[w + 1] + 1
-        for w in range(world_count):
-            start[w + 1] = start[w + 1] + start[w]
-        for k in range(held):  # start[w] walks world w's slots, then the shift below restores it
-            w = node_world[nodes[k, 0]]
-            order[start[w]] = k
-            start[w] = start[w] + 1
-        for w in range(world_count, 0, -1):
-            start[w] = start[w - 1]
-        start[0] = 0
+        else:
+            sort_rows_by_world(nodes, node_world, held, world_count, start, order)
 
     @wp.kernel(enable_backward=False)
     def gather_pairs(order: wp.array(dtype=wp.int32), sorted: int, count: wp.array(dtype=wp.int32),
