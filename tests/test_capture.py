@@ -236,6 +236,21 @@ def test_steps_that_leave_their_plans_run_again_and_are_captured_anew(repulsion,
     assert all(after[k] == before[k] for k in range(steps) if k not in changed)
 
 
+def test_a_replayed_contact_adjoint_warns_where_its_solve_falls_short(monkeypatch):
+    # the projection's adjoint CG cannot read its residual back inside a graph: the replayed backward pass keeps
+    # the largest on the device and warns after it (here every residual above 1e-300 is "too large")
+    from warpcloth.collision import backends
+
+    model, sim = landing_scene("cpu", repulsion=False)
+    state = model.state(requires_grad=True)
+    captured = wc.CapturedRollout(sim, state, steps=14, loss=loss_of)
+    assert captured.rerun_steps == [] and any(captured.contact_plans)
+    captured.run()  # within the bound: no warning
+    monkeypatch.setattr(backends, "ADJOINT_WARN", 1e-300)
+    with pytest.warns(RuntimeWarning, match="adjoint CG of a replayed step stopped at relative residual"):
+        captured.run()
+
+
 def test_a_step_that_leaves_its_plan_twice_runs_uncaptured_from_then_on():
     # the start alternates between two heights: each change sends the steps in contact off their plans; after
     # MAX_MISSES such runs they run uncaptured at once, and every run is still the uncaptured rollout's

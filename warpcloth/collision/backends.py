@@ -430,10 +430,9 @@ class DeviceBackend:
 
         record_adjoint(adjoint, arrays=[z])
 
-
     def check_adjoints(self) -> None:
-        """Warn where an adjoint CG recorded in a captured backward pass stopped above ADJOINT_WARN (read after the
-        pass's replay), and start the record again."""
+        """Warn where an adjoint CG of a backward pass replayed from a graph stopped above ADJOINT_WARN (one read,
+        after the pass), and start the record again."""
         residual = float(self.adjoint_residual.numpy()[0])
         if not residual <= ADJOINT_WARN:
             warnings.warn(f"the device projection's adjoint CG of a replayed step stopped at relative residual "

@@ -244,8 +244,8 @@ class CollisionStage:
         return bool(self.mismatch.numpy()[0])
 
     def check_adjoints(self) -> None:
-        """Warn where a projection's adjoint replayed from a graph did not converge (CollisionStage: read once, after
-        a captured backward pass)."""
+        """Warn where a projection's adjoint replayed from a graph did not converge (one read, after a backward pass
+        replayed from graphs)."""
         self.backends["device"].check_adjoints()
 
     def _planned_rounds(self, report: CollisionReport, state_in: State, start: wp.array, x_hat: wp.array,

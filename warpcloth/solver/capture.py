@@ -72,8 +72,8 @@ class CapturedRollout:
         self.tape: wp.Tape | None = None
         self.rerun_steps: list[int] = []
         """The steps (0-based) of the last run that ran uncaptured (a scene with a collision stage or proximity
-        forces; always empty otherwise): those whose replay met contact, run again, and those that met contact in
-        the run before, run uncaptured without a replay."""
+        forces; always empty otherwise): those whose replay left its plan (other contacts, more pairs), run again,
+        and those run uncaptured at once (contacts a graph cannot follow, a graph that left its plan twice)."""
         self.graphs: list = []
         """The graphs a replay launches in turn (empty where the rollout is not captured: see below)."""
         self._steps = None
@@ -283,10 +283,9 @@ class _StepGraphs:
         self.backward_graphs = [None] * steps  # each step's recorded adjoint
         self.loss_graphs, self._zero = [], None
         with paused_gc(), sim._keeping_motions(self.motions):  # noqa: SLF001 - the solver package's own
-            grown = set()
             for k in range(steps):
                 self.reruns[k] = self._rerun(k)
-                self._note(k, grown)
+                self._note(k, set())
             if taped:
                 first = wp.Tape()
                 with wp.ScopedDevice(sim.device), first:
@@ -302,10 +301,11 @@ class _StepGraphs:
                 self._zero_reruns()
                 wp.capture_launch(self._zero)
 
-    def _note(self, k: int, grown: set) -> None:
+    def _note(self, k: int, changed: set) -> None:
         """After step k ran uncaptured: its contact plan and pairs. A step whose plan changed or whose pairs outgrew
-        its budget is added to ``grown`` (its graph is captured again after the run), unless its graph has left its
-        plan twice already or its contacts cannot be planned: then the next run runs it uncaptured at once."""
+        its budget is added to ``changed`` (its graph is captured again after the run), unless its graph has left its
+        plan MAX_MISSES times already or its contacts cannot be planned: then the next run runs it uncaptured at
+        once."""
         sim = self.sim
         plan = sim._contact_plan()  # noqa: SLF001
         if plan is None or self.misses[k] >= MAX_MISSES:
@@ -314,13 +314,13 @@ class _StepGraphs:
         pairs = sim._pairs_needed()  # noqa: SLF001
         if pairs > self.pair_budget[k]:
             self.pair_budget[k] = 1 << max(4, (2 * pairs - 1).bit_length())  # a power of two >= 2 pairs, >= 16
-            grown.add(k)
+            changed.add(k)
         if plan != self.plans[k]:
             self.plans[k] = plan
-            grown.add(k)
+            changed.add(k)
 
     def _capture_step(self, k: int) -> None:
-        """Capture step k's graph (and, with a loss, its recorded adjoint's) at its budget of pairs."""
+        """Capture step k's graph (and, with a loss, its recorded adjoint's) following its plan and budget."""
         sim, device = self.sim, self.sim.device
         kept = self.kept[k] = []
         tape = self.tapes[k] = wp.Tape() if self.loss_fn is not None else None
@@ -362,7 +362,7 @@ class _StepGraphs:
             self._zero_all()
             self.reruns = {}
             predicted, self.uncaptured = self.uncaptured, set()
-            grown = set()
+            changed = set()
             for k, graph in enumerate(self.forward):
                 if k not in predicted:
                     wp.capture_launch(graph)
@@ -370,7 +370,7 @@ class _StepGraphs:
                         continue
                     self.misses[k] += 1
                 self.reruns[k] = self._rerun(k)
-                self._note(k, grown)
+                self._note(k, changed)
             sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
             if self.loss_fn is not None:
                 sim.check(self.states)  # a diverged forward pass raises before its backward pass runs
@@ -378,9 +378,9 @@ class _StepGraphs:
                 if backward:
                     self._backward()
                     sim._check_replayed_adjoints()  # noqa: SLF001
-            if grown:  # the steps whose pairs outgrew their budgets, captured again (the re-run tapes kept)
+            if changed:  # the steps whose plans changed, captured again (this run's re-run tapes kept)
                 with sim._keeping_motions(self.motions):  # noqa: SLF001
-                    for k in grown:
+                    for k in changed:
                         self._capture_step(k)
                 if self.loss_fn is not None:
                     self._capture_zero()
