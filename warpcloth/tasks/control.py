@@ -368,9 +368,10 @@ class ControlTask:
 
     def _captured(self, kind: str = "evaluate") -> _CapturedEvaluation | _CapturedLosses | None:
         """The rollout of :meth:`evaluate_worlds` (``kind="evaluate"``: forward and backward) or of
-        :meth:`losses_worlds` (``"losses"``: forward) recorded as graphs (``wc.CapturedRollout``: one speculative
-        graph a step in a scene with contact) where that can be: the forward pass on any device, the backward pass
-        on the CPU (on CUDA its graph does not replay yet: capture.py) for a rollout taped whole. Made at the second
+        :meth:`losses_worlds` (``"losses"``: forward) recorded as graphs (``wc.CapturedRollout``: one graph a
+        step, following the contacts it met before, in a scene with contact) where that can be: the forward pass on
+        any device, the backward pass on the CPU (on CUDA its graph does not replay yet: capture.py) for a rollout
+        taped whole. Made at the second
         call that can use it (and again where the solver's options or an array of the model were replaced since):
         the evaluation that captures costs about five uncaptured ones (the throw: 1.0 s uncaptured, 4.8-5.2 s
         capturing, 0.20-0.27 s replayed; benchmarks/graph_step.py), so a task evaluated once is not made to
@@ -389,8 +390,8 @@ class ControlTask:
 
     @property
     def rerun_steps(self) -> list[int]:
-        """The steps of the last captured evaluation that met contact and ran uncaptured (``wc.CapturedRollout``'s
-        ``rerun_steps``); empty where no evaluation was captured yet."""
+        """The steps of the last captured evaluation that ran uncaptured, their contacts not those their graphs
+        expected (``wc.CapturedRollout``'s ``rerun_steps``); empty where no evaluation was captured yet."""
         captured = self._captures.get("evaluate")
         return [] if captured is None else list(captured.rollout.rerun_steps)
 

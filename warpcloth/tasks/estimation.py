@@ -202,7 +202,7 @@ class TrajectoryFit:
         self._first = wp.zeros(worlds, dtype=wp.int32, device=model.device)  # each world's targets are its own
         self.capture = capture
         """Replay each evaluation's rollout from a graph (wc.CapturedRollout, one per horizon and kind, made at the
-        horizon's CAPTURE_AFTER-th evaluation; a scene with contact one speculative graph a step), bitwise the
+        horizon's CAPTURE_AFTER-th evaluation; a scene with contact one graph a step), bitwise the
         uncaptured results on the CPU; not where the scene cannot be captured (``CapturedRollout.unsupported``), and
         on CUDA only the forward losses (a graph with the backward pass did not instantiate there with Warp 1.19)."""
         self._captured: dict = {}
