@@ -371,11 +371,10 @@ class ControlTask:
         :meth:`losses_worlds` (``"losses"``: forward) recorded as graphs (``wc.CapturedRollout``: one graph a
         step, following the contacts it met before, in a scene with contact) where that can be: the forward pass on
         any device, the backward pass on the CPU (on CUDA its graph does not replay yet: capture.py) for a rollout
-        taped whole. Made at the second
-        call that can use it (and again where the solver's options or an array of the model were replaced since):
-        the evaluation that captures costs about five uncaptured ones (the throw: 1.0 s uncaptured, 4.8-5.2 s
-        capturing, 0.20-0.27 s replayed; benchmarks/graph_step.py), so a task evaluated once is not made to
-        capture."""
+        taped whole. Made at the second call that can use it (and again where the solver's options or an array of
+        the model were replaced since): the evaluation that captures costs about five uncaptured ones (the throw:
+        1.0-1.1 s uncaptured, 4.6-5.0 s capturing, 0.23-0.29 s replayed; benchmarks/graph_step.py), so a task
+        evaluated once is not made to capture."""
         if wc.CapturedRollout.unsupported(self.sim) is not None or kind == "evaluate" and (
                 not self.model.device.is_cpu or self.segment_steps < self.steps):
             return None
