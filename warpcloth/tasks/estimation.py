@@ -418,7 +418,8 @@ loss over the whole horizon jumps between materials 3e-4 apart (README, known ga
 bring the fit near the truth before the buckling's frames count. Table 2 (ten fabrics, the means, 2026-11-27,
 benchmarks/material_estimation.py --iters 180): the scan's 40 + 140 evaluations in these stages (20, 36 and 50
 steps), density 1.6 %, linear 45 %, non-linear 46 %, simulation error 0.60 %; 40 + 60 in one stage (no curriculum):
-3.2, 57, 60 and 0.74 %. Other schedules: docs/results/seed.md."""
+3.2, 57, 60 and 0.74 %; 40 + 320 in these stages (--iters 360, 2026-11-28): 0.29, 34, 43 and 0.50 %. Other
+schedules: docs/results/seed.md."""
 
 SEARCH_SIGMA = 0.5
 """The global search's default initial spread (``SearchSpec.sigma``) in the parameterization's units (log-scale for
