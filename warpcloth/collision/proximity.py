@@ -75,7 +75,6 @@ class ProximityForces:
         self.capacity = int(capacity or 8 * (n + V))
         scalar = model.scalar
         worlds = node_worlds(model, obstacles)
-        self._node_world_host = worlds
         self._node_world = wp.array(worlds, dtype=wp.int32, device=dev)
         self.pair_world_start = wp.zeros(model.world_count + 1, dtype=wp.int32, device=dev)
         """First pair of each world of the last detection, and the count, (world_count + 1,) int32."""
