@@ -49,11 +49,15 @@ from warpcloth.tasks import throw as C
 
 TARGET_SPEEDUP = 10.0
 """Issue 25: 64 throw worlds at >= 10x the world-steps per second of one world (this 2-core CPU)."""
+
+
 def same_solver(device: str) -> dict:
     """The preconditioner of every configuration, one world or many: on the CPU the multigrid (a hierarchy per
     world, each world's V-cycle on its thread: the default for one world and for many), on CUDA block Jacobi
     (the tiled backend's, which several worlds get there; the parallel multigrid spans one world)."""
     return {"preconditioner": "multigrid" if wp.get_device(device).is_cpu else "block_jacobi"}
+
+
 TARGET_OPT_SPEEDUP = 3.0
 """Issue 25: one full throw optimisation (the open loop) >= 3x faster in wall time batched than not, same result."""
 PUSH_SIGMA = 5.0

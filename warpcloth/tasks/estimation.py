@@ -510,7 +510,7 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     if batch and optimizer not in GLOBAL_OPTIMIZERS:
         raise ValueError(f"batch=True simulates a global search's trials as worlds ({', '.join(GLOBAL_OPTIMIZERS)}); "
                          f"{optimizer} has none")
-    if batch and (not isinstance(fit, TrajectoryFit) or fit.worlds(1) is None):
+    if batch and (not isinstance(fit, TrajectoryFit) or fit.template is None or fit.world_count != 1):
         raise ValueError("batch=True needs a TrajectoryFit of one world made with its scene's builder "
                          "(TrajectoryFit(..., template=builder)), whose copies the trials run on")
     unknown = [p for p in free if p not in MATERIAL_PARTS]
@@ -563,9 +563,7 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
 
     def points_batch(count: int):
         """The global search's batch of ``count`` worlds (a :class:`_BatchFit`), or None: one after another."""
-        worlds = getattr(fit, "worlds", None)
-        copies_fit = worlds(count) if batch and worlds is not None else None
-        return None if copies_fit is None else _BatchFit(copies_fit, None)
+        return _BatchFit(fit.worlds(count), None) if batch else None
 
     def evaluate_points(points: list[np.ndarray], grad: bool, batch_fit: _BatchFit) -> list:
         """Each point's (free parameters) loss, with ``grad`` an _Evaluated (loss and free gradient), or the
