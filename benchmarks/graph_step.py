@@ -24,8 +24,11 @@ sheet in one model (``ModelBuilder.replicate``).
     drape                the drape-sphere scene (24x24 cloth dropped onto a sphere, 100 steps, proximity pairs from
                          its 14th step): the rollout uncaptured and replayed per step (drape_ms, captured_ms), the
                          steps replayed with proximity pairs (pair_steps) and with contacts (contact_steps) in their
-                         graphs, and those that ran uncaptured (rerun_steps); the same with a loss on the final
-                         height, forward + backward (fwd_bwd_s, fwd_bwd_captured_s)
+                         graphs, and those that ran uncaptured (rerun_steps); the host's reads of whether the
+                         replayed steps kept to their plans (flag_reads: one a step, SolverOptions.sync_every 1),
+                         and the replay reading them once (captured_read_once_ms, read_once_flag_reads: sync_every
+                         0); the same with a loss on the final height, forward + backward (fwd_bwd_s,
+                         fwd_bwd_captured_s)
     max_diff             largest difference between the captured and the uncaptured final positions [m] (and
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
@@ -39,6 +42,7 @@ Usage: python benchmarks/graph_step.py [--quick] [--device cuda:0] [--sizes 16,6
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 
@@ -200,6 +204,13 @@ def drape_case(device: str, reps: int, steps: int | None) -> dict:
         replayed = [k for k in range(steps) if k not in captured.rerun_steps]
         out["pair_steps"] = sum(captured.pair_budgets[k] > 0 for k in replayed)
         out["contact_steps"] = sum(bool(captured.contact_plans[k]) for k in replayed)
+        out["flag_reads"] = captured.flag_reads
+        # the same replay reading the plans' flags once, after the forward pass (SolverOptions.sync_every = 0)
+        once = wc.Simulator(model, scene.dt, options=dataclasses.replace(scene.solver_options, sync_every=0))
+        captured = wc.CapturedRollout(once, state, steps=steps)
+        out["captured_read_once_ms"] = 1e3 / steps * common.median_time(captured.run, reps=reps)
+        out["read_once_flag_reads"] = captured.flag_reads
+        out["read_once_max_diff"] = float(np.max(np.abs(captured.trajectory[-1].particle_x.numpy() - expected)))
         taped = model.state(requires_grad=True)
 
         def uncaptured():
@@ -263,7 +274,8 @@ def main():
     print(f"\ndrape-sphere ({drape['steps']} steps, {drape['particles']} particles): {drape['drape_ms']:.2f} ms a step "
           f"uncaptured, {drape['captured_ms']:.2f} replayed ({drape['pair_steps']} steps replayed with proximity "
           f"pairs, {drape['contact_steps']} with contacts, {drape['rerun_steps']} run uncaptured; max diff "
-          f"{drape['max_diff']:.1e}); forward + "
+          f"{drape['max_diff']:.1e}; {drape['flag_reads']} reads of the plans' flags, or "
+          f"{drape['captured_read_once_ms']:.2f} ms with {drape['read_once_flag_reads']} (sync_every 0)); forward + "
           f"backward {drape['fwd_bwd_s']:.3f} s, replayed {drape['fwd_bwd_captured_s']:.3f} s")
     common.write_result(args, {"cases": rows, "gradients": gradients, "throw": throws["zero pushes"],
                                "throw_landing": throws.get("the open loop's pushes"), "drape": drape},

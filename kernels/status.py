@@ -80,3 +80,13 @@ def account_solve(
             if latch(record, WARNING, step, CG_UNCONVERGED + kind_base, worst):
                 detail[2] = info[worst, 0]
                 detail[3] = info[worst, 1]
+
+
+@wp.kernel
+def note_plan_miss(collision: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.int32), index: int,
+                   first: wp.array(dtype=wp.int32)):
+    # One thread at the end of a step captured following a plan (wc.CapturedRollout): where the collision stage's
+    # check or the proximity pairs' budget raised its flag, keep the smallest such step index of the replay in
+    # first[0], so that the host reads one value for any number of replayed steps.
+    if (collision[0] != 0 or pairs[0] != 0) and index < first[0]:
+        first[0] = index

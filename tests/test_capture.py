@@ -118,7 +118,7 @@ def test_deferred_checks_name_the_failing_step(device):
     assert messages[0] == messages[1] == messages[2], messages  # the same step, whenever it is read
 
 
-def landing_scene(device, *, height=0.03, repulsion=True, solver="device"):
+def landing_scene(device, *, height=0.03, repulsion=True, solver="device", **options):
     """A 4x4 sheet falling onto a sphere: free flight, then contacts and proximity pairs (repulsion, friction)."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
     mesh = wc.grid_mesh(4, 4, 0.3, 0.3)
@@ -129,7 +129,8 @@ def landing_scene(device, *, height=0.03, repulsion=True, solver="device"):
     settings = {} if repulsion else {"repulsion_stiffness": 0.0}
     b.set_collision(friction=0.3, obstacle_friction=0.3, **settings)
     model = b.finalize(device, requires_grad=True)
-    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7, collision=wc.CollisionOptions(solver=solver)))
+    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7, collision=wc.CollisionOptions(solver=solver),
+                                                             **options))
     return model, sim
 
 
@@ -234,6 +235,57 @@ def test_steps_that_leave_their_plans_run_again_and_are_captured_anew(repulsion,
     else:
         assert all(after[k] != before[k] for k in changed)
     assert all(after[k] == before[k] for k in range(steps) if k not in changed)
+
+
+@pytest.mark.parametrize(("repulsion", "every"), [(True, 0), (False, 0), (False, 5)])
+def test_plans_are_read_every_sync_every_steps_and_a_miss_reruns_from_its_step(repulsion, every):
+    # SolverOptions.sync_every steps replay between two reads of the first step that left its plan (0: one read at
+    # the end). Replayed from a lower start than the capture's, the steps after a miss ran from its wrong result:
+    # the rollout goes on from the missed step, uncaptured, then reads after every step. The result is the
+    # uncaptured rollout's, and the same steps run uncaptured as when every step is read
+    steps = 12
+    runs = {}
+    for sync_every in (1, every):
+        model, sim = landing_scene("cpu", repulsion=repulsion, sync_every=sync_every)
+        state = model.state(requires_grad=True)
+        captured = wc.CapturedRollout(sim, state, steps=steps, loss=loss_of)
+        state.particle_x.assign(lowered(state, 0.02))
+        expected = [s.particle_x.numpy() for s in wc.rollout(sim, state, steps=steps)]
+        reads, reruns = [], []
+        for run in range(2):
+            got = [s.particle_x.numpy() for s in captured.run()]
+            for k, (a, e) in enumerate(zip(got, expected)):
+                np.testing.assert_array_equal(a, e, err_msg=f"sync_every {sync_every}, run {run}, state {k}")
+            reads.append(captured.flag_reads)
+            reruns.append(captured.rerun_steps)
+        runs[sync_every] = (reads, reruns, model.material_density.grad.numpy().copy())
+        assert reruns[0] and reruns[1] == [], "the lower start leaves the plans once, then the new plans hold"
+        first = reruns[0][0]
+        # up to the first miss, a read every sync_every steps (or at the end); after it, one a step
+        expected_reads = -(-(first + 1) // sync_every) if sync_every else 1
+        assert reads[0] == expected_reads + steps - first - 1, (sync_every, reads, reruns)
+        assert reads[1] == (-(-steps // sync_every) if sync_every else 1)
+    assert runs[1][1] == runs[every][1]
+    np.testing.assert_array_equal(runs[1][2], runs[every][2])
+    assert np.any(runs[1][2])
+
+
+@pytest.mark.parametrize("sync_every", [1, 0])
+def test_what_a_replay_that_left_its_plan_latched_is_forgotten(sync_every):
+    # captured falling from 8 cm above the sphere, replayed from 1 cm: a step planned without contact meets the
+    # sphere and keeps its unprojected positions, and the steps replayed from there (before the read, with
+    # sync_every 0) push the sheet out of the sphere faster than max_speed. They run again from the right state,
+    # which stays under it: what the wrong replays latched is not reported
+    model, sim = landing_scene("cpu", repulsion=False, height=0.08, max_speed=2.0, sync_every=sync_every)
+    state = model.state()
+    steps = 30
+    captured = wc.CapturedRollout(sim, state, steps=steps)
+    state.particle_x.assign(lowered(state, 0.07))
+    expected = [s.particle_x.numpy() for s in wc.rollout(sim, state, steps=steps)]
+    got = [s.particle_x.numpy() for s in captured.run()]  # would raise "diverged at step 14" if they were reported
+    for k, (a, e) in enumerate(zip(got, expected)):
+        np.testing.assert_array_equal(a, e, err_msg=f"state {k}")
+    assert captured.rerun_steps
 
 
 def test_a_replayed_contact_adjoint_warns_where_its_solve_falls_short(monkeypatch):
@@ -352,8 +404,9 @@ def test_a_backward_pass_from_other_seeds_repeats_the_runs(contact):
         wc.CapturedRollout(sim, state, control, steps=2).backward({})
 
 
-def test_a_contact_scenes_replay_reports_a_divergence_naming_the_step():
-    model, sim = landing_scene("cpu")
+@pytest.mark.parametrize("sync_every", [1, 0])
+def test_a_contact_scenes_replay_reports_a_divergence_naming_the_step(sync_every):
+    model, sim = landing_scene("cpu", sync_every=sync_every)
     state = model.state()
     captured = wc.CapturedRollout(sim, state, steps=6)
     state.particle_v.assign(np.full((model.particle_count, 3), 2e3, dtype=np.float32))  # over max_speed (1e3)

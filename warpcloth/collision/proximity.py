@@ -122,7 +122,8 @@ class ProximityForces:
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs found (may pass the capacity)
         self._count_host = self._count.numpy() if dev.is_cpu else None
         self._held = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs held (sort_pairs)
-        self._spill = wp.zeros(1, dtype=wp.int32, device=dev)  # found more than a captured step's budget
+        self.spill = wp.zeros(1, dtype=wp.int32, device=dev)
+        """Raised (1) by a step captured with a budget of pairs that found more (wc.CapturedRollout reads it)."""
         # the pairs as found, and (several worlds) sorted by world, or a taped step's own copies
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
@@ -141,7 +142,7 @@ class ProximityForces:
         self.budget: int | None = None
         """None: a step reads the number of pairs it found and launches its pair kernels at that size. An int (set
         while ``wc.CapturedRollout`` captures a step): the step reads nothing and launches at this size, holding
-        up to this many pairs (0: none, no pair kernel runs); :meth:`exceeded` then tells whether it found more."""
+        up to this many pairs (0: none, no pair kernel runs); :attr:`spill` then tells whether it found more."""
         self._per_node = wp.zeros(n + V, dtype=wp.int32, device=dev)
 
     @property
@@ -188,7 +189,7 @@ class ProximityForces:
                 wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
                           inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, same, search],
                           record_tape=False)
-        if self.budget is not None:  # a captured step: no read; the replay asks exceeded()
+        if self.budget is not None:  # a captured step: no read; sort_pairs raises spill where it found more
             size = self.budget
         else:
             size = self._read_count()
@@ -201,15 +202,11 @@ class ProximityForces:
         # the same order), each world's first pair (each world's CG reads its own range), the number held
         wp.launch(k.sort_pairs, 1, device=self.device,
                   inputs=[self._count, size, self._node_world, self._nodes, m.world_count],
-                  outputs=[self.pair_world_start, self._order, self._held, self._spill], record_tape=False)
+                  outputs=[self.pair_world_start, self._order, self._held, self.spill], record_tape=False)
         return size
 
     def _read_count(self) -> int:
         return int((self._count_host if self._count_host is not None else self._count.numpy())[0])
-
-    def exceeded(self) -> bool:
-        """Whether the last step, captured with a budget of pairs, found more (a read of the device)."""
-        return bool(self._spill.numpy()[0])
 
     def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,
                  dv: wp.array, values: wp.array, rhs: wp.array, recording: bool,

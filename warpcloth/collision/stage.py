@@ -142,7 +142,7 @@ class CollisionStage:
         """The report of the last step (diagnostics: no step reads it)."""
         self.speculative = False
         """Whether steps follow :attr:`plan` without reading the detector (set while ``wc.CapturedRollout`` captures
-        a step; :meth:`failed_plan` then tells whether the step kept to it)."""
+        a step; :attr:`mismatch` then tells whether the step kept to it)."""
         self.plan: list[int] = []
         """The contacts each detection round of a speculative step expects ([]: none: the step keeps x̂), from the
         step's last run (:attr:`CollisionReport.found`). A step with contacts is planned on the device projection
@@ -202,7 +202,7 @@ class CollisionStage:
             self.mismatch.zero_()
         if self.speculative and not self.plan:
             # a step being captured (wc.CapturedRollout) assumes no contact: detection runs without its read, x̂ is
-            # kept, and the replay reads the check afterwards (failed_plan), running the step again where it found
+            # kept, and the replay reads the check afterwards (mismatch), running the step again where it found
             # some
             self.detector.set_world_modes(self._full_thickness)
             self.detector.detect_on_device(start, self._reference, self._reference, read=False)
@@ -237,11 +237,6 @@ class CollisionStage:
             record_adjoint(adjoint, arrays=[state_out.particle_x, state_out.particle_v])
         self.last = report
         return report
-
-    def failed_plan(self) -> bool:
-        """Whether the last speculative step did not keep to its plan: it found contacts where it expected none, or
-        other counts than its plan's, or a projection failed (a read of the device)."""
-        return bool(self.mismatch.numpy()[0])
 
     def check_adjoints(self) -> None:
         """Warn where a projection's adjoint replayed from a graph did not converge (one read, after a backward pass

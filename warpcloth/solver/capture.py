@@ -27,12 +27,14 @@ class CapturedRollout:
     Args:
         sim: the Simulator. A scene with a collision stage or proximity forces is captured one graph per step,
             speculatively: a captured step expects the contacts its last uncaptured run found, round by round
-            (:attr:`contact_plans`), and at most a budget of proximity pairs (:attr:`pair_budgets`), and after its
-            replay the host reads whether it kept to that (one small read a step). Where it did not, the step runs
-            again, uncaptured, from the same input (:attr:`rerun_steps`), and is captured again after the run with
-            what it found; a step that left its plan twice, or whose contacts the graph cannot follow (the NumPy
-            projection, a second try keeping start gaps, the fail-safe), runs uncaptured from then on, without
-            its graph.
+            (:attr:`contact_plans`), and at most a budget of proximity pairs (:attr:`pair_budgets`). Each graph
+            notes on the device whether its step kept to that, and the host reads the first step that did not
+            every ``SolverOptions.sync_every`` steps (0: once, after the forward pass; :attr:`flag_reads`). From
+            such a step the rollout goes on uncaptured from the step's input (:attr:`rerun_steps`; what the steps
+            replayed after it latched is forgotten, and they replay again), and the step is captured again after
+            the run with what it found; a step that left its plan twice, or whose contacts the graph cannot
+            follow (the NumPy projection, a second try keeping start gaps, the fail-safe), runs uncaptured from then
+            on, without its graph.
         state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
             ``wp.copy``) between replays; rebinding them has no effect on the graph.
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
@@ -130,6 +132,14 @@ class CapturedRollout:
         what its last uncaptured run found, rounded up to a power of two (0: none, no pair kernel runs). Empty
         where the rollout is not captured one graph a step (a scene without contact)."""
         return [] if self._steps is None else list(self._steps.pair_budget)
+
+    @property
+    def flag_reads(self) -> int:
+        """How often the last run read the device to ask whether its replayed steps kept to their plans: every
+        ``SolverOptions.sync_every`` replayed steps (0: once, at the end of the forward pass), before each step run
+        uncaptured, and after every step that follows a step that left its plan. 0 where the rollout is not
+        captured one graph a step."""
+        return 0 if self._steps is None else self._steps.flag_reads
 
     @property
     def contact_plans(self) -> list[list[int]]:
@@ -239,6 +249,9 @@ def _stepwise(sim: Simulator) -> bool:
     return sim.collision is not None or sim.proximity is not None
 
 
+NO_MISS = 2**31 - 1
+"""first_miss when no replayed step left its plan."""
+
 MAX_MISSES = 2
 """A step whose graph left its plan (other contacts, more pairs) this many times runs uncaptured from then on,
 without its graph: capturing it again costs several uncaptured steps."""
@@ -250,10 +263,11 @@ class _StepGraphs:
 
     A step's plan is what its last uncaptured run found (CollisionStage.plan); its budget of pairs a power of two, at
     least twice the pairs that run found (0 where it found none: no pair kernel runs), its pair kernels launched at
-    the budget and holding as many pairs as were found. After a step's replay the host asks whether it kept to the
-    plan; where it did not, the step runs again uncaptured from the same input State (the graph wrote only its output
-    State and scratch), on a tape of its own when there is a loss, and is captured again after the run (with its
-    backward pass) with what it found. A step whose graph left its plan MAX_MISSES times, or whose contacts cannot
+    the budget and holding as many pairs as were found. Each graph ends with a check that keeps, on the device, the
+    first step that left its plan (first_miss), which the host reads every SolverOptions.sync_every steps (_forward);
+    such a step runs again uncaptured from the same input State (the graph wrote only its output State and scratch),
+    on a tape of its own when there is a loss, and is captured again after the run (with its backward pass) with what
+    it found. A step whose graph left its plan MAX_MISSES times, or whose contacts cannot
     be planned, runs uncaptured at once from then on, without its graph (a cloth pressed into an obstacle whose
     contacts change at every run would otherwise pay every step twice and a capture). The backward pass
     walks the steps back: a replayed step's recorded adjoint as a graph of its own, a re-run step's tape as it is.
@@ -276,6 +290,8 @@ class _StepGraphs:
         self.pair_budget = [0] * steps  # each step's graph's budget of proximity pairs
         self.plans: list[list[int]] = [[] for _ in range(steps)]  # each step's graph's contact plan
         self.misses = [0] * steps  # how often each step's graph left its plan
+        self.first_miss = wp.full(1, NO_MISS, dtype=wp.int32, device=sim.device)  # _note_plan_miss's
+        self.flag_reads = 0  # how often the last run read first_miss
         self.loss: wp.array | None = None
         taped = loss is not None
         self.tapes = [None] * steps  # what each graph's step recorded
@@ -327,6 +343,7 @@ class _StepGraphs:
         with sim._speculating(self.pair_budget[k], self.plans[k]), _capture(device, kept) as capture:  # noqa: SLF001
             with tape if tape is not None else contextlib.nullcontext():
                 sim.step(self.states[k], self.states[k + 1], self.controls[k])
+            sim._note_plan_miss(k, self.first_miss)  # noqa: SLF001
         self.forward[k] = capture.graph
         if tape is not None:
             with _capture(device, kept) as capture:
@@ -363,14 +380,7 @@ class _StepGraphs:
             self.reruns = {}
             predicted, self.uncaptured = self.uncaptured, set()
             changed = set()
-            for k, graph in enumerate(self.forward):
-                if k not in predicted:
-                    wp.capture_launch(graph)
-                    if not sim._speculation_failed():  # noqa: SLF001
-                        continue
-                    self.misses[k] += 1
-                self.reruns[k] = self._rerun(k)
-                self._note(k, changed)
+            self._forward(predicted, changed)
             sim._count_replayed(len(self.forward) - len(self.reruns))  # noqa: SLF001
             if self.loss_fn is not None:
                 sim.check(self.states)  # a diverged forward pass raises before its backward pass runs
@@ -385,6 +395,41 @@ class _StepGraphs:
                 if self.loss_fn is not None:
                     self._capture_zero()
         return sorted(self.reruns)
+
+    def _forward(self, predicted: set, changed: set) -> None:
+        """The forward pass: the graphs in turn, reading the first step that left its plan every
+        ``SolverOptions.sync_every`` replayed steps (0: at the end, or before a step run uncaptured). From a step
+        that left its plan, the rollout goes on from that step, uncaptured (the graphs after it ran from its wrong
+        result: what they latched is forgotten, and they replay again), and reads after every step from then on
+        (this run's contacts are not the last run's)."""
+        sim, steps = self.sim, len(self.forward)
+        every = sim.options.sync_every or steps
+        self.flag_reads = 0
+        k, unchecked = 0, 0  # the next step, the replayed steps since the last read
+        while k < steps:
+            if k not in predicted:
+                wp.capture_launch(self.forward[k])
+                k, unchecked = k + 1, unchecked + 1
+                if k < steps and k not in predicted and unchecked < every:
+                    continue
+                unchecked, missed = 0, self._first_miss()
+                if missed is None:
+                    continue
+                self.misses[missed] += 1
+                sim._discard_failures_from(self.states[missed].step + 1, self.states)  # noqa: SLF001
+                k, every = missed, 1
+            self.reruns[k] = self._rerun(k)
+            self._note(k, changed)
+            k += 1
+
+    def _first_miss(self) -> int | None:
+        """The first step replayed since the last call that left its plan, or None (a read of the device)."""
+        self.flag_reads += 1
+        first = int(self.first_miss.numpy()[0])
+        if first == NO_MISS:
+            return None
+        self.first_miss.fill_(NO_MISS)
+        return first
 
     def backward(self, grads: dict) -> None:
         """The last run's backward pass again, from the seeds ``grads`` (CapturedRollout.backward)."""

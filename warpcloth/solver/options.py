@@ -155,7 +155,10 @@ class SolverOptions:
     ``Simulator.check`` (``wc.rollout`` and captured replays check at their end). Errors name the step, world and
     particle whichever is chosen. On the CPU a read costs nothing; on CUDA it waits for the device, so a rollout that
     should run ahead of the host uses 0 (graph capture never reads, whatever this says). Scenes with a collision
-    stage check after every step's integration regardless: that stage is still driven from the host."""
+    stage check after every step's integration regardless: that stage is still driven from the host. A replay of
+    ``wc.CapturedRollout`` in contact reads, every this many steps (0: once, at the end of its forward pass), the
+    first step that left its contact plan: more steps a read save waits on CUDA, but a step that leaves its plan
+    costs the replays after it up to the read."""
     collision: CollisionOptions = field(default_factory=CollisionOptions)
     """Options of the collision stage (used only by scenes with collisions)."""
 

@@ -62,6 +62,7 @@ class Simulator:
         self.status = StepStatus(self.device)
         """The failure record the step's kernels latch into, and the CG iteration totals (read at sync points)."""
         self._steps = 0
+        self._no_flag: wp.array | None = None  # a flag never raised, for _note_plan_miss
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
         measures launch, not execution, unless the device synchronises)."""
@@ -486,7 +487,9 @@ class Simulator:
         """Steps inside follow a plan without reading the device (what wc.CapturedRollout captures): the collision
         stage's detection rounds find ``contact_plan``'s counts (none: no contact; CollisionStage.plan) and the
         proximity pairs are at most ``pair_budget``, their kernels launched at the budget.
-        :meth:`_speculation_failed` tells afterwards whether the step kept to it."""
+        :meth:`_note_plan_miss` checks on the device whether the step kept to it."""
+        if self._no_flag is None:  # made here, outside the capture, for scenes with only one of the two flags
+            self._no_flag = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.collision is not None:
             self.collision.speculative, self.collision.plan = True, list(contact_plan or [])
         if self.proximity is not None:
@@ -499,11 +502,14 @@ class Simulator:
             if self.proximity is not None:
                 self.proximity.budget = None
 
-    def _speculation_failed(self) -> bool:
-        """Whether the last step, captured by :meth:`_speculating`, left its plan: other contacts, a failed
-        projection, or more proximity pairs than its budget (reads the device)."""
-        return (self.collision is not None and self.collision.failed_plan()) or (
-            self.proximity is not None and self.proximity.exceeded())
+    def _note_plan_miss(self, index: int, first: wp.array) -> None:
+        """Launch, after a step captured by :meth:`_speculating`, the check of whether it left its plan (other
+        contacts, a failed projection, more proximity pairs than its budget): where it did, ``first[0]`` becomes
+        ``index`` if that is smaller (no read: wc.CapturedRollout reads ``first`` after any number of steps)."""
+        collision = self.collision.mismatch if self.collision is not None else self._no_flag
+        pairs = self.proximity.spill if self.proximity is not None else self._no_flag
+        wp.launch(ks.note_plan_miss, 1, device=self.device, inputs=[collision, pairs, int(index)], outputs=[first],
+                  record_tape=False)
 
     def _pairs_needed(self) -> int:
         """The proximity pairs the last step, run uncaptured, found (0 without proximity forces)."""
@@ -532,7 +538,18 @@ class Simulator:
     def _check(self, states=(), s: _Step | None = None) -> None:
         """Read the failure record (Simulator.check); ``s``: the step being taken, whose inputs can still tell
         why a solve went non-finite."""
+        self._report(*self.status.take(), states, s)
+
+    def _discard_failures_from(self, number: int, states=()) -> None:
+        """Forget the failures that steps numbered ``number`` and after latched (a replay ran them from a state that
+        was not theirs, and they run again); raise or warn for those of earlier steps, as :meth:`check` does."""
         error, warning, skipped = self.status.take()
+        self._report(error if error is not None and error.step < number else None,
+                     warning if warning is not None and warning.step < number else None,
+                     skipped if skipped < number else 0, states)
+
+    def _report(self, error, warning, skipped: int, states=(), s: _Step | None = None) -> None:
+        """Raise or warn for what was taken from the failure record (StepStatus.take)."""
         if skipped and not self._atol_checked:
             self._atol_checked = True  # once per Simulator, at its first skipped solve
             self.diagnostics.warn_if_below_atol(skipped, self.options.cg_atol)
