@@ -365,7 +365,9 @@ def keep_most_urgent(hit: bool, rank: wp.float64, sign: wp.float64, t: wp.float6
     the next round, after these are resolved. Returns the updated (best, best_target, best_t, best_mode).
     """
     side = 0 if sign > wp.float64(0.0) else 1
-    if hit and rank < best[side]:
+    # a tie goes to the lower target index, not to the one the BVH visits first: the CPU's and CUDA's BVHs differ,
+    # and a cloth placed symmetrically over an obstacle's vertex ties exactly
+    if hit and (rank < best[side] or (rank == best[side] and target < best_target[side])):
         best[side] = rank
         best_target[side] = target
         best_t[side] = t

@@ -116,8 +116,9 @@ def sort_rows_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(d
                        world_count: int, start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32)):
     """In one thread: a stable counting sort of rows 0..count-1 (contacts, proximity pairs: all nodes of a row are
     of one world) by the world of their first node: ``order[k]``, the row in sorted slot k; ``start[w]``, world
-    w's first slot (``start[world_count]``: count). Each world's rows keep the order found, so they are those a
-    model of that world alone finds."""
+    w's first slot (``start[world_count]``: count). Each world's rows keep the order found, so on the CPU (queries
+    in thread order) they are those a model of that world alone finds, in its order; on CUDA the queries append in
+    no set order, which moves a projection's result within its tolerance (qp_tol), not its contacts."""
     for w in range(world_count + 1):
         start[w] = 0
     for j in range(count):

@@ -165,7 +165,7 @@ def proximity_kernels(scalar):
                 if wp.min(wp.min(u, v), w) <= scalar(0.0):
                     continue
             d = wp.length(p - (u * x[a] + v * x[b] + w * x[c]))
-            if d < best:
+            if d < best or (d == best and j < best_j):  # a tie: the lower index, whatever the BVH's order
                 best = d
                 best_j = j
         if best_j >= 0:

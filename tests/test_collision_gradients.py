@@ -76,6 +76,7 @@ def loss_fn(model, steps, dt, adjoint="qr", solver="numpy", qp_tol=1e-10, integr
             return loss, keys, traj, control, weights
         return loss, keys
 
+    run.bitwise = model.device.is_cpu  # whether two runs give the same loss to the last bit
     return sim, run
 
 
@@ -107,7 +108,12 @@ def fd_check(run, base, grads, name, eps, rng, directions=2):
         assert kp == km, f"the perturbation of {name} changed the contacts ({kp} vs {km}); the test scene is too tight"
         fd = (lp - lm) / (2 * eps)
         an = float(np.sum(grads[name] * d))
-        assert an == pytest.approx(fd, rel=1e-5, abs=1e-9), f"d loss / d {name}: tape {an}, finite differences {fd}"
+        # where two runs differ in their last bits (CUDA: atomic additions), that noise is in the quotient too:
+        # measured by running both sides again, it widens the bound by what the quotient cannot resolve (on the
+        # CPU runs are bitwise equal, and the bound is the bare one)
+        noise = 0.0 if run.bitwise else abs(at(+1)[0] - lp) + abs(at(-1)[0] - lm)
+        assert an == pytest.approx(fd, rel=1e-5, abs=1e-9 + noise / eps), \
+            f"d loss / d {name}: tape {an}, finite differences {fd} (run-to-run noise {noise:.1e})"
 
 
 @pytest.mark.parametrize("steps", [1, 3])
