@@ -118,7 +118,8 @@ def sort_rows_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(d
     of one world) by the world of their first node: ``order[k]``, the row in sorted slot k; ``start[w]``, world
     w's first slot (``start[world_count]``: count). Each world's rows keep the order found, so on the CPU (queries
     in thread order) they are those a model of that world alone finds, in its order; on CUDA the queries append in
-    no set order, which moves a projection's result within its tolerance (qp_tol), not its contacts."""
+    no set order, which moves a projection's result within its tolerance (qp_tol), and so, near a tie, can change
+    the contacts a later round finds."""
     for w in range(world_count + 1):
         start[w] = 0
     for j in range(count):
