@@ -67,14 +67,15 @@ def loss_seed(traj):
 
 def taped_rollout(sim, s0, control, steps):
     """(forward s, backward s, forward iters, adjoint iters) of one taped rollout and its backward pass."""
-    st = sim.stats
-    it0, adj0 = st["cg_iterations"], st["adjoint_cg_iterations"]
+    before = sim.stats  # a snapshot: read again after
     tape = wp.Tape()
     t_fwd, traj = common.timed(record, tape, sim, s0, control, steps)
     t_bwd, _ = common.timed(tape.backward, grads=loss_seed(traj))
     tape.zero()
     tape.reset()
-    return t_fwd, t_bwd, st["cg_iterations"] - it0, st["adjoint_cg_iterations"] - adj0
+    after = sim.stats
+    return (t_fwd, t_bwd, after["cg_iterations"] - before["cg_iterations"],
+            after["adjoint_cg_iterations"] - before["adjoint_cg_iterations"])
 
 
 def profile(res, steps, sim, s0, simg, s0g, control):
