@@ -449,12 +449,8 @@ def test_worlds_of_a_contact_scene_replay_as_the_uncaptured_batch(repulsion):
         assert captured.contact_plans[0] == [] and captured.contact_plans[-1]
 
 
-@pytest.mark.parametrize(("solver", "repulsion"), [("device", True), ("device", False), ("numpy", False)])
-def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(solver, repulsion):
-    # a small sheet falling onto a pinned larger one: with repulsion, cloth-cloth proximity pairs (vertex-face and
-    # edge-edge) and friction between them, which keep the sheets apart: every step replays with its pairs; without,
-    # cloth-cloth contacts from the third step on, which the device projection replays and the NumPy one runs
-    # uncaptured
+def sheets_scene(repulsion=True, solver="device"):
+    """A small sheet sliding onto a pinned larger one: cloth-cloth pairs (and friction between them) or contacts."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
     b.add_cloth_grid((2, 2), (0.2, 0.2), material=wc.preset("gray-interlock"), pos=(-0.1, -0.1, 0.0))
     for p in range(9):
@@ -467,6 +463,16 @@ def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(sol
     model = b.finalize("cpu", requires_grad=True)
     sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(cg_tol=1e-7,
                                                              collision=wc.CollisionOptions(solver=solver)))
+    return model, sim
+
+
+@pytest.mark.parametrize(("solver", "repulsion"), [("device", True), ("device", False), ("numpy", False)])
+def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(solver, repulsion):
+    # a small sheet falling onto a pinned larger one: with repulsion, cloth-cloth proximity pairs (vertex-face and
+    # edge-edge) and friction between them, which keep the sheets apart: every step replays with its pairs; without,
+    # cloth-cloth contacts from the third step on, which the device projection replays and the NumPy one runs
+    # uncaptured
+    model, sim = sheets_scene(repulsion, solver)
     steps = 12
     state = model.state(requires_grad=True)
     tape = wp.Tape()
@@ -513,10 +519,23 @@ def test_capture_refuses_the_warp_backend_on_the_cpu():
         wc.CapturedRollout(sim, model.state(), steps=2)
 
 
-def test_an_untaped_step_allocates_nothing():
-    model = hanging_builder(res=5).finalize("cpu")
-    sim = wc.Simulator(model, 0.02)
-    a, b = model.state(), model.empty_state()
+@pytest.mark.parametrize("scene", ["hanging", "sphere pairs", "sphere contacts", "sheets pairs", "sheets contacts"])
+def test_an_untaped_step_allocates_nothing(scene):
+    # with the device projection: every array an untaped step writes is the Simulator's, reused by every step (the
+    # NumPy projection is a host program, which uploads its contacts every round)
+    if scene == "hanging":
+        model = hanging_builder(res=5).finalize("cpu")
+        sim = wc.Simulator(model, 0.02)
+        a, b = model.state(), model.empty_state()
+    else:
+        repulsion = scene.endswith("pairs")
+        model, sim = landing_scene("cpu", repulsion=repulsion) if scene.startswith("sphere") else \
+            sheets_scene(repulsion)
+        trajectory = wc.rollout(sim, model.state(), steps=14)  # on the sphere, on the other sheet
+        a, b = trajectory[-2], trajectory[-1]
+        assert (sim.proximity.last_count if repulsion else sim.collision.last.contacts) > 0
+        if repulsion:
+            assert np.any(model.contact_friction.numpy() > 0.0)  # and friction
     sim.step(a, b)
     sim.step(b, a)  # both States now hold the solve's first guess
     made = []

@@ -70,3 +70,32 @@ def arrays_kept(keep: list):
         yield keep
     finally:
         wp.array.__init__ = original
+
+
+class StepArrays:
+    """The arrays a step makes for itself. Where a tape records, each is new, with a gradient (the tape keeps it for
+    the backward pass); otherwise one array per name serves every step, grown to the largest size asked, so an
+    untaped step allocates nothing once it has seen its sizes. A name must not be asked for twice in one step while
+    the first is still read."""
+
+    def __init__(self, device):
+        self.device = device
+        self._arrays: dict[str, wp.array] = {}
+
+    def empty(self, name: str, n: int, dtype, recording: bool) -> wp.array:
+        """``n`` entries of ``dtype``, uninitialised."""
+        if recording:
+            return wp.empty(n, dtype=dtype, device=self.device, requires_grad=True)
+        array = self._arrays.get(name)
+        if array is None or array.shape[0] < n or array.dtype != dtype:
+            size = n if array is None or array.dtype != dtype else max(n, 2 * array.shape[0])
+            array = self._arrays[name] = wp.empty(size, dtype=dtype, device=self.device)
+        return array if array.shape[0] == n else array[:n]
+
+    def zeros(self, name: str, n: int, dtype, recording: bool) -> wp.array:
+        """``n`` zeros of ``dtype``."""
+        if recording:
+            return wp.zeros(n, dtype=dtype, device=self.device, requires_grad=True)
+        array = self.empty(name, n, dtype, recording)
+        array.zero_()
+        return array

@@ -25,7 +25,7 @@ from warpcloth.collision.detection import PrimitiveSet, node_worlds
 from warpcloth.errors import ContactCapacityError
 from warpcloth.kernels.proximity import FRICTION_SWEEPS, proximity_kernels
 from warpcloth.model import Model, State
-from warpcloth.tape import active_tape, record_adjoint
+from warpcloth.tape import StepArrays, active_tape, record_adjoint
 
 
 @dataclass
@@ -122,6 +122,7 @@ class ProximityForces:
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs found (may pass the capacity)
         self._count_host = self._count.numpy() if dev.is_cpu else None
         self._held = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs held (sort_pairs)
+        self._arrays = StepArrays(dev)  # the positions, velocities and friction terms of a step
         self.spill = wp.zeros(1, dtype=wp.int32, device=dev)
         """Raised (1) by a step captured with a budget of pairs that found more (wc.CapturedRollout reads it)."""
         # the pairs as found, and (several worlds) sorted by world, or a taped step's own copies
@@ -221,8 +222,8 @@ class ProximityForces:
         dev = self.device
         n, N = self.cloth_count, self.node_count
         vec3 = model.types.vec3
-        x = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
-        velocity = wp.empty(N, dtype=vec3, device=dev, requires_grad=recording)
+        x = self._arrays.empty("x", N, vec3, recording)
+        velocity = self._arrays.empty("velocity", N, vec3, recording)
         wp.launch(k.node_state, N, device=dev,
                   inputs=[state_in.particle_x, state_in.particle_v, pin_dv, model.particle_pin, obstacle_start,
                           obstacle_end, model.scalar(1.0 / self.dt), n],
@@ -278,29 +279,31 @@ class ProximityForces:
         n, N = self.cloth_count, self.node_count
         scalar, vec3 = model.scalar, model.types.vec3
         count, p = pairs.count, pairs.inputs
-        inv_mass = wp.empty(N, dtype=scalar, device=dev, requires_grad=recording)
+        arrays = self._arrays
+        inv_mass = arrays.empty("inv_mass", N, scalar, recording)
         wp.launch(k.inverse_mass, N, device=dev, inputs=[mass, self._free, n], outputs=[inv_mass])
-        against_obstacles = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
+        against_obstacles = arrays.zeros("against_obstacles", n, vec3, recording)
         if self.node_count > n:
-            load = wp.zeros(n, dtype=scalar, device=dev, requires_grad=recording)
-            push, motion = (wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording) for _ in range(2))
+            load = arrays.zeros("load", n, scalar, recording)
+            push, motion = (arrays.zeros(name, n, vec3, recording) for name in ("push", "motion"))
             wp.launch(k.obstacle_friction_loads, count, device=dev, inputs=[p], outputs=[load, push, motion])
             wp.launch(k.obstacle_friction, n, device=dev, inputs=[p, dv, load, push, motion, inv_mass],
                       outputs=[against_obstacles])
-        between_cloth = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
+        between_cloth = arrays.zeros("between_cloth", n, vec3, recording)
         if self.model.collision.self_collision:
             self._per_node.zero_()
             wp.launch(k.cloth_pair_counts, count, device=dev, inputs=[p, self._per_node], record_tape=False)
             per_node = wp.clone(self._per_node) if recording else self._per_node
-            impulse = wp.zeros(count, dtype=vec3, device=dev, requires_grad=recording)
-            for _ in range(FRICTION_SWEEPS):  # each sweep in new arrays: the tape keeps every one
-                change = wp.zeros(n, dtype=vec3, device=dev, requires_grad=recording)
-                swept = wp.empty(count, dtype=vec3, device=dev, requires_grad=recording)
+            impulse = arrays.zeros("impulse", count, vec3, recording)
+            for sweep in range(FRICTION_SWEEPS):  # taped, each sweep in new arrays (the tape keeps every one);
+                # untaped, two pairs of arrays in turn: a sweep reads the one before's
+                change = arrays.zeros(f"change{sweep % 2}", n, vec3, recording)
+                swept = arrays.empty(f"swept{sweep % 2}", count, vec3, recording)
                 wp.launch(k.friction_sweep, count, device=dev,
                           inputs=[p, dv, against_obstacles, between_cloth, impulse, inv_mass, per_node],
                           outputs=[swept, change])
                 between_cloth, impulse = change, swept
-        out = wp.empty(n, dtype=vec3, device=dev, requires_grad=recording)
+        out = arrays.empty("out", n, vec3, recording)
         wp.launch(k.add_friction, n, device=dev, inputs=[dv, against_obstacles, between_cloth], outputs=[out])
         return out
 

@@ -32,7 +32,7 @@ from warpcloth.solver.diagnostics import StepDiagnostics
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import SolverOptions
 from warpcloth.solver.status import StepStatus
-from warpcloth.tape import active_tape, capturing
+from warpcloth.tape import StepArrays, active_tape, capturing
 
 
 class Simulator:
@@ -96,6 +96,7 @@ class Simulator:
         self._step_buffers = None
         self._mass = None  # the untaped steps' lumped masses (_lumped_mass)
         self._candidate = None  # the untaped steps' x̂, v̂ before the collision stage (_integrate)
+        self._arrays = StepArrays(self.device)  # the obstacles' vertices of a step (_obstacle_points)
         self._control_default = None
         self._static_motion = None  # the obstacles' motion where none moves (_obstacle_motion)
         self._motion_store: dict[float, wp.array] | None = None  # where moving ones are kept (_keeping_motions)
@@ -389,10 +390,13 @@ class Simulator:
         alike (empty arrays where the model has no obstacle collisions)."""
         model = self.model
         if not model.collision.obstacles or model.obstacle_count == 0:
-            empty = wp.zeros(0, dtype=model.types.vec3, device=self.device)
+            empty = self._arrays.empty("no_obstacle", 0, model.types.vec3, False)
             return empty, empty
-        return tuple(obstacle_points(model, control, t, motion=self._obstacle_motion(t))
-                     for t in (t_start, t_start + self.dt))
+        recording = active_tape() is not None and model.requires_grad
+        return tuple(obstacle_points(model, control, t, motion=self._obstacle_motion(t),
+                                     out=self._arrays.empty(name, model.obstacle_vertex_count, model.types.vec3,
+                                                            recording))
+                     for name, t in (("obstacle_start", t_start), ("obstacle_end", t_start + self.dt)))
 
     def _obstacle_motion(self, t: float) -> wp.array:
         """The obstacles' scripted motions at time ``t``: one array for all times where none moves; else a new one,
