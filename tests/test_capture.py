@@ -496,6 +496,13 @@ def test_self_collision_replays_as_the_uncaptured_rollout_with_its_gradients(sol
     for name, a in arrays.items():
         assert np.any(expected[name]), name
         np.testing.assert_array_equal(a.grad.numpy(), expected[name], err_msg=name)
+    # forward alone: untaped steps share the Simulator's arrays (the friction sweeps' sized by the pairs, grown as
+    # their budgets grow), which every graph reads in place
+    positions = [s.particle_x.numpy() for s in wc.rollout(sim, state, steps=steps)]
+    forward = wc.CapturedRollout(sim, state, steps=steps)
+    for run in range(2):
+        for k, (a, e) in enumerate(zip(forward.run(), positions)):
+            np.testing.assert_array_equal(a.particle_x.numpy(), e, err_msg=f"run {run}, state {k}")
 
 
 def test_capturing_a_contact_step_by_hand_is_refused():

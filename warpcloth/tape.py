@@ -81,6 +81,8 @@ class StepArrays:
     def __init__(self, device):
         self.device = device
         self._arrays: dict[str, wp.array] = {}
+        # the arrays grown ones replaced, kept alive: a graph captured before the growth still writes them
+        self._retired: list[wp.array] = []
 
     def empty(self, name: str, n: int, dtype, recording: bool) -> wp.array:
         """``n`` entries of ``dtype``, uninitialised."""
@@ -89,6 +91,8 @@ class StepArrays:
         array = self._arrays.get(name)
         if array is None or array.shape[0] < n or array.dtype != dtype:
             size = n if array is None or array.dtype != dtype else max(n, 2 * array.shape[0])
+            if array is not None:
+                self._retired.append(array)
             array = self._arrays[name] = wp.empty(size, dtype=dtype, device=self.device)
         return array if array.shape[0] == n else array[:n]
 
