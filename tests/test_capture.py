@@ -418,6 +418,11 @@ def test_a_contact_scenes_replay_reports_a_divergence_naming_the_step(sync_every
     state.particle_v.assign(np.full((model.particle_count, 3), 2e3, dtype=np.float32))  # over max_speed (1e3)
     with pytest.raises(wc.SimulationError, match=r"diverged at step 1 "):
         captured.run()
+    # and the next run, from a start that does not diverge, is the uncaptured rollout's
+    state.particle_v.zero_()
+    expected = [s.particle_x.numpy() for s in wc.rollout(sim, model.state(), steps=6)]
+    for k, (a, e) in enumerate(zip(captured.run(), expected)):
+        np.testing.assert_array_equal(a.particle_x.numpy(), e, err_msg=f"state {k}")
 
 
 @pytest.mark.parametrize("repulsion", [True, False])

@@ -405,6 +405,7 @@ class _StepGraphs:
         sim, steps = self.sim, len(self.forward)
         every = sim.options.sync_every or steps
         self.flag_reads = 0
+        self.first_miss.fill_(NO_MISS)  # a run that raised may have left a step's miss unread
         k, unchecked = 0, 0  # the next step, the replayed steps since the last read
         while k < steps:
             if k not in predicted:
