@@ -86,6 +86,16 @@ def test_quick_run(name, tmp_path):
         pytest.skip("torch is not installed: motion_control.py skipped its MLP controller")
 
 
+@pytest.mark.parametrize("variant", ["two_graphs_kept", "per_step_kept"])
+def test_the_gpu_capture_probe_replays_on_the_cpu(variant):
+    # benchmarks/gpu/capture_probe.py asks a GPU which captures of a taped rollout replay; the ways warpcloth captures
+    # on the CPU must replay there to the uncaptured gradient, or the probe would not tell a GPU's fault from its own
+    out = subprocess.run([sys.executable, str(BENCH / "gpu" / "capture_probe.py"), "--device", "cpu", "--variant",
+                          variant], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "gradient off by 0.0e+00, 0.0e+00" in out.stdout, out.stdout
+
+
 def test_no_private_access():
     """Benchmarks use the public API: no ``obj._name`` (Warp's own ``warp._src`` excepted, used for profiling)."""
     bad = []

@@ -14,6 +14,9 @@ gradient:
     one_graph_kept     one_graph, every array made during the capture kept alive (warpcloth.tape.arrays_kept: Warp's
                        graphs hold no reference to them, and on the CPU one freed under a graph was reused)
     two_graphs_kept    two_graphs, the same
+    per_step_kept      a graph per step and one per step's backward pass, each step on a tape of its own, then the
+                       loss's two graphs, every array kept (what CapturedRollout does for a contact scene on the
+                       CPU, _StepGraphs; on CUDA it is not tried for a rollout with a loss until this replays)
 
 Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME]
 (without --variant it runs every variant in a subprocess and prints a line each)
@@ -38,7 +41,7 @@ from warpcloth.tape import arrays_kept  # noqa: E402
 from warpcloth.tasks import scenes  # noqa: E402
 
 VARIANTS = ("one_graph", "one_graph_no_gc", "preallocated", "two_graphs", "two_graphs_no_gc", "one_graph_kept",
-            "two_graphs_kept")
+            "two_graphs_kept", "per_step_kept")
 STEPS = 6
 
 
@@ -73,6 +76,38 @@ def _forward(sim, state, states=None):
     return tape, loss, trajectory
 
 
+def _per_step_graphs(model, sim, state, kept, keep: list) -> list:
+    """The graphs of per_step_kept in the order a replay launches them: the zeroing of the gradients, each step,
+    the loss and its backward pass, each step's backward pass from the last."""
+    device = sim.device
+    states = [state] + [model.empty_state(requires_grad=True) for _ in range(STEPS)]
+    tapes, forward, backward = [], [], []
+    for k in range(STEPS):
+        tape = wp.Tape()
+        with kept(), wp.ScopedCapture(device=device) as capture:
+            with wp.ScopedDevice(device), tape:
+                sim.step(states[k], states[k + 1])
+        forward.append(capture.graph)
+        with kept(), wp.ScopedCapture(device=device) as capture:
+            tape.backward()
+        backward.append(capture.graph)
+        tapes.append(tape)
+    loss_tape = wp.Tape()
+    with kept(), wp.ScopedCapture(device=device) as capture:
+        with wp.ScopedDevice(device), loss_tape:
+            loss = _loss(states[-1].particle_x)
+        seed = wp.ones_like(loss, requires_grad=False)
+    loss_forward = capture.graph
+    with kept(), wp.ScopedCapture(device=device) as capture:
+        loss_tape.backward(grads={loss: seed})
+    loss_backward = capture.graph
+    with kept(), wp.ScopedCapture(device=device) as capture:
+        for tape in [*tapes, loss_tape]:
+            tape.zero()
+    keep += [states, tapes, loss_tape, loss, seed]
+    return [capture.graph, *forward, loss_forward, loss_backward, *reversed(backward)]
+
+
 def run_variant(variant: str, device: str) -> str:
     model, sim, state = _problem(device)
     tape, loss, _ = _forward(sim, state)
@@ -87,7 +122,9 @@ def run_variant(variant: str, device: str) -> str:
     if variant.endswith("kept"):
         kept = functools.partial(arrays_kept, keep)
     try:
-        if variant in ("one_graph", "one_graph_no_gc", "preallocated", "one_graph_kept"):
+        if variant == "per_step_kept":
+            graphs = _per_step_graphs(model, sim, state, kept, keep)
+        elif variant in ("one_graph", "one_graph_no_gc", "preallocated", "one_graph_kept"):
             states = [model.empty_state(requires_grad=True) for _ in range(STEPS)] if variant == "preallocated" \
                 else None
             with kept(), wp.ScopedCapture(device=device) as capture:
