@@ -118,9 +118,9 @@ class CapturedRollout:
     @staticmethod
     def unsupported(sim: Simulator) -> str | None:
         """Why ``sim``'s steps cannot be captured, or None if they can."""
-        if _stepwise(sim) and (sim.options.integrator == "bdf2" or sim.model.wind_lagged_normals):
-            return ("with a collision stage or proximity forces, BDF2 and the wind's lagged normals hand a step's "
-                    "contacts on to the next step's arrays, which a speculatively captured step cannot know")
+        if _stepwise(sim) and sim.options.integrator == "bdf2":
+            return ("with a collision stage or proximity forces, BDF2 hands a step's contacts on to the next step in "
+                    "arrays the step makes, which a speculatively captured step cannot know")
         if sim.linear_solver.backend == "warp" and sim.device.is_cpu:
             return ("the warp CG backend tests its convergence on the host on the CPU; use cg_backend 'sequential' "
                     "or 'tiled' there")
@@ -249,6 +249,13 @@ def _stepwise(sim: Simulator) -> bool:
     return sim.collision is not None or sim.proximity is not None
 
 
+def _handed_on(state: State) -> tuple:
+    """What a step reads of its input State that the step before chose, not just filled: the wind's lagged normals'
+    positions, the step before's start, or its result after a collision response moved the cloth. A graph reads the
+    arrays it was captured with, so a step whose input holds others runs uncaptured."""
+    return (state.particle_x_previous,)
+
+
 NO_MISS = 2**31 - 1
 """first_miss when no replayed step left its plan."""
 
@@ -290,6 +297,7 @@ class _StepGraphs:
         self.pair_budget = [0] * steps  # each step's graph's budget of proximity pairs
         self.plans: list[list[int]] = [[] for _ in range(steps)]  # each step's graph's contact plan
         self.misses = [0] * steps  # how often each step's graph left its plan
+        self.handed = [()] * steps  # what each graph read of its input State that the step before chose (_handed_on)
         self.first_miss = wp.full(1, NO_MISS, dtype=wp.int32, device=sim.device)  # _note_plan_miss's
         self.flag_reads = 0  # how often the last run read first_miss
         self.loss: wp.array | None = None
@@ -339,6 +347,7 @@ class _StepGraphs:
         """Capture step k's graph (and, with a loss, its recorded adjoint's) following its plan and budget."""
         sim, device = self.sim, self.sim.device
         kept = self.kept[k] = []
+        self.handed[k] = _handed_on(self.states[k])
         tape = self.tapes[k] = wp.Tape() if self.loss_fn is not None else None
         with sim._speculating(self.pair_budget[k], self.plans[k]), _capture(device, kept) as capture:  # noqa: SLF001
             with tape if tape is not None else contextlib.nullcontext():
@@ -388,10 +397,12 @@ class _StepGraphs:
                 if backward:
                     self._backward()
                     sim._check_replayed_adjoints()  # noqa: SLF001
-            if changed:  # the steps whose plans changed, captured again (this run's re-run tapes kept)
+            if changed:  # the steps whose plans changed, captured again (this run's re-run tapes kept), and after
+                # them those whose input they changed (the lagged normals' positions)
                 with sim._keeping_motions(self.motions):  # noqa: SLF001
-                    for k in changed:
-                        self._capture_step(k)
+                    for k in range(min(changed), len(self.forward)):
+                        if k not in self.uncaptured and (k in changed or not self._current(k)):
+                            self._capture_step(k)
                 if self.loss_fn is not None:
                     self._capture_zero()
         return sorted(self.reruns)
@@ -408,10 +419,10 @@ class _StepGraphs:
         self.first_miss.fill_(NO_MISS)  # a run that raised may have left a step's miss unread
         k, unchecked = 0, 0  # the next step, the replayed steps since the last read
         while k < steps:
-            if k not in predicted:
+            if k not in predicted and self._current(k):
                 wp.capture_launch(self.forward[k])
                 k, unchecked = k + 1, unchecked + 1
-                if k < steps and k not in predicted and unchecked < every:
+                if k < steps and k not in predicted and self._current(k) and unchecked < every:
                     continue
                 unchecked, missed = 0, self._first_miss()
                 if missed is None:
@@ -419,9 +430,16 @@ class _StepGraphs:
                 self.misses[missed] += 1
                 sim._discard_failures_from(self.states[missed].step + 1, self.states)  # noqa: SLF001
                 k, every = missed, 1
+            elif k not in predicted:  # the step before, run uncaptured, handed it other arrays than its graph reads
+                self.misses[k] += 1
+                changed.add(k)
             self.reruns[k] = self._rerun(k)
             self._note(k, changed)
             k += 1
+
+    def _current(self, k: int) -> bool:
+        """Whether step k's input State hands it the arrays its graph was captured with (_handed_on)."""
+        return all(a is b for a, b in zip(_handed_on(self.states[k]), self.handed[k], strict=True))
 
     def _first_miss(self) -> int | None:
         """The first step replayed since the last call that left its plan, or None (a read of the device)."""
