@@ -618,11 +618,43 @@ def test_a_step_whose_input_lagged_normals_changed_runs_uncaptured():
             assert captured.rerun_steps == []
 
 
-def test_capture_refuses_contact_with_bdf2():
-    model, _ = landing_scene("cpu")
-    sim = wc.Simulator(model, 0.01, options=wc.SolverOptions(integrator="bdf2"))
-    with pytest.raises(ValueError, match="BDF2 hands a step's contacts on"):
-        wc.CapturedRollout(sim, model.state(), steps=2)
+@pytest.mark.parametrize("repulsion", [True, False])
+def test_a_contact_scene_integrated_with_bdf2_replays_as_the_uncaptured_rollout(repulsion):
+    # BDF2's history after a collision response is an array pair the step makes: the next step's graph reads the
+    # pair its capture saw, and a step whose input holds another (the step before ran again, uncaptured) runs
+    # uncaptured too. Captured from one height, replayed from it and from a lower one: every run's positions and
+    # gradients are the uncaptured taped rollout's, and the second run from each start replays every step
+    steps = 12
+    model, sim = landing_scene("cpu", repulsion=repulsion, integrator="bdf2")
+    state = model.state(requires_grad=True)
+    captured = wc.CapturedRollout(sim, state, steps=steps, loss=loss_of)
+    for height in (0.0, 0.02):
+        x = lowered(model.state(), height)
+        state.particle_x.assign(x)
+        reference, reference_sim = landing_scene("cpu", repulsion=repulsion, integrator="bdf2")
+        start = reference.state(requires_grad=True)
+        start.particle_x.assign(x)
+        tape = wp.Tape()
+        with tape:
+            trajectory = wc.rollout(reference_sim, start, steps=steps)
+            loss = loss_of(trajectory)
+        tape.backward(loss)
+        if not repulsion:
+            assert any(s.particle_x_last is not p.particle_x for s, p in zip(trajectory[2:], trajectory[1:])), \
+                "some steps hand on a history made after a collision response"
+        reruns = []
+        for run in range(2):
+            for k, (a, e) in enumerate(zip(captured.run(), trajectory)):
+                np.testing.assert_array_equal(a.particle_x.numpy(), e.particle_x.numpy(),
+                                              err_msg=f"height {height}, run {run}, state {k}")
+            for name, a, e in (("x0", state.particle_x, start.particle_x), ("v0", state.particle_v, start.particle_v),
+                               ("density", model.material_density, reference.material_density)):
+                assert np.any(e.grad.numpy()), name
+                np.testing.assert_array_equal(a.grad.numpy(), e.grad.numpy(), err_msg=f"height {height}, {name}")
+            reruns.append(captured.rerun_steps)
+        assert reruns[1] == [], reruns
+        if height > 0.0:
+            assert reruns[0], "the lower start changes some steps' contacts"
 
 
 def test_capture_refuses_the_warp_backend_on_the_cpu():

@@ -118,9 +118,6 @@ class CapturedRollout:
     @staticmethod
     def unsupported(sim: Simulator) -> str | None:
         """Why ``sim``'s steps cannot be captured, or None if they can."""
-        if _stepwise(sim) and sim.options.integrator == "bdf2":
-            return ("with a collision stage or proximity forces, BDF2 hands a step's contacts on to the next step in "
-                    "arrays the step makes, which a speculatively captured step cannot know")
         if sim.linear_solver.backend == "warp" and sim.device.is_cpu:
             return ("the warp CG backend tests its convergence on the host on the CPU; use cg_backend 'sequential' "
                     "or 'tiled' there")
@@ -251,9 +248,10 @@ def _stepwise(sim: Simulator) -> bool:
 
 def _handed_on(state: State) -> tuple:
     """What a step reads of its input State that the step before chose, not just filled: the wind's lagged normals'
-    positions, the step before's start, or its result after a collision response moved the cloth. A graph reads the
-    arrays it was captured with, so a step whose input holds others runs uncaptured."""
-    return (state.particle_x_previous,)
+    positions (the step before's start, or its result after a collision response moved the cloth) and BDF2's history
+    (the step before's start, or, after a collision response, arrays that step made). A graph reads the arrays it
+    was captured with, so a step whose input holds others runs uncaptured."""
+    return state.particle_x_previous, state.particle_x_last, state.particle_v_last
 
 
 NO_MISS = 2**31 - 1
