@@ -34,7 +34,9 @@ class CapturedRollout:
             replayed after it latched is forgotten, and they replay again), and the step is captured again after
             the run with what it found; a step that left its plan twice, or whose contacts the graph cannot
             follow (the NumPy projection, a second try keeping start gaps, the fail-safe), runs uncaptured from then
-            on, without its graph.
+            on, without its graph. A step whose input holds other arrays than its graph reads, where the step before
+            chose them (the lagged wind normals' positions, BDF2's history after a collision response), runs
+            uncaptured too and is captured again.
         state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
             ``wp.copy``) between replays; rebinding them has no effect on the graph.
         control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
@@ -272,7 +274,8 @@ class _StepGraphs:
     first step that left its plan (first_miss), which the host reads every SolverOptions.sync_every steps (_forward);
     such a step runs again uncaptured from the same input State (the graph wrote only its output State and scratch),
     on a tape of its own when there is a loss, and is captured again after the run (with its backward pass) with what
-    it found. A step whose graph left its plan MAX_MISSES times, or whose contacts cannot
+    it found; so does a step whose input State holds other arrays than its graph reads where the step before chose
+    them (_handed_on). A step whose graph left its plan MAX_MISSES times, or whose contacts cannot
     be planned, runs uncaptured at once from then on, without its graph (a cloth pressed into an obstacle whose
     contacts change at every run would otherwise pay every step twice and a capture). The backward pass
     walks the steps back: a replayed step's recorded adjoint as a graph of its own, a re-run step's tape as it is.
