@@ -399,7 +399,7 @@ class _StepGraphs:
                     self._backward()
                     sim._check_replayed_adjoints()  # noqa: SLF001
             if changed:  # the steps whose plans changed, captured again (this run's re-run tapes kept), and after
-                # them those whose input they changed (the lagged normals' positions)
+                # them those whose input they changed (_handed_on)
                 with sim._keeping_motions(self.motions):  # noqa: SLF001
                     for k in range(min(changed), len(self.forward)):
                         if k not in self.uncaptured and (k in changed or not self._current(k)):
