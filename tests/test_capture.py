@@ -524,6 +524,22 @@ def test_capturing_a_contact_step_by_hand_is_refused():
             sim.step(model.state(), model.empty_state())
 
 
+def taped_rollout(model, sim, steps, *, x=None, v=None):
+    """The uncaptured taped rollout of ``loss_of`` from the model's start, its positions ``x`` or velocities ``v``
+    where given, after its backward pass: (the start State, the trajectory)."""
+    start = model.state(requires_grad=True)
+    if x is not None:
+        start.particle_x.assign(x)
+    if v is not None:
+        start.particle_v.assign(v)
+    tape = wp.Tape()
+    with tape:
+        trajectory = wc.rollout(sim, start, steps=steps)
+        loss = loss_of(trajectory)
+    tape.backward(loss)
+    return start, trajectory
+
+
 @pytest.mark.parametrize("repulsion", [True, False])
 def test_a_contact_scene_with_lagged_wind_normals_replays_as_the_uncaptured_rollout(repulsion):
     # the wind's lagged normals read the step before's start, or its result where a collision response moved the
@@ -538,13 +554,7 @@ def test_a_contact_scene_with_lagged_wind_normals_replays_as_the_uncaptured_roll
         x = lowered(model.state(), height)
         state.particle_x.assign(x)
         reference, reference_sim = landing_scene("cpu", repulsion=repulsion, lagged=True)
-        start = reference.state(requires_grad=True)
-        start.particle_x.assign(x)
-        tape = wp.Tape()
-        with tape:
-            trajectory = wc.rollout(reference_sim, start, steps=steps)
-            loss = loss_of(trajectory)
-        tape.backward(loss)
+        start, trajectory = taped_rollout(reference, reference_sim, steps, x=x)
         expected = {"x0": start.particle_x.grad.numpy(), "v0": start.particle_v.grad.numpy(),
                     "density": reference.material_density.grad.numpy(), "wind": reference.wind_velocity.grad.numpy()}
         if not repulsion:
@@ -597,13 +607,7 @@ def test_a_step_whose_input_lagged_normals_changed_runs_uncaptured():
     velocity[:, 0] = 1.3
     state.particle_v.assign(velocity)
     reference, reference_sim = sliding_off_scene()
-    start = reference.state(requires_grad=True)
-    start.particle_v.assign(velocity)
-    tape = wp.Tape()
-    with tape:
-        trajectory = wc.rollout(reference_sim, start, steps=steps)
-        loss = loss_of(trajectory)
-    tape.backward(loss)
+    start, trajectory = taped_rollout(reference, reference_sim, steps, v=velocity)
     for run in range(2):
         for k, (a, e) in enumerate(zip(captured.run(), trajectory)):
             np.testing.assert_array_equal(a.particle_x.numpy(), e.particle_x.numpy(), err_msg=f"run {run}, state {k}")
@@ -632,13 +636,7 @@ def test_a_contact_scene_integrated_with_bdf2_replays_as_the_uncaptured_rollout(
         x = lowered(model.state(), height)
         state.particle_x.assign(x)
         reference, reference_sim = landing_scene("cpu", repulsion=repulsion, integrator="bdf2")
-        start = reference.state(requires_grad=True)
-        start.particle_x.assign(x)
-        tape = wp.Tape()
-        with tape:
-            trajectory = wc.rollout(reference_sim, start, steps=steps)
-            loss = loss_of(trajectory)
-        tape.backward(loss)
+        start, trajectory = taped_rollout(reference, reference_sim, steps, x=x)
         if not repulsion:
             assert any(s.particle_x_last is not p.particle_x for s, p in zip(trajectory[2:], trajectory[1:])), \
                 "some steps hand on a history made after a collision response"
