@@ -62,7 +62,7 @@ class Simulator:
         self.status = StepStatus(self.device)
         """The failure record the step's kernels latch into, and the CG iteration totals (read at sync points)."""
         self._steps = 0
-        self._no_flag: wp.array | None = None  # a flag never raised, for _note_plan_miss
+        self._no_flag = wp.zeros(1, dtype=wp.int32, device=self.device)  # never raised: _note_plan_miss's stand-in
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
         """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
         measures launch, not execution, unless the device synchronises)."""
@@ -189,11 +189,12 @@ class Simulator:
             s.assembler = self._bdf2_assembler()
         s.assembler.assemble(s.start, s.control, s.t_next, s.values, s.rhs, s.pin_dv, s.dv, explicit=explicit)
         if self.collision is not None:
-            s.obstacles = self._obstacle_points(s.control, s.state_in.time)
+            s.obstacles = self._obstacle_points(s.control, s.state_in.time, s.recording)
 
     def _proximity_forces(self, s: _Step) -> None:
         """Proximity repulsion: the pairs within the thickness add their forces and Jacobians to the system."""
-        obstacles = s.obstacles if s.obstacles is not None else self._obstacle_points(s.control, s.state_in.time)
+        obstacles = s.obstacles if s.obstacles is not None else \
+            self._obstacle_points(s.control, s.state_in.time, s.recording)
         s.pairs = self.proximity.assemble(s.start, *obstacles, s.pin_dv, s.dv, s.values, s.rhs, s.recording,
                                           implicit_dt=s.assembler.dt)
 
@@ -352,7 +353,8 @@ class Simulator:
     def assemble(self, state: State, control: Control | None = None):
         """The system ``A dv = b`` of the step from ``state``, in new arrays (not taped): A's blocks on the model's
         block pattern (``bsr_offsets``/``bsr_columns``, mat33), b (vec3), and the proximity pairs whose cross blocks
-        A also has (a ``ProximityPairs``, or None). Solve it with ``linear_solver.solve(values, b, x, pairs=pairs)``.
+        A also has (a ``ProximityPairs``, or None; its arrays are the Simulator's, valid until its next step).
+        Solve it with ``linear_solver.solve(values, b, x, pairs=pairs)``.
         """
         control = control if control is not None else self._default_control()
         values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
@@ -360,7 +362,7 @@ class Simulator:
         with wp.ScopedDevice(self.device):
             self.assembler.assemble(state, control, state.time + self.dt, values, rhs, pin_dv)
             if self.proximity is not None:
-                pairs = self.proximity.assemble(state, *self._obstacle_points(control, state.time), pin_dv,
+                pairs = self.proximity.assemble(state, *self._obstacle_points(control, state.time, False), pin_dv,
                                                 wp.zeros_like(rhs), values, rhs, False)
         return values, rhs, pairs
 
@@ -385,14 +387,13 @@ class Simulator:
 
     # -- internals -----------------------------------------------------------------------------------------------
 
-    def _obstacle_points(self, control: Control, t_start: float) -> tuple[wp.array, wp.array]:
+    def _obstacle_points(self, control: Control, t_start: float, recording: bool) -> tuple[wp.array, wp.array]:
         """The obstacle vertices at the step's start and end [m], for the proximity forces and the collision stage
         alike (empty arrays where the model has no obstacle collisions)."""
         model = self.model
         if not model.collision.obstacles or model.obstacle_count == 0:
             empty = self._arrays.empty("no_obstacle", 0, model.types.vec3, False)
             return empty, empty
-        recording = active_tape() is not None and model.requires_grad
         return tuple(obstacle_points(model, control, t, motion=self._obstacle_motion(t),
                                      out=self._arrays.empty(name, model.obstacle_vertex_count, model.types.vec3,
                                                             recording))
@@ -492,8 +493,6 @@ class Simulator:
         stage's detection rounds find ``contact_plan``'s counts (none: no contact; CollisionStage.plan) and the
         proximity pairs are at most ``pair_budget``, their kernels launched at the budget.
         :meth:`_note_plan_miss` checks on the device whether the step kept to it."""
-        if self._no_flag is None:  # made here, outside the capture, for scenes with only one of the two flags
-            self._no_flag = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.collision is not None:
             self.collision.speculative, self.collision.plan = True, list(contact_plan or [])
         if self.proximity is not None:
