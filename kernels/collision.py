@@ -376,14 +376,17 @@ def keep_most_urgent(hit: bool, rank: wp.float64, sign: wp.float64, t: wp.float6
 
 
 @wp.func
-def emit(side: int, n0: int, n1: int, n2: int, n3: int, mode: int, t: wp.float64, capacity: int,
-         count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
-         contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
-         contact_sign: wp.array(dtype=wp.float64)):
-    """Append a contact on side 0 (sign +1) or 1 (sign -1); beyond ``capacity`` it is only counted."""
+def emit(query: int, side: int, n0: int, n1: int, n2: int, n3: int, mode: int, t: wp.float64, capacity: int,
+         count: wp.array(dtype=wp.int32), contact_key: wp.array(dtype=wp.int64), slot_of: wp.array(dtype=wp.int32),
+         contact_nodes: wp.array2d(dtype=wp.int32), contact_mode: wp.array(dtype=wp.int32),
+         contact_t: wp.array(dtype=wp.float64), contact_sign: wp.array(dtype=wp.float64)):
+    """Append query thread ``query``'s contact on side 0 (sign +1) or 1 (sign -1); beyond ``capacity`` it is only
+    counted. Its key (query, side) orders the contacts afterwards (sort_found), whatever order the appends ran in."""
     sign = wp.float64(1.0) if side == 0 else wp.float64(-1.0)
     slot = wp.atomic_add(count, 0, 1)
     if slot < capacity:
+        contact_key[slot] = wp.int64(2 * query + side)
+        slot_of[slot] = slot
         contact_nodes[slot, 0] = n0
         contact_nodes[slot, 1] = n1
         contact_nodes[slot, 2] = n2
@@ -427,13 +430,15 @@ def collision_kernels(scalar):
                   thickness: wp.float64, world_mode: wp.array(dtype=wp.int32), capacity: int,
                   node_world: wp.array(dtype=wp.int32), grouped: int, skip: wp.array(dtype=wp.int32),
                   # out:
-                  count: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
+                  count: wp.array(dtype=wp.int32), contact_key: wp.array(dtype=wp.int64),
+                  slot_of: wp.array(dtype=wp.int32), contact_nodes: wp.array2d(dtype=wp.int32),
                   contact_mode: wp.array(dtype=wp.int32), contact_t: wp.array(dtype=wp.float64),
                   contact_sign: wp.array(dtype=wp.float64)):
         # Every query of a detection in one launch: thread i is query primitive i - query_start[k] of query k (the
-        # queries one after another, in the detector's order; on the CPU, whose threads run in order, the contacts
-        # come out in that order). Query k: its rows (a vertex as (v, v), an edge as (a, b)) against the BVH bvhs[k]
-        # of the primitives prims[target_offset[k]:], their boxes lowers and uppers at query_offset[k] + its index; a
+        # queries one after another, in the detector's order; the contacts are sorted into that order afterwards,
+        # sort_found, which on the CPU, whose threads run in order, is the order they were appended in). Query k:
+        # its rows (a vertex as (v, v), an edge as (a, b)) against the BVH bvhs[k] of the primitives
+        # prims[target_offset[k]:], their boxes lowers and uppers at query_offset[k] + its index; a
         # vertex-face query (vertex_face[k]) or an edge-edge one; same[k] != 0: queries and targets are the same
         # cloth's, so incident primitives are skipped (each edge pair once). skip[0] != 0 (an error latched in the
         # failure record): no query runs.
@@ -495,11 +500,27 @@ def collision_kernels(scalar):
             jb = best_target[side]
             if jb >= 0:
                 if vf != 0:
-                    emit(side, q0, prims[toff + jb, 0], prims[toff + jb, 1], prims[toff + jb, 2], best_mode[side],
-                         best_t[side], capacity, count, contact_nodes, contact_mode, contact_t, contact_sign)
+                    emit(i, side, q0, prims[toff + jb, 0], prims[toff + jb, 1], prims[toff + jb, 2], best_mode[side],
+                         best_t[side], capacity, count, contact_key, slot_of, contact_nodes, contact_mode, contact_t,
+                         contact_sign)
                 else:
-                    emit(side, q0, q1, prims[toff + jb, 0], prims[toff + jb, 1], best_mode[side], best_t[side],
-                         capacity, count, contact_nodes, contact_mode, contact_t, contact_sign)
+                    emit(i, side, q0, q1, prims[toff + jb, 0], prims[toff + jb, 1], best_mode[side], best_t[side],
+                         capacity, count, contact_key, slot_of, contact_nodes, contact_mode, contact_t, contact_sign)
+
+    @wp.kernel(enable_backward=False)
+    def sort_found(order: wp.array(dtype=wp.int32), nodes: wp.array2d(dtype=wp.int32), mode: wp.array(dtype=wp.int32),
+                   t: wp.array(dtype=wp.float64), sign: wp.array(dtype=wp.float64),
+                   # out:
+                   sorted_nodes: wp.array2d(dtype=wp.int32), sorted_mode: wp.array(dtype=wp.int32),
+                   sorted_t: wp.array(dtype=wp.float64), sorted_sign: wp.array(dtype=wp.float64)):
+        # the contacts as found, in the order of their keys (order: wp.utils.radix_sort_pairs's)
+        k = wp.tid()
+        j = order[k]
+        for c in range(4):
+            sorted_nodes[k, c] = nodes[j, c]
+        sorted_mode[k] = mode[j]
+        sorted_t[k] = t[j]
+        sorted_sign[k] = sign[j]
 
     @wp.kernel
     def inside_mesh(mesh: wp.uint64, x: wp.array(dtype=vec3), max_dist: float,
@@ -511,5 +532,6 @@ def collision_kernels(scalar):
         if q.result and q.sign < 0.0:
             inside[i] = 1
 
-    return SimpleNamespace(primitive_bounds=primitive_bounds, query_all=query_all, inside_mesh=inside_mesh)
+    return SimpleNamespace(primitive_bounds=primitive_bounds, query_all=query_all, sort_found=sort_found,
+                           inside_mesh=inside_mesh)
 

@@ -111,29 +111,34 @@ def triangle_barycentric(p: Any, a: Any, b: Any, c: Any):
     return one - v - w, v, w
 
 
+KEY_END = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
+"""The sort key of an empty slot: after every row's."""
+
+
 @wp.func
-def sort_rows_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(dtype=wp.int32), count: int,
-                       world_count: int, start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32)):
-    """In one thread: a stable counting sort of rows 0..count-1 (contacts, proximity pairs: all nodes of a row are
-    of one world) by the world of their first node: ``order[k]``, the row in sorted slot k; ``start[w]``, world
-    w's first slot (``start[world_count]``: count). Each world's rows keep the order found, so on the CPU (queries
-    in thread order) they are those a model of that world alone finds, in its order; on CUDA the queries append in
-    no set order, which moves a projection's result within its tolerance (qp_tol), and so, near a tie, can change
-    the contacts a later round finds."""
-    for w in range(world_count + 1):
-        start[w] = 0
-    for j in range(count):
-        w = node_world[nodes[j, 0]]
-        start[w + 1] = start[w + 1] + 1
-    for w in range(world_count):
-        start[w + 1] = start[w + 1] + start[w]
-    for j in range(count):  # start[w] walks world w's slots, then the shift below restores it
-        w = node_world[nodes[j, 0]]
-        order[start[w]] = j
-        start[w] = start[w] + 1
-    for w in range(world_count, 0, -1):
-        start[w] = start[w - 1]
-    start[0] = 0
+def first_at_least(keys: wp.array(dtype=wp.int64), n: int, value: wp.int64):
+    """The first of the ascending ``keys[0:n]`` that is >= ``value`` (n where none is): a binary search."""
+    lo = int(0)
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < value:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.kernel(enable_backward=False)
+def world_starts(keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), span: wp.int64,
+                 start: wp.array(dtype=wp.int32)):
+    """Rows (contacts, proximity pairs) sorted by a key whose world w owns [w span, (w + 1) span): ``start[w]``,
+    world w's first row, one thread a world (launch world_count + 1 threads: ``start[world_count]`` is the count).
+    The rows were ordered by ``wp.utils.radix_sort_pairs``, a stable parallel sort on both devices, so each world's
+    rows come out in one order, however the queries that found them interleaved their appends (on CUDA, in no set
+    order): a world's rows are those a model of that world alone finds, in the same order."""
+    w = wp.tid()
+    start[w] = first_at_least(keys, count[0], wp.int64(w) * span)
 
 
 @wp.func

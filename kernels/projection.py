@@ -27,7 +27,6 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.geometry import sort_rows_by_world
 from warpcloth.kernels.types import per_precision, types
 
 CONVERGED = 0
@@ -83,16 +82,25 @@ class Rows:
 
 
 @wp.kernel(enable_backward=False)
-def sort_by_world(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(dtype=wp.int32), count: int,
-                  first_new: int, world_count: int, start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
-                  solve_world: wp.array(dtype=wp.int32)):
-    # one thread: the contacts sorted by world, and which worlds have a contact at or after first_new (the others
-    # keep their last solution)
-    for w in range(world_count):
-        solve_world[w] = 0
-    for j in range(first_new, count):
-        solve_world[node_world[nodes[j, 0]]] = 1
-    sort_rows_by_world(nodes, node_world, count, world_count, start, order)
+def world_keys(nodes: wp.array2d(dtype=wp.int32), node_world: wp.array(dtype=wp.int32), count: int, first_new: int,
+               world_count: int, keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+               held: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32), solve_world: wp.array(dtype=wp.int32)):
+    # one thread a contact (at least one): its world as its sort key, its index as its value, and whether its world
+    # has a contact at or after first_new (the others keep their last solution; solve_world zeroed before). Several
+    # worlds: wp.utils.radix_sort_pairs then sorts the contacts by world (stably: each world's in the order found)
+    # and geometry.py world_starts finds each world's first slot. One world: the order as found, nothing to sort.
+    j = wp.tid()
+    if j == 0:
+        held[0] = count
+        if world_count == 1:
+            start[0] = 0
+            start[1] = count
+    if j < count:
+        w = node_world[nodes[j, 0]]
+        keys[j] = wp.int64(w)
+        order[j] = j
+        if j >= first_new:
+            solve_world[w] = 1
 
 
 @wp.kernel(enable_backward=False)

@@ -44,7 +44,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.geometry import segment_parameters, sort_rows_by_world, triangle_barycentric, world_root
+from warpcloth.kernels.geometry import KEY_END, segment_parameters, triangle_barycentric, world_root
 from warpcloth.kernels.types import per_precision, types
 
 COINCIDENT = 1.0e-9
@@ -116,15 +116,25 @@ def proximity_kernels(scalar):
         pair_area: wp.array(dtype=scalar)
         node_world: wp.array(dtype=wp.int32)  # the world of every node; BVHs grouped by world where grouped != 0
         grouped: int
+        # each pair's sort key (world, query row, target primitive) and its slot, by which the pairs are sorted
+        # (warpcloth/collision/proximity.py detect): query rows numbered across the queries (row_count in all),
+        # targets below target_count
+        keys: wp.array(dtype=wp.int64)
+        slot_of: wp.array(dtype=wp.int32)
+        row_count: wp.int64
+        target_count: wp.int64
 
     @wp.func
-    def emit(search: PairSearch, nodes: wp.vec4i, kind: int, area: scalar):
+    def emit(search: PairSearch, nodes: wp.vec4i, kind: int, area: scalar, row: int, target: int):
         k = wp.atomic_add(search.count, 0, 1)
         if k < search.pair_kind.shape[0]:
             for c in range(4):
                 search.pair_nodes[k, c] = nodes[c]
             search.pair_kind[k] = kind
             search.pair_area[k] = area
+            world = wp.int64(search.node_world[nodes[0]])
+            search.keys[k] = (world * search.row_count + wp.int64(row)) * search.target_count + wp.int64(target)
+            search.slot_of[k] = k
 
     @wp.func
     def near(search: PairSearch, a: int, b: int):
@@ -139,6 +149,7 @@ def proximity_kernels(scalar):
         node_area: wp.array(dtype=scalar),
         triangle_area: wp.array(dtype=scalar),
         search: PairSearch,
+        first_row: int,
     ):
         # the closest triangle within radius of each query vertex
         i = wp.tid()
@@ -170,7 +181,7 @@ def proximity_kernels(scalar):
                 best_j = j
         if best_j >= 0:
             emit(search, wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE,
-                 wp.min(node_area[q], triangle_area[best_j]))
+                 wp.min(node_area[q], triangle_area[best_j]), first_row + i, best_j)
 
     @wp.kernel(enable_backward=False)
     def edge_edge_pairs(
@@ -182,6 +193,7 @@ def proximity_kernels(scalar):
         target_area: wp.array(dtype=scalar),
         same_set: int,
         search: PairSearch,
+        first_row: int,
     ):
         # every target edge within radius whose closest points are inside both edges (within one set: each pair
         # once). Not only the closest: flat sheets tie, and a tie broken either way would move the force.
@@ -214,7 +226,8 @@ def proximity_kernels(scalar):
             s, u = segment_parameters(x[e0], x[e1], x[f0], x[f1], scalar(1.0e-12))
             d = wp.length((x[e0] + s * a) - (x[f0] + u * b))
             if d < search.radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0):
-                emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE, wp.min(edge_area[i], target_area[j]))
+                emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE, wp.min(edge_area[i], target_area[j]),
+                     first_row + i, j)
 
     @wp.struct
     class PairInputs:
@@ -534,35 +547,35 @@ def proximity_kernels(scalar):
         inv_mass[i] = inv
 
     @wp.kernel(enable_backward=False)
-    def sort_pairs(found: wp.array(dtype=wp.int32), size: int, node_world: wp.array(dtype=wp.int32),
-                   nodes: wp.array2d(dtype=wp.int32), world_count: int,
+    def hold_pairs(found: wp.array(dtype=wp.int32), size: int, world_count: int,
                    # out:
-                   start: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
-                   count: wp.array(dtype=wp.int32), spill: wp.array(dtype=wp.int32)):
-        # one thread: the first min(found, size) pairs sorted by world (geometry.py sort_rows_by_world), the count
-        # held, and whether more were found than the launches hold (a captured step's budget). One world: no sort
-        # (gather_pairs then reads the pairs in the order found), so one thread does not walk every pair
-        held = wp.min(found[0], size)
-        count[0] = held
-        spill[0] = wp.where(found[0] > size, 1, 0)
-        if world_count == 1:
-            start[0] = 0
-            start[1] = held
-        else:
-            sort_rows_by_world(nodes, node_world, held, world_count, start, order)
+                   keys: wp.array(dtype=wp.int64), slot_of: wp.array(dtype=wp.int32), held: wp.array(dtype=wp.int32),
+                   spill: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32)):
+        # one thread a slot of the launches (at least one): the first min(found, size) pairs are held, the slots
+        # after them sort last; whether more were found than the launches hold (a captured step's budget); one
+        # world's range (several worlds: geometry.py world_starts, after the sort)
+        k = wp.tid()
+        count = wp.min(found[0], size)
+        if k == 0:
+            held[0] = count
+            spill[0] = wp.where(found[0] > size, 1, 0)
+            if world_count == 1:
+                start[0] = 0
+                start[1] = count
+        if k >= count and k < size:
+            keys[k] = KEY_END
+            slot_of[k] = k
 
     @wp.kernel(enable_backward=False)
-    def gather_pairs(order: wp.array(dtype=wp.int32), sorted: int, count: wp.array(dtype=wp.int32),
+    def gather_pairs(order: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
                      nodes: wp.array2d(dtype=wp.int32), kind: wp.array(dtype=wp.int32), area: wp.array(dtype=scalar),
                      # out:
                      sorted_nodes: wp.array2d(dtype=wp.int32), sorted_kind: wp.array(dtype=wp.int32),
                      sorted_area: wp.array(dtype=scalar)):
-        # the held pairs in world order (sorted != 0: sort_pairs's order), or as found
+        # the held pairs in the order of their keys (order: wp.utils.radix_sort_pairs's)
         k = wp.tid()
         if k < count[0]:
-            j = k
-            if sorted != 0:
-                j = order[k]
+            j = order[k]
             for c in range(4):
                 sorted_nodes[k, c] = nodes[j, c]
             sorted_kind[k] = kind[j]
@@ -580,5 +593,5 @@ def proximity_kernels(scalar):
         pairs_potential=pairs_potential, node_state=node_state, cloth_pair_counts=cloth_pair_counts,
         friction_sweep=friction_sweep, obstacle_friction_loads=obstacle_friction_loads,
         obstacle_friction=obstacle_friction, inverse_mass=inverse_mass,
-        add_friction=add_friction, sort_pairs=sort_pairs, gather_pairs=gather_pairs,
+        add_friction=add_friction, hold_pairs=hold_pairs, gather_pairs=gather_pairs,
     )

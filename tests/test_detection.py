@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 import warp as wp
 
+from warpcloth.collision.detection import RowSort
 from warpcloth.kernels.collision import collision_kernels
 from warpcloth.kernels.contact import EE_DIRECTION, EE_PLANE, VF_PLANE, contact_kernels
+from warpcloth.kernels.geometry import world_starts
 
 DELTA = 5e-4
 
@@ -43,7 +45,8 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
                       wp.array([bvh.id], dtype=wp.uint64), ints(0), ints(int(kind == "vf")), ints(flag),
                       wp.float64(DELTA), wp.array([keep_start_gaps], dtype=wp.int32), capacity,
                       wp.zeros(len(x0), dtype=wp.int32), 0, wp.zeros(1, dtype=wp.int32)],
-              outputs=[count, nodes, mode, t, sign])
+              outputs=[count, wp.zeros(2 * capacity, dtype=wp.int64), wp.zeros(2 * capacity, dtype=wp.int32), nodes,
+                       mode, t, sign])
     c = int(count.numpy()[0])
     m = min(c, capacity)
     return c, nodes.numpy()[:m], mode.numpy()[:m], t.numpy()[:m], sign.numpy()[:m]
@@ -203,3 +206,27 @@ def test_keeping_start_gaps_a_vertex_inside_the_thickness_is_a_contact_only_wher
         np.testing.assert_allclose(target, [0.2 * DELTA], rtol=1e-12)
         _, _, target = _geometry(x0, x1, nodes, mode, t, sign, targets=True)
         np.testing.assert_allclose(target, [DELTA], rtol=1e-12)
+
+
+def test_rows_appended_in_any_order_come_out_in_the_order_of_their_keys(device):
+    """detection.RowSort and kernels/geometry.py world_starts, as detection, the pair search and the device
+    projection use them: keys of three worlds (the middle one without rows, a tie among them) in a shuffled order,
+    as CUDA's atomic appends leave them, are sorted stably (a tie keeps its slots' order), and each world's first
+    row is found."""
+    rng = np.random.default_rng(3)
+    span = 1000
+    keys = np.concatenate([rng.integers(0, span, 40), 2 * span + rng.integers(0, span, 25)])
+    keys[7] = keys[3]
+    rng.shuffle(keys)
+    n = len(keys)
+    rows = RowSort(n, 3 * span, device)
+    rows.keys.assign(np.concatenate([keys, np.zeros(n, dtype=np.int64)]))
+    rows.values.assign(np.arange(2 * n, dtype=np.int32))
+    rows.sort(n)
+    np.testing.assert_array_equal(rows.order.numpy(), np.argsort(keys, kind="stable"))
+    start = wp.zeros(4, dtype=wp.int32, device=device)
+    wp.launch(world_starts, 4, device=device,
+              inputs=[rows.keys, wp.array([n], dtype=wp.int32, device=device), span], outputs=[start])
+    assert start.numpy().tolist() == [0, 40, 40, 65]
+    with pytest.raises(ValueError, match="do not fit in int64"):
+        RowSort(4, 2**63, device)

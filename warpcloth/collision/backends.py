@@ -259,7 +259,7 @@ class DeviceBackend:
         if expected is None:
             self._found = self.detector.detect_on_device(start, end, reference)
             return self._found
-        self.detector.detect_on_device(start, end, reference, read=False)
+        self.detector.detect_on_device(start, end, reference, expected=expected)
         wp.launch(kp.expect_found, 1, device=self.model.device,
                   inputs=[self.detector.flags, int(expected), int(last and self._total > 0), self.mismatch],
                   record_tape=False)

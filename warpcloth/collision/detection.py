@@ -86,13 +86,39 @@ class PrimitiveSet:
     def update_bvh(self) -> None:
         """Build the BVH over the current boxes: a new one the first time, then in place (no allocation, the same
         id, recorded by a graph capture), or refitted where ``rebuild`` is False (CollisionOptions.bvh). Its
-        topology orders the pairs a query finds, and so the rounding of their sums."""
+        topology orders a query's visits, not what the query finds: contacts and pairs are sorted by key (RowSort)."""
         if self.bvh is None:
             self.bvh = wp.Bvh(self.lowers, self.uppers, groups=self.groups, constructor=self._constructor)
         elif self.rebuild:
             self.bvh.rebuild(self._constructor)
         else:
             self.bvh.refit()
+
+
+class RowSort:
+    """Keys and values for ``wp.utils.radix_sort_pairs`` of up to ``capacity`` rows (contacts, proximity pairs)
+    whose keys lie below ``key_bound``: a stable parallel sort on both devices, so that rows appended through an
+    atomic counter (on CUDA in no set order) come out in one order, the order their keys say."""
+
+    def __init__(self, capacity: int, key_bound: int, device):
+        m = max(int(capacity), 1)
+        if key_bound >= 2**63:
+            raise ValueError(f"sort keys up to {key_bound} do not fit in int64")
+        self.keys = wp.zeros(2 * m, dtype=wp.int64, device=device)
+        """Each row's key (the sort needs twice the rows' room)."""
+        self.values = wp.zeros(2 * m, dtype=wp.int32, device=device)
+        self.order = self.values[:m]
+        """After :meth:`sort`: the row in each sorted slot."""
+        self.bits = max(int(key_bound - 1).bit_length(), 1)  # passes over the bits the keys use only
+        if self.keys.device.is_cuda:
+            # the sort's scratch sized for every count to come, outside any graph capture: growing it inside one
+            # broke the CUDA context (NVIDIA/warp issue 1373)
+            wp.utils.radix_sort_pairs(self.keys, self.values, m, end_bit=self.bits)
+
+    def sort(self, count: int) -> None:
+        """Sort the first ``count`` rows by key (``values`` holds each row's index on entry)."""
+        if count:
+            wp.utils.radix_sort_pairs(self.keys, self.values, int(count), end_bit=self.bits)
 
 
 FOUND, DEGENERATE, FAILED, STRAINED = kp.FOUND, kp.DEGENERATE, kp.FAILED, kp.STRAINED
@@ -185,6 +211,13 @@ class ContactDetector:
         """Views of one slot each, as the kernels that write them take them."""
         self.last_flags = np.zeros(4, dtype=np.int64)
         """The flags as the last read saw them (:meth:`read_flags`)."""
+        # the contacts as the queries append them, and sorted by their keys (query thread, side): each query's
+        # contacts in the queries' order, one order on both devices (RowSort)
+        self._appended = (wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
+                          wp.zeros(self.capacity, dtype=wp.int32, device=dev),
+                          wp.zeros(self.capacity, dtype=wp.float64, device=dev),
+                          wp.zeros(self.capacity, dtype=wp.float64, device=dev))
+        self._sort = RowSort(self.capacity, 2 * max(self._query_rows.shape[0], 1), dev)
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._mode = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self._t = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
@@ -239,10 +272,11 @@ class ContactDetector:
         return self._sign
 
     def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
-                         read: bool = True) -> int | None:
+                         expected: int | None = None) -> int | None:
         """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
         :attr:`sign`); returns their count. The one read back: :attr:`flags`, whose STRAINED slot carries the last
-        projection's strain-guard flag along; with ``read=False`` (a captured step) none, and None is returned."""
+        projection's strain-guard flag along. With ``expected`` (a captured step's plan: the count it expects) none:
+        that many rows are sorted, and None is returned (the caller checks the count on the device)."""
         k = self.kernels
         half = 0.5 * self.thickness
         if self._prims.shape[0]:
@@ -265,15 +299,23 @@ class ContactDetector:
                               self._query_start, query_offset, self._bvh_ids, target_offset, vertex_face, same,
                               wp.float64(self.thickness), self.world_mode, self.capacity, self.node_world,
                               self.grouped, self.skip],
-                      outputs=[self._count, self._nodes, self._mode, self._t, self._sign], record_tape=False)
-        if not read:
+                      outputs=[self._count, self._sort.keys, self._sort.values, *self._appended], record_tape=False)
+        if expected is not None:
+            self._sort_found(min(int(expected), self.capacity))
             return None
         count = int(self.read_flags()[FOUND])
         if count > self.capacity:
             raise ContactCapacityError(
                 f"contact buffer overflow: {count} contacts found but contact_capacity is {self.capacity}; "
                 f"raise CollisionOptions.contact_capacity to at least {count}")
+        self._sort_found(count)
         return count
+
+    def _sort_found(self, count: int) -> None:
+        if count and self._live_queries:
+            self._sort.sort(count)
+            wp.launch(self.kernels.sort_found, count, device=self.device, inputs=[self._sort.order, *self._appended],
+                      outputs=[self._nodes, self._mode, self._t, self._sign], record_tape=False)
 
     def read_flags(self) -> np.ndarray:
         """Read :attr:`flags` (the one read of a detection or of a projection's checks) into :attr:`last_flags`."""

@@ -13,7 +13,9 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision.adjoint import push_onto_contacts
+from warpcloth.collision.detection import RowSort
 from warpcloth.kernels import projection as kp
+from warpcloth.kernels.geometry import world_starts
 
 ADJOINT_WARN = 1.0e-8
 """An adjoint CG that ends above this relative residual warns (it aims at 1e-13)."""
@@ -129,7 +131,9 @@ class DeviceProjection:
         self._diag = wp.zeros(m, dtype=f64, device=device)
         self._sorted_nodes = wp.zeros((m, 4), dtype=wp.int32, device=device)
         self._sorted_normals = wp.zeros(m, dtype=wp.vec3d, device=device)
-        self._order = wp.zeros(m, dtype=wp.int32, device=device)
+        self._by_world = RowSort(m, self.world_count, device)  # the contacts sorted by world
+        self._order = self._by_world.order
+        self._held = wp.zeros(1, dtype=wp.int32, device=device)
         self._start = wp.zeros(self.world_count + 1, dtype=wp.int32, device=device)
         self._solve_world = wp.zeros(self.world_count, dtype=wp.int32, device=device)
         self._lam = wp.zeros(m, dtype=f64, device=device)  # the caller's order
@@ -195,9 +199,15 @@ class DeviceProjection:
         if not resume:
             wp.copy(self._z, positions)
         wp.copy(self._x_hat, positions)
-        wp.launch(kp.sort_by_world, 1, device=dev,
+        self._solve_world.zero_()
+        wp.launch(kp.world_keys, max(count, 1), device=dev,
                   inputs=[nodes, self.node_world, count, k if resume else 0, self.world_count],
-                  outputs=[self._start, self._order, self._solve_world], record_tape=False)
+                  outputs=[self._by_world.keys, self._by_world.values, self._held, self._start, self._solve_world],
+                  record_tape=False)
+        if self.world_count > 1:
+            self._by_world.sort(count)
+            wp.launch(world_starts, self.world_count + 1, device=dev, inputs=[self._by_world.keys, self._held, 1],
+                      outputs=[self._start], record_tape=False)
         r = kp.Rows()
         r.count, r.nodes, r.fw, r.normal, r.h, r.diag, r.inv_mass = (count, self._sorted_nodes, self._fw,
                                                                       self._sorted_normals, self._h, self._diag,

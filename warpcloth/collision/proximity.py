@@ -21,8 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warpcloth.collision.detection import PrimitiveSet, node_worlds
+from warpcloth.collision.detection import PrimitiveSet, RowSort, node_worlds
 from warpcloth.errors import ContactCapacityError
+from warpcloth.kernels.geometry import world_starts
 from warpcloth.kernels.proximity import FRICTION_SWEEPS, proximity_kernels
 from warpcloth.model import Model, State
 from warpcloth.tape import StepArrays, active_tape, record_adjoint
@@ -121,18 +122,22 @@ class ProximityForces:
             t.lowers, t.uppers = self._lowers[lo:hi], self._uppers[lo:hi]
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs found (may pass the capacity)
         self._count_host = self._count.numpy() if dev.is_cpu else None
-        self._held = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs held (sort_pairs)
+        self._held = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs held (hold_pairs)
         self._arrays = StepArrays(dev)  # the positions, velocities and friction terms of a step
         self.spill = wp.zeros(1, dtype=wp.int32, device=dev)
         """Raised (1) by a step captured with a budget of pairs that found more (wc.CapturedRollout reads it)."""
-        # the pairs as found, and (several worlds) sorted by world, or a taped step's own copies
+        # the pairs as found, and sorted by their keys (world, query row, target: RowSort), or a taped step's own
+        # copies: each world's pairs in one order on both devices, those a model of that world alone finds
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
         self._kind = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self._pair_area = wp.zeros(self.capacity, dtype=scalar, device=dev)
-        self._order = wp.zeros(self.capacity if model.world_count > 1 else 1, dtype=wp.int32, device=dev)
-        self._sorted = ((wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
-                         wp.zeros(self.capacity, dtype=wp.int32, device=dev),
-                         wp.zeros(self.capacity, dtype=scalar, device=dev)) if model.world_count > 1 else None)
+        self._row_starts = [int(r) for r in np.cumsum([0] + [q[0].shape[0] for q in self._queries])]
+        self._target_count = max([q[1].count for q in self._queries] + [1])
+        self._world_span = max(self._row_starts[-1], 1) * self._target_count  # the keys of one world
+        self._sort = RowSort(self.capacity, model.world_count * self._world_span, dev)
+        self._sorted = (wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
+                        wp.zeros(self.capacity, dtype=wp.int32, device=dev),
+                        wp.zeros(self.capacity, dtype=scalar, device=dev))
         self._weights = wp.empty(self.capacity, dtype=model.types.vec4, device=dev)
         self._stiffness = wp.empty(self.capacity, dtype=model.types.mat33, device=dev)
         free = np.zeros(n + V, dtype=np.int32)
@@ -179,16 +184,19 @@ class ProximityForces:
         search.count, search.pair_nodes, search.pair_kind = self._count, self._nodes, self._kind
         search.pair_area = self._pair_area
         search.node_world, search.grouped = self._node_world, int(m.world_count > 1)
-        for rows, target, kind, row_area, target_area, same in self._queries:
+        search.keys, search.slot_of = self._sort.keys, self._sort.values
+        search.row_count, search.target_count = self._row_starts[-1], self._target_count
+        for (rows, target, kind, row_area, target_area, same), first in zip(self._queries, self._row_starts):
             if rows.shape[0] == 0 or target.count == 0:
                 continue
             if kind == "vf":
                 wp.launch(k.vertex_face_pairs, rows.shape[0], device=self.device,
-                          inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, search],
+                          inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, search, first],
                           record_tape=False)
             else:
                 wp.launch(k.edge_edge_pairs, rows.shape[0], device=self.device,
-                          inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, same, search],
+                          inputs=[target.bvh.id, x, rows, target.indices, row_area, target_area, same, search,
+                                  first],
                           record_tape=False)
         if self.budget is not None:  # a captured step: no read; sort_pairs raises spill where it found more
             size = self.budget
@@ -199,11 +207,16 @@ class ProximityForces:
                     f"proximity pair buffer overflow: {size} pairs found but the capacity is {self.capacity}; "
                     f"raise CollisionOptions.contact_capacity to at least {size}")
             self.last_count = size
-        # each world's pairs in the order found (so a world's pairs are those a model of that world alone finds, in
-        # the same order), each world's first pair (each world's CG reads its own range), the number held
-        wp.launch(k.sort_pairs, 1, device=self.device,
-                  inputs=[self._count, size, self._node_world, self._nodes, m.world_count],
-                  outputs=[self.pair_world_start, self._order, self._held, self.spill], record_tape=False)
+        # the pairs held, sorted by key (a world's pairs are those a model of that world alone finds, in the same
+        # order, on either device), and each world's first pair (each world's CG reads its own range)
+        wp.launch(k.hold_pairs, max(size, 1), device=self.device, inputs=[self._count, size, m.world_count],
+                  outputs=[self._sort.keys, self._sort.values, self._held, self.spill, self.pair_world_start],
+                  record_tape=False)
+        self._sort.sort(size)
+        if m.world_count > 1:
+            wp.launch(world_starts, m.world_count + 1, device=self.device,
+                      inputs=[self._sort.keys, self._held, self._world_span], outputs=[self.pair_world_start],
+                      record_tape=False)
         return size
 
     def _read_count(self) -> int:
@@ -241,13 +254,11 @@ class ProximityForces:
             weights = wp.empty(count, dtype=model.types.vec4, device=dev)
             stiffness = wp.empty(count, dtype=model.types.mat33, device=dev)
             world_start, held = wp.clone(world_start), wp.clone(held)
-        elif self._sorted is not None:
+        else:
             nodes, kind, area = self._sorted
-        if nodes is not self._nodes:  # the pairs in world order (one world: as found)
-            wp.launch(k.gather_pairs, count, device=dev,
-                      inputs=[self._order, int(model.world_count > 1), held, self._nodes, self._kind,
-                              self._pair_area],
-                      outputs=[nodes, kind, area], record_tape=False)
+        wp.launch(k.gather_pairs, count, device=dev, inputs=[self._sort.order, held, self._nodes, self._kind,
+                                                             self._pair_area],
+                  outputs=[nodes, kind, area], record_tape=False)
         pairs = ProximityPairs(count, nodes, weights, stiffness, world_start, held)
         inputs = self.pair_inputs(x, velocity, nodes, kind, area, held, implicit_dt)
         pairs.inputs = inputs

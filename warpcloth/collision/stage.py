@@ -205,7 +205,7 @@ class CollisionStage:
             # kept, and the replay reads the check afterwards (mismatch), running the step again where it found
             # some
             self.detector.set_world_modes(self._full_thickness)
-            self.detector.detect_on_device(start, self._reference, self._reference, read=False)
+            self.detector.detect_on_device(start, self._reference, self._reference, expected=0)
             wp.launch(expect_found, 1, device=self.device, inputs=[self.detector.flags, 0, 0, self.mismatch],
                       record_tape=False)
             z = x_hat
