@@ -128,6 +128,13 @@ def contact(d: dict) -> str:
     return "\n".join(out)
 
 
+def bvh_update(d: dict) -> str:
+    rows = [[name, c["particles"], c["steps"], g(c["rebuild_ms_per_step"]), g(c["refit_ms_per_step"]),
+             f"{g(c['speedup'])}×", _diff(c["max_diff_m"])] for name, c in d["cases"].items()]
+    return "\n".join([table(["case", "particles", "steps", "rebuilt ms/step", "refitted ms/step", "speed-up",
+                             "largest difference [m]"], rows), "", provenance(d)])
+
+
 def contact_gradients(d: dict) -> str:
     def num(x):
         return g(x, 4) if abs(x) < 1e5 else sci(float(f"{x:.2g}"))
@@ -936,6 +943,7 @@ BLOCKS = {
     "prediction": prediction,
     "contact": contact,
     "contact_gradients": contact_gradients,
+    "bvh_update": bvh_update,
 }
 
 

@@ -46,6 +46,7 @@ BENCHMARKS = {
     "jobs": (("records", "workers", "target_speedup"), True, True),
     "global_search": (("scene", "target", "optimizers"), False, False),
     "estimation_batch": (("records", "iters", "reps"), True, False),
+    "bvh_update": (("cases",), False, False),
 }
 
 

@@ -100,10 +100,11 @@ class RowSort:
     whose keys lie below ``key_bound``: a stable parallel sort on both devices, so that rows appended through an
     atomic counter (on CUDA in no set order) come out in one order, the order their keys say."""
 
-    def __init__(self, capacity: int, key_bound: int, device):
+    def __init__(self, capacity: int, key_bound: int, device, what: str = "rows"):
         m = max(int(capacity), 1)
         if key_bound >= 2**63:
-            raise ValueError(f"sort keys up to {key_bound} do not fit in int64")
+            raise ValueError(f"the sort keys of the {what} ({key_bound}) do not fit in int64: a model this large "
+                             "cannot be simulated as one")
         self.keys = wp.zeros(2 * m, dtype=wp.int64, device=device)
         """Each row's key (the sort needs twice the rows' room)."""
         self.values = wp.zeros(2 * m, dtype=wp.int32, device=device)

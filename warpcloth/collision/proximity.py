@@ -134,7 +134,8 @@ class ProximityForces:
         self._row_starts = [int(r) for r in np.cumsum([0] + [q[0].shape[0] for q in self._queries])]
         self._target_count = max([q[1].count for q in self._queries] + [1])
         self._world_span = max(self._row_starts[-1], 1) * self._target_count  # the keys of one world
-        self._sort = RowSort(self.capacity, model.world_count * self._world_span, dev)
+        self._sort = RowSort(self.capacity, model.world_count * self._world_span, dev,
+                             "proximity pairs (worlds x query rows x target primitives)")
         self._sorted = (wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
                         wp.zeros(self.capacity, dtype=wp.int32, device=dev),
                         wp.zeros(self.capacity, dtype=scalar, device=dev))

@@ -54,13 +54,15 @@ class CollisionOptions:
     the adjoint by CG on the active set; contacts and gradients stay on the device) or ``"numpy"`` (per impact zone
     on the host: dual Gauss-Seidel, then an active set; its adjoint by the QR formula or, ``adjoint="kkt"``, the dense
     KKT system: the seed's method and the tests' oracle)."""
-    bvh: str = "rebuild"
-    """How each detection brings its BVHs to the current positions: ``"rebuild"`` (a new topology from the current
-    boxes, in place: a step then depends on its inputs alone, bitwise) or ``"refit"`` (the topology of the
-    Simulator's first detection, its boxes moved: faster, 5.1 against 7.4 ms a step of the 24x24 cloth draped on a
-    sphere, 24 against 31 ms at 64x64, benchmarks/contact.py; but the order in which a query finds pairs, and so
-    the rounding of their sums, then depends on where that first detection found the cloth: results differ from a
-    fresh Simulator's by 4e-13 to 7e-11 m after 10 steps of a draped cloth)."""
+    bvh: str = "refit"
+    """How each detection brings its BVHs to the current positions: ``"refit"`` (the topology of the Simulator's
+    first detection, its boxes moved) or ``"rebuild"`` (a new topology from the current boxes, in place). The results
+    are the same, bitwise on the CPU: a BVH's topology orders a query's visits only, and the contacts and proximity
+    pairs are sorted by key afterwards (warpcloth/collision/detection.py RowSort). Refitting was faster in every
+    scene measured (benchmarks/bvh_update.py, uncaptured, medians of three runs: 4.99 against 7.05 ms a step of the
+    24x24 cloth draped on a sphere, 21.3 against 28.0 at 64x64, 9.7 against 12.6 with self-collision, 0.54 against
+    0.57 ms for the throw). Rebuilding may pay where a cloth ends far from the shape it started in (a pile crumpled
+    from a flat sheet), whose refitted boxes grow and overlap; no scene here has measured that."""
 
     def __post_init__(self):
         self.validate()
