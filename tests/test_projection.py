@@ -1,6 +1,7 @@
 """The collision QP over impact zones (warpcloth/collision/projection.py): KKT conditions, an independent oracle,
 the QR and dense KKT adjoints against each other and against central finite differences, and the errors."""
 
+import functools
 import itertools
 
 import numpy as np
@@ -659,7 +660,7 @@ def test_gram_cholesky_is_qr_r_without_q_and_drops_dependent_columns():
 # The device solver (kernels/projection.py): the same problem over all contacts at once, no zones
 
 
-def _device_solve(prob, **kw):
+def _device_solve(prob, device, **kw):
     import warp as wp
 
     from warpcloth.collision.device_projection import DeviceProjection
@@ -667,24 +668,25 @@ def _device_solve(prob, **kw):
     n, V = prob["x_hat"].shape[0], prob["obstacle_x"].shape[0]
     inv_mass = np.zeros(n + V)
     inv_mass[:n] = np.where(prob["fixed"], 0.0, 1.0 / prob["mass"])
-    solver = DeviceProjection("cpu", n + V, prob["nodes"].shape[0])
+    solver = DeviceProjection(device, n + V, prob["nodes"].shape[0])
+    on = functools.partial(wp.array, device=device)
     solution = solver.project(
-        wp.array(np.concatenate([prob["x_hat"], prob["obstacle_x"]]), dtype=wp.vec3d),
-        wp.array(np.concatenate([~prob["fixed"], np.zeros(V, bool)]).astype(np.int32), dtype=wp.int32),
-        wp.array(inv_mass, dtype=wp.float64), wp.array(prob["nodes"].astype(np.int32), dtype=wp.int32),
-        wp.array(prob["weights"], dtype=wp.vec4d), wp.array(prob["normals"], dtype=wp.vec3d),
+        on(np.concatenate([prob["x_hat"], prob["obstacle_x"]]), dtype=wp.vec3d),
+        on(np.concatenate([~prob["fixed"], np.zeros(V, bool)]).astype(np.int32), dtype=wp.int32),
+        on(inv_mass, dtype=wp.float64), on(prob["nodes"].astype(np.int32), dtype=wp.int32),
+        on(prob["weights"], dtype=wp.vec4d), on(prob["normals"], dtype=wp.vec3d),
         prob["nodes"].shape[0], prob["thickness"], keep=True, **kw)
     return solver, solution
 
 
 @pytest.mark.parametrize("problem", ["random", "layered", "dependent"])
-def test_device_solver_and_adjoint_match_the_zone_solver_and_the_kkt_adjoint(problem):
+def test_device_solver_and_adjoint_match_the_zone_solver_and_the_kkt_adjoint(problem, device):
     probs = {"random": lambda: clean_problems(3, groups=3),
              "layered": lambda: [layered_problem(7, res=6)],
              "dependent": lambda: [random_problem(s, duplicates=True, split=True) for s in range(2)]}[problem]()
     for prob in probs:
         res = solve(prob, tol=1e-13)
-        solver, solution = _device_solve(prob, tol=1e-13)
+        solver, solution = _device_solve(prob, device, tol=1e-13)
         assert solution.converged
         n = prob["x_hat"].shape[0]
         np.testing.assert_allclose(solution.z.numpy()[:n], res.z, rtol=0, atol=1e-12)
@@ -702,7 +704,7 @@ def test_device_solver_and_adjoint_match_the_zone_solver_and_the_kkt_adjoint(pro
 
 
 @pytest.mark.parametrize("tilt", [1e-7, 1e-9, 0.0])
-def test_device_adjoint_of_nearly_dependent_contacts_drops_them_as_the_qr_adjoint_does(tilt):
+def test_device_adjoint_of_nearly_dependent_contacts_drops_them_as_the_qr_adjoint_does(tilt, device):
     # One particle pressed onto an obstacle triangle by two contacts whose normals are ``tilt`` rad apart: their
     # rows of H = G W^-1 G^T are dependent to within tilt^2. Both are active at the solution, but any perturbation
     # leaves one of them alone binding, and either one fixes only the particle's height: dz/dx^ keeps x and y (what
@@ -716,7 +718,7 @@ def test_device_adjoint_of_nearly_dependent_contacts_drops_them_as_the_qr_adjoin
                 nodes=np.array([[0, 1, 2, 3]] * 2), weights=np.array([[1.0, -0.25, -0.25, -0.5]] * 2),
                 normals=normals, thickness=1e-3)
     res = solve(prob, tol=1e-13)
-    solver, solution = _device_solve(prob, tol=1e-13)
+    solver, solution = _device_solve(prob, device, tol=1e-13)
     assert solution.converged
     g = np.array([[0.3, -0.7, 1.1]])
     qr = backward(res, g, mode="qr")[0]
@@ -727,11 +729,11 @@ def test_device_adjoint_of_nearly_dependent_contacts_drops_them_as_the_qr_adjoin
     np.testing.assert_allclose(dev, qr, atol=1e-4)
 
 
-def test_device_solver_reports_contacts_no_positions_satisfy():
+def test_device_solver_reports_contacts_no_positions_satisfy(device):
     # a particle pressed between two obstacle planes 0.5 delta apart: infeasible
     prob = dict(x_hat=np.zeros((1, 3)), mass=np.ones(1), fixed=np.zeros(1, bool),
                 obstacle_x=np.array([[0, 0, -0.25 * DELTA], [0, 0, 0.25 * DELTA]], dtype=float),
                 nodes=np.array([[0, 1, 1, 1], [0, 2, 2, 2]]), weights=np.array([[1.0, -1.0, 0, 0], [1.0, -1.0, 0, 0]]),
                 normals=np.array([[0, 0, 1.0], [0, 0, -1.0]]), thickness=DELTA)
-    _, solution = _device_solve(prob, max_iters=500)
+    _, solution = _device_solve(prob, device, max_iters=500)
     assert not solution.converged and solution.unbounded
