@@ -90,10 +90,10 @@ PROJECTION_ONLY = ("projection only", "fail-safe only")
 projection passes), so the collision stage's fail-safe, rigid impact zones, resolves every step with contacts."""
 
 
-def build(scene, contact, solver):
+def build(scene, contact, solver, device):
     b, steps = scene(contact)
     b.set_collision(self_collision=scene is cloth_on_cloth, **CONTACT[contact])
-    model = b.finalize("cpu", dtype=wp.float64, requires_grad=True)
+    model = b.finalize(device, dtype=wp.float64, requires_grad=True)
     rounds = 0 if contact == "fail-safe only" else wc.CollisionOptions().rounds
     options = wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30, cg_max_iters=2000,
                                collision=wc.CollisionOptions(solver=solver, qp_tol=1e-12, rounds=rounds))
@@ -135,24 +135,26 @@ def parameters(model, control, state, contact):
     return out
 
 
-def check(scene, contact, solver):
-    model, sim, steps = build(scene, contact, solver)
+def check(scene, contact, solver, device):
+    model, sim, steps = build(scene, contact, solver, device)
     rng = np.random.default_rng(4)
     n = model.particle_count
-    cx = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d)
-    cv = wp.array(1e-2 * rng.standard_normal((n, 3)), dtype=wp.vec3d)
+    cx = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d, device=model.device)
+    cv = wp.array(1e-2 * rng.standard_normal((n, 3)), dtype=wp.vec3d, device=model.device)
     state, control = model.state(), model.control(particle_force=True)
 
     def loss(tape=None):
-        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        out = wp.zeros(1, dtype=wp.float64, requires_grad=True, device=model.device)
         start = wc.State(wp.clone(state.particle_x), wp.clone(state.particle_v)) if tape is None else state
         if tape is not None:
             with tape:
                 final = wc.rollout(sim, start, control, steps=steps)[-1]
-                wp.launch(_linear_loss, n, inputs=[final.particle_x, final.particle_v, cx, cv], outputs=[out])
+                wp.launch(_linear_loss, n, inputs=[final.particle_x, final.particle_v, cx, cv], outputs=[out],
+                          device=model.device)
         else:
             final = wc.rollout(sim, start, control, steps=steps)[-1]
-            wp.launch(_linear_loss, n, inputs=[final.particle_x, final.particle_v, cx, cv], outputs=[out])
+            wp.launch(_linear_loss, n, inputs=[final.particle_x, final.particle_v, cx, cv], outputs=[out],
+                      device=model.device)
         return out
 
     tape = wp.Tape()
@@ -195,8 +197,8 @@ SCENES = [sliding, resting, edge_landing, cloth_on_cloth]
 @pytest.mark.parametrize("solver", ["device", "numpy"])
 @pytest.mark.parametrize("contact", list(CONTACT))
 @pytest.mark.parametrize("scene", SCENES, ids=lambda s: s.__name__)
-def test_tape_matches_converged_central_differences(scene, contact, solver):
-    results = check(scene, contact, solver)
+def test_tape_matches_converged_central_differences(scene, contact, solver, device):
+    results = check(scene, contact, solver, device)
     floor = FLOOR * max(abs(fd) for _, fds in results.values() for fd in fds)
     checked, failures = [], []
     for name, (tape_value, fds) in results.items():

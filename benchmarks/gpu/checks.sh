@@ -43,5 +43,8 @@ tail -n 6 "$out/global_search.log" >> "$out/summary.txt"
 part estimation_batch 240 $py "$root/benchmarks/estimation_batch.py" --device cuda:0 --reps 1 \
   --fabrics tango-red-jet-set --iters 60 --out "$out/estimation_batch_cuda.json"  # issue 38: a search's trials as worlds
 tail -n 7 "$out/estimation_batch.log" >> "$out/summary.txt"
+# not in the default PARTS: every optimisable parameter's gradient through contact, against central differences
+part gradient_matrix 400 $py -m pytest -q -p no:cacheprovider -k cuda "$root/tests/test_contact_gradient_matrix.py"
+tail -n 5 "$out/gradient_matrix.log" >> "$out/summary.txt"
 part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0 ${VARIANT:+--variant $VARIANT}
 cat "$out/capture_probe.log" >> "$out/summary.txt"
