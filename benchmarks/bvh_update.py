@@ -9,6 +9,8 @@ Cases, each uncaptured (``wc.rollout``), the two options interleaved, medians of
   drape        the drape-sphere scene (a 1 m gray-interlock square dropped on a 0.3 m sphere, repulsion and friction,
                dt 0.01) at its 24x24 grid, 100 steps, and at 64x64, 50 steps
   drape+self   the 24x24 drape with self-collision (the cloth folds over the sphere onto itself)
+  pile+self    a 0.6 m 24x24 sheet dropped upright onto the ground, self-collision and friction, dt 0.005, 300 steps:
+               it buckles and piles onto itself, far from the flat shape the refitted BVHs were built on
   throw        the seed's basket throw (8x8, 700 steps) at the open loop's pushes, which land it in the basket
                (benchmarks/results/motion_control.json), forward only
 
@@ -36,6 +38,16 @@ def drape_model(res: int, self_collision: bool) -> tuple[wc.Model, float]:
     b.add_obstacle_sphere(0.3, subdivisions=3)
     b.set_collision(self_collision=self_collision, obstacle_friction=0.3)
     return b.finalize("cpu"), scene.dt
+
+
+def pile_model(res: int) -> wc.Model:
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.8))
+    upright = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # the grid's XY onto world XZ
+    b.add_cloth_grid((res, res), (0.6, 0.6), material=wc.preset("gray-interlock", thicken=2), pos=(-0.3, 0.0, 0.02),
+                     rot=upright)
+    b.add_obstacle_plane((3.0, 3.0))
+    b.set_collision(self_collision=True, friction=0.3, obstacle_friction=0.3)
+    return b.finalize("cpu")
 
 
 def landing_pushes(n_params: int) -> np.ndarray:
@@ -111,6 +123,8 @@ def main():
     model, dt = drape_model(8 if quick else 24, True)
     cases[f"drape+self {8 if quick else 24}x{8 if quick else 24}"] = compare(model, dt, 10 if quick else 100,
                                                                              args.reps)
+    res = 8 if quick else 24
+    cases[f"pile+self {res}x{res}"] = compare(pile_model(res), 0.005, 20 if quick else 300, args.reps)
     cases["throw"] = throw(60 if quick else None, args.reps)
     common.print_table(["case", "particles", "steps", "rebuild ms/step", "refit ms/step", "speedup", "max diff m",
                         "contacts", "pairs"],
