@@ -276,6 +276,35 @@ def test_zero_stiffness_costs_nothing_and_overflow_names_the_capacity():
         sim.step(model.state(), model.empty_state())
 
 
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64])
+def test_pairs_are_found_out_to_the_search_radius_and_no_further(dtype, device):
+    """Pairs at a gap just inside twice the repulsion thickness are found, none just outside it: a square patch over
+    a plane (its four vertices over the plane's face: vertex-face pairs), and two strips crossing like a "+", one
+    above the other (their edges cross, no vertex lies over a face: edge-edge pairs). The queries' boxes are grown
+    by float32 rounding only and the targets' by the radius (kernels/proximity.py primitive_boxes), so a pair just
+    inside the radius is what a box too small would miss."""
+    radius = 2.0 * 5.0e-3  # twice the default repulsion thickness
+
+    def patch_over_plane(b, gap):
+        b.add_cloth_grid((1, 1), (0.1, 0.1), material=MATERIAL, pos=(0.05, 0.07, gap))
+        b.add_obstacle_plane((1.0, 1.0), pos=(0.1, 0.1, 0.0))
+        b.set_collision()
+
+    def crossing_strips(b, gap):
+        b.add_cloth_grid((1, 1), (0.2, 0.02), material=MATERIAL, pos=(-0.1, -0.01, 0.0))
+        b.add_cloth_grid((1, 1), (0.02, 0.2), material=MATERIAL, pos=(-0.01, -0.1, gap))
+        b.set_collision(self_collision=True)
+
+    for scene, expected in ((patch_over_plane, 4), (crossing_strips, 4)):
+        counts = []
+        for gap in (radius * (1.0 - 1e-3), radius * (1.0 + 1e-3)):
+            b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+            scene(b, gap)
+            sim = wc.Simulator(b.finalize(device, dtype=dtype), 0.01)
+            counts.append(sim.assemble(sim.model.state())[2].count)
+        assert counts[0] >= expected and counts[1] == 0, (scene.__name__, counts)
+
+
 @wp.kernel
 def _linear_loss(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), cx: wp.array(dtype=wp.vec3d),
                  cv: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
