@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from warpcloth.kernels.contact import WORLD_SKIPPED
-from warpcloth.kernels.geometry import segment_parameters, span_coordinates, world_root
+from warpcloth.kernels.geometry import box_rounding, segment_parameters, span_coordinates, world_root
 from warpcloth.kernels.types import per_precision, types
 
 wp.set_module_options({"enable_backward": False})
@@ -416,8 +416,7 @@ def collision_kernels(scalar):
             b = wp.vec3(x1[j])
             lo = wp.min(lo, wp.min(a, b))
             hi = wp.max(hi, wp.max(a, b))
-        # float32 boxes: widen by the rounding of their coordinates too
-        g = pad + 1.0e-6 * (wp.max(wp.abs(lo)) + wp.max(wp.abs(hi)))
+        g = pad + box_rounding(lo, hi)
         lowers[i] = lo - wp.vec3(g, g, g)
         uppers[i] = hi + wp.vec3(g, g, g)
 

@@ -111,6 +111,13 @@ def triangle_barycentric(p: Any, a: Any, b: Any, c: Any):
     return one - v - w, v, w
 
 
+@wp.func
+def box_rounding(lo: wp.vec3, hi: wp.vec3):
+    """What a float32 bounding box is widened by, beyond any search distance: the rounding of its coordinates, many
+    times over (detection's swept boxes and the proximity pairs' boxes alike)."""
+    return 1.0e-6 * (wp.max(wp.abs(lo)) + wp.max(wp.abs(hi)))
+
+
 KEY_END = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
 """The sort key of an empty slot: after every row's."""
 

@@ -44,7 +44,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.geometry import KEY_END, segment_parameters, triangle_barycentric, world_root
+from warpcloth.kernels.geometry import KEY_END, box_rounding, segment_parameters, triangle_barycentric, world_root
 from warpcloth.kernels.types import per_precision, types
 
 COINCIDENT = 1.0e-9
@@ -87,12 +87,6 @@ def proximity_kernels(scalar):
         # zero force, so the forces stay continuous as closest points slide along the edges.
         return wp.clamp(wp.min(s, scalar(1.0) - s) / scalar(EDGE_FADE), scalar(0.0), scalar(1.0))
 
-    @wp.func
-    def rounding(lo: wp.vec3, hi: wp.vec3):
-        # what float32 boxes are widened by: the rounding of their coordinates, many times over
-        g = 1.0e-6 * (wp.max(wp.abs(lo)) + wp.max(wp.abs(hi)))
-        return wp.vec3(g, g, g)
-
     @wp.kernel(enable_backward=False)
     def primitive_boxes(x: wp.array(dtype=vec3), indices: wp.array2d(dtype=wp.int32), radius: float,
                         # out:
@@ -107,7 +101,8 @@ def proximity_kernels(scalar):
             p = wp.vec3(x[indices[i, c]])
             lo = wp.min(lo, p)
             hi = wp.max(hi, p)
-        pad = wp.vec3(radius, radius, radius) + rounding(lo, hi)
+        g = radius + box_rounding(lo, hi)
+        pad = wp.vec3(g, g, g)
         lowers[i] = lo - pad
         uppers[i] = hi + pad
 
@@ -167,7 +162,8 @@ def proximity_kernels(scalar):
         root = world_root(bvh, search.grouped, search.node_world[q])
         if root == -2:
             return
-        pad = rounding(wp.vec3(p), wp.vec3(p))  # the targets' boxes hold the radius (primitive_boxes)
+        g = box_rounding(wp.vec3(p), wp.vec3(p))  # the targets' boxes hold the radius (primitive_boxes)
+        pad = wp.vec3(g, g, g)
         query = wp.bvh_query_aabb(bvh, wp.vec3(p) - pad, wp.vec3(p) + pad, root)
         j = int(0)
         best = search.radius
@@ -214,7 +210,8 @@ def proximity_kernels(scalar):
         root = world_root(bvh, search.grouped, search.node_world[e0])
         if root == -2:
             return
-        pad = rounding(lo, hi)  # the targets' boxes hold the radius (primitive_boxes)
+        g = box_rounding(lo, hi)  # the targets' boxes hold the radius (primitive_boxes)
+        pad = wp.vec3(g, g, g)
         query = wp.bvh_query_aabb(bvh, lo - pad, hi + pad, root)
         j = int(0)
         while wp.bvh_query_next(query, j):
