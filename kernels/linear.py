@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from warpcloth.kernels.blocks import block_barrier, block_sum
 from warpcloth.kernels.types import per_precision, types
 
 wp.set_module_options({"enable_backward": False})
@@ -437,13 +438,6 @@ def linear_kernels(scalar):
         info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
 
     @wp.func
-    def block_sum(value: wp.float64):
-        """The sum of ``value`` over the threads of the block, returned to every thread. A tile reduction, so it is
-        also a barrier: what the block's threads wrote before it, every thread reads after it. (On the CPU a
-        block is one thread.)"""
-        return wp.tile_sum(wp.tile(value))[0]
-
-    @wp.func
     def add_row_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), lo: int, hi: int,
                          lane: int, stride: int):
         """q = (A p) on rows [lo, hi) from full rows (no scatter, so no two threads write one row), the rows
@@ -517,9 +511,9 @@ def linear_kernels(scalar):
         if warm_start != 0:
             add_row_products(A, x, r, lo, hi, lane, stride)  # r = A x0 for now
             if pairs:
-                block_sum(wp.float64(0.0))
+                block_barrier()
                 add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
-            block_sum(wp.float64(0.0))
+            block_barrier()
         rr = wp.float64(0.0)
         rz = wp.float64(0.0)
         i = lo + lane
@@ -541,7 +535,7 @@ def linear_kernels(scalar):
         while it < max_iters and rnorm > threshold:  # the same on every thread: reduced values only
             pq = add_row_products(A, p, q, lo, hi, lane, stride)
             if pairs:
-                block_sum(wp.float64(0.0))
+                block_barrier()
                 pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
             pq = block_sum(pq)
             alpha = scalar(rz / pq)
@@ -566,7 +560,7 @@ def linear_kernels(scalar):
             while i < hi:
                 p[i] = z[i] + beta * p[i]
                 i += stride
-            block_sum(wp.float64(0.0))  # every p written before the next product reads it
+            block_barrier()  # every p written before the next product reads it
             rnorm = wp.sqrt(rr)
             it += 1
         if lane == 0:

@@ -6,8 +6,10 @@ free particles and h_j = delta - sum_{constant a} w_ja n_j . p_a, the constraint
 
     min_z 1/2 (z - x^)^T W (z - x^)  s.t.  c(z) >= 0,   z = x^ + W^-1 G^T lam,  lam >= 0,  lam_j c_j = 0.
 
-Solver (one thread per world, on that world's contacts: worlds share no node, so each is its own QP, solved as a
-model of that world alone solves it, bit for bit; the CPU runs Warp kernels on one thread anyway): the dual, min 1/2
+Solver (one thread block per world, on that world's contacts: worlds share no node, so each is its own QP, solved
+as a model of that world alone solves it; the block's threads share the contacts, and its dot products and maxima
+are block reductions, kernels/blocks.py; on the CPU a block is one thread, which solves a world bit for bit as a
+model of that world alone does): the dual, min 1/2
 lam^T H lam - b^T lam over lam >= 0 (H = G W^-1 G^T applied matrix-free, b = h - G x^), by MPRGP (Dostal's modified
 proportioning with reduced gradient projections: conjugate gradient steps on the free multipliers, expansion steps
 by projected gradient when a step would cross the bound, proportioning steps that release multipliers whose gradient
@@ -27,6 +29,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from warpcloth.kernels.blocks import block_barrier, block_max, block_min, block_sum
 from warpcloth.kernels.types import per_precision, types
 
 CONVERGED = 0
@@ -161,53 +164,72 @@ def constraint(r: Rows, z: wp.array(dtype=wp.vec3d), j: int):
 
 @wp.func
 def push(r: Rows, z: wp.array(dtype=wp.vec3d), j: int, amount: wp.float64):
-    # z += W^-1 g_j^T amount
+    # z += W^-1 g_j^T amount (atomic: the block's threads push contacts that share nodes)
     for a in range(4):
         if r.fw[j][a] != wp.float64(0.0):
             node = r.nodes[j, a]
-            z[node] = z[node] + (r.fw[j][a] * r.inv_mass[node] * amount) * r.normal[j]
+            wp.atomic_add(z, node, (r.fw[j][a] * r.inv_mass[node] * amount) * r.normal[j])
+
+
+# The solver's functions below run on one thread block per world (launch_tiled): thread ``lane`` of ``stride``
+# owns the world's contacts lo + lane, lo + lane + stride, ... and writes only those entries of the per-contact
+# arrays; what crosses contacts goes through the per-node arrays (atomic pushes, read after a barrier) and the block
+# reductions of kernels/blocks.py. On the CPU a block is one thread, which owns every contact in order.
 
 
 @wp.func
-def dual_product(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
-                 scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+def dual_product(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.array(dtype=wp.int32),
+                 v: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
     # out = H_MM v on the contacts with mask != 0 (0 elsewhere); scratch: per node, zeroed on return
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         if mask[j] != 0:
             push(r, scratch, j, v[j])
-    for j in range(lo, hi):  # row_dot inlined: this loop is the solver's hot path, and a Rows argument is copied
+        j += stride
+    block_barrier()
+    j = lo + lane
+    while j < hi:  # row_dot inlined: this loop is the solver's hot path, and a Rows argument is copied
         o = wp.float64(0.0)
         if mask[j] != 0:
             for a in range(4):
                 if r.fw[j][a] != wp.float64(0.0):
                     o += r.fw[j][a] * wp.dot(r.normal[j], scratch[r.nodes[j, a]])
         out[j] = o
-    for j in range(lo, hi):
+        j += stride
+    block_barrier()
+    j = lo + lane
+    while j < hi:
         for a in range(4):
             scratch[r.nodes[j, a]] = wp.vec3d()
+        j += stride
+    block_barrier()
 
 
 @wp.func
-def shifted_product(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
-                    scratch: wp.array(dtype=wp.vec3d), shift: wp.float64, out: wp.array(dtype=wp.float64)):
+def shifted_product(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.array(dtype=wp.int32),
+                    v: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), shift: wp.float64,
+                    out: wp.array(dtype=wp.float64)):
     # out = (H_MM + shift diag(H)_MM) v
-    dual_product(r, lo, hi, mask, v, scratch, out)
-    for j in range(lo, hi):
+    dual_product(r, lo, hi, lane, stride, mask, v, scratch, out)
+    j = lo + lane
+    while j < hi:
         if mask[j] != 0:
             out[j] = out[j] + shift * r.diag[j] * v[j]
+        j += stride
 
 
 @wp.func
-def masked_cg(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), rhs: wp.array(dtype=wp.float64),
-              x: wp.array(dtype=wp.float64), res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64),
-              q: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), rtol: wp.float64, max_iters: int,
-              shift: wp.float64):
+def masked_cg(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.array(dtype=wp.int32),
+              rhs: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), res: wp.array(dtype=wp.float64),
+              p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d),
+              rtol: wp.float64, max_iters: int, shift: wp.float64):
     """CG on (H_MM + shift diag(H)_MM) x = rhs_M from x (masked entries only; Jacobi preconditioned). Returns the
     iterations."""
-    shifted_product(r, lo, hi, mask, x, scratch, shift, q)
+    shifted_product(r, lo, hi, lane, stride, mask, x, scratch, shift, q)
     rz = wp.float64(0.0)
     bnorm = wp.float64(0.0)
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         rj = wp.float64(0.0)
         if mask[j] != 0:
             rj = rhs[j] - q[j]
@@ -215,30 +237,43 @@ def masked_cg(r: Rows, lo: int, hi: int, mask: wp.array(dtype=wp.int32), rhs: wp
         res[j] = rj
         p[j] = rj / wp.max(r.diag[j], wp.float64(1.0e-300))
         rz += rj * p[j]
-    limit = rtol * rtol * bnorm
+        j += stride
+    rz = block_sum(rz)
+    limit = rtol * rtol * block_sum(bnorm)
     it = int(0)
     while it < max_iters:
         rr = wp.float64(0.0)
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             rr += res[j] * res[j]
+            j += stride
+        rr = block_sum(rr)
         if rr <= limit or rz <= wp.float64(0.0):
             break
-        shifted_product(r, lo, hi, mask, p, scratch, shift, q)
+        shifted_product(r, lo, hi, lane, stride, mask, p, scratch, shift, q)
         pq = wp.float64(0.0)
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             pq += p[j] * q[j]
+            j += stride
+        pq = block_sum(pq)
         if pq <= wp.float64(0.0):
             break
         alpha = rz / pq
         rz_new = wp.float64(0.0)
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             x[j] = x[j] + alpha * p[j]
             res[j] = res[j] - alpha * q[j]
             rz_new += res[j] * res[j] / wp.max(r.diag[j], wp.float64(1.0e-300))
+            j += stride
+        rz_new = block_sum(rz_new)
         beta = rz_new / rz
         rz = rz_new
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             p[j] = res[j] / wp.max(r.diag[j], wp.float64(1.0e-300)) + beta * p[j]
+            j += stride
         it += 1
     return it
 
@@ -250,25 +285,32 @@ def scale(r: Rows, j: int):
 
 
 @wp.func
-def scaled_product(r: Rows, lo: int, hi: int, ones: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.float64),
-                   tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+def scaled_product(r: Rows, lo: int, hi: int, lane: int, stride: int, ones: wp.array(dtype=wp.int32),
+                   v: wp.array(dtype=wp.float64), tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d),
+                   out: wp.array(dtype=wp.float64)):
     # out = D^-1 H D^-1 v (D = sqrt(diag H)): the Jacobi-scaled dual matrix
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         tmp[j] = v[j] / scale(r, j)
-    dual_product(r, lo, hi, ones, tmp, scratch, out)
-    for j in range(lo, hi):
+        j += stride
+    dual_product(r, lo, hi, lane, stride, ones, tmp, scratch, out)
+    j = lo + lane
+    while j < hi:
         out[j] = out[j] / scale(r, j)
+        j += stride
 
 
 @wp.func
-def dual_gradient(r: Rows, lo: int, hi: int, ones: wp.array(dtype=wp.int32), x_hat: wp.array(dtype=wp.vec3d),
-                  x: wp.array(dtype=wp.float64), tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d),
-                  g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64)):
+def dual_gradient(r: Rows, lo: int, hi: int, lane: int, stride: int, ones: wp.array(dtype=wp.int32),
+                  x_hat: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.float64), tmp: wp.array(dtype=wp.float64),
+                  scratch: wp.array(dtype=wp.vec3d), g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64)):
     # g = Hs x - bs (bs_j = (h_j - g_j x^) / D_j), the scaled dual's gradient, and p its free part
-    scaled_product(r, lo, hi, ones, x, tmp, scratch, g)
-    for j in range(lo, hi):
+    scaled_product(r, lo, hi, lane, stride, ones, x, tmp, scratch, g)
+    j = lo + lane
+    while j < hi:
         g[j] = g[j] - (r.h[j] - row_dot(r, x_hat, j)) / scale(r, j)
         p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+        j += stride
 
 
 @wp.kernel(enable_backward=False)
@@ -278,44 +320,57 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
           g: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), hp: wp.array(dtype=wp.float64),
           tmp: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), info: wp.array2d(dtype=wp.float64),
           failed: wp.array(dtype=wp.int32)):
-    # One thread per world, on its own slots (its own QP: worlds share no node). MPRGP on the Jacobi-scaled dual
-    # min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1, bs = D^-1 (h - G x^)); its gradient
+    # One thread block per world, on its own slots (its own QP: worlds share no node). MPRGP on the Jacobi-scaled
+    # dual min 1/2 x^T Hs x - bs^T x, x >= 0 (x = D lam, Hs = D^-1 H D^-1, bs = D^-1 (h - G x^)); its gradient
     # g = Hs x - bs is D^-1 c(z), so the stopping test max(|c_j| over x_j > 0, -c_j over x_j = 0) <= tol is the
     # projection's KKT test. Stops as NOT_CONVERGED when its residual has not halved in ``stall`` iterations
     # (contacts that contradict each other stall it). On entry lam (sorted) holds the warm start and z every node's
     # last positions; a world with solve_world 0 keeps them (it found nothing new), the others restart their
     # contacts' nodes from x^. failed[0] = 1 where a world ends other than CONVERGED (or with a non-finite KKT
-    # residual): the host reads that flag alone, and the worlds' info only then.
-    world = wp.tid()
+    # residual): the host reads that flag alone, and the worlds' info only then. Every branch below tests reduced
+    # values only, so the block's threads take it together.
+    world, lane = wp.tid()
+    stride = wp.block_dim()
     lo = r.start[world]
     hi = r.start[world + 1]
-    for c in range(5):
-        info[world, c] = wp.float64(0.0)
+    if lane == 0:
+        for c in range(5):
+            info[world, c] = wp.float64(0.0)
     if solve_world[world] == 0 or hi == lo:
         return
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         for a in range(4):
             node = r.nodes[j, a]
             z[node] = x_hat[node]
+        j += stride
     # the step of the expansions: 1.9 / ||Hs||, ||Hs|| by power iteration (x, g as scratch)
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         p[j] = wp.float64(1.0) + wp.float64(0.001) * wp.float64((j - lo) % 7)
+        j += stride
     norm = wp.float64(1.0)
     for _k in range(30):
-        scaled_product(r, lo, hi, ones, p, tmp, scratch, hp)
+        scaled_product(r, lo, hi, lane, stride, ones, p, tmp, scratch, hp)
         s = wp.float64(0.0)
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             s += hp[j] * hp[j]
-        norm = wp.sqrt(s)
+            j += stride
+        norm = wp.sqrt(block_sum(s))
         if norm <= wp.float64(0.0):
             break
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             p[j] = hp[j] / norm
+            j += stride
     step = wp.float64(1.9) / (wp.float64(1.05) * wp.max(norm, wp.float64(1.0e-300)))
     # start: x = D lam (projected)
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         x[j] = wp.where(r.diag[j] > wp.float64(0.0), wp.max(lam[j] * scale(r, j), wp.float64(0.0)), wp.float64(0.0))
-    dual_gradient(r, lo, hi, ones, x_hat, x, tmp, scratch, g, p)
+        j += stride
+    dual_gradient(r, lo, hi, lane, stride, ones, x_hat, x, tmp, scratch, g, p)
     status = int(NOT_CONVERGED)
     it = int(0)
     worst = wp.float64(0.0)
@@ -327,7 +382,8 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
         worst = wp.float64(0.0)
         bb = wp.float64(0.0)
         ff = wp.float64(0.0)
-        for j in range(lo, hi):
+        j = lo + lane
+        while j < hi:
             if x[j] > wp.float64(0.0):
                 worst = wp.max(worst, wp.abs(g[j]) * scale(r, j))
                 ff += wp.min(x[j] / step, g[j]) * g[j]
@@ -336,6 +392,10 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
                 worst = wp.max(worst, -beta * scale(r, j))
                 if r.diag[j] > wp.float64(0.0):
                     bb += beta * beta
+            j += stride
+        worst = block_max(worst)
+        bb = block_sum(bb)
+        ff = block_sum(ff)
         if worst <= tol:
             status = CONVERGED
             break
@@ -351,78 +411,101 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
             break
         it += 1
         if bb <= ff:
-            scaled_product(r, lo, hi, ones, p, tmp, scratch, hp)
+            scaled_product(r, lo, hi, lane, stride, ones, p, tmp, scratch, hp)
             php = wp.float64(0.0)
             gp = wp.float64(0.0)
             feasible = wp.float64(1.0e300)
-            for j in range(lo, hi):
+            j = lo + lane
+            while j < hi:
                 php += p[j] * hp[j]
                 gp += g[j] * p[j]
                 if p[j] > wp.float64(0.0):
                     feasible = wp.min(feasible, x[j] / p[j])
+                j += stride
+            php = block_sum(php)
+            gp = block_sum(gp)
+            feasible = block_min(feasible)
             a_cg = wp.where(php > wp.float64(0.0), gp / php, wp.float64(0.0))
             if a_cg <= feasible:  # conjugate gradient step
                 fhp = wp.float64(0.0)
-                for j in range(lo, hi):
+                j = lo + lane
+                while j < hi:
                     x[j] = x[j] - a_cg * p[j]
                     g[j] = g[j] - a_cg * hp[j]
                     if x[j] > wp.float64(0.0):
                         fhp += g[j] * hp[j]
-                gamma = fhp / php
-                for j in range(lo, hi):
+                    j += stride
+                gamma = block_sum(fhp) / php
+                j = lo + lane
+                while j < hi:
                     p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0)) - gamma * p[j]
+                    j += stride
             else:  # expansion: to the boundary, then a projected gradient step on the free set
-                for j in range(lo, hi):
+                j = lo + lane
+                while j < hi:
                     x[j] = wp.max(x[j] - feasible * p[j], wp.float64(0.0))
                     g[j] = g[j] - feasible * hp[j]
-                for j in range(lo, hi):
                     if x[j] > wp.float64(0.0):
                         x[j] = wp.max(x[j] - step * g[j], wp.float64(0.0))
-                dual_gradient(r, lo, hi, ones, x_hat, x, tmp, scratch, g, p)
+                    j += stride
+                dual_gradient(r, lo, hi, lane, stride, ones, x_hat, x, tmp, scratch, g, p)
         else:  # proportioning: release the contacts whose multipliers should grow
-            for j in range(lo, hi):
+            j = lo + lane
+            while j < hi:
                 chopped = wp.min(g[j], wp.float64(0.0))
-                tmp[j] = wp.where(x[j] > wp.float64(0.0) or r.diag[j] <= wp.float64(0.0), wp.float64(0.0), chopped)
-            for j in range(lo, hi):
-                p[j] = tmp[j]
-            scaled_product(r, lo, hi, ones, p, tmp, scratch, hp)
+                p[j] = wp.where(x[j] > wp.float64(0.0) or r.diag[j] <= wp.float64(0.0), wp.float64(0.0), chopped)
+                j += stride
+            scaled_product(r, lo, hi, lane, stride, ones, p, tmp, scratch, hp)
             dhd = wp.float64(0.0)
             gd = wp.float64(0.0)
-            for j in range(lo, hi):
+            j = lo + lane
+            while j < hi:
                 dhd += p[j] * hp[j]
                 gd += g[j] * p[j]
+                j += stride
+            dhd = block_sum(dhd)
+            gd = block_sum(gd)
             if dhd <= wp.float64(0.0):  # H d = 0 while g.d < 0: the dual is unbounded below
                 status = UNBOUNDED
                 break
             a_p = gd / dhd
-            for j in range(lo, hi):
+            j = lo + lane
+            while j < hi:
                 x[j] = x[j] - a_p * p[j]
                 g[j] = g[j] - a_p * hp[j]
-            for j in range(lo, hi):
                 p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
+                j += stride
     # lam = D^-1 x and z = x^ + W^-1 G^T lam
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         lam[j] = x[j] / scale(r, j)
         if lam[j] != wp.float64(0.0):
             push(r, z, j, lam[j])
+        j += stride
+    block_barrier()
     violated = wp.float64(0.0)
-    finite = bool(True)  # wp.max drops a NaN, so the tests above and below cannot see one
-    for j in range(lo, hi):
+    broken = wp.float64(0.0)  # wp.max drops a NaN, so the tests above and below cannot see one: count them
+    j = lo + lane
+    while j < hi:
         gap = constraint(r, z, j)
         if not (wp.isfinite(gap) and wp.isfinite(lam[j])):
-            finite = bool(False)
+            broken += wp.float64(1.0)
         violated = wp.max(violated, -gap)
+        j += stride
+    violated = block_max(violated)
+    finite = block_sum(broken) == wp.float64(0.0)
     if status == CONVERGED and not (finite and violated <= FALSE_CONVERGENCE * tol):
         # the test above reads the gradient updated step by step, which drifts from c(z) where the multipliers grow
         # huge (contacts nearly contradicting each other): a contact violated by 4e-5 m passed it
         status = NOT_CONVERGED
-    info[world, 0] = wp.float64(status)
-    info[world, 1] = wp.float64(it)
-    info[world, 2] = worst
-    if status != CONVERGED or not wp.isfinite(worst):
-        failed[0] = 1
-    info[world, 3] = norm
-    info[world, 4] = violated
+    if lane == 0:
+        info[world, 0] = wp.float64(status)
+        info[world, 1] = wp.float64(it)
+        info[world, 2] = worst
+        if status != CONVERGED or not wp.isfinite(worst):
+            failed[0] = 1
+        info[world, 3] = norm
+        info[world, 4] = violated
 
 
 @wp.kernel(enable_backward=False)
@@ -431,37 +514,49 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64,
             res: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64),
             correction: wp.array(dtype=wp.float64), remainder: wp.array(dtype=wp.float64),
             scratch: wp.array(dtype=wp.vec3d), info: wp.array2d(dtype=wp.float64)):
-    # One thread per world, on its own slots. d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0
+    # One thread block per world, on its own slots. d_z (per node, in/out): W^-1 grad_z on entry for free nodes, 0
     # elsewhere; on return W^-1 (g - G_A^T d_lam)
-    world = wp.tid()
+    world, lane = wp.tid()
+    stride = wp.block_dim()
     lo = r.start[world]
     hi = r.start[world + 1]
     max_iters = 10 * (hi - lo) + 100
     shift = wp.float64(DEPENDENT_SHIFT)
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
         rhs[j] = wp.where(active[j] != 0, row_dot(r, d_z, j), wp.float64(0.0))
         d_lam[j] = wp.float64(0.0)
-    iters = masked_cg(r, lo, hi, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters, shift)
+        j += stride
+    iters = masked_cg(r, lo, hi, lane, stride, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters, shift)
     # iterative refinement against the unshifted H_AA: it takes the shift's error off independent contacts (a
     # factor shift * cond(H_AA) a pass) and leaves dependent ones damped
     for _refine in range(REFINEMENTS):
-        dual_product(r, lo, hi, active, d_lam, scratch, q)
-        for j in range(lo, hi):
+        dual_product(r, lo, hi, lane, stride, active, d_lam, scratch, q)
+        j = lo + lane
+        while j < hi:
             remainder[j] = rhs[j] - q[j]
             correction[j] = wp.float64(0.0)
-        iters += masked_cg(r, lo, hi, active, remainder, correction, res, p, q, scratch, rtol, max_iters, shift)
-        for j in range(lo, hi):
+            j += stride
+        iters += masked_cg(r, lo, hi, lane, stride, active, remainder, correction, res, p, q, scratch, rtol,
+                           max_iters, shift)
+        j = lo + lane
+        while j < hi:
             d_lam[j] = d_lam[j] + correction[j]
-    for j in range(lo, hi):
-        if active[j] != 0:
-            push(r, d_z, j, -d_lam[j])
+            j += stride
     rr = wp.float64(0.0)
     bb = wp.float64(0.0)
-    for j in range(lo, hi):
+    j = lo + lane
+    while j < hi:
+        if active[j] != 0:
+            push(r, d_z, j, -d_lam[j])
         rr += res[j] * res[j]
         bb += rhs[j] * rhs[j]
-    info[world, 0] = wp.float64(iters)
-    info[world, 1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # the last solve's residual, relative to the rhs
+        j += stride
+    rr = block_sum(rr)
+    bb = block_sum(bb)
+    if lane == 0:
+        info[world, 0] = wp.float64(iters)
+        info[world, 1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # the last solve's residual, relative
 
 
 @wp.kernel(enable_backward=False)

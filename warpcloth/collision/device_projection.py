@@ -19,6 +19,9 @@ from warpcloth.kernels.geometry import world_starts
 
 ADJOINT_WARN = 1.0e-8
 """An adjoint CG that ends above this relative residual warns (it aims at 1e-13)."""
+QP_BLOCK_DIM = 128
+"""Threads of the block that solves a world's QP and its adjoint on CUDA (on the CPU a block is one thread). Not
+yet tuned on a GPU: a world's contacts number from a few to thousands."""
 
 
 @dataclass
@@ -107,7 +110,7 @@ class AdjointWork:
 
 class DeviceProjection:
     """Buffers and launches of the device projection for up to ``capacity`` contacts among ``node_count`` nodes,
-    the nodes in ``world_count`` worlds (each world's contacts are its own QP, solved by its own thread).
+    the nodes in ``world_count`` worlds (each world's contacts are its own QP, solved by its own thread block).
 
     Args:
         device: Warp device.
@@ -226,10 +229,11 @@ class DeviceProjection:
         x, g, p, hp, tmp = self._work
         failed = self._failed if failed is None else failed
         failed.zero_()
-        wp.launch(kp.solve, self.world_count, device=dev,
-                  inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones, self._solve_world],
-                  outputs=[self._sorted_lam, self._z, x, g, p, hp, tmp, self._scratch, self._info, failed],
-                  record_tape=False)
+        wp.launch_tiled(kp.solve, dim=[self.world_count], block_dim=QP_BLOCK_DIM, device=dev,
+                        inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones,
+                                self._solve_world],
+                        outputs=[self._sorted_lam, self._z, x, g, p, hp, tmp, self._scratch, self._info, failed],
+                        record_tape=False)
         if count:
             wp.launch(kp.scatter, count, device=dev, inputs=[self._sorted_lam, self._order], outputs=[self._lam],
                       record_tape=False)
@@ -273,9 +277,10 @@ class DeviceProjection:
             wp.launch(kp.active_set, r.count, device=dev,
                       inputs=[r, solution.z, solution.sorted_lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
-        wp.launch(kp.adjoint, self.world_count, device=dev, inputs=[r, active, wp.float64(rtol)],
-                  outputs=[sorted_d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info],
-                  record_tape=False)
+        wp.launch_tiled(kp.adjoint, dim=[self.world_count], block_dim=QP_BLOCK_DIM, device=dev,
+                        inputs=[r, active, wp.float64(rtol)],
+                        outputs=[sorted_d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info],
+                        record_tape=False)
         if r.count:
             wp.launch(kp.scatter, r.count, device=dev, inputs=[sorted_d_lam, r.order], outputs=[d_lam],
                       record_tape=False)
