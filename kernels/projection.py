@@ -82,6 +82,13 @@ class Rows:
     inv_mass: wp.array(dtype=wp.float64)  # per node; 0 for constant nodes
     order: wp.array(dtype=wp.int32)  # sorted slot -> the contact's index in the caller's lists
     start: wp.array(dtype=wp.int32)  # (worlds + 1): world w's slots
+    # the rows' node entries (sorted slot k's node a) grouped by node, each node's in row order, world w's at
+    # 4 start[w] .. 4 start[w + 1] (incidence_keys, incidence_runs): what lets a node's sum over its contacts be
+    # gathered in one order by one thread (node_sums) instead of scattered by atomic adds in any order
+    entry_row: wp.array(dtype=wp.int32)  # (4 count): the entry's row k
+    entry_weight: wp.array(dtype=wp.float64)  # (4 count): its merged weight over its node's mass, fw[k][a] / m
+    run_end: wp.array(dtype=wp.int32)  # (4 count): at a free node's first entry, one past its last; 0 elsewhere
+    run_node: wp.array(dtype=wp.int32)  # (4 count): at a free node's first entry, the node
 
 
 @wp.kernel(enable_backward=False)
@@ -116,6 +123,48 @@ def gather(values: wp.array(dtype=wp.float64), order: wp.array(dtype=wp.int32), 
 def scatter(values: wp.array(dtype=wp.float64), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float64)):
     k = wp.tid()
     out[order[k]] = values[k]
+
+
+@wp.kernel(enable_backward=False)
+def incidence_keys(sorted_nodes: wp.array2d(dtype=wp.int32), fw: wp.array(dtype=wp.vec4d),
+                   node_world: wp.array(dtype=wp.int32), node_count: int, keys: wp.array(dtype=wp.int64),
+                   entries: wp.array(dtype=wp.int32)):
+    # one thread an entry 4 k + a (sorted slot k's node a): its key (world, node), for a stable sort that groups the
+    # entries by node, world by world, each node's in entry order. Entries without weight (constant nodes, repeats)
+    # take the key (world, node_count), after the world's nodes: node sums skip them, so a node that many contacts
+    # share (an obstacle's vertex) costs nothing
+    e = wp.tid()
+    k = e // 4
+    a = e % 4
+    node = sorted_nodes[k, a]
+    slot = wp.int64(node_count)
+    if fw[k][a] != wp.float64(0.0):
+        slot = wp.int64(node)
+    keys[e] = wp.int64(node_world[node]) * wp.int64(node_count + 1) + slot
+    entries[e] = e
+
+
+@wp.kernel(enable_backward=False)
+def incidence_runs(keys: wp.array(dtype=wp.int64), entries: wp.array(dtype=wp.int32), count: int, node_count: int,
+                   sorted_nodes: wp.array2d(dtype=wp.int32), fw: wp.array(dtype=wp.vec4d),
+                   inv_mass: wp.array(dtype=wp.float64), entry_row: wp.array(dtype=wp.int32),
+                   entry_weight: wp.array(dtype=wp.float64), run_end: wp.array(dtype=wp.int32),
+                   run_node: wp.array(dtype=wp.int32)):
+    # the entries sorted by key: each one's row and weight, and at each free node's first entry the node and one
+    # past its last entry (0 for the entries without weight)
+    e = wp.tid()
+    k = entries[e] // 4
+    a = entries[e] % 4
+    node = sorted_nodes[k, a]
+    entry_row[e] = k
+    entry_weight[e] = fw[k][a] * inv_mass[node]
+    end = int(0)
+    if (e == 0 or keys[e] != keys[e - 1]) and keys[e] % wp.int64(node_count + 1) != wp.int64(node_count):
+        end = e + 1
+        while end < count and keys[end] == keys[e]:
+            end += 1
+    run_end[e] = end
+    run_node[e] = node
 
 
 @wp.kernel(enable_backward=False)
@@ -163,29 +212,34 @@ def constraint(r: Rows, z: wp.array(dtype=wp.vec3d), j: int):
 
 
 @wp.func
-def push(r: Rows, z: wp.array(dtype=wp.vec3d), j: int, amount: wp.float64):
-    # z += W^-1 g_j^T amount (atomic: the block's threads push contacts that share nodes)
-    for a in range(4):
-        if r.fw[j][a] != wp.float64(0.0):
-            node = r.nodes[j, a]
-            wp.atomic_add(z, node, (r.fw[j][a] * r.inv_mass[node] * amount) * r.normal[j])
-
-
-# The solver's functions below run on one thread block per world (launch_tiled): thread ``lane`` of ``stride``
-# owns the world's contacts lo + lane, lo + lane + stride, ... and writes only those entries of the per-contact
-# arrays; what crosses contacts goes through the per-node arrays (atomic pushes, read after a barrier) and the block
-# reductions of kernels/blocks.py. On the CPU a block is one thread, which owns every contact in order.
+def node_sums(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.array(dtype=wp.int32),
+              amount: wp.array(dtype=wp.float64), sign: wp.float64, skip_zero: int, base: wp.array(dtype=wp.vec3d),
+              use_base: int, out: wp.array(dtype=wp.vec3d)):
+    # out = base + W^-1 sum_j g_j^T (sign amount_j) at every node of the contacts lo..hi, over the contacts with
+    # mask != 0 (and amount != 0 where skip_zero): each node's sum gathered by one thread, over its contacts in their
+    # order (no atomics, so the same sums on every device and every run)
+    e = 4 * lo + lane
+    while e < 4 * hi:
+        end = r.run_end[e]
+        if end > e:
+            node = r.run_node[e]
+            acc = wp.vec3d()
+            if use_base != 0:
+                acc = base[node]
+            for f in range(e, end):  # the entries with weight on this node
+                j = r.entry_row[f]
+                if mask[j] != 0 and (skip_zero == 0 or amount[j] != wp.float64(0.0)):
+                    acc = acc + (r.entry_weight[f] * (sign * amount[j])) * r.normal[j]
+            out[node] = acc
+        e += stride
 
 
 @wp.func
 def dual_product(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.array(dtype=wp.int32),
                  v: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
-    # out = H_MM v on the contacts with mask != 0 (0 elsewhere); scratch: per node, zeroed on return
-    j = lo + lane
-    while j < hi:
-        if mask[j] != 0:
-            push(r, scratch, j, v[j])
-        j += stride
+    # out = H_MM v on the contacts with mask != 0 (0 elsewhere); scratch: per node
+    block_barrier()  # v written, and the last product's reads of scratch done
+    node_sums(r, lo, hi, lane, stride, mask, v, wp.float64(1.0), 0, scratch, 0, scratch)
     block_barrier()
     j = lo + lane
     while j < hi:  # row_dot inlined: this loop is the solver's hot path, and a Rows argument is copied
@@ -196,13 +250,6 @@ def dual_product(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.arr
                     o += r.fw[j][a] * wp.dot(r.normal[j], scratch[r.nodes[j, a]])
         out[j] = o
         j += stride
-    block_barrier()
-    j = lo + lane
-    while j < hi:
-        for a in range(4):
-            scratch[r.nodes[j, a]] = wp.vec3d()
-        j += stride
-    block_barrier()
 
 
 @wp.func
@@ -338,12 +385,6 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
             info[world, c] = wp.float64(0.0)
     if solve_world[world] == 0 or hi == lo:
         return
-    j = lo + lane
-    while j < hi:
-        for a in range(4):
-            node = r.nodes[j, a]
-            z[node] = x_hat[node]
-        j += stride
     # the step of the expansions: 1.9 / ||Hs||, ||Hs|| by power iteration (x, g as scratch)
     j = lo + lane
     while j < hi:
@@ -475,13 +516,13 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
                 g[j] = g[j] - a_p * hp[j]
                 p[j] = wp.where(x[j] > wp.float64(0.0), g[j], wp.float64(0.0))
                 j += stride
-    # lam = D^-1 x and z = x^ + W^-1 G^T lam
+    # lam = D^-1 x and z = x^ + W^-1 G^T lam at the contacts' nodes
     j = lo + lane
     while j < hi:
         lam[j] = x[j] / scale(r, j)
-        if lam[j] != wp.float64(0.0):
-            push(r, z, j, lam[j])
         j += stride
+    block_barrier()
+    node_sums(r, lo, hi, lane, stride, ones, lam, wp.float64(1.0), 1, x_hat, 1, z)
     block_barrier()
     violated = wp.float64(0.0)
     broken = wp.float64(0.0)  # wp.max drops a NaN, so the tests above and below cannot see one: count them
@@ -547,13 +588,12 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64,
     bb = wp.float64(0.0)
     j = lo + lane
     while j < hi:
-        if active[j] != 0:
-            push(r, d_z, j, -d_lam[j])
         rr += res[j] * res[j]
         bb += rhs[j] * rhs[j]
         j += stride
-    rr = block_sum(rr)
+    rr = block_sum(rr)  # also the barrier after d_lam's last update
     bb = block_sum(bb)
+    node_sums(r, lo, hi, lane, stride, active, d_lam, wp.float64(-1.0), 0, d_z, 1, d_z)
     if lane == 0:
         info[world, 0] = wp.float64(iters)
         info[world, 1] = wp.sqrt(rr / wp.max(bb, wp.float64(1.0e-300)))  # the last solve's residual, relative

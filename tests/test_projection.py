@@ -660,7 +660,9 @@ def test_gram_cholesky_is_qr_r_without_q_and_drops_dependent_columns():
 # The device solver (kernels/projection.py): the same problem over all contacts at once, no zones
 
 
-def _device_solve(prob, device, **kw):
+def _device_solve(prob, device, node_world=None, world_count=1, **kw):
+    """Solve ``prob`` with the device projection (node_world: each node's world, cloth particles then obstacle
+    vertices); returns the solver and its kept solution."""
     import warp as wp
 
     from warpcloth.collision.device_projection import DeviceProjection
@@ -668,8 +670,9 @@ def _device_solve(prob, device, **kw):
     n, V = prob["x_hat"].shape[0], prob["obstacle_x"].shape[0]
     inv_mass = np.zeros(n + V)
     inv_mass[:n] = np.where(prob["fixed"], 0.0, 1.0 / prob["mass"])
-    solver = DeviceProjection(device, n + V, prob["nodes"].shape[0])
     on = functools.partial(wp.array, device=device)
+    solver = DeviceProjection(device, n + V, prob["nodes"].shape[0],
+                              None if node_world is None else on(node_world, dtype=wp.int32), world_count)
     solution = solver.project(
         on(np.concatenate([prob["x_hat"], prob["obstacle_x"]]), dtype=wp.vec3d),
         on(np.concatenate([~prob["fixed"], np.zeros(V, bool)]).astype(np.int32), dtype=wp.int32),
@@ -677,6 +680,26 @@ def _device_solve(prob, device, **kw):
         on(prob["weights"], dtype=wp.vec4d), on(prob["normals"], dtype=wp.vec3d),
         prob["nodes"].shape[0], prob["thickness"], keep=True, **kw)
     return solver, solution
+
+
+def _worlds_problem(problems):
+    """The problems as the worlds of one: each one's particles, then each one's obstacle vertices, and their contacts
+    dealt out in turn (each world's in its own order). Returns the problem, every node's world, and for each world
+    its particles, its obstacle vertices and its contacts in the joint problem."""
+    n = np.cumsum([0] + [p["x_hat"].shape[0] for p in problems])
+    v = n[-1] + np.cumsum([0] + [p["obstacle_x"].shape[0] for p in problems])
+    deal = sorted((i, w) for w, p in enumerate(problems) for i in range(p["nodes"].shape[0]))
+    contacts = [[k for k, (_, w2) in enumerate(deal) if w2 == w] for w in range(len(problems))]
+    nodes = np.array([np.where(problems[w]["nodes"][i] < problems[w]["x_hat"].shape[0],
+                               problems[w]["nodes"][i] + n[w],
+                               problems[w]["nodes"][i] - problems[w]["x_hat"].shape[0] + v[w]) for i, w in deal])
+    joint = {name: np.concatenate([p[name] for p in problems]) for name in ("x_hat", "mass", "fixed", "obstacle_x")}
+    joint.update(nodes=nodes, weights=np.array([problems[w]["weights"][i] for i, w in deal]),
+                 normals=np.array([problems[w]["normals"][i] for i, w in deal]), thickness=problems[0]["thickness"])
+    node_world = np.concatenate([np.repeat(np.arange(len(problems)), np.diff(n)),
+                                 np.repeat(np.arange(len(problems)), np.diff(v))])
+    return joint, node_world, [(np.arange(n[w], n[w + 1]), np.arange(v[w], v[w + 1]), contacts[w])
+                               for w in range(len(problems))]
 
 
 @pytest.mark.parametrize("problem", ["random", "layered", "dependent"])
@@ -737,3 +760,28 @@ def test_device_solver_reports_contacts_no_positions_satisfy(device):
                 normals=np.array([[0, 0, 1.0], [0, 0, -1.0]]), thickness=DELTA)
     _, solution = _device_solve(prob, device, max_iters=500)
     assert not solution.converged and solution.unbounded
+
+
+def test_device_solver_solves_each_world_as_that_world_alone_bit_for_bit(device):
+    # Three problems (two with contacts that share particles and obstacle vertices) as the worlds of one call, their
+    # contacts interleaved: the contacts are grouped by world, each world's node sums gathered in its contacts'
+    # order (kernels/projection.py node_sums), so each world's positions, multipliers and adjoint are those of the
+    # problem solved alone, to the bit, on every device.
+    problems = [layered_problem(3, res=4), clean_problems(1, groups=3)[0], layered_problem(5, res=3)]
+    joint, node_world, parts = _worlds_problem(problems)
+    assert len(set(node_world[joint["nodes"][:8, 0]])) == 3  # interleaved
+    solver, solution = _device_solve(joint, device, node_world=node_world, world_count=3, tol=1e-12)
+    assert solution.converged
+    rng = np.random.default_rng(4)
+    g = rng.normal(size=(joint["x_hat"].shape[0] + joint["obstacle_x"].shape[0], 3))
+    d_z, d_lam = solver.adjoint(solution, g)
+    z, lam = solution.z.numpy(), solution.lam.numpy()
+    for prob, (particles, vertices, contacts) in zip(problems, parts):
+        alone, alone_solution = _device_solve(prob, device, tol=1e-12)
+        nodes = np.concatenate([particles, vertices])
+        alone_d_z, alone_d_lam = alone.adjoint(alone_solution, g[nodes])
+        np.testing.assert_array_equal(z[nodes], alone_solution.z.numpy())
+        np.testing.assert_array_equal(lam[contacts], alone_solution.lam.numpy()[:len(contacts)])
+        np.testing.assert_array_equal(d_z[nodes], alone_d_z)
+        np.testing.assert_array_equal(d_lam[contacts], alone_d_lam)
+        assert np.abs(alone_d_lam).max() > 0 and np.abs(z[particles] - joint["x_hat"][particles]).max() > 0

@@ -135,6 +135,11 @@ class DeviceProjection:
         self._sorted_nodes = wp.zeros((m, 4), dtype=wp.int32, device=device)
         self._sorted_normals = wp.zeros(m, dtype=wp.vec3d, device=device)
         self._by_world = RowSort(m, self.world_count, device)  # the contacts sorted by world
+        # the contacts' node entries grouped by node (kernels/projection.py Rows.incidence)
+        self._by_node = RowSort(4 * m, self.world_count * (N + 1), device, what="contacts' nodes")
+        self._entry_row, self._run_end, self._run_node = (wp.zeros(4 * m, dtype=wp.int32, device=device)
+                                                          for _ in range(3))
+        self._entry_weight = wp.zeros(4 * m, dtype=f64, device=device)
         self._order = self._by_world.order
         self._held = wp.zeros(1, dtype=wp.int32, device=device)
         self._start = wp.zeros(self.world_count + 1, dtype=wp.int32, device=device)
@@ -216,6 +221,8 @@ class DeviceProjection:
                                                                       self._sorted_normals, self._h, self._diag,
                                                                       inv_mass)
         r.order, r.start = self._order, self._start
+        r.entry_row, r.entry_weight, r.run_end, r.run_node = (self._entry_row, self._entry_weight, self._run_end,
+                                                              self._run_node)
         self._rows = r
         if not isinstance(thickness, wp.array):
             thickness = wp.full(max(count, 1), float(thickness), dtype=wp.float64, device=dev)
@@ -226,6 +233,15 @@ class DeviceProjection:
                       record_tape=False)
             wp.launch(kp.gather, count, device=dev, inputs=[self._lam, self._order], outputs=[self._sorted_lam],
                       record_tape=False)
+            by_node = self._by_node
+            wp.launch(kp.incidence_keys, 4 * count, device=dev,
+                      inputs=[self._sorted_nodes, self._fw, self.node_world, max(self.node_count, 1)],
+                      outputs=[by_node.keys, by_node.values], record_tape=False)
+            by_node.sort(4 * count)
+            wp.launch(kp.incidence_runs, 4 * count, device=dev,
+                      inputs=[by_node.keys, by_node.order, 4 * count, max(self.node_count, 1), self._sorted_nodes,
+                              self._fw, inv_mass],
+                      outputs=[self._entry_row, self._entry_weight, self._run_end, self._run_node], record_tape=False)
         x, g, p, hp, tmp = self._work
         failed = self._failed if failed is None else failed
         failed.zero_()
@@ -246,6 +262,8 @@ class DeviceProjection:
             kept.normal, kept.h = wp.clone(self._sorted_normals[:m]), wp.clone(self._h[:m])
             kept.diag, kept.inv_mass = wp.clone(self._diag[:m]), wp.clone(inv_mass)
             kept.order, kept.start = wp.clone(self._order[:m]), wp.clone(self._start)
+            kept.entry_row, kept.entry_weight, kept.run_end, kept.run_node = (
+                wp.clone(a[:4 * m]) for a in (self._entry_row, self._entry_weight, self._run_end, self._run_node))
             r, z, lam, sorted_lam = kept, wp.clone(z), wp.clone(lam[:m]), wp.clone(sorted_lam[:m])
             info = wp.clone(info)
         return DeviceSolution(z=z, lam=lam, rows=r, sorted_lam=sorted_lam, info=info)
