@@ -135,6 +135,13 @@ def bvh_update(d: dict) -> str:
                              "largest difference [m]"], rows), "", provenance(d)])
 
 
+def projection_qp(d: dict) -> str:
+    rows = [[f"{r['res']}×{r['res']}×{r['layers']}", r["worlds"], r["block_dim"], r["contacts"], r["iterations"],
+             g(r["project_ms"]), g(r["adjoint_ms"])] for r in d["records"]]
+    return "\n".join([table(["stack (res × res × layers)", "worlds", "block threads", "contacts", "MPRGP iterations",
+                             "project ms", "adjoint ms"], rows), "", provenance(d)])
+
+
 def contact_gradients(d: dict) -> str:
     def num(x):
         return g(x, 4) if abs(x) < 1e5 else sci(float(f"{x:.2g}"))
@@ -944,6 +951,7 @@ BLOCKS = {
     "contact": contact,
     "contact_gradients": contact_gradients,
     "bvh_update": bvh_update,
+    "projection_qp": projection_qp,
 }
 
 

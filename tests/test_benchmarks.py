@@ -47,6 +47,7 @@ BENCHMARKS = {
     "global_search": (("scene", "target", "optimizers"), False, False),
     "estimation_batch": (("records", "iters", "reps"), True, False),
     "bvh_update": (("cases",), False, False),
+    "projection_qp": (("records",), False, False),
 }
 
 

@@ -4,9 +4,9 @@
 # (or `sync`) as
 #   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu/checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
-# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, PRECONDITIONERS, ITERS and VARIANT
-# (capture_probe's) override what runs. The first CUDA compile of the kernel modules takes about a minute on a fresh
-# machine (2026-11-27, H200). On an H100 (2026-11-27, cold kernel cache) the tests below took 164 s; all the parts
+# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, PRECONDITIONERS, BLOCK_DIMS, ITERS and
+# VARIANT (capture_probe's) override what runs. The first CUDA compile of the kernel modules takes about a minute on a
+# fresh machine (2026-11-27, H200). On an H100 (2026-11-27, cold kernel cache) the tests below took 164 s; all the parts
 # together take longer than one session's 15 minutes of device time: choose PARTS.
 set -u
 root=${1:?project root}
@@ -14,7 +14,7 @@ out=${OUT:-/tmp/out}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1
 py=python3
-parts=" ${PARTS:-tests graph_step estimate_cuda control_cuda global_search capture_probe} "
+parts=" ${PARTS:-tests graph_step projection_qp estimate_cuda control_cuda global_search capture_probe} "
 # a hung test dumps its stack into tests.log (pytest's faulthandler) before the part's timeout
 part() {  # part NAME SECONDS COMMAND...: runs COMMAND if NAME is in PARTS
   local name=$1 limit=$2; shift 2
@@ -33,12 +33,15 @@ part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --preconditioners "${PRECONDITIONERS:-auto,block_jacobi}" \
   --out "$out/graph_step_cuda.json"  # the multigrid against block Jacobi at 64x64 on one card
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
+part projection_qp 90 $py "$root/benchmarks/projection_qp.py" --device cuda:0 --reps 5 \
+  --block-dims "${BLOCK_DIMS:-32,64,128,256}" --out "$out/projection_qp_cuda.json"  # the QP's block size
+tail -n 24 "$out/projection_qp.log" >> "$out/summary.txt"
 part estimate_cuda 45 warpcloth estimate --device cuda:0 --iters "${ITERS:-5}"
 grep -E "runtime|simulation error" "$out/estimate_cuda.log" >> "$out/summary.txt"
 part control_cuda 90 warpcloth control --device cuda:0 --iters 2
 tail -n 3 "$out/control_cuda.log" >> "$out/summary.txt"
 part global_search 240 $py "$root/benchmarks/global_search.py" --device cuda:0 --optimizers cmaes --starts 1 \
-  --iters 42 --out "$out/global_search_cuda.json"  # issue 38: time to result on CUDA (contact: the QP on one thread)
+  --iters 42 --out "$out/global_search_cuda.json"  # issue 38: time to result on CUDA
 tail -n 6 "$out/global_search.log" >> "$out/summary.txt"
 part estimation_batch 240 $py "$root/benchmarks/estimation_batch.py" --device cuda:0 --reps 1 \
   --fabrics tango-red-jet-set --iters 60 --out "$out/estimation_batch_cuda.json"  # issue 38: a search's trials as worlds

@@ -118,11 +118,16 @@ class DeviceProjection:
         capacity: most contacts one call may hold.
         node_world: the world of every node, (node_count,) int32 on the device (default: one world).
         world_count: number of worlds.
+        block_dim: threads of the block that solves a world on CUDA.
     """
 
     def __init__(self, device, node_count: int, capacity: int, node_world: wp.array | None = None,
-                 world_count: int = 1):
+                 world_count: int = 1, block_dim: int = QP_BLOCK_DIM):
         self.device = device
+        if not 1 <= int(block_dim) <= 1024 or int(block_dim) & (int(block_dim) - 1):
+            raise ValueError(f"DeviceProjection block_dim must be a power of two up to 1024, got {block_dim!r}")
+        self.block_dim = int(block_dim)
+        """Threads of the block that solves a world (QP_BLOCK_DIM unless given; on the CPU a block is one thread)."""
         self.node_count = int(node_count)
         self.capacity = int(capacity)
         self.world_count = int(world_count)
@@ -166,7 +171,8 @@ class DeviceProjection:
 
     def grown(self, capacity: int) -> DeviceProjection:
         """A projection of a larger capacity that resumes this one's step: its multipliers and positions kept."""
-        bigger = DeviceProjection(self.device, self.node_count, capacity, self.node_world, self.world_count)
+        bigger = DeviceProjection(self.device, self.node_count, capacity, self.node_world, self.world_count,
+                                  self.block_dim)
         wp.copy(bigger._lam, self._lam, count=min(self.capacity, capacity))
         wp.copy(bigger._z, self._z)
         return bigger
@@ -245,7 +251,7 @@ class DeviceProjection:
         x, g, p, hp, tmp = self._work
         failed = self._failed if failed is None else failed
         failed.zero_()
-        wp.launch_tiled(kp.solve, dim=[self.world_count], block_dim=QP_BLOCK_DIM, device=dev,
+        wp.launch_tiled(kp.solve, dim=[self.world_count], block_dim=self.block_dim, device=dev,
                         inputs=[r, self._x_hat, wp.float64(tol), int(max_iters), int(stall), self._ones,
                                 self._solve_world],
                         outputs=[self._sorted_lam, self._z, x, g, p, hp, tmp, self._scratch, self._info, failed],
@@ -295,7 +301,7 @@ class DeviceProjection:
             wp.launch(kp.active_set, r.count, device=dev,
                       inputs=[r, solution.z, solution.sorted_lam, wp.float64(active_tol)], outputs=[active],
                       record_tape=False)
-        wp.launch_tiled(kp.adjoint, dim=[self.world_count], block_dim=QP_BLOCK_DIM, device=dev,
+        wp.launch_tiled(kp.adjoint, dim=[self.world_count], block_dim=self.block_dim, device=dev,
                         inputs=[r, active, wp.float64(rtol)],
                         outputs=[sorted_d_lam, d_z, rhs, res, p, q, correction, remainder, self._scratch, info],
                         record_tape=False)
