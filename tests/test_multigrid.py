@@ -5,6 +5,7 @@ SSOR (fewer iterations on the same system)."""
 import numpy as np
 import pytest
 import warp as wp
+from conftest import DEVICES
 
 import warpcloth as wc
 from warpcloth.errors import SimulationError
@@ -23,8 +24,8 @@ def hanging_builder(res, pins=(0,)):
     return b
 
 
-def hanging(res, dtype=wp.float64, pins=(0,)):
-    return hanging_builder(res, pins).finalize("cpu", dtype=dtype)
+def hanging(res, dtype=wp.float64, pins=(0,), device="cpu"):
+    return hanging_builder(res, pins).finalize(device, dtype=dtype)
 
 
 def hierarchy_of(model):
@@ -99,11 +100,14 @@ def test_galerkin_slot_maps_equal_the_dense_triple_product():
         np.testing.assert_array_equal(h.columns[diag], base + np.arange(size))
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("backend", ["sequential", "warp"])  # the Gauss-Seidel V-cycle and the parallel one
 @pytest.mark.parametrize("dtype", [wp.float32, wp.float64])
-def test_multigrid_solve_matches_dense(dtype):
-    model = hanging(8, dtype=dtype, pins=(0, 3))
+def test_multigrid_solve_matches_dense(dtype, backend, device):
+    model = hanging(8, dtype=dtype, pins=(0, 3), device=device)
     sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_tol=1e-12 if dtype == wp.float64 else 1e-6,
-                                                             cg_atol=1e-30, preconditioner="multigrid"))
+                                                             cg_atol=1e-30, preconditioner="multigrid",
+                                                             cg_backend=backend))
     assert sim.linear_solver.preconditioner == "multigrid" and len(sim.linear_solver.multigrid_levels) >= 2
     state = wc.rollout(sim, model.state(), steps=3)[-1]
     A, b = sim.dense_system(state)
@@ -184,9 +188,10 @@ def test_multigrid_has_no_tiled_form():
         wc.LinearSolver(hanging(4), wc.SolverOptions(preconditioner="multigrid", cg_backend="tiled"))
 
 
-def test_the_parallel_multigrid_takes_about_the_sequential_ones_iterations():
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_parallel_multigrid_takes_about_the_sequential_ones_iterations(device):
     # the warp backend's V-cycle (damped Jacobi smoothing, what CUDA runs) against the sequential Gauss-Seidel one
-    model = hanging(32, dtype=wp.float32)
+    model = hanging(32, dtype=wp.float32, device=device)
     sim = wc.Simulator(model, 0.02)
     state = wc.rollout(sim, model.state(), steps=5)[-1]
     values, rhs, _ = sim.assemble(state)

@@ -4,19 +4,20 @@
 import numpy as np
 import pytest
 import warp as wp
+from conftest import DEVICES
 
 import warpcloth as wc
 
 ROT_XZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # grid XY plane -> vertical XZ plane
 
 
-def hanging_sim(dtype=wp.float64, **options):
+def hanging_sim(dtype=wp.float64, device="cpu", **options):
     b = wc.ModelBuilder()
     b.add_cloth_grid((5, 5), (0.5, 0.5), material=wc.preset("gray-interlock", thicken=2), rot=ROT_XZ)
     b.add_handle(30)
     b.add_pin(35)
     b.set_wind((0.0, 4.0, 1.0))
-    model = b.finalize("cpu", requires_grad=True, dtype=dtype)
+    model = b.finalize(device, requires_grad=True, dtype=dtype)
     return wc.Simulator(model, 0.02, options=wc.SolverOptions(**options))
 
 
@@ -33,8 +34,9 @@ def assembled(sim):
     ("sequential", "jacobi"), ("sequential", "block_jacobi"), ("sequential", "block_ssor"), ("sequential", "multigrid"),
     ("warp", "jacobi"), ("warp", "block_jacobi"), ("warp", "multigrid"), ("tiled", "jacobi"), ("tiled", "block_jacobi"),
 ])
-def test_cg_matches_dense_solve(backend, preconditioner):
-    sim = hanging_sim(cg_tol=1e-12, cg_atol=1e-30, cg_backend=backend, preconditioner=preconditioner)
+@pytest.mark.parametrize("device", DEVICES)
+def test_cg_matches_dense_solve(backend, preconditioner, device):
+    sim = hanging_sim(device=device, cg_tol=1e-12, cg_atol=1e-30, cg_backend=backend, preconditioner=preconditioner)
     _, A, b, values, rhs, dv = assembled(sim)
     iters, residual, converged = sim.linear_solver.solve(values, rhs, dv)
     assert converged and 0 < iters < sim.options.cg_max_iters and residual <= 1e-12
@@ -46,17 +48,18 @@ def test_cg_matches_dense_solve(backend, preconditioner):
                                                     ("sequential", "multigrid"),
                                                     ("warp", "block_jacobi"), ("warp", "multigrid"),
                                                     ("tiled", "block_jacobi")])
-def test_solve_adjoint_matches_dense(backend, preconditioner):
-    sim = hanging_sim(cg_tol=1e-12, cg_backend=backend, preconditioner=preconditioner)
+@pytest.mark.parametrize("device", DEVICES)
+def test_solve_adjoint_matches_dense(backend, preconditioner, device):
+    sim = hanging_sim(device=device, cg_tol=1e-12, cg_backend=backend, preconditioner=preconditioner)
     _, A, b, values, rhs, _ = assembled(sim)
     model = sim.model
     values, rhs = wp.clone(values, requires_grad=True), wp.clone(rhs, requires_grad=True)
-    dv = wp.zeros(model.particle_count, dtype=model.types.vec3, requires_grad=True)
+    dv = wp.zeros(model.particle_count, dtype=model.types.vec3, requires_grad=True, device=model.device)
     tape = wp.Tape()
     with tape:
         sim.linear_solver.solve_recorded(values, rhs, dv)
     g = np.random.default_rng(0).standard_normal((model.particle_count, 3))
-    tape.backward(grads={dv: wp.array(g, dtype=model.types.vec3)})
+    tape.backward(grads={dv: wp.array(g, dtype=model.types.vec3, device=model.device)})
 
     lam = np.linalg.solve(A, g.reshape(-1))  # A is symmetric
     x = np.linalg.solve(A, b)

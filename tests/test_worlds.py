@@ -24,6 +24,14 @@ def weighted_sum(x: wp.array(dtype=wp.vec3d), weight: wp.array(dtype=wp.vec3d), 
     wp.atomic_add(loss, 0, wp.dot(x[i], weight[i]))
 
 
+def equal_on(device, rtol):
+    """An assertion that two results are equal: bitwise on the CPU, to ``rtol`` (and 1e-12 of their scale) on
+    CUDA, whose atomic additions sum in no set order."""
+    if device == "cpu":
+        return np.testing.assert_array_equal
+    return lambda a, b: np.testing.assert_allclose(a, b, rtol=rtol, atol=1e-12 * max(np.abs(b).max(), 1.0))
+
+
 def loss_and_grads(model, sim, steps, weights, control=None, params=()):
     """L = sum_i w_i . x_i after ``steps`` steps, and dL/d(each array in ``params``)."""
     tape = wp.Tape()
@@ -90,8 +98,7 @@ def test_worlds_without_contact_equal_single_runs_states_and_gradients(solve, de
         xs, grads = loss_and_grads(model, sim, steps, weights[part], params=params)
         # on CUDA the batch and the single world add their blocks with atomics in different orders: in float64
         # their gradients differed by up to 1.5e-8 relatively on an H100 (2026-11-27)
-        same = np.testing.assert_array_equal if device == "cpu" else \
-            (lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-12 * max(np.abs(b).max(), 1.0)))
+        same = equal_on(device, rtol=1e-7)
         same(x[part], xs)
         same(g_density[w], grads[0][0])
         same(g_gravity[w], grads[1][0])
@@ -112,22 +119,25 @@ def draped_builder():
     return b
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID], ids=["sequential", "tiled", "multigrid"])
-def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve):
+def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve, device):
     """A cloth dropped on a sphere (projection, repulsion, friction) replicated with a different push per world:
     states and the gradients of every parameter (forces, density, stretching, bending, x0, v0, the sphere's
-    placement) equal single-world runs (float64), bitwise (the material, which the worlds share, to rounding: the
-    sum of theirs; single-world gradients are checked against central
-    differences in tests/test_contact_gradient_matrix.py): each world's contacts are projected
-    by their own thread, a world without new contacts in a round keeps its solution, and one without contacts in a
-    step passes its gradient on exactly, so steps where only some worlds touch the sphere (13 here) match too."""
+    placement) equal single-world runs (float64), bitwise on the CPU (the material, which the worlds share, to
+    rounding: the sum of theirs; single-world gradients are checked against central differences in
+    tests/test_contact_gradient_matrix.py): each world's contacts are projected by their own thread block, a world
+    without new contacts in a round keeps its solution, and one without contacts in a step passes its gradient on
+    exactly, so steps where only some worlds touch the sphere (13 here) match too. On CUDA to rounding (the
+    assembly's atomic additions; not yet run there)."""
     base, steps, worlds = draped_builder(), 30, 3
     rng = np.random.default_rng(2)
     pushed = [0, 6, 42, 48]
     pushes = [rng.normal(0.0, 0.05, (len(pushed), 3)) for _ in range(worlds)]
     composed = wc.ModelBuilder()
     composed.replicate(base, worlds)
-    batch = composed.finalize("cpu", requires_grad=True, dtype=wp.float64)
+    batch = composed.finalize(device, requires_grad=True, dtype=wp.float64)
+    same = equal_on(device, rtol=1e-6)
     weights = rng.standard_normal((batch.particle_count, 3))
     options = wc.SolverOptions(**solve)
 
@@ -142,16 +152,16 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve):
     x, grad, sim = run(batch, forces, weights)
     pairs, material_sum = 0, {}
     for w in range(worlds):
-        model = base.finalize("cpu", requires_grad=True, dtype=wp.float64)
+        model = base.finalize(device, requires_grad=True, dtype=wp.float64)
         single = np.zeros((model.particle_count, 3))
         single[pushed] = pushes[w]
         part = batch.world_slice(w)
         xs, gs, alone = run(model, single, weights[part])
         pairs += alone.proximity.last_count
-        np.testing.assert_array_equal(x[part], xs)
+        same(x[part], xs)
         for k in (0, 1, 2):  # forces, x0, v0: per particle
-            np.testing.assert_array_equal(grad[k][part], gs[k])
-        np.testing.assert_array_equal(grad[3][w], gs[3][0])  # the world's sphere
+            same(grad[k][part], gs[k])
+        same(grad[3][w], gs[3][0])  # the world's sphere
         for k in (4, 5, 6):  # the worlds share one material: its gradient is the sum of theirs
             material_sum[k] = material_sum.get(k, 0.0) + gs[k]
         assert all(np.abs(g).max() > 0.0 for g in gs)
