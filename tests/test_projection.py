@@ -785,3 +785,11 @@ def test_device_solver_solves_each_world_as_that_world_alone_bit_for_bit(device)
         np.testing.assert_array_equal(d_z[nodes], alone_d_z)
         np.testing.assert_array_equal(d_lam[contacts], alone_d_lam)
         assert np.abs(alone_d_lam).max() > 0 and np.abs(z[particles] - joint["x_hat"][particles]).max() > 0
+
+
+@pytest.mark.parametrize("block_dim", [0, 48, 2048])
+def test_device_projection_refuses_a_block_that_is_not_a_power_of_two_up_to_1024(block_dim):
+    from warpcloth.collision.device_projection import DeviceProjection
+
+    with pytest.raises(ValueError, match=f"block_dim must be a power of two up to 1024, got {block_dim}"):
+        DeviceProjection("cpu", 4, 4, block_dim=block_dim)
