@@ -258,6 +258,54 @@ def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int, side0: wp.
 
 
 @wp.func
+def apart_along(n: wp.vec3d, p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d, q2: wp.vec3d):
+    """(gap, spread): how far the points p0, p1 lie beyond the points q0, q1, q2 along the unit direction n,
+    min(n.p) - max(n.q) (negative where they overlap), and the spread of both sets along n."""
+    lo_p = wp.min(wp.dot(n, p0), wp.dot(n, p1))
+    hi_p = wp.max(wp.dot(n, p0), wp.dot(n, p1))
+    lo_q = wp.min(wp.min(wp.dot(n, q0), wp.dot(n, q1)), wp.dot(n, q2))
+    hi_q = wp.max(wp.max(wp.dot(n, q0), wp.dot(n, q1)), wp.dot(n, q2))
+    return lo_p - hi_q, (hi_p - lo_p) + (hi_q - lo_q)
+
+
+@wp.func
+def stay_apart(vertex_face: bool, x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: wp.vec3d,
+               x1: wp.vec3d, y1: wp.vec3d, z1: wp.vec3d, w1: wp.vec3d, thickness: wp.float64):
+    """True where vertex x and triangle (y, z, w) (``vertex_face``), or edge (x, y) and edge (z, w), stay further
+    apart than the thickness through the whole step, so that vertex_face_test or edge_edge_test cannot report them
+    (a crossing needs them to touch, to within BARY_EPS of their sizes; a proximity contact needs them closer than
+    the thickness at the end). A cheap exact filter in front of those tests: most pairs a query's box meets are a
+    cloth's own neighbours a ring or two away, which the tests' cubic solve and bisection would only reject.
+
+    Along a fixed unit direction n, the separation of two linearly moving points is linear in time, so the gap
+    along n between the two primitives (min over one's corners of n.x minus max over the other's) is smallest at
+    the start or at the end of the step, and any gap along any direction bounds their distance from below. n: from
+    the other primitive's centroid to the vertex, or between the edges' midpoints, at the start."""
+    q2 = w0  # the third corner of the other primitive (an edge repeats its last)
+    q2_end = w1
+    if vertex_face:
+        n = x0 - (y0 + z0 + w0) / wp.float64(3.0)
+        p_other = x0
+        p_other_end = x1
+    else:
+        n = (x0 + y0) * wp.float64(0.5) - (z0 + w0) * wp.float64(0.5)
+        p_other = y0
+        p_other_end = y1
+    length = wp.length(n)
+    if not (length > wp.float64(0.0)):
+        return False
+    n = n / length
+    if vertex_face:
+        gap0, spread0 = apart_along(n, x0, p_other, y0, z0, q2)
+        gap1, spread1 = apart_along(n, x1, p_other_end, y1, z1, q2_end)
+    else:
+        gap0, spread0 = apart_along(n, x0, p_other, z0, w0, q2)
+        gap1, spread1 = apart_along(n, x1, p_other_end, z1, w1, q2_end)
+    slack = wp.float64(4.0) * BARY_EPS * wp.max(spread0, spread1)
+    return wp.min(gap0, gap1) > thickness + slack
+
+
+@wp.func
 def vertex_face_test(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
                      p1: wp.vec3d, a1: wp.vec3d, b1: wp.vec3d, c1: wp.vec3d,
                      pr: wp.vec3d, ar: wp.vec3d, br: wp.vec3d, cr: wp.vec3d, thickness: wp.float64,
@@ -480,6 +528,9 @@ def collision_kernels(scalar):
                 c = prims[toff + j, 2]
                 if same_cloth != 0 and (q0 == a or q0 == b or q0 == c):
                     continue
+                if stay_apart(True, wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
+                              wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]), thickness):
+                    continue
                 hit, mode, t, sign, rank = vertex_face_test(
                     wp.vec3d(x0[q0]), wp.vec3d(x0[a]), wp.vec3d(x0[b]), wp.vec3d(x0[c]),
                     wp.vec3d(x1[q0]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), wp.vec3d(x1[c]),
@@ -488,6 +539,9 @@ def collision_kernels(scalar):
             else:
                 if same_cloth != 0 and (j <= local or q0 == a or q0 == b or q1 == a or q1 == b):
                     continue  # each pair once; edges sharing a vertex do not collide
+                if stay_apart(False, wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
+                              wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]), thickness):
+                    continue
                 hit, mode, t, sign, rank = edge_edge_test(
                     wp.vec3d(x0[q0]), wp.vec3d(x0[q1]), wp.vec3d(x0[a]), wp.vec3d(x0[b]),
                     wp.vec3d(x1[q0]), wp.vec3d(x1[q1]), wp.vec3d(x1[a]), wp.vec3d(x1[b]),
