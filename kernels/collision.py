@@ -450,18 +450,35 @@ def collision_kernels(scalar):
     vec3 = types(scalar).vec3
 
     @wp.kernel
-    def primitive_bounds(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), prims: wp.array2d(dtype=wp.int32),
-                         corners: int, pad: float,
+    def world_motion(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), particle_start: wp.array(dtype=wp.int32),
+                     # out:
+                     shift: wp.array(dtype=wp.vec3)):
+        # one thread a world: the mean displacement of its cloth particles over the step (0 for a world without)
+        w = wp.tid()
+        total = wp.vec3d()
+        for i in range(particle_start[w], particle_start[w + 1]):
+            total += wp.vec3d(x1[i]) - wp.vec3d(x0[i])
+        count = particle_start[w + 1] - particle_start[w]
+        shift[w] = wp.vec3(total / wp.float64(wp.max(count, 1)))
+
+    @wp.kernel
+    def primitive_bounds(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), shift: wp.array(dtype=wp.vec3),
+                         node_world: wp.array(dtype=wp.int32), prims: wp.array2d(dtype=wp.int32), corners: int,
+                         pad: float,
                          # out:
                          lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
-        # swept box of a triangle (corners=3), edge (2) or vertex (1) over the step, grown by pad
+        # swept box of a triangle (corners=3), edge (2) or vertex (1) over the step, grown by pad, in a frame that
+        # moves with its world's cloth (world_motion): every node of world w ends at x1 - shift[w]. Two primitives
+        # that touch at some moment of the step touch in that frame too (a uniform motion moves both alike), so
+        # their boxes there still overlap wherever they can meet, and a cloth falling or swinging as a whole sweeps
+        # small boxes: fewer neighbours for the queries to test
         i = wp.tid()
         lo = wp.vec3(1.0e30, 1.0e30, 1.0e30)
         hi = wp.vec3(-1.0e30, -1.0e30, -1.0e30)
         for c in range(corners):
             j = prims[i, c]
             a = wp.vec3(x0[j])
-            b = wp.vec3(x1[j])
+            b = wp.vec3(x1[j]) - shift[node_world[j]]
             lo = wp.min(lo, wp.min(a, b))
             hi = wp.max(hi, wp.max(a, b))
         g = pad + box_rounding(lo, hi)
@@ -585,6 +602,6 @@ def collision_kernels(scalar):
         if q.result and q.sign < 0.0:
             inside[i] = 1
 
-    return SimpleNamespace(primitive_bounds=primitive_bounds, query_all=query_all, sort_found=sort_found,
-                           inside_mesh=inside_mesh)
+    return SimpleNamespace(world_motion=world_motion, primitive_bounds=primitive_bounds, query_all=query_all,
+                           sort_found=sort_found, inside_mesh=inside_mesh)
 

@@ -166,6 +166,18 @@ def test_cloth_thrown_at_20_m_s_does_not_tunnel_through_a_thin_plate():
     assert np.all(state.particle_x.numpy()[:, 2] > 0.0)
 
 
+def test_a_cloth_thrown_at_20_m_s_in_one_world_of_two_does_not_tunnel_while_the_other_rests():
+    # Detection's boxes move with each world's cloth (kernels/collision.py world_motion): every node of a world,
+    # cloth and obstacle alike, takes its own world's frame, which differs here by 20 m/s between the worlds
+    composed = wc.ModelBuilder()
+    for vel, z in (((0.0, 0.0, 0.0), 0.0008), ((0.0, 0.0, -20.0), 0.1)):
+        b = flat_cloth(res=6, size=0.3, z=z, vel=vel)
+        b.add_obstacle_plane((1.0, 1.0))
+        composed.add_world(b)
+    model, sim, state = run(composed, 5, 0.02, check=no_penetration)
+    assert model.world_count == 2 and np.all(state.particle_x.numpy()[:, 2] > 0.0)
+
+
 def test_moving_obstacle_pushes_the_cloth():
     b = flat_cloth(res=6, size=0.3, z=0.01)
     b.add_obstacle_plane((1.0, 1.0), motion=[(0.0, (0, 0, 0), (0, 0, 0, 1)), (1.0, (0, 0, 1.0), (0, 0, 0, 1))])

@@ -29,8 +29,9 @@ def _detect(x0, x1, queries, targets, kind, *, flag=0, capacity=64, dtype=wp.flo
     for prims in (q, tg):
         lo = wp.zeros(prims.shape[0], dtype=wp.vec3)
         hi = wp.zeros(prims.shape[0], dtype=wp.vec3)
-        wp.launch(k.primitive_bounds, prims.shape[0], inputs=[X0, X1, prims, prims.shape[1], 0.5 * DELTA],
-                  outputs=[lo, hi])
+        wp.launch(k.primitive_bounds, prims.shape[0], inputs=[X0, X1, wp.zeros(1, dtype=wp.vec3),
+                                                              wp.zeros(len(x0), dtype=wp.int32), prims,
+                                                              prims.shape[1], 0.5 * DELTA], outputs=[lo, hi])
         bounds.append((lo, hi))
     bvh = wp.Bvh(*bounds[1])
     count = wp.zeros(1, dtype=wp.int32)

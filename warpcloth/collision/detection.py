@@ -168,6 +168,10 @@ class ContactDetector:
         self._prims = wp.array(np.concatenate([np.pad(r, ((0, 0), (0, 3 - r.shape[1])), mode="edge") if len(r) else
                                                np.zeros((0, 3), dtype=np.int32) for r in rows]),
                                dtype=wp.int32, device=dev)
+        self._particle_start = wp.array(np.asarray(model.world_particle_start, dtype=np.int32), dtype=wp.int32,
+                                        device=dev)
+        self._shift = wp.zeros(model.world_count, dtype=wp.vec3, device=dev)
+        """Each world's cloth's mean displacement over the step: the boxes' frame (kernels/collision.py)."""
         self._lowers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
         self._uppers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
         ends = [int(e) for e in np.cumsum([0] + [len(r) for r in rows])]
@@ -281,8 +285,11 @@ class ContactDetector:
         k = self.kernels
         half = 0.5 * self.thickness
         if self._prims.shape[0]:
+            wp.launch(k.world_motion, self._shift.shape[0], device=self.device,
+                      inputs=[x0, x1, self._particle_start], outputs=[self._shift], record_tape=False)
             wp.launch(k.primitive_bounds, self._prims.shape[0], device=self.device,
-                      inputs=[x0, x1, self._prims, 3, half], outputs=[self._lowers, self._uppers], record_tape=False)
+                      inputs=[x0, x1, self._shift, self.node_world, self._prims, 3, half],
+                      outputs=[self._lowers, self._uppers], record_tape=False)
         self._count.zero_()
         reference = x1 if reference is None else reference
         refitted = set()
