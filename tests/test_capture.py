@@ -23,12 +23,13 @@ def loss_of(trajectory):
 
 
 def gradient_arrays(model, state, control):
-    """Every array a user can optimise here: the start state, the materials, gravity, wind, forces, handle and pin
-    targets."""
+    """Every array a user can optimise here: the start state, the materials, gravity, the wind (its velocity,
+    density and drag), forces, the handles' targets and stiffnesses, and pin targets."""
     return {"particle_x": state.particle_x, "particle_v": state.particle_v, "density": model.material_density,
             "stretching": model.material_stretching, "bending": model.material_bending, "gravity": model.gravity,
-            "wind": model.wind_velocity, "force": control.particle_force, "handle_target": control.handle_target,
-            "pin_target": control.pin_target}
+            "wind": model.wind_velocity, "wind_density": model.wind_density, "wind_drag": model.wind_drag,
+            "force": control.particle_force, "handle_target": control.handle_target,
+            "handle_stiffness": model.handle_stiffness, "pin_target": control.pin_target}
 
 
 def scene(device, **options):

@@ -59,6 +59,7 @@ class Problem:
             "x0": s.particle_x, "v0": s.particle_v, "density": m.material_density,
             "stretching": m.material_stretching, "bending": m.material_bending, "wind": m.wind_velocity,
             "gravity": m.gravity, "force": c.particle_force, "handle_target": c.handle_target,
+            "handle_stiffness": m.handle_stiffness, "wind_density": m.wind_density, "wind_drag": m.wind_drag,
         }
         if m.pin_count:
             arrays["pin_target"] = c.pin_target
@@ -135,7 +136,8 @@ def handles64(request):
 
 
 @pytest.mark.parametrize(
-    "name", ["x0", "v0", "density", "stretching", "wind", "gravity", "force", "handle_target"]
+    "name", ["x0", "v0", "density", "stretching", "wind", "gravity", "force", "handle_target", "handle_stiffness",
+             "wind_density", "wind_drag"]
 )
 def test_gradient_float64(handles64, name):
     check_directional(handles64, name)
