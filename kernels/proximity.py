@@ -175,15 +175,17 @@ def proximity_kernels(scalar):
             if q == a or q == b or q == c:
                 continue
             u, v, w = triangle_barycentric(p, x[a], x[b], x[c])
+            d = wp.length(p - (u * x[a] + v * x[b] + w * x[c]))
+            if not (d < best or (d == best and j < best_j)):  # a tie: the lower index, whatever the BVH's order
+                continue
             # a mesh neighbour of the triangle counts only where the cloth folds over it (ARCSim excludes only the
-            # triangles around q): its closest point must be interior, so a flat or gently curved cloth has none
+            # triangles around q): its closest point must be interior, so a flat or gently curved cloth has none.
+            # (Tested after the distance: the neighbour lookups cost more, and most targets are too far anyway.)
             if near(search, q, a) or near(search, q, b) or near(search, q, c):
                 if wp.min(wp.min(u, v), w) <= scalar(0.0):
                     continue
-            d = wp.length(p - (u * x[a] + v * x[b] + w * x[c]))
-            if d < best or (d == best and j < best_j):  # a tie: the lower index, whatever the BVH's order
-                best = d
-                best_j = j
+            best = d
+            best_j = j
         if best_j >= 0:
             emit(search, wp.vec4i(q, triangles[best_j, 0], triangles[best_j, 1], triangles[best_j, 2]), VERTEX_FACE,
                  wp.min(node_area[q], triangle_area[best_j]), first_row + i, best_j)
@@ -223,17 +225,17 @@ def proximity_kernels(scalar):
                 continue
             a = x[e1] - x[e0]
             b = x[f1] - x[f0]
+            s, u = segment_parameters(x[e0], x[e1], x[f0], x[f1], scalar(1.0e-12))
+            d = wp.length((x[e0] + s * a) - (x[f0] + u * b))
+            if not (d < search.radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0)):
+                continue
             if near(search, e0, f0) or near(search, e0, f1) or near(search, e1, f0) or near(search, e1, f1):
                 # mesh neighbours only where a crease brings crossing edges together: the parallel edges of a
-                # fine flat mesh are close too, and must not repel
+                # fine flat mesh are close too, and must not repel (tested after the distance, as above)
                 cross = wp.cross(a, b)
                 if wp.dot(cross, cross) < scalar(NEIGHBOUR_EDGE_SINE2) * wp.dot(a, a) * wp.dot(b, b):
                     continue
-            s, u = segment_parameters(x[e0], x[e1], x[f0], x[f1], scalar(1.0e-12))
-            d = wp.length((x[e0] + s * a) - (x[f0] + u * b))
-            if d < search.radius and edge_fade(s) > scalar(0.0) and edge_fade(u) > scalar(0.0):
-                emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE, wp.min(edge_area[i], target_area[j]),
-                     first_row + i, j)
+            emit(search, wp.vec4i(e0, e1, f0, f1), EDGE_EDGE, wp.min(edge_area[i], target_area[j]), first_row + i, j)
 
     @wp.struct
     class PairInputs:
