@@ -21,6 +21,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from warpcloth.kernels.blocks import block_sum
 from warpcloth.kernels.contact import WORLD_SKIPPED
 from warpcloth.kernels.geometry import box_rounding, segment_parameters, span_coordinates, world_root
 from warpcloth.kernels.types import per_precision, types
@@ -453,13 +454,18 @@ def collision_kernels(scalar):
     def world_motion(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), particle_start: wp.array(dtype=wp.int32),
                      # out:
                      shift: wp.array(dtype=wp.vec3)):
-        # one thread a world: the mean displacement of its cloth particles over the step (0 for a world without)
-        w = wp.tid()
+        # one thread block a world (launch_tiled): the mean displacement of its cloth particles over the step (0 for a
+        # world without), its threads' sums reduced in a fixed order
+        w, lane = wp.tid()
         total = wp.vec3d()
-        for i in range(particle_start[w], particle_start[w + 1]):
+        i = particle_start[w] + lane
+        while i < particle_start[w + 1]:
             total += wp.vec3d(x1[i]) - wp.vec3d(x0[i])
+            i += wp.block_dim()
+        total = wp.vec3d(block_sum(total[0]), block_sum(total[1]), block_sum(total[2]))
         count = particle_start[w + 1] - particle_start[w]
-        shift[w] = wp.vec3(total / wp.float64(wp.max(count, 1)))
+        if lane == 0:
+            shift[w] = wp.vec3(total / wp.float64(wp.max(count, 1)))
 
     @wp.kernel
     def primitive_bounds(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), shift: wp.array(dtype=wp.vec3),
