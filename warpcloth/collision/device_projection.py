@@ -140,7 +140,7 @@ class DeviceProjection:
         self._sorted_nodes = wp.zeros((m, 4), dtype=wp.int32, device=device)
         self._sorted_normals = wp.zeros(m, dtype=wp.vec3d, device=device)
         self._by_world = RowSort(m, self.world_count, device)  # the contacts sorted by world
-        # the contacts' node entries grouped by node (kernels/projection.py Rows.incidence)
+        # the contacts' node entries grouped by node, for the node sums (kernels/projection.py Rows.entry_row ..)
         self._by_node = RowSort(4 * m, self.world_count * (N + 1), device, what="contacts' nodes")
         self._entry_row, self._run_end, self._run_node = (wp.zeros(4 * m, dtype=wp.int32, device=device)
                                                           for _ in range(3))
