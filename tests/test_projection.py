@@ -793,3 +793,24 @@ def test_device_projection_refuses_a_block_that_is_not_a_power_of_two_up_to_1024
 
     with pytest.raises(ValueError, match=f"block_dim must be a power of two up to 1024, got {block_dim}"):
         DeviceProjection("cpu", 4, 4, block_dim=block_dim)
+
+
+@pytest.mark.parametrize("problem", ["random", "layered", "dependent"])
+def test_device_solver_steps_by_an_upper_bound_on_the_scaled_dual_norm(problem, device):
+    # MPRGP's expansion steps converge only below 2 / ||Hs||: kernels/projection.py scaled_norm_bound must bound the
+    # Jacobi-scaled dual matrix's norm from above (its step is 1.9 over it), and not loosely (4x would slow it)
+    probs = {"random": lambda: clean_problems(3, groups=3), "layered": lambda: [layered_problem(7, res=6)],
+             "dependent": lambda: [random_problem(s, duplicates=True, split=True) for s in range(2)]}[problem]()
+    for prob in probs:
+        n = prob["x_hat"].shape[0]
+        G = np.zeros((prob["nodes"].shape[0], 3 * n))
+        for j, (nodes, weights, normal) in enumerate(zip(prob["nodes"], prob["weights"], prob["normals"])):
+            for node, weight in zip(nodes, weights):
+                if node < n and not prob["fixed"][node]:
+                    G[j, 3 * node:3 * node + 3] += weight * normal
+        H = (G / np.repeat(prob["mass"], 3)) @ G.T
+        D = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
+        norm = np.linalg.eigvalsh(H / np.outer(D, D)).max()
+        _, solution = _device_solve(prob, device, tol=1e-12)
+        bound = solution.info.numpy()[0, 3]
+        assert norm * (1 - 1e-12) <= bound <= 4.0 * norm, (norm, bound)

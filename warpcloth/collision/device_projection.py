@@ -39,7 +39,8 @@ class DeviceSolution:
     sorted_lam: wp.array
     """``lam`` in the order of ``rows``."""
     info: wp.array
-    """Each world's [status, iterations, KKT residual, ||H||, violation] (kernels/projection.py solve), float64."""
+    """Each world's [status, iterations, KKT residual, a bound on ||Hs||, violation] (kernels/projection.py solve),
+    float64."""
     _read: np.ndarray | None = field(default=None, repr=False)
 
     def _info(self) -> np.ndarray:
@@ -233,16 +234,14 @@ class DeviceProjection:
         if not isinstance(thickness, wp.array):
             thickness = wp.full(max(count, 1), float(thickness), dtype=wp.float64, device=dev)
         if count:
+            by_node = self._by_node
             wp.launch(kp.prepare_rows, count, device=dev,
-                      inputs=[nodes, weights, normals, positions, free, inv_mass, thickness, self._order],
-                      outputs=[self._sorted_nodes, self._sorted_normals, self._fw, self._h, self._diag],
-                      record_tape=False)
+                      inputs=[nodes, weights, normals, positions, free, inv_mass, thickness, self._order,
+                              self.node_world, max(self.node_count, 1)],
+                      outputs=[self._sorted_nodes, self._sorted_normals, self._fw, self._h, self._diag, by_node.keys,
+                               by_node.values], record_tape=False)
             wp.launch(kp.gather, count, device=dev, inputs=[self._lam, self._order], outputs=[self._sorted_lam],
                       record_tape=False)
-            by_node = self._by_node
-            wp.launch(kp.incidence_keys, 4 * count, device=dev,
-                      inputs=[self._sorted_nodes, self._fw, self.node_world, max(self.node_count, 1)],
-                      outputs=[by_node.keys, by_node.values], record_tape=False)
             by_node.sort(4 * count)
             wp.launch(kp.incidence_runs, 4 * count, device=dev,
                       inputs=[by_node.keys, by_node.order, 4 * count, max(self.node_count, 1), self._sorted_nodes,
