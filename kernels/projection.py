@@ -372,8 +372,8 @@ def scaled_norm_bound(r: Rows, lo: int, hi: int, lane: int, stride: int, l1: wp.
     e = 4 * lo + lane
     while e < 4 * hi:
         end = r.run_end[e]
-        if end > e:
-            root = wp.sqrt(r.inv_mass[r.run_node[e]])
+        root = wp.sqrt(r.inv_mass[r.run_node[e]])
+        if end > e and root > wp.float64(0.0):  # a node of zero inverse mass: no contact moves it
             s = wp.float64(0.0)
             for f in range(e, end):  # entry_weight = fw inv_mass: |fw| sqrt(inv_mass) = |entry_weight| / sqrt(...)
                 k = r.entry_row[f]
