@@ -282,26 +282,19 @@ def stay_apart(vertex_face: bool, x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: 
     along n between the two primitives (min over one's corners of n.x minus max over the other's) is smallest at
     the start or at the end of the step, and any gap along any direction bounds their distance from below. n: from
     the other primitive's centroid to the vertex, or between the edges' midpoints, at the start."""
-    q2 = w0  # the third corner of the other primitive (an edge repeats its last)
-    q2_end = w1
+    # the two point sets: the vertex (twice) and the triangle's corners, or one edge's ends and the other's (its
+    # second end twice)
+    n = (x0 + y0) * wp.float64(0.5) - (z0 + w0) * wp.float64(0.5)
+    second0, second1, third0, third1 = y0, y1, w0, w1
     if vertex_face:
         n = x0 - (y0 + z0 + w0) / wp.float64(3.0)
-        p_other = x0
-        p_other_end = x1
-    else:
-        n = (x0 + y0) * wp.float64(0.5) - (z0 + w0) * wp.float64(0.5)
-        p_other = y0
-        p_other_end = y1
+        second0, second1, third0, third1 = x0, x1, y0, y1
     length = wp.length(n)
     if not (length > wp.float64(0.0)):
         return False
     n = n / length
-    if vertex_face:
-        gap0, spread0 = apart_along(n, x0, p_other, y0, z0, q2)
-        gap1, spread1 = apart_along(n, x1, p_other_end, y1, z1, q2_end)
-    else:
-        gap0, spread0 = apart_along(n, x0, p_other, z0, w0, q2)
-        gap1, spread1 = apart_along(n, x1, p_other_end, z1, w1, q2_end)
+    gap0, spread0 = apart_along(n, x0, second0, third0, z0, w0)
+    gap1, spread1 = apart_along(n, x1, second1, third1, z1, w1)
     slack = wp.float64(4.0) * BARY_EPS * wp.max(spread0, spread1)
     return wp.min(gap0, gap1) > thickness + slack
 
