@@ -259,24 +259,23 @@ def shifted_product(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.
 def masked_cg(r: Rows, lo: int, hi: int, lane: int, stride: int, mask: wp.array(dtype=wp.int32),
               rhs: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), res: wp.array(dtype=wp.float64),
               p: wp.array(dtype=wp.float64), q: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.vec3d),
-              rtol: wp.float64, max_iters: int, shift: wp.float64):
-    """CG on (H_MM + shift diag(H)_MM) x = rhs_M from x (masked entries only; Jacobi preconditioned). Returns the
-    iterations."""
+              rtol: wp.float64, reference_sq: wp.float64, max_iters: int, shift: wp.float64):
+    """CG on (H_MM + shift diag(H)_MM) x = rhs_M from x (masked entries only; Jacobi preconditioned) until its
+    residual is below rtol times a norm whose square is ``reference_sq`` (the adjoint's first right-hand side's, for
+    the refinements that follow it too). Returns the iterations."""
     shifted_product(r, lo, hi, lane, stride, mask, x, scratch, shift, q)
     rz = wp.float64(0.0)
-    bnorm = wp.float64(0.0)
     j = lo + lane
     while j < hi:
         rj = wp.float64(0.0)
         if mask[j] != 0:
             rj = rhs[j] - q[j]
-            bnorm += rhs[j] * rhs[j]
         res[j] = rj
         p[j] = rj / wp.max(r.diag[j], wp.float64(1.0e-300))
         rz += rj * p[j]
         j += stride
     rz = block_sum(rz)
-    limit = rtol * rtol * block_sum(bnorm)
+    limit = rtol * rtol * reference_sq
     it = int(0)
     while it < max_iters:
         rr = wp.float64(0.0)
@@ -571,14 +570,19 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64,
     hi = r.start[world + 1]
     max_iters = 10 * (hi - lo) + 100
     shift = wp.float64(DEPENDENT_SHIFT)
+    bb = wp.float64(0.0)
     j = lo + lane
     while j < hi:
         rhs[j] = wp.where(active[j] != 0, row_dot(r, d_z, j), wp.float64(0.0))
         d_lam[j] = wp.float64(0.0)
+        bb += rhs[j] * rhs[j]
         j += stride
-    iters = masked_cg(r, lo, hi, lane, stride, active, rhs, d_lam, res, p, q, scratch, rtol, max_iters, shift)
+    bb = block_sum(bb)
+    iters = masked_cg(r, lo, hi, lane, stride, active, rhs, d_lam, res, p, q, scratch, rtol, bb, max_iters, shift)
     # iterative refinement against the unshifted H_AA: it takes the shift's error off independent contacts (a
-    # factor shift * cond(H_AA) a pass) and leaves dependent ones damped
+    # factor shift * cond(H_AA) a pass) and leaves dependent ones damped. Each pass solves to the first solve's
+    # accuracy, rtol of the first right-hand side: relative to its own, far smaller, right-hand side it took as many
+    # iterations again (about 100 a pass on benchmarks/projection_qp.py's stacks) for digits no gradient keeps
     for _refine in range(REFINEMENTS):
         dual_product(r, lo, hi, lane, stride, active, d_lam, scratch, q)
         j = lo + lane
@@ -586,21 +590,18 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64,
             remainder[j] = rhs[j] - q[j]
             correction[j] = wp.float64(0.0)
             j += stride
-        iters += masked_cg(r, lo, hi, lane, stride, active, remainder, correction, res, p, q, scratch, rtol,
+        iters += masked_cg(r, lo, hi, lane, stride, active, remainder, correction, res, p, q, scratch, rtol, bb,
                            max_iters, shift)
         j = lo + lane
         while j < hi:
             d_lam[j] = d_lam[j] + correction[j]
             j += stride
     rr = wp.float64(0.0)
-    bb = wp.float64(0.0)
     j = lo + lane
     while j < hi:
         rr += res[j] * res[j]
-        bb += rhs[j] * rhs[j]
         j += stride
     rr = block_sum(rr)  # also the barrier after d_lam's last update
-    bb = block_sum(bb)
     node_sums(r, lo, hi, lane, stride, active, d_lam, wp.float64(-1.0), 0, d_z, 1, d_z)
     if lane == 0:
         info[world, 0] = wp.float64(iters)
