@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import warp as wp
+from conftest import DEVICES
 
 import warpcloth as wc
 from warpcloth.solver.checkpoint import checkpointed_backward
@@ -26,7 +27,7 @@ def _weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss
     wp.atomic_add(loss, 0, wp.dot(w[i], x[i]) + wp.float64(0.5) * wp.dot(x[i], x[i]))
 
 
-def _small_hanging(material=None, *, obstacle=False, requires_grad=True, lagged=False):
+def _small_hanging(material=None, *, obstacle=False, requires_grad=True, lagged=False, device="cpu"):
     b = wc.ModelBuilder()
     b.add_cloth_grid((3, 3), (0.3, 0.3), material=material or wc.preset("gray-interlock", thicken=2),
                      rot=S.GRID_TO_YZ, pos=(0.0, -0.15, -0.15), vel=(0.5, 0.0, 0.0))
@@ -37,16 +38,18 @@ def _small_hanging(material=None, *, obstacle=False, requires_grad=True, lagged=
         b.add_obstacle_plane((1.0, 1.0), pos=(0.02, 0.0, 0.0), rot=[[0, 0, 1], [0, 1, 0], [-1, 0, 0]])
     if lagged:  # the projection acts, after which ARCSim's normals are the current ones for a step
         b.set_collision(repulsion_stiffness=0.0)
-    return b.finalize("cpu", requires_grad=requires_grad, dtype=wp.float64)
+    return b.finalize(device, requires_grad=requires_grad, dtype=wp.float64)
 
 
 # -- checkpointing ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("segment", [None, 4, 1, 12])
 @pytest.mark.parametrize("obstacle, lagged, solver", [(False, False, "numpy"), (True, False, "numpy"),
                                                      (True, True, "numpy"), (True, True, "device")])
-def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solver):
+def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solver, device):
+    # on CUDA the re-simulated segments add their atomics in another order than the first pass: to 1e-6 there
     steps = 12
-    model = _small_hanging(obstacle=obstacle, lagged=lagged)
+    model = _small_hanging(obstacle=obstacle, lagged=lagged, device=device)
     if lagged:  # segment boundaries fall after steps with and without a collision response
         sim = wc.Simulator(model, 0.01, options=EXACT)
         control = model.control(particle_force=True)
@@ -59,11 +62,13 @@ def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solve
             moved.append(sim.collision.last.contacts > 0)
         assert any(moved) and not all(moved), moved
     rng = np.random.default_rng(1)
-    weights = [wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d) for _ in range(steps + 1)]
+    weights = [wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d, device=device)
+               for _ in range(steps + 1)]
 
     def loss_fn(i, state, out):
         if i % 3 == 0:  # a loss on some intermediate frames, not only the last
-            wp.launch(_weighted_sum, model.particle_count, inputs=[state.particle_x, weights[i]], outputs=[out])
+            wp.launch(_weighted_sum, model.particle_count, inputs=[state.particle_x, weights[i]], outputs=[out],
+                      device=device)
 
     options = wc.SolverOptions(cg_tol=1e-12, warm_start=False, collision=wc.CollisionOptions(solver=solver))
 
@@ -80,7 +85,7 @@ def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solve
                                                         model.wind_velocity)]
 
     def full(sim, state, control):
-        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        out = wp.zeros(1, dtype=wp.float64, requires_grad=True, device=device)
         tape = wp.Tape()
         with tape:
             current = state
@@ -97,10 +102,11 @@ def test_checkpointed_gradients_equal_full_tape(segment, obstacle, lagged, solve
 
     v_full, g_full = gradients(full)
     v_ck, g_ck = gradients(checkpointed)
-    assert v_ck == pytest.approx(v_full, rel=1e-12)
+    cpu = device == "cpu"
+    assert v_ck == pytest.approx(v_full, rel=1e-12 if cpu else 1e-9)
     for name, a, b in zip(("x0", "v0", "force", "stretching", "density", "wind"), g_full, g_ck):
         assert np.linalg.norm(a) > 0, name
-        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(), err_msg=name)
+        np.testing.assert_allclose(b, a, rtol=1e-9 if cpu else 1e-6, atol=1e-12 * np.abs(a).max(), err_msg=name)
 
 
 def test_checkpointed_backward_rejects_bad_arguments():

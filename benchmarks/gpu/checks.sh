@@ -28,7 +28,7 @@ part tests 280 $py -m pytest -v -p no:cacheprovider -o faulthandler_timeout=150 
   "$root/tests/test_worlds.py" "$root/tests/test_collision_gradients.py" "$root/tests/test_contact.py" \
   "$root/tests/test_tasks.py" "$root/tests/test_torch.py" "$root/tests/test_projection.py" \
   "$root/tests/test_detection.py" "$root/tests/test_collision.py" "$root/tests/test_solve.py" \
-  "$root/tests/test_multigrid.py"
+  "$root/tests/test_multigrid.py" "$root/tests/test_inverse.py"
 grep -E "PASSED|FAILED|ERROR|passed|failed" "$out/tests.log" | tail -n 40 >> "$out/summary.txt"
 part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --preconditioners "${PRECONDITIONERS:-auto,block_jacobi}" \
