@@ -284,11 +284,12 @@ def stay_apart(vertex_face: bool, x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: 
     the other primitive's centroid to the vertex, or between the edges' midpoints, at the start."""
     # the two point sets: the vertex (twice) and the triangle's corners, or one edge's ends and the other's (its
     # second end twice)
-    n = (x0 + y0) * wp.float64(0.5) - (z0 + w0) * wp.float64(0.5)
-    second0, second1, third0, third1 = y0, y1, w0, w1
     if vertex_face:
         n = x0 - (y0 + z0 + w0) / wp.float64(3.0)
         second0, second1, third0, third1 = x0, x1, y0, y1
+    else:
+        n = (x0 + y0) * wp.float64(0.5) - (z0 + w0) * wp.float64(0.5)
+        second0, second1, third0, third1 = y0, y1, w0, w1
     length = wp.length(n)
     if not (length > wp.float64(0.0)):
         return False

@@ -59,9 +59,9 @@ class CollisionOptions:
     first detection, its boxes moved) or ``"rebuild"`` (a new topology from the current boxes, in place). The results
     are the same, bitwise on the CPU: a BVH's topology orders a query's visits only, and the contacts and proximity
     pairs are sorted by key afterwards (warpcloth/collision/detection.py RowSort). Refitting was faster in every
-    scene measured (benchmarks/bvh_update.py, uncaptured, medians of three runs: 4.06 against 6.02 ms a step of the
-    24x24 cloth draped on a sphere, 19.2 against 25.3 at 64x64, 8.1 against 11.0 with self-collision, 0.53 against
-    0.56 ms for the throw), a sheet dropped upright that buckles and piles onto itself included (8.9 against 10.1
+    scene measured (benchmarks/bvh_update.py, uncaptured, medians of three runs: 3.85 against 5.66 ms a step of the
+    24x24 cloth draped on a sphere, 18.3 against 23.9 at 64x64, 7.8 against 10.5 with self-collision, 0.53 against
+    0.57 ms for the throw), a sheet dropped upright that buckles and piles onto itself included (8.2 against 9.6
     ms), far from the flat shape its BVHs were built on. ``"rebuild"`` stays for a cloth whose refitted boxes grow
     until queries slow down more than a rebuild costs; no scene here has shown one."""
 
