@@ -29,6 +29,8 @@ import numpy as np
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING  # no init banner / module-load lines (Warp 1.19)
+if "--deterministic" in sys.argv:  # fixed when warpcloth's kernel modules are made, so before its import
+    wp.config.deterministic = wp.DeterministicMode.RUN_TO_RUN
 
 import warpcloth as wc  # noqa: E402
 from warpcloth.tasks import scenes  # noqa: E402
@@ -77,6 +79,8 @@ def parse_args(description: str | None = None, *, name: str | None = None, quick
     for key, default in extra.items():
         p.add_argument(f"--{key.replace('_', '-')}", type=type(default), default=None,
                        help=f"default {default!r}" + (f"; --quick: {quick[key]!r}" if quick and key in quick else ""))
+    p.add_argument("--deterministic", action="store_true",
+                   help="Warp's deterministic mode (RUN_TO_RUN): CUDA's atomic sums in a fixed order")
     if configure is not None:
         configure(p)
     args = p.parse_args()

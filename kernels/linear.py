@@ -42,32 +42,58 @@ def linear_kernels(scalar):
         pair_w: wp.array(dtype=vec4)
         pair_k: wp.array(dtype=mat33)
 
+    # Under Warp's deterministic mode (wp.config.deterministic set before warpcloth is imported) no kernel may both
+    # write an array directly and add to it atomically: the CG kernels then add the pairs' products on one thread
+    # per world, in pair order (a fixed order; the tiled backend gives up its parallel pair loop for it).
+    ordered_pairs = wp.get_module_options(__name__)["deterministic"] != wp.DeterministicMode.NOT_GUARANTEED
+
     @wp.func
-    def add_pair_product(A: BlockMatrix, k: int, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar):
-        """q += sign * (pair k's cross blocks) p; returns p . (that product), in float64."""
+    def pair_cross(A: BlockMatrix, k: int, p: wp.array(dtype=vec3), a: int, Ks: vec3):
+        """Pair k's cross blocks times p on its node a: w_a (K s - K w_a p_a), with Ks = K s; and
+        w_a p_a . K w_a p_a (float64), what p . (that product) takes off p_a's share of s . K s."""
+        w = A.pair_w[k][a]
+        node = A.pair_nodes[k, a]
+        own = A.pair_k[k] * (w * p[node])
+        return w * (Ks - own), wp.float64(w * wp.dot(p[node], own))
+
+    @wp.func
+    def pair_start(A: BlockMatrix, k: int, p: wp.array(dtype=vec3)):
+        """K s with s = sum_a w_a p_a (pair k's weighted positions), and s . K s (float64)."""
         w = A.pair_w[k]
-        K = A.pair_k[k]
         s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         for a in range(4):
             if w[a] != scalar(0.0):
                 s += w[a] * p[A.pair_nodes[k, a]]
-        Ks = K * s
-        pq = wp.float64(wp.dot(s, Ks))
+        Ks = A.pair_k[k] * s
+        return Ks, wp.float64(wp.dot(s, Ks))
+
+    @wp.func
+    def add_pair_product(A: BlockMatrix, k: int, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar):
+        """q += sign * (pair k's cross blocks) p, by atomic adds (threads share nodes); returns p . (that product),
+        in float64."""
+        Ks, pq = pair_start(A, k, p)
         for a in range(4):
-            if w[a] != scalar(0.0):
-                node = A.pair_nodes[k, a]
-                own = K * (w[a] * p[node])
-                wp.atomic_add(q, node, sign * (w[a] * (Ks - own)))
-                pq -= wp.float64(w[a] * wp.dot(p[node], own))
+            if A.pair_w[k][a] != scalar(0.0):
+                cross, own = pair_cross(A, k, p, a, Ks)
+                wp.atomic_add(q, A.pair_nodes[k, a], sign * cross)
+                pq -= own
         return pq
 
     @wp.func
     def add_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar,
                           world: int):
-        """q += sign * (the cross blocks of ``world``'s pairs) p; returns p . (that product), in float64."""
+        """q += sign * (the cross blocks of ``world``'s pairs) p on one thread, in pair order (plain writes: no
+        other thread touches the world's nodes); returns p . (that product), in float64."""
         pq = wp.float64(0.0)
         for k in range(A.pair_world_start[world], A.pair_world_start[world + 1]):
-            pq += add_pair_product(A, k, p, q, sign)
+            Ks, pk = pair_start(A, k, p)
+            for a in range(4):
+                if A.pair_w[k][a] != scalar(0.0):
+                    node = A.pair_nodes[k, a]
+                    cross, own = pair_cross(A, k, p, a, Ks)
+                    q[node] = q[node] + sign * cross
+                    pk -= own
+            pq += pk
         return pq
 
     @wp.func
@@ -512,7 +538,11 @@ def linear_kernels(scalar):
             add_row_products(A, x, r, lo, hi, lane, stride)  # r = A x0 for now
             if pairs:
                 block_barrier()
-                add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
+                if wp.static(ordered_pairs):
+                    if lane == 0:
+                        add_pair_products(A, x, r, scalar(1.0), w)
+                else:
+                    add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
             block_barrier()
         rr = wp.float64(0.0)
         rz = wp.float64(0.0)
@@ -536,7 +566,11 @@ def linear_kernels(scalar):
             pq = add_row_products(A, p, q, lo, hi, lane, stride)
             if pairs:
                 block_barrier()
-                pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
+                if wp.static(ordered_pairs):
+                    if lane == 0:
+                        pq += add_pair_products(A, p, q, scalar(1.0), w)
+                else:
+                    pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
             pq = block_sum(pq)
             alpha = scalar(rz / pq)
             rr = wp.float64(0.0)

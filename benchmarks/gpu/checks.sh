@@ -14,7 +14,7 @@ out=${OUT:-/tmp/out}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1
 py=python3
-parts=" ${PARTS:-tests graph_step projection_qp estimate_cuda control_cuda global_search capture_probe} "
+parts=" ${PARTS:-tests graph_step deterministic projection_qp estimate_cuda control_cuda global_search capture_probe} "
 # a hung test dumps its stack into tests.log (pytest's faulthandler) before the part's timeout
 part() {  # part NAME SECONDS COMMAND...: runs COMMAND if NAME is in PARTS
   local name=$1 limit=$2; shift 2
@@ -28,12 +28,16 @@ part tests 280 $py -m pytest -v -p no:cacheprovider -o faulthandler_timeout=150 
   "$root/tests/test_worlds.py" "$root/tests/test_collision_gradients.py" "$root/tests/test_contact.py" \
   "$root/tests/test_tasks.py" "$root/tests/test_torch.py" "$root/tests/test_projection.py" \
   "$root/tests/test_detection.py" "$root/tests/test_collision.py" "$root/tests/test_solve.py" \
-  "$root/tests/test_multigrid.py" "$root/tests/test_inverse.py"
+  "$root/tests/test_multigrid.py" "$root/tests/test_inverse.py" "$root/tests/test_determinism.py"
 grep -E "PASSED|FAILED|ERROR|passed|failed" "$out/tests.log" | tail -n 40 >> "$out/summary.txt"
 part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes "${SIZES:-16,64}" \
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --preconditioners "${PRECONDITIONERS:-auto,block_jacobi}" \
   --out "$out/graph_step_cuda.json"  # the multigrid against block Jacobi at 64x64 on one card
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
+# Warp's deterministic mode: what it costs a step, and max diff (captured against uncaptured) should read 0
+part deterministic 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --deterministic --sizes 16,64 \
+  --worlds 1,1024 --steps 50 --reps 3 --out "$out/graph_step_deterministic_cuda.json"
+tail -n 16 "$out/deterministic.log" >> "$out/summary.txt"
 part projection_qp 90 $py "$root/benchmarks/projection_qp.py" --device cuda:0 --reps 5 \
   --block-dims "${BLOCK_DIMS:-32,64,128,256}" --out "$out/projection_qp_cuda.json"  # the QP's block size
 tail -n 24 "$out/projection_qp.log" >> "$out/summary.txt"
