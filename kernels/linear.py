@@ -639,57 +639,149 @@ def linear_kernels(scalar):
         if not factor_coarsest(mg, 0):
             mg.factor[0, 0, 0] = wp.float64(wp.nan)
 
-    @wp.kernel
-    def mg_smooth_first(dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), lo: int, omega: scalar,
-                        x: wp.array(dtype=vec3)):
-        # the first damped Jacobi sweep from zero: x = omega D^-1 b
-        i = lo + wp.tid()
-        x[i] = omega * (dinv[i] * b[i])
+    # The V-cycle's sweeps, two a level each way, fused so that a level costs two launches each way: the first sweep
+    # down (from zero: omega D^-1 b) and the correction a level gets from the next (P x_coarse) are formed where a
+    # sweep reads them, the same arithmetic as a launch that stored them first, so the result is bitwise that of a
+    # sweep a launch.
+    @wp.func
+    def first_sweep(dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), omega: scalar, j: int):
+        """Node j after the first damped Jacobi sweep from zero: omega D^-1 b."""
+        return omega * (dinv[j] * b[j])
+
+    @wp.func
+    def prolonged(aggregate: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), j: int):
+        """Node j plus its aggregate's correction on the next level (P x_coarse; x holds both levels)."""
+        xj = x[j]
+        a = aggregate[j]
+        if a >= 0:
+            xj = xj + x[a]
+        return xj
+
+    @wp.func
+    def sweep_from_zero(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                        values: wp.array(dtype=mat33), row_base: int, dinv: wp.array(dtype=mat33),
+                        b: wp.array(dtype=vec3), omega: scalar, i: int):
+        """Node i after two damped Jacobi sweeps from zero."""
+        r = b[i]
+        for k in range(offsets[i - row_base], offsets[i - row_base + 1]):
+            r -= values[k] * first_sweep(dinv, b, omega, columns[k])
+        return first_sweep(dinv, b, omega, i) + omega * (dinv[i] * r)
+
+    @wp.func
+    def sweep_prolonged(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                        values: wp.array(dtype=mat33), row_base: int, dinv: wp.array(dtype=mat33),
+                        b: wp.array(dtype=vec3), aggregate: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3),
+                        omega: scalar, i: int):
+        """Node i after the next level's correction and a damped Jacobi sweep."""
+        r = b[i]
+        for k in range(offsets[i - row_base], offsets[i - row_base + 1]):
+            r -= values[k] * prolonged(aggregate, x, columns[k])
+        return prolonged(aggregate, x, i) + omega * (dinv[i] * r)
+
+    @wp.func
+    def sweep(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), values: wp.array(dtype=mat33),
+              row_base: int, dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), x: wp.array(dtype=vec3),
+              omega: scalar, i: int):
+        """Node i after a damped Jacobi sweep: x + omega D^-1 (b - A x)."""
+        s = row_residual(offsets, columns, values, i - row_base, b[i], x)
+        return x[i] + omega * (dinv[i] * s)
+
+    @wp.func
+    def restricted(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                   values: wp.array(dtype=mat33), row_base: int, member_start: wp.array(dtype=wp.int32),
+                   members: wp.array(dtype=wp.int32), b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), c: int):
+        """Coarse node c's right-hand side: the sum of its members' residuals b - A x (P^T r, P piecewise
+        constant)."""
+        acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        for m in range(member_start[c], member_start[c + 1]):
+            i = members[m]
+            acc += row_residual(offsets, columns, values, i - row_base, b[i], x)
+        return acc
 
     @wp.kernel
-    def mg_smooth(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
-                  values: wp.array(dtype=mat33), row_base: int, lo: int, dinv: wp.array(dtype=mat33),
-                  b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), omega: scalar, x_out: wp.array(dtype=vec3)):
-        # a damped Jacobi sweep: x_out = x + omega D^-1 (b - A x) on the level's nodes [lo, lo + dim)
+    def mg_down(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                values: wp.array(dtype=mat33), row_base: int, lo: int, dinv: wp.array(dtype=mat33),
+                b: wp.array(dtype=vec3), omega: scalar, x: wp.array(dtype=vec3)):
+        # a level's two sweeps down, from zero, on its nodes [lo, lo + dim)
         i = lo + wp.tid()
-        s = row_residual(offsets, columns, values, i - row_base, b[i], x)
-        x_out[i] = x[i] + omega * (dinv[i] * s)
+        x[i] = sweep_from_zero(offsets, columns, values, row_base, dinv, b, omega, i)
 
     @wp.kernel
     def mg_restrict(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                     values: wp.array(dtype=mat33), row_base: int, member_start: wp.array(dtype=wp.int32),
                     members: wp.array(dtype=wp.int32), b: wp.array(dtype=vec3), x: wp.array(dtype=vec3),
                     coarse_lo: int, b_coarse: wp.array(dtype=vec3)):
-        # a coarse node's right-hand side: the sum of its members' residuals b - A x (P^T r, P piecewise constant)
-        c = wp.tid()
-        acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        for m in range(member_start[c], member_start[c + 1]):
-            i = members[m]
-            acc += row_residual(offsets, columns, values, i - row_base, b[i], x)
-        b_coarse[coarse_lo + c] = acc
+        c = coarse_lo + wp.tid()
+        b_coarse[c] = restricted(offsets, columns, values, row_base, member_start, members, b, x, c)
 
     @wp.kernel
-    def mg_solve_coarsest(mg: Multigrid, b: wp.array(dtype=vec3), x: wp.array(dtype=vec3)):
-        solve_coarsest(mg, 0, b, x)
-
-    @wp.kernel
-    def mg_prolong(aggregate: wp.array(dtype=wp.int32), lo: int, x_coarse: wp.array(dtype=vec3),
-                   x: wp.array(dtype=vec3)):
-        # add the next level's correction (P x_coarse)
+    def mg_up(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), values: wp.array(dtype=mat33),
+              row_base: int, lo: int, dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3),
+              aggregate: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), omega: scalar,
+              x_out: wp.array(dtype=vec3)):
+        # a level's first sweep up, after the next level's correction
         i = lo + wp.tid()
-        a = aggregate[i]
-        if a >= 0:
-            x[i] = x[i] + x_coarse[a]
+        x_out[i] = sweep_prolonged(offsets, columns, values, row_base, dinv, b, aggregate, x, omega, i)
 
     @wp.kernel
-    def mg_output(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), alpha: scalar, beta: scalar,
-                  z: wp.array(dtype=vec3)):
-        # z = alpha x + beta y (warp.optim.linear's matvec contract)
+    def mg_smooth(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                  values: wp.array(dtype=mat33), row_base: int, lo: int, dinv: wp.array(dtype=mat33),
+                  b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), omega: scalar, x_out: wp.array(dtype=vec3)):
+        # a level's second sweep up
+        i = lo + wp.tid()
+        x_out[i] = sweep(offsets, columns, values, row_base, dinv, b, x, omega, i)
+
+    @wp.kernel
+    def mg_smooth_output(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                         values: wp.array(dtype=mat33), dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3),
+                         x: wp.array(dtype=vec3), omega: scalar, y: wp.array(dtype=vec3), alpha: scalar,
+                         beta: scalar, z: wp.array(dtype=vec3)):
+        # the particles' second sweep up, written as z = alpha x + beta y (warp.optim.linear's matvec contract;
+        # z may be b or y: a thread reads only its own node of them)
         i = wp.tid()
-        zi = alpha * x[i]
+        zi = alpha * sweep(offsets, columns, values, 0, dinv, b, x, omega, i)
         if beta != scalar(0.0):
             zi += beta * y[i]
         z[i] = zi
+
+    @wp.kernel
+    def mg_coarse_cycle(mg: Multigrid, dinv: wp.array(dtype=mat33), member_start: wp.array(dtype=wp.int32),
+                        members: wp.array(dtype=wp.int32), other: wp.array(dtype=vec3), first: int, omega: scalar):
+        # The V-cycle from level ``first`` (>= 1) down, the coarsest level's solve and back up, in one thread block
+        # (launch_tiled, one block): the small levels' stages as barriers instead of launches. The same arithmetic
+        # per node as a launch a stage.
+        _w, lane = wp.tid()
+        stride = wp.block_dim()
+        row_base = mg.level_start[1]
+        coarsest = mg.levels - 1
+        for level in range(first, coarsest):
+            i = mg.level_start[level] + lane
+            while i < mg.level_start[level + 1]:
+                mg.x[i] = sweep_from_zero(mg.offsets, mg.columns, mg.values, row_base, dinv, mg.b, omega, i)
+                i += stride
+            block_barrier()
+            c = mg.level_start[level + 1] + lane
+            while c < mg.level_start[level + 2]:
+                mg.b[c] = restricted(mg.offsets, mg.columns, mg.values, row_base, member_start, members, mg.b, mg.x,
+                                     c)
+                c += stride
+            block_barrier()
+        if lane == 0:
+            solve_coarsest(mg, 0, mg.b, mg.x)
+        block_barrier()
+        for up in range(coarsest - first):
+            level = coarsest - 1 - up
+            i = mg.level_start[level] + lane
+            while i < mg.level_start[level + 1]:
+                other[i] = sweep_prolonged(mg.offsets, mg.columns, mg.values, row_base, dinv, mg.b, mg.aggregate,
+                                           mg.x, omega, i)
+                i += stride
+            block_barrier()
+            i = mg.level_start[level] + lane
+            while i < mg.level_start[level + 1]:
+                mg.x[i] = sweep(mg.offsets, mg.columns, mg.values, row_base, dinv, mg.b, other, omega, i)
+                i += stride
+            block_barrier()
 
     @wp.kernel
     def diagonal_inverse(A: BlockMatrix, use_block: int, precond: wp.array(dtype=mat33)):
@@ -757,12 +849,12 @@ def linear_kernels(scalar):
         mg_galerkin=mg_galerkin,
         mg_diag_inverse=mg_diag_inverse,
         mg_factor=mg_factor,
-        mg_smooth_first=mg_smooth_first,
-        mg_smooth=mg_smooth,
+        mg_down=mg_down,
         mg_restrict=mg_restrict,
-        mg_solve_coarsest=mg_solve_coarsest,
-        mg_prolong=mg_prolong,
-        mg_output=mg_output,
+        mg_up=mg_up,
+        mg_smooth=mg_smooth,
+        mg_smooth_output=mg_smooth_output,
+        mg_coarse_cycle=mg_coarse_cycle,
         apply_diagonal=apply_diagonal,
         warp_cg_info=warp_cg_info,
         pair_product=pair_product,

@@ -9,7 +9,7 @@ from conftest import DEVICES
 
 import warpcloth as wc
 from warpcloth.errors import SimulationError
-from warpcloth.solver.multigrid import MAX_COARSEST, WorldHierarchies
+from warpcloth.solver.multigrid import MAX_COARSEST, ParallelMultigrid, WorldHierarchies
 
 ROT_XZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
@@ -238,3 +238,49 @@ def test_worlds_of_different_meshes_each_solve_with_their_own_hierarchy():
         for k, (a, e) in enumerate(zip(x, xs)):
             np.testing.assert_array_equal(a[batch.world_slice(w)], e, err_msg=f"world {w}, state {k}")
         assert iterations[w] == alone.linear_solver.world_info[0, 0]
+
+
+def dense_v_cycle(A: np.ndarray, prolongation: list[np.ndarray], b: np.ndarray, omega: float) -> np.ndarray:
+    """One V-cycle of the parallel multigrid in dense NumPy: two damped block-Jacobi sweeps from zero down, the
+    residual restricted by P^T, the next level's correction added, two sweeps up; the coarsest level solved."""
+    if not prolongation:
+        return np.linalg.solve(A, b)
+    n = A.shape[0] // 3
+    blocks = A.reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]
+    dinv = np.linalg.inv(blocks)
+
+    def smooth(x):
+        return x + omega * np.einsum("nij,nj->ni", dinv, (b - A @ x).reshape(n, 3)).reshape(-1)
+
+    x = smooth(smooth(np.zeros_like(b)))
+    P = prolongation[0]
+    x = x + P @ dense_v_cycle(P.T @ A @ P, prolongation[1:], P.T @ (b - A @ x), omega)
+    return smooth(smooth(x))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_parallel_v_cycle_is_the_dense_one_whichever_levels_run_in_one_block(device, monkeypatch):
+    # with one CG iteration from zero the solution is a multiple of M^-1 b, M^-1 the preconditioner's V-cycle; the
+    # levels from ParallelMultigrid.BLOCK_NODES down run in one thread block, the others a launch a stage
+    model = hanging(32, pins=(0, 7), device=device)
+    sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_backend="warp", preconditioner="multigrid"))
+    state = wc.rollout(sim, model.state(), steps=3)[-1]
+    A, b = sim.dense_system(state)
+    values, rhs, _ = sim.assemble(state)
+    h = hierarchy_of(model)
+    assert len(h.sizes) >= 4, h.sizes  # two coarse levels and the coarsest: every split below is a different one
+    expected = dense_v_cycle(A, prolongations(h), b, ParallelMultigrid.OMEGA)
+    directions = []
+    for block_nodes in (h.sizes[1], h.sizes[2], 0):  # the one block from level 1, from level 2, the coarsest only
+        monkeypatch.setattr(ParallelMultigrid, "BLOCK_NODES", block_nodes)
+        solver = wc.LinearSolver(model, wc.SolverOptions(cg_backend="warp", preconditioner="multigrid",
+                                                         cg_max_iters=1))
+        dv = wp.zeros_like(rhs)
+        solver.solve(values, rhs, dv)
+        got = dv.numpy().reshape(-1)
+        directions.append(got)
+        step = got @ expected / (expected @ expected)
+        np.testing.assert_allclose(got, step * expected, atol=1e-9 * np.abs(step * expected).max(),
+                                   err_msg=f"BLOCK_NODES {block_nodes}")
+    for other in directions[1:]:  # the same arithmetic per node whatever runs in the block: bitwise
+        np.testing.assert_array_equal(other, directions[0])

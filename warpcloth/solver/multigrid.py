@@ -244,18 +244,21 @@ class WorldHierarchies:
 
 class ParallelMultigrid:
     """The multigrid preconditioner in parallel form (the warp backend's ``"multigrid"``): one symmetric V-cycle
-    over a :class:`Hierarchy`, a launch per stage and level, a thread per node or block (kernels/linear.py, mg_*).
+    over a :class:`Hierarchy`, a thread per node or block (kernels/linear.py, mg_*).
 
     Per solve, :meth:`setup` forms the coarse levels' Galerkin blocks (each gathers its sources: no atomics),
     their diagonal inverses and the coarsest level's Cholesky factor. Per application, :meth:`apply` smooths each
-    level with ``SWEEPS`` damped block-Jacobi sweeps (``OMEGA``) on the way down and up, restricts residuals by
-    summing each aggregate's members, and solves the coarsest level densely on one thread.
+    level with two damped block-Jacobi sweeps (``OMEGA``) on the way down and two on the way up, restricts residuals
+    by summing each aggregate's members, and solves the coarsest level densely on one thread. A level larger than
+    ``BLOCK_NODES`` costs two launches each way (the sweeps fused with what they follow); the levels from the first
+    smaller one down, the coarsest solve and the way back up run as one launch of one thread block, and the
+    particles' last sweep writes the output: 5 launches a V-cycle where a launch a stage and level took 20 (64x64,
+    four levels). The results are bitwise those of a launch a stage.
     """
 
-    SWEEPS = 2  # even: the sweeps alternate between two arrays (apply)
     OMEGA = 0.5
-    """Damped block-Jacobi sweeps per level and their damping. A sweep damps every mode only while OMEGA times the
-    largest eigenvalue of D^-1 A stays under 2: that eigenvalue was 1.7 to 3.1 over the hanging sheets of three
+    """The damping of the block-Jacobi sweeps (two a level each way). A sweep damps every mode only while OMEGA times
+    the largest eigenvalue of D^-1 A stays under 2: that eigenvalue was 1.7 to 3.1 over the hanging sheets of three
     fabrics at 8x8 to 64x64 and dt 0.02 and 0.005 (largest: 64x64 white-swim-solid at dt 0.02) and 3.09 on
     tests/test_multigrid.py's 0.5 m 32x32 sheet, where OMEGA 0.7 made the CG take 52 iterations (0.6: 20, 0.5:
     22, against the sequential multigrid's 22). Cold solves to 1e-5, CG iterations with 2 sweeps at 0.5 / 0.6 /
@@ -263,6 +266,12 @@ class ParallelMultigrid:
     and 28, block Jacobi 83 and 324); 4 sweeps at 0.6: 14 and 23. l1-Jacobi (Baker et al. 2011: each row's
     off-diagonal Frobenius norms added to its diagonal, convergent without damping) was tried and over-damps: 39
     and 94 iterations."""
+
+    BLOCK_NODES = 1024
+    BLOCK_DIM = 256
+    """The levels from the first with at most BLOCK_NODES nodes down run in one thread block of BLOCK_DIM threads
+    (on the CPU a block is one thread): at most four nodes a thread, where a launch a stage would cost more than
+    the work. Both are guesses not yet timed on a GPU (64x64: 484 nodes on level 1)."""
 
     def __init__(self, hierarchy: Hierarchy, mg, kernels, model, device):
         self.kernels, self.mg, self.model, self.device = kernels, mg, model, device
@@ -295,12 +304,11 @@ class ParallelMultigrid:
                 keys[prev:lo] = hierarchy.coarse_slot[prev:lo]
             source_start, sources = csr(keys, hi - lo, lo)
             self.galerkin.append((lo, hi - lo, source_start, sources))
-        aggregate = np.asarray(hierarchy.aggregate, dtype=np.int64)
-        self.members = []  # per level but the coarsest: the members of each node of the next level
-        for level in range(levels - 1):
-            keys = np.full(len(aggregate), -1, dtype=np.int64)
-            keys[start[level]:start[level + 1]] = aggregate[start[level]:start[level + 1]]
-            self.members.append(csr(keys, start[level + 2] - start[level + 1], start[level + 1]))
+        # each coarse node's members on the level before (flat ids): what restriction sums
+        self.member_start, self.members = csr(np.asarray(hierarchy.aggregate, dtype=np.int64), start[-1], 0)
+        self.block_level = next(level for level in range(1, levels)
+                                if start[level + 1] - start[level] <= self.BLOCK_NODES or level == levels - 1)
+        """The first level of the one-block launch (the coarsest at most)."""
         self.scratch = wp.zeros(start[-1], dtype=mg.x.dtype, device=device)
         self.smoother = wp.zeros(start[-1], dtype=mg.values.dtype, device=device)
         """Each node's inverse diagonal block (all levels but the coarsest)."""
@@ -323,40 +331,32 @@ class ParallelMultigrid:
         """z = alpha M^-1 r + beta y, M^-1 one V-cycle; ``A``: the BlockMatrix of the particles' level."""
         k, mg, dev, start = self.kernels, self.mg, self.device, self.start
         omega, dinv = self.scalar(self.OMEGA), self.smoother
-        solution, other = mg.x, self.scratch  # each level's result ends in mg.x
+        solution, other = mg.x, self.scratch  # each level's result ends in mg.x; ``other`` holds its first sweep up
 
         def matrix(level):
             if level == 0:
                 return [A.offsets, A.columns, A.values, 0]
             return [mg.offsets, mg.columns, mg.values, start[1]]
 
-        def sweeps(level, b, first_from_zero):
-            """SWEEPS damped Jacobi sweeps on ``level``, from zero or from the level's solution; the result ends
-            in ``solution`` (SWEEPS is even, so sweeps that alternate between the two arrays end where they
-            started)."""
+        for level in range(self.block_level):
             lo, n = start[level], start[level + 1] - start[level]
-            src, dst = solution, other
-            if first_from_zero:  # the first sweep from zero is omega D^-1 b; the result must still end in solution
-                src, dst = other, solution
-                wp.launch(k.mg_smooth_first, n, device=dev, inputs=[dinv, b, lo, omega], outputs=[src],
-                          record_tape=False)
-            for _ in range(self.SWEEPS - 1 if first_from_zero else self.SWEEPS):
-                wp.launch(k.mg_smooth, n, device=dev, inputs=[*matrix(level), lo, dinv, b, src, omega],
-                          outputs=[dst], record_tape=False)
-                src, dst = dst, src
-
-        for level in range(self.levels - 1):
             b = r if level == 0 else mg.b
-            sweeps(level, b, first_from_zero=True)
-            member_start, members = self.members[level]
-            wp.launch(k.mg_restrict, start[level + 2] - start[level + 1], device=dev,
-                      inputs=[*matrix(level), member_start, members, b, solution, start[level + 1]],
-                      outputs=[mg.b], record_tape=False)
-        wp.launch(k.mg_solve_coarsest, 1, device=dev, inputs=[mg, mg.b], outputs=[solution], record_tape=False)
-        for level in reversed(range(self.levels - 1)):
-            lo, n = start[level], start[level + 1] - start[level]
-            wp.launch(k.mg_prolong, n, device=dev, inputs=[mg.aggregate, lo, solution], outputs=[solution],
+            wp.launch(k.mg_down, n, device=dev, inputs=[*matrix(level), lo, dinv, b, omega], outputs=[solution],
                       record_tape=False)
-            sweeps(level, r if level == 0 else mg.b, first_from_zero=False)
-        wp.launch(k.mg_output, start[1], device=dev, inputs=[solution, y, self.scalar(alpha), self.scalar(beta)],
+            wp.launch(k.mg_restrict, start[level + 2] - start[level + 1], device=dev,
+                      inputs=[*matrix(level), self.member_start, self.members, b, solution, start[level + 1]],
+                      outputs=[mg.b], record_tape=False)
+        wp.launch_tiled(k.mg_coarse_cycle, dim=[1], block_dim=self.BLOCK_DIM, device=dev,
+                        inputs=[mg, dinv, self.member_start, self.members, other, self.block_level, omega],
+                        record_tape=False)
+        for level in reversed(range(self.block_level)):
+            lo, n = start[level], start[level + 1] - start[level]
+            b = r if level == 0 else mg.b
+            wp.launch(k.mg_up, n, device=dev, inputs=[*matrix(level), lo, dinv, b, mg.aggregate, solution, omega],
+                      outputs=[other], record_tape=False)
+            if level > 0:
+                wp.launch(k.mg_smooth, n, device=dev, inputs=[*matrix(level), lo, dinv, b, other, omega],
+                          outputs=[solution], record_tape=False)
+        wp.launch(k.mg_smooth_output, start[1], device=dev,
+                  inputs=[*matrix(0)[:3], dinv, r, other, omega, y, self.scalar(alpha), self.scalar(beta)],
                   outputs=[z], record_tape=False)
