@@ -8,7 +8,8 @@ SolverOptions. Compared, all to cg_tol 1e-6 (|b - A x| <= 1e-6 |b|) from x0 = 0:
       check_every=1; SolverOptions(cg_backend="warp", preconditioner="jacobi")), the same with block Jacobi and
       with the multigrid in parallel form (the backend's default for one world, CUDA's for worlds over 1024
       particles), and raw with warp's default check_every=10; the tiled backend (CUDA's default for smaller worlds:
-      one thread block a world; here a block is one thread, so only its iterations mean what they would on CUDA);
+      one thread block a world; here a block is one thread, so only its iterations mean what they would on CUDA)
+      with block Jacobi and with the multigrid's parallel V-cycle on the block's threads;
   (b) the one-launch sequential CG (cg_backend="sequential") with jacobi, block_jacobi, block_ssor (omega 1.0,
       i.e. symmetric Gauss-Seidel, and 1.5) and multigrid (the CPU default), block_ssor and multigrid also
       warm-started from the previous step's dv (``State.particle_dv``, what SolverOptions.warm_start uses);
@@ -126,6 +127,7 @@ def bench_size(res, reps, quick=False):
     sb = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="block_jacobi")
     smg = solver(m, cg_tol=TOL, cg_backend="warp", preconditioner="multigrid")
     st = solver(m, cg_tol=TOL, cg_backend="tiled")
+    stm = solver(m, cg_tol=TOL, cg_backend="tiled", preconditioner="multigrid")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for pre in ("jacobi", "block_jacobi", "multigrid"):  # compiles warp.sparse / warp.optim kernels
@@ -138,6 +140,8 @@ def bench_size(res, reps, quick=False):
            "damped block-Jacobi smoothing; CUDA's default for a world over 1024 particles")
     record("tiled block_jacobi", lambda: st.solve(values, rhs, x), reps,
            "CUDA's default for worlds up to 1024 particles; one thread a block on the CPU")
+    record("tiled multigrid", lambda: stm.solve(values, rhs, x), reps,
+           "the parallel V-cycle on each world's thread block; one thread a block on the CPU")
     A = warp_matrix(m, values)
     M = wl.preconditioner(A, "diag")
 

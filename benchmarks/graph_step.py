@@ -33,8 +33,10 @@ sheet in one model (``ModelBuilder.replicate``).
                          wind gradients): 0 on the CPU, where both run the same kernels in the same order; on CUDA
                          the assembly's atomic additions make any two runs differ in the last bits
 
-Each time is the median of --reps repetitions. ``--preconditioners auto,block_jacobi`` times each grid with each
-(``SolverOptions.preconditioner``; the multigrid takes one world only), on the same device in one run.
+Each time is the median of --reps repetitions. ``--preconditioners auto,block_jacobi,multigrid`` times each grid
+with each (``SolverOptions.preconditioner``: on CUDA the multigrid runs with the tiled backend, each world's V-cycle
+on its thread block, where a world fits one, and with the warp backend for one larger world), on the same device in
+one run.
 
 Usage: python benchmarks/graph_step.py [--quick] [--device cuda:0] [--sizes 16,64] [--worlds 1,64] [--steps 50]
        [--preconditioners auto]
@@ -239,8 +241,6 @@ def main():
             if worlds > 1 and res > 16:
                 continue  # many worlds: the 16x16 sheet only
             for preconditioner in args.preconditioners.split(","):
-                if preconditioner == "multigrid" and worlds > 1:
-                    continue  # one hierarchy spans one world
                 r = case(res, worlds, args.device, args.steps, args.reps, preconditioner)
                 rows.append(r)
                 print(f"  {res}x{res} x{worlds} {r['preconditioner']}: {r['step_ms']:.3f} ms/step, captured "

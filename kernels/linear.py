@@ -167,8 +167,17 @@ def linear_kernels(scalar):
         diag_slot: wp.array(dtype=wp.int32)
         values: wp.array(dtype=mat33)
         factor: wp.array3d(dtype=wp.float64)  # per world: its coarsest level as a dense matrix, then its Cholesky
-        # scratch: the coarse levels' right-hand sides and corrections (flat; the fine part is unused), and the
-        # dense solve's vector (per world)
+        # the maps above inverted, for the parallel forms (no atomics): each coarse node's members on the level
+        # before (restriction), and each coarse block's sources (Galerkin sums): blocks of the particles' level
+        # (fine_*: level 1's) and of the level before (coarse_*: the others')
+        member_start: wp.array(dtype=wp.int32)
+        members: wp.array(dtype=wp.int32)
+        fine_start: wp.array(dtype=wp.int32)
+        fine_sources: wp.array(dtype=wp.int32)
+        coarse_start: wp.array(dtype=wp.int32)
+        coarse_sources: wp.array(dtype=wp.int32)
+        # scratch: the coarse levels' right-hand sides and corrections (flat; the fine part is unused by the
+        # sequential form), and the dense solve's vector (per world)
         b: wp.array(dtype=vec3)
         x: wp.array(dtype=vec3)
         work: wp.array2d(dtype=wp.float64)
@@ -491,116 +500,149 @@ def linear_kernels(scalar):
             k += stride
         return pq
 
-    @wp.kernel
-    def cg_tiled(
-        A: BlockMatrix,
-        b: wp.array(dtype=vec3),
-        rtol: wp.float64,
-        atol: wp.float64,
-        max_iters: int,
-        use_block: int,
-        warm_start: int,
-        guess: wp.array(dtype=vec3),
-        # scratch:
-        r: wp.array(dtype=vec3),
-        z: wp.array(dtype=vec3),
-        p: wp.array(dtype=vec3),
-        q: wp.array(dtype=vec3),
-        precond: wp.array(dtype=mat33),
-        world_start: wp.array(dtype=wp.int32),
-        # out: per world [iterations, relative (recursive) residual, converged (0/1)]
-        x: wp.array(dtype=vec3),
-        info: wp.array2d(dtype=wp.float64),
-    ):
-        # The whole (block) Jacobi-preconditioned CG of one world in one thread block (launch_tiled, one block per
-        # world): its threads share the rows, and the dot products are tile reductions, which double as the
-        # barriers between the phases of an iteration. One launch a solve and no host round trip: the parallel
-        # form of cg_sequential, for CUDA. Each world stops when it converges, as with cg_sequential, and the
-        # reductions run in a fixed order, so a world's result does not depend on the other worlds.
-        w, lane = wp.tid()
-        stride = wp.block_dim()
-        lo = world_start[w]
-        hi = world_start[w + 1]
-        zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        pairs = A.pair_count > 0
-        bb = wp.float64(0.0)
-        i = lo + lane
-        while i < hi:
-            precond[i] = jacobi_inverse(A.values[A.diag_slot[i]], use_block)
-            if warm_start != 0:
-                x[i] = guess[i]
-            else:
-                x[i] = zero
-            bb += wp.float64(wp.dot(b[i], b[i]))
-            i += stride
-        bb = block_sum(bb)
-        if warm_start != 0:
-            add_row_products(A, x, r, lo, hi, lane, stride)  # r = A x0 for now
-            if pairs:
-                block_barrier()
-                if wp.static(ordered_pairs):
-                    if lane == 0:
-                        add_pair_products(A, x, r, scalar(1.0), w)
+    def tiled_cg(with_multigrid: bool):
+        @wp.kernel
+        def cg_tiled(
+            A: BlockMatrix,
+            b: wp.array(dtype=vec3),
+            rtol: wp.float64,
+            atol: wp.float64,
+            max_iters: int,
+            preconditioner: int,
+            mg: Multigrid,
+            omega: scalar,
+            warm_start: int,
+            guess: wp.array(dtype=vec3),
+            # scratch:
+            r: wp.array(dtype=vec3),
+            z: wp.array(dtype=vec3),
+            p: wp.array(dtype=vec3),
+            q: wp.array(dtype=vec3),
+            other: wp.array(dtype=vec3),
+            precond: wp.array(dtype=mat33),
+            world_start: wp.array(dtype=wp.int32),
+            # out: per world [iterations, relative (recursive) residual, converged (0/1)]
+            x: wp.array(dtype=vec3),
+            info: wp.array2d(dtype=wp.float64),
+        ):
+            # The whole preconditioned CG of one world in one thread block (launch_tiled, one block per world): its
+            # threads share the rows, and the dot products are tile reductions, which double as the barriers between
+            # the phases of an iteration. One launch a solve and no host round trip: the parallel form of
+            # cg_sequential, for CUDA. Each world stops when it converges, as with cg_sequential, and the reductions
+            # run in a fixed order, so a world's result does not depend on the other worlds. ``preconditioner``: 0
+            # Jacobi, 1 block Jacobi; with_multigrid: the multigrid instead (``mg``: the parallel V-cycle, damped
+            # block-Jacobi sweeps with ``omega``, on the block's threads; ``precond`` then holds every level's diagonal
+            # inverses, ``other`` is the V-cycle's scratch). A kernel of its own, so that the block-Jacobi form's
+            # registers do not grow by the V-cycle's.
+            w, lane = wp.tid()
+            stride = wp.block_dim()
+            lo = world_start[w]
+            hi = world_start[w + 1]
+            zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+            pairs = A.pair_count > 0
+            use_block = wp.where(preconditioner == 0, 0, 1)
+            bb = wp.float64(0.0)
+            i = lo + lane
+            while i < hi:
+                precond[i] = jacobi_inverse(A.values[A.diag_slot[i]], use_block)
+                if warm_start != 0:
+                    x[i] = guess[i]
                 else:
-                    add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
-            block_barrier()
-        rr = wp.float64(0.0)
-        rz = wp.float64(0.0)
-        i = lo + lane
-        while i < hi:
-            ri = b[i]
+                    x[i] = zero
+                bb += wp.float64(wp.dot(b[i], b[i]))
+                i += stride
+            bb = block_sum(bb)
+            if wp.static(with_multigrid):
+                tiled_multigrid_setup(A, mg, precond, w, lane, stride)
             if warm_start != 0:
-                ri = ri - r[i]
-            r[i] = ri
-            zi = precond[i] * ri
-            p[i] = zi
-            rr += wp.float64(wp.dot(ri, ri))
-            rz += wp.float64(wp.dot(ri, zi))
-            i += stride
-        rr = block_sum(rr)
-        rz = block_sum(rz)
-        threshold = wp.max(rtol * wp.sqrt(bb), atol)
-        rnorm = wp.sqrt(rr)
-        it = int(0)
-        while it < max_iters and rnorm > threshold:  # the same on every thread: reduced values only
-            pq = add_row_products(A, p, q, lo, hi, lane, stride)
-            if pairs:
+                add_row_products(A, x, r, lo, hi, lane, stride)  # r = A x0 for now
+                if pairs:
+                    block_barrier()
+                    if wp.static(ordered_pairs):
+                        if lane == 0:
+                            add_pair_products(A, x, r, scalar(1.0), w)
+                    else:
+                        add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
                 block_barrier()
-                if wp.static(ordered_pairs):
-                    if lane == 0:
-                        pq += add_pair_products(A, p, q, scalar(1.0), w)
-                else:
-                    pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
-            pq = block_sum(pq)
-            alpha = scalar(rz / pq)
             rr = wp.float64(0.0)
-            rz_new = wp.float64(0.0)
+            rz = wp.float64(0.0)
             i = lo + lane
             while i < hi:
-                xi = x[i] + alpha * p[i]
-                ri = r[i] - alpha * q[i]
-                zi = precond[i] * ri
-                x[i] = xi
+                ri = b[i]
+                if warm_start != 0:
+                    ri = ri - r[i]
                 r[i] = ri
-                z[i] = zi
                 rr += wp.float64(wp.dot(ri, ri))
-                rz_new += wp.float64(wp.dot(ri, zi))
+                if not wp.static(with_multigrid):
+                    zi = precond[i] * ri
+                    p[i] = zi
+                    rz += wp.float64(wp.dot(ri, zi))
                 i += stride
+            if wp.static(with_multigrid):
+                block_barrier()  # every r written before the V-cycle reads it
+                tiled_v_cycle(A, mg, precond, r, z, other, omega, w, lane, stride)
+                i = lo + lane
+                while i < hi:
+                    p[i] = z[i]
+                    rz += wp.float64(wp.dot(r[i], z[i]))
+                    i += stride
             rr = block_sum(rr)
-            rz_new = block_sum(rz_new)
-            beta = scalar(rz_new / rz)
-            rz = rz_new
-            i = lo + lane
-            while i < hi:
-                p[i] = z[i] + beta * p[i]
-                i += stride
-            block_barrier()  # every p written before the next product reads it
+            rz = block_sum(rz)
+            threshold = wp.max(rtol * wp.sqrt(bb), atol)
             rnorm = wp.sqrt(rr)
-            it += 1
-        if lane == 0:
-            info[w, 0] = wp.float64(it)
-            info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
-            info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
+            it = int(0)
+            while it < max_iters and rnorm > threshold:  # the same on every thread: reduced values only
+                pq = add_row_products(A, p, q, lo, hi, lane, stride)
+                if pairs:
+                    block_barrier()
+                    if wp.static(ordered_pairs):
+                        if lane == 0:
+                            pq += add_pair_products(A, p, q, scalar(1.0), w)
+                    else:
+                        pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
+                pq = block_sum(pq)
+                alpha = scalar(rz / pq)
+                rr = wp.float64(0.0)
+                rz_new = wp.float64(0.0)
+                i = lo + lane
+                while i < hi:
+                    xi = x[i] + alpha * p[i]
+                    ri = r[i] - alpha * q[i]
+                    x[i] = xi
+                    r[i] = ri
+                    rr += wp.float64(wp.dot(ri, ri))
+                    if not wp.static(with_multigrid):
+                        zi = precond[i] * ri
+                        z[i] = zi
+                        rz_new += wp.float64(wp.dot(ri, zi))
+                    i += stride
+                if wp.static(with_multigrid):
+                    block_barrier()
+                    tiled_v_cycle(A, mg, precond, r, z, other, omega, w, lane, stride)
+                    i = lo + lane
+                    while i < hi:
+                        rz_new += wp.float64(wp.dot(r[i], z[i]))
+                        i += stride
+                rr = block_sum(rr)
+                rz_new = block_sum(rz_new)
+                beta = scalar(rz_new / rz)
+                rz = rz_new
+                i = lo + lane
+                while i < hi:
+                    p[i] = z[i] + beta * p[i]
+                    i += stride
+                block_barrier()  # every p written before the next product reads it
+                rnorm = wp.sqrt(rr)
+                it += 1
+            if lane == 0:
+                info[w, 0] = wp.float64(it)
+                info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
+                info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
+
+        return cg_tiled
+
+    cg_tiled = tiled_cg(False)
+    cg_tiled_multigrid = tiled_cg(True)
 
     # -- the parallel multigrid (the warp backend's "multigrid"): the same hierarchy, a thread per node or block.
     # Galerkin sums gather their sources (no atomics: the same sums in the same order on every device), damped
@@ -615,15 +657,22 @@ def linear_kernels(scalar):
             r -= values[k] * x[columns[k]]
         return r
 
-    @wp.kernel
-    def mg_galerkin(source: wp.array(dtype=mat33), source_start: wp.array(dtype=wp.int32),
-                    sources: wp.array(dtype=wp.int32), first: int, values: wp.array(dtype=mat33)):
-        # one coarse block: the sum of the finer blocks that map to it (a level's, from the level before it)
-        k = wp.tid()
+    @wp.func
+    def galerkin_block(fine: wp.array(dtype=mat33), mg: Multigrid, k: int):
+        """Coarse block k: the sum of the blocks that map to it (the particles' level's ``fine`` for level 1, the
+        level before's otherwise), in the order the sequential form adds them."""
         acc = mat33()
-        for s in range(source_start[k], source_start[k + 1]):
-            acc += source[sources[s]]
-        values[first + k] = acc
+        for s in range(mg.fine_start[k], mg.fine_start[k + 1]):
+            acc += fine[mg.fine_sources[s]]
+        for s in range(mg.coarse_start[k], mg.coarse_start[k + 1]):
+            acc += mg.values[mg.coarse_sources[s]]
+        return acc
+
+    @wp.kernel
+    def mg_galerkin(fine: wp.array(dtype=mat33), mg: Multigrid, first: int):
+        # one coarse block of a level (its blocks from ``first``)
+        k = first + wp.tid()
+        mg.values[k] = galerkin_block(fine, mg, k)
 
     @wp.kernel
     def mg_diag_inverse(diag_slot: wp.array(dtype=wp.int32), values: wp.array(dtype=mat33), row_base: int, lo: int,
@@ -688,15 +737,130 @@ def linear_kernels(scalar):
 
     @wp.func
     def restricted(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
-                   values: wp.array(dtype=mat33), row_base: int, member_start: wp.array(dtype=wp.int32),
-                   members: wp.array(dtype=wp.int32), b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), c: int):
+                   values: wp.array(dtype=mat33), row_base: int, mg: Multigrid, b: wp.array(dtype=vec3),
+                   x: wp.array(dtype=vec3), c: int):
         """Coarse node c's right-hand side: the sum of its members' residuals b - A x (P^T r, P piecewise
         constant)."""
         acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        for m in range(member_start[c], member_start[c + 1]):
-            i = members[m]
+        for m in range(mg.member_start[c], mg.member_start[c + 1]):
+            i = mg.members[m]
             acc += row_residual(offsets, columns, values, i - row_base, b[i], x)
         return acc
+
+    @wp.func
+    def block_sweeps_down(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                          values: wp.array(dtype=mat33), row_base: int, lo: int, hi: int, dinv: wp.array(dtype=mat33),
+                          b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), other: wp.array(dtype=vec3),
+                          omega: scalar, lane: int, stride: int):
+        """Nodes [lo, hi) of x after two damped Jacobi sweeps from zero, on the threads of one block. A barrier
+        is cheaper than forming the first sweep where it is read (sweep_from_zero: a launch's fusion), and the
+        arithmetic is the same."""
+        i = lo + lane
+        while i < hi:
+            other[i] = first_sweep(dinv, b, omega, i)
+            i += stride
+        block_barrier()
+        i = lo + lane
+        while i < hi:
+            x[i] = sweep(offsets, columns, values, row_base, dinv, b, other, omega, i)
+            i += stride
+        block_barrier()
+
+    @wp.func
+    def block_sweeps_up(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                        values: wp.array(dtype=mat33), row_base: int, lo: int, hi: int, dinv: wp.array(dtype=mat33),
+                        b: wp.array(dtype=vec3), aggregate: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3),
+                        other: wp.array(dtype=vec3), omega: scalar, out: wp.array(dtype=vec3), lane: int,
+                        stride: int):
+        """Nodes [lo, hi) of x plus the next level's correction (in x too), then two damped Jacobi sweeps, on the
+        threads of one block; the result in ``out`` (not x: the last sweep reads x)."""
+        i = lo + lane
+        while i < hi:
+            other[i] = prolonged(aggregate, x, i)
+            i += stride
+        block_barrier()
+        i = lo + lane
+        while i < hi:
+            x[i] = sweep(offsets, columns, values, row_base, dinv, b, other, omega, i)
+            i += stride
+        block_barrier()
+        i = lo + lane
+        while i < hi:
+            out[i] = sweep(offsets, columns, values, row_base, dinv, b, x, omega, i)
+            i += stride
+        block_barrier()
+
+    @wp.func
+    def coarse_cycle(mg: Multigrid, dinv: wp.array(dtype=mat33), other: wp.array(dtype=vec3), first: int,
+                     omega: scalar, w: int, lane: int, stride: int):
+        """World w's V-cycle from its coarse level ``first`` (>= 1; its right-hand side in mg.b) down, the coarsest
+        level's solve and back up to ``first`` (its correction in mg.x), on the threads of one block: the stages
+        of ParallelMultigrid.apply's launches, the same arithmetic, with barriers between them."""
+        row_base = mg.level_start[1]
+        coarsest = mg.world_levels[w] - 1
+        for level in range(first, coarsest):
+            lo, hi = mg.world_level_lo[w, level], mg.world_level_hi[w, level]
+            block_sweeps_down(mg.offsets, mg.columns, mg.values, row_base, lo, hi, dinv, mg.b, mg.x, other, omega,
+                              lane, stride)
+            c = mg.world_level_lo[w, level + 1] + lane
+            while c < mg.world_level_hi[w, level + 1]:
+                mg.b[c] = restricted(mg.offsets, mg.columns, mg.values, row_base, mg, mg.b, mg.x, c)
+                c += stride
+            block_barrier()
+        if lane == 0:
+            solve_coarsest(mg, w, mg.b, mg.x)
+        block_barrier()
+        for up in range(coarsest - first):
+            level = coarsest - 1 - up
+            up_lo, up_hi = mg.world_level_lo[w, level], mg.world_level_hi[w, level]
+            block_sweeps_up(mg.offsets, mg.columns, mg.values, row_base, up_lo, up_hi, dinv, mg.b, mg.aggregate,
+                            mg.x, other, omega, other, lane, stride)
+            i = up_lo + lane  # the level's result where the level above reads it
+            while i < up_hi:
+                mg.x[i] = other[i]
+                i += stride
+            block_barrier()
+
+    @wp.func
+    def tiled_v_cycle(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), r: wp.array(dtype=vec3),
+                      z: wp.array(dtype=vec3), other: wp.array(dtype=vec3), omega: scalar, w: int, lane: int,
+                      stride: int):
+        """z = one V-cycle of world w on r, on the threads of its block (the tiled CG's multigrid): the stages of
+        ParallelMultigrid.apply, the same arithmetic."""
+        lo, hi = mg.world_level_lo[w, 0], mg.world_level_hi[w, 0]
+        block_sweeps_down(A.offsets, A.columns, A.values, 0, lo, hi, dinv, r, mg.x, other, omega, lane, stride)
+        c = mg.world_level_lo[w, 1] + lane
+        while c < mg.world_level_hi[w, 1]:
+            mg.b[c] = restricted(A.offsets, A.columns, A.values, 0, mg, r, mg.x, c)
+            c += stride
+        block_barrier()
+        coarse_cycle(mg, dinv, other, 1, omega, w, lane, stride)
+        block_sweeps_up(A.offsets, A.columns, A.values, 0, lo, hi, dinv, r, mg.aggregate, mg.x, other, omega, z,
+                        lane, stride)
+
+    @wp.func
+    def tiled_multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), w: int, lane: int,
+                              stride: int):
+        """World w's coarse levels' blocks, their diagonal inverses (dinv; the particles' are the caller's) and
+        its coarsest level's Cholesky factor, on the threads of its block (a pivot that is not positive poisons
+        the factor with a NaN, so the CG reports a non-finite residual)."""
+        n0 = mg.level_start[1]
+        levels = mg.world_levels[w]
+        for level in range(1, levels):  # level by level: each reads the one before
+            k = mg.offsets[mg.world_level_lo[w, level] - n0] + lane
+            while k < mg.offsets[mg.world_level_hi[w, level] - n0]:
+                mg.values[k] = galerkin_block(A.values, mg, k)
+                k += stride
+            block_barrier()
+        for level in range(1, levels - 1):
+            f = mg.world_level_lo[w, level] + lane
+            while f < mg.world_level_hi[w, level]:
+                dinv[f] = wp.inverse(mg.values[mg.diag_slot[f - n0]])
+                f += stride
+        if lane == 0:
+            if not factor_coarsest(mg, w):
+                mg.factor[w, 0, 0] = wp.float64(wp.nan)
+        block_barrier()
 
     @wp.kernel
     def mg_down(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
@@ -708,11 +872,11 @@ def linear_kernels(scalar):
 
     @wp.kernel
     def mg_restrict(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
-                    values: wp.array(dtype=mat33), row_base: int, member_start: wp.array(dtype=wp.int32),
-                    members: wp.array(dtype=wp.int32), b: wp.array(dtype=vec3), x: wp.array(dtype=vec3),
-                    coarse_lo: int, b_coarse: wp.array(dtype=vec3)):
+                    values: wp.array(dtype=mat33), row_base: int, mg: Multigrid, b: wp.array(dtype=vec3),
+                    coarse_lo: int):
+        # the next level's right-hand side (mg.b from coarse_lo) from a level's residual
         c = coarse_lo + wp.tid()
-        b_coarse[c] = restricted(offsets, columns, values, row_base, member_start, members, b, x, c)
+        mg.b[c] = restricted(offsets, columns, values, row_base, mg, b, mg.x, c)
 
     @wp.kernel
     def mg_up(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), values: wp.array(dtype=mat33),
@@ -745,43 +909,11 @@ def linear_kernels(scalar):
         z[i] = zi
 
     @wp.kernel
-    def mg_coarse_cycle(mg: Multigrid, dinv: wp.array(dtype=mat33), member_start: wp.array(dtype=wp.int32),
-                        members: wp.array(dtype=wp.int32), other: wp.array(dtype=vec3), first: int, omega: scalar):
-        # The V-cycle from level ``first`` (>= 1) down, the coarsest level's solve and back up, in one thread block
-        # (launch_tiled, one block): the small levels' stages as barriers instead of launches. The same arithmetic
-        # per node as a launch a stage.
+    def mg_coarse_cycle(mg: Multigrid, dinv: wp.array(dtype=mat33), other: wp.array(dtype=vec3), first: int,
+                        omega: scalar):
+        # the small levels' stages in one thread block (launch_tiled, one block, one world)
         _w, lane = wp.tid()
-        stride = wp.block_dim()
-        row_base = mg.level_start[1]
-        coarsest = mg.levels - 1
-        for level in range(first, coarsest):
-            i = mg.level_start[level] + lane
-            while i < mg.level_start[level + 1]:
-                mg.x[i] = sweep_from_zero(mg.offsets, mg.columns, mg.values, row_base, dinv, mg.b, omega, i)
-                i += stride
-            block_barrier()
-            c = mg.level_start[level + 1] + lane
-            while c < mg.level_start[level + 2]:
-                mg.b[c] = restricted(mg.offsets, mg.columns, mg.values, row_base, member_start, members, mg.b, mg.x,
-                                     c)
-                c += stride
-            block_barrier()
-        if lane == 0:
-            solve_coarsest(mg, 0, mg.b, mg.x)
-        block_barrier()
-        for up in range(coarsest - first):
-            level = coarsest - 1 - up
-            i = mg.level_start[level] + lane
-            while i < mg.level_start[level + 1]:
-                other[i] = sweep_prolonged(mg.offsets, mg.columns, mg.values, row_base, dinv, mg.b, mg.aggregate,
-                                           mg.x, omega, i)
-                i += stride
-            block_barrier()
-            i = mg.level_start[level] + lane
-            while i < mg.level_start[level + 1]:
-                mg.x[i] = sweep(mg.offsets, mg.columns, mg.values, row_base, dinv, mg.b, other, omega, i)
-                i += stride
-            block_barrier()
+        coarse_cycle(mg, dinv, other, first, omega, 0, lane, wp.block_dim())
 
     @wp.kernel
     def diagonal_inverse(A: BlockMatrix, use_block: int, precond: wp.array(dtype=mat33)):
@@ -845,6 +977,7 @@ def linear_kernels(scalar):
         Multigrid=Multigrid,
         cg_sequential=cg_sequential,
         cg_tiled=cg_tiled,
+        cg_tiled_multigrid=cg_tiled_multigrid,
         diagonal_inverse=diagonal_inverse,
         mg_galerkin=mg_galerkin,
         mg_diag_inverse=mg_diag_inverse,

@@ -62,9 +62,11 @@ def test_captured_forward_equals_uncaptured(device):
     assert sim.stats["steps"] == 3 * STEPS  # the rollout, the capture's ordinary run, the replay (not the capture)
 
 
+@pytest.mark.parametrize("options", [{}, {"cg_backend": "tiled", "preconditioner": "multigrid"}],
+                         ids=["default", "tiled-multigrid"])  # the tiled V-cycle: many worlds' GPU solve
 @pytest.mark.parametrize("device", DEVICES)
-def test_captured_gradients_equal_uncaptured_for_every_parameter(device):
-    model, sim, state, control = scene(device)
+def test_captured_gradients_equal_uncaptured_for_every_parameter(device, options):
+    model, sim, state, control = scene(device, **options)
     arrays = gradient_arrays(model, state, control)
     tape = wp.Tape()
     with wp.ScopedDevice(device), tape:

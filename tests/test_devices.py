@@ -39,7 +39,7 @@ def test_rollout_and_gradients_match_cpu(device):
 def test_every_cg_backend_agrees(device):
     results = []
     for backend, preconditioner in (("sequential", "auto"), ("warp", "block_jacobi"), ("warp", "multigrid"),
-                                    ("tiled", "auto")):
+                                    ("tiled", "auto"), ("tiled", "multigrid")):
         model = hanging_builder(res=6).finalize(device)
         sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(cg_tol=1e-7, cg_backend=backend,
                                                                  preconditioner=preconditioner))

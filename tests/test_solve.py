@@ -33,6 +33,7 @@ def assembled(sim):
 @pytest.mark.parametrize("backend, preconditioner", [
     ("sequential", "jacobi"), ("sequential", "block_jacobi"), ("sequential", "block_ssor"), ("sequential", "multigrid"),
     ("warp", "jacobi"), ("warp", "block_jacobi"), ("warp", "multigrid"), ("tiled", "jacobi"), ("tiled", "block_jacobi"),
+    ("tiled", "multigrid"),
 ])
 @pytest.mark.parametrize("device", DEVICES)
 def test_cg_matches_dense_solve(backend, preconditioner, device):
@@ -47,7 +48,7 @@ def test_cg_matches_dense_solve(backend, preconditioner, device):
 @pytest.mark.parametrize("backend, preconditioner", [("sequential", "block_ssor"), ("sequential", "block_jacobi"),
                                                     ("sequential", "multigrid"),
                                                     ("warp", "block_jacobi"), ("warp", "multigrid"),
-                                                    ("tiled", "block_jacobi")])
+                                                    ("tiled", "block_jacobi"), ("tiled", "multigrid")])
 @pytest.mark.parametrize("device", DEVICES)
 def test_solve_adjoint_matches_dense(backend, preconditioner, device):
     sim = hanging_sim(device=device, cg_tol=1e-12, cg_backend=backend, preconditioner=preconditioner)

@@ -16,6 +16,8 @@ TILED = {**SSOR, "preconditioner": "block_jacobi", "cg_backend": "tiled"}
 """The GPU's CG backend (one thread block per world; one thread on the CPU): the same per-world independence."""
 MULTIGRID = {**SSOR, "preconditioner": "multigrid", "cg_backend": "sequential"}
 """The CPU's default: a multigrid hierarchy per world, each world's V-cycle on its world's thread."""
+TILED_MULTIGRID = {**TILED, "preconditioner": "multigrid"}
+"""The multigrid's parallel form in the GPU's CG backend: each world's V-cycle on its world's thread block."""
 
 
 @wp.kernel
@@ -68,7 +70,8 @@ WORLDS = [("gray-interlock", (0.5, 2.0, 0.0), (0.0, 0.0, -2.0)),
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID], ids=["sequential", "tiled", "multigrid"])
+@pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID, TILED_MULTIGRID],
+                         ids=["sequential", "tiled", "multigrid", "tiled-multigrid"])
 def test_worlds_without_contact_equal_single_runs_states_and_gradients(solve, device):
     """Per-world materials, wind and gravity: each world's state and gradients (its material, wind, gravity and
     initial velocities) equal a single-world model's, bitwise on the CPU (the same kernels, and each world's CG on
@@ -120,7 +123,8 @@ def draped_builder():
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID], ids=["sequential", "tiled", "multigrid"])
+@pytest.mark.parametrize("solve", [SSOR, TILED, MULTIGRID, TILED_MULTIGRID],
+                         ids=["sequential", "tiled", "multigrid", "tiled-multigrid"])
 def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve, device):
     """A cloth dropped on a sphere (projection, repulsion, friction) replicated with a different push per world:
     states and the gradients of every parameter (forces, density, stretching, bending, x0, v0, the sphere's

@@ -28,6 +28,7 @@ from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
 
 TILED_MAX_PARTICLES = 1024
+_KIND = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}  # the CG kernels' preconditioner codes
 """The largest world the "auto" backend gives the tiled CG on CUDA (one thread block a world); larger worlds get
 warp.optim's CG, whose every operation spans the GPU. Measured on an H200 (benchmarks/results/gpu/, hanging sheet,
 block Jacobi, captured steps): 16x16 (289 particles) 0.77 ms a step tiled against 2.0 ms with warp.optim's CG;
@@ -57,9 +58,9 @@ class LinearSolver:
 
     A preconditioner the resolved backend cannot run is mapped to one it can when the backend was chosen by the
     device (``cg_backend="auto"``): block SSOR is a sequential sweep, so the tiled and warp backends (CUDA) run
-    block Jacobi instead, and ``note`` says so; the multigrid runs in parallel form with the warp backend (asked
-    for on CUDA, it selects that backend) and has no tiled form. Asking for an impossible pair explicitly raises
-    ValueError.
+    block Jacobi instead, and ``note`` says so. The multigrid runs in parallel form (damped block-Jacobi sweeps)
+    with the warp backend (one world) and the tiled one (each world's V-cycle on its thread block). Asking for an
+    impossible pair explicitly raises ValueError.
     """
 
     def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None,
@@ -77,8 +78,6 @@ class LinearSolver:
         if chosen_by_device:
             if self.device.is_cpu:
                 backend = "sequential"
-            elif options.preconditioner == "multigrid":  # its parallel form runs with warp.optim's CG
-                backend = "warp"
             else:  # a thread block per world while a world fits one well; else the many-block warp.optim CG
                 backend = "tiled" if largest <= TILED_MAX_PARTICLES else "warp"
         self.backend = backend
@@ -98,17 +97,15 @@ class LinearSolver:
                 preconditioner = "multigrid" if coarsen and model.world_count == 1 else "block_jacobi"
             else:
                 preconditioner = "multigrid" if coarsen else "block_ssor"
-        if preconditioner == "multigrid" and model.world_count > 1 and backend != "sequential":
+        if preconditioner == "multigrid" and model.world_count > 1 and backend == "warp":
             raise ValueError(f"SolverOptions.preconditioner 'multigrid' with the {backend} CG backend takes a model "
                              f"of one world (this one has {model.world_count}); the sequential backend runs one "
                              "per world, or use 'block_jacobi'")
-        sequential_only = ("block_ssor", "multigrid") if backend == "tiled" else ("block_ssor",)
-        if preconditioner in sequential_only and backend != "sequential":
+        if preconditioner == "block_ssor" and backend != "sequential":
             if not chosen_by_device:
-                raise ValueError(f"SolverOptions.preconditioner {preconditioner!r} needs cg_backend 'sequential' "
-                                 f"(its sweeps are sequential); use 'block_jacobi' or 'jacobi' with the {backend} "
-                                 "backend" + (", or 'multigrid' (in parallel form) with 'warp'"
-                                              if backend == "tiled" else ""))
+                raise ValueError(f"SolverOptions.preconditioner 'block_ssor' needs cg_backend 'sequential' (its "
+                                 f"sweeps are sequential); use 'multigrid' (in parallel form), 'block_jacobi' or "
+                                 f"'jacobi' with the {backend} backend")
             self.note = (f"preconditioner {preconditioner!r} is a sequential sweep; the {backend} CG backend that "
                          f"{self.device} runs uses 'block_jacobi' instead")
             preconditioner = "block_jacobi"
@@ -118,12 +115,15 @@ class LinearSolver:
         vec3, mat33 = model.types.vec3, model.types.mat33
         self._scratch = [wp.empty(n, dtype=vec3, device=self.device) for _ in range(4)]
         self._parallel_multigrid = None
+        self._mg_scratch = wp.empty(0, dtype=vec3, device=self.device)  # the tiled V-cycle's (multigrid only)
         if preconditioner == "multigrid":
             hierarchy = WorldHierarchies.of_model(model)
             self._multigrid = hierarchy.multigrid(self.kernels, model.scalar, self.device)
             if backend == "warp":  # the same hierarchy in parallel form: Jacobi smoothing, a thread per node
                 self._parallel_multigrid = ParallelMultigrid(hierarchy, self._multigrid, self.kernels, model,
                                                              self.device)
+            elif backend == "tiled":  # the same parallel form on the threads of each world's block
+                self._mg_scratch = wp.zeros(self._multigrid.x.shape[0], dtype=vec3, device=self.device)
             self.multigrid_levels = tuple(hierarchy.sizes)
             """Nodes per level of the multigrid hierarchy, the particles first (all worlds' together; empty without
             multigrid)."""
@@ -177,18 +177,19 @@ class LinearSolver:
             return
         r, z, p, q = self._scratch
         if self.backend == "tiled":
-            wp.launch_tiled(self.kernels.cg_tiled, dim=[model.world_count], block_dim=self.block_dim,
+            kernel = self.kernels.cg_tiled_multigrid if self.preconditioner == "multigrid" else self.kernels.cg_tiled
+            wp.launch_tiled(kernel, dim=[model.world_count], block_dim=self.block_dim,
                             device=self.device,
                             inputs=[self.block_matrix(values, pairs), b, float(tol), float(opt.cg_atol),
-                                    int(opt.cg_max_iters), int(self.preconditioner != "jacobi"),
-                                    int(guess is not None), x if guess is None else guess,
-                                    r, z, p, q, self._precond, self._world_start],
+                                    int(opt.cg_max_iters), _KIND[self.preconditioner], self._multigrid,
+                                    model.scalar(ParallelMultigrid.OMEGA), int(guess is not None),
+                                    x if guess is None else guess, r, z, p, q, self._mg_scratch, self._precond,
+                                    self._world_start],
                             outputs=[x, self._info[adjoint]], record_tape=False)
             return
-        kind = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}[self.preconditioner]
         wp.launch(self.kernels.cg_sequential, model.world_count, device=self.device,
                   inputs=[self.block_matrix(values, pairs), b,
-                          float(tol), float(opt.cg_atol), int(opt.cg_max_iters), kind,
+                          float(tol), float(opt.cg_atol), int(opt.cg_max_iters), _KIND[self.preconditioner],
                           model.scalar(opt.ssor_omega), self._multigrid, int(guess is not None),
                           x if guess is None else guess,
                           r, z, p, q, self._precond, self._world_start],

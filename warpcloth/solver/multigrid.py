@@ -79,6 +79,15 @@ def _neighbours(n: int, rows: np.ndarray, cols: np.ndarray) -> list[list[int]]:
     return [cols[starts[i]:starts[i + 1]] for i in range(n)]
 
 
+def gather_lists(targets: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(start, sources)``: for each target t in [0, count), the positions k with ``targets[k] == t``, ascending, as
+    ``sources[start[t]:start[t + 1]]`` (negative targets: none)."""
+    targets = np.asarray(targets, dtype=np.int64)
+    sources = np.flatnonzero(targets >= 0)
+    sources = sources[np.argsort(targets[sources], kind="stable")]
+    return np.searchsorted(targets[sources], np.arange(count + 1)), sources
+
+
 class Hierarchy:
     """The levels of the aggregation hierarchy of one world, level-local, built from its block pattern, triangles
     and pins (:class:`WorldHierarchies` lays the worlds' out flat for the kernels)."""
@@ -233,6 +242,11 @@ class WorldHierarchies:
         mg.aggregate, mg.fine_slot, mg.coarse_slot = ints(self.aggregate), ints(self.fine_slot), ints(self.coarse_slot)
         mg.offsets, mg.columns, mg.diag_slot = ints(self.offsets), ints(self.columns), ints(self.diag_slot)
         mg.values = wp.zeros(len(self.columns), dtype=mat33, device=device)
+        # the maps above inverted, as lists a thread per target gathers from (parallel forms: no atomics)
+        total, blocks = int(self.level_start[-1]), len(self.columns)
+        mg.member_start, mg.members = (ints(a) for a in gather_lists(self.aggregate, total))
+        mg.fine_start, mg.fine_sources = (ints(a) for a in gather_lists(self.fine_slot, blocks))
+        mg.coarse_start, mg.coarse_sources = (ints(a) for a in gather_lists(self.coarse_slot, blocks))
         m = 3 * max(h.sizes[-1] for h in self.worlds)
         mg.factor = wp.zeros((len(self.worlds), m, m), dtype=wp.float64, device=device)
         total = int(self.level_start[-1])
@@ -281,31 +295,10 @@ class ParallelMultigrid:
         n0, levels = start[1], len(hierarchy.sizes)
         self.levels = levels
 
-        def ints(a):
-            return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=device)
-
-        def csr(keys: np.ndarray, count: int, offset: int):
-            """(start, ids) listing, for each target t in [0, count), the positions k with keys[k] == t + offset."""
-            ids = np.flatnonzero(keys >= 0)
-            ids = ids[np.argsort(keys[ids] - offset, kind="stable")]
-            starts = np.searchsorted(keys[ids] - offset, np.arange(count + 1))
-            return ints(starts), ints(ids)
-
         # the coarse levels' block ranges in the flat block list (mg.values)
         first_block = [int(hierarchy.offsets[s - n0]) for s in start[1:]]
-        self.galerkin = []  # per coarse level: (first block, block count, source start, sources)
-        for level in range(1, levels):
-            lo, hi = first_block[level - 1], first_block[level]
-            if level == 1:
-                keys = np.asarray(hierarchy.fine_slot, dtype=np.int64)
-            else:  # sources: the previous level's blocks (their coarse_slot), positions counted from its first
-                prev = first_block[level - 2]
-                keys = np.full(len(hierarchy.coarse_slot), -1, dtype=np.int64)
-                keys[prev:lo] = hierarchy.coarse_slot[prev:lo]
-            source_start, sources = csr(keys, hi - lo, lo)
-            self.galerkin.append((lo, hi - lo, source_start, sources))
-        # each coarse node's members on the level before (flat ids): what restriction sums
-        self.member_start, self.members = csr(np.asarray(hierarchy.aggregate, dtype=np.int64), start[-1], 0)
+        self.galerkin = [(first_block[level - 1], first_block[level] - first_block[level - 1])
+                         for level in range(1, levels)]  # per coarse level: (first block, block count)
         self.block_level = next(level for level in range(1, levels)
                                 if start[level + 1] - start[level] <= self.BLOCK_NODES or level == levels - 1)
         """The first level of the one-block launch (the coarsest at most)."""
@@ -317,10 +310,8 @@ class ParallelMultigrid:
     def setup(self, A) -> None:
         """The smoother and the coarse levels of A (``A``: the BlockMatrix of the particles' level)."""
         k, mg, dev, start = self.kernels, self.mg, self.device, self.start
-        for level, (first, count, source_start, sources) in enumerate(self.galerkin, 1):
-            wp.launch(k.mg_galerkin, count, device=dev,
-                      inputs=[A.values if level == 1 else mg.values, source_start, sources, first],
-                      outputs=[mg.values], record_tape=False)
+        for first, count in self.galerkin:  # level by level: each reads the one before
+            wp.launch(k.mg_galerkin, count, device=dev, inputs=[A.values, mg, first], record_tape=False)
         for level in range(self.levels - 1):
             matrix = [self._diag0, A.values, 0] if level == 0 else [mg.diag_slot, mg.values, start[1]]
             wp.launch(k.mg_diag_inverse, start[level + 1] - start[level], device=dev,
@@ -344,10 +335,9 @@ class ParallelMultigrid:
             wp.launch(k.mg_down, n, device=dev, inputs=[*matrix(level), lo, dinv, b, omega], outputs=[solution],
                       record_tape=False)
             wp.launch(k.mg_restrict, start[level + 2] - start[level + 1], device=dev,
-                      inputs=[*matrix(level), self.member_start, self.members, b, solution, start[level + 1]],
-                      outputs=[mg.b], record_tape=False)
+                      inputs=[*matrix(level), mg, b, start[level + 1]], record_tape=False)
         wp.launch_tiled(k.mg_coarse_cycle, dim=[1], block_dim=self.BLOCK_DIM, device=dev,
-                        inputs=[mg, dinv, self.member_start, self.members, other, self.block_level, omega],
+                        inputs=[mg, dinv, other, self.block_level, omega],
                         record_tape=False)
         for level in reversed(range(self.block_level)):
             lo, n = start[level], start[level + 1] - start[level]
