@@ -36,15 +36,17 @@ sheet in one model (``ModelBuilder.replicate``).
 Each time is the median of --reps repetitions. ``--preconditioners auto,block_jacobi,multigrid`` times each grid
 with each (``SolverOptions.preconditioner``: on CUDA the multigrid runs with the tiled backend, each world's V-cycle
 on its thread block, where a world fits one, and with the warp backend for one larger world), on the same device in
-one run.
+one run; ``--backends auto,tiled`` likewise with each ``SolverOptions.cg_backend`` (the tiled multigrid at
+64x64, which "auto" runs with the warp backend).
 
 Usage: python benchmarks/graph_step.py [--quick] [--device cuda:0] [--sizes 16,64] [--worlds 1,64] [--steps 50]
-       [--preconditioners auto]
+       [--preconditioners auto] [--backends auto]
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import warnings
 
@@ -84,10 +86,12 @@ def spun_up(sim: wc.Simulator, steps: int) -> wc.State:
     return common.cold(common.advance(sim, sim.model.state(), steps))
 
 
-def case(res: int, worlds: int, device: str, steps: int, reps: int, preconditioner: str = "auto") -> dict:
+def case(res: int, worlds: int, device: str, steps: int, reps: int, preconditioner: str = "auto",
+         backend: str = "auto") -> dict:
     model = model_of(res, worlds, device)
     out = {"res": res, "worlds": worlds, "particles": model.particle_count, "steps": steps}
-    sim = wc.Simulator(model, common.DT, options=wc.SolverOptions(preconditioner=preconditioner))
+    options = wc.SolverOptions(preconditioner=preconditioner, cg_backend=backend)
+    sim = wc.Simulator(model, common.DT, options=options)
     out["backend"], out["preconditioner"] = sim.linear_solver.backend, sim.linear_solver.preconditioner
     start = spun_up(sim, SPINUP)
 
@@ -102,7 +106,7 @@ def case(res: int, worlds: int, device: str, steps: int, reps: int, precondition
         rollout()
     out["launches_per_step"] = sum(calls for calls, _ in launches.values()) / steps
 
-    sim0 = wc.Simulator(model, common.DT, options=wc.SolverOptions(sync_every=0, preconditioner=preconditioner))
+    sim0 = wc.Simulator(model, common.DT, options=dataclasses.replace(options, sync_every=0))
     out["step_ms_sync0"] = 1e3 * common.median_time(lambda: wc.rollout(sim0, start, steps=steps), reps=reps) / steps
 
     captured = wc.CapturedRollout(sim, start, steps=steps)
@@ -230,7 +234,8 @@ def drape_case(device: str, reps: int, steps: int | None) -> dict:
 
 def main():
     args = common.parse_args(__doc__, quick={"sizes": "8", "worlds": "1,4", "steps": 5, "reps": 2},
-                             device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3, preconditioners="auto")
+                             device="cpu", sizes="16,64", worlds="1,64", steps=50, reps=3, preconditioners="auto",
+                             backends="auto")
     sizes = [int(s) for s in args.sizes.split(",")]
     world_counts = [int(w) for w in args.worlds.split(",")]
     common.print_machine(common.machine_info(args.device))
@@ -240,10 +245,12 @@ def main():
         for worlds in world_counts:
             if worlds > 1 and res > 16:
                 continue  # many worlds: the 16x16 sheet only
-            for preconditioner in args.preconditioners.split(","):
-                r = case(res, worlds, args.device, args.steps, args.reps, preconditioner)
+            for backend, preconditioner in itertools.product(args.backends.split(","),
+                                                             args.preconditioners.split(",")):
+                r = case(res, worlds, args.device, args.steps, args.reps, preconditioner, backend)
                 rows.append(r)
-                print(f"  {res}x{res} x{worlds} {r['preconditioner']}: {r['step_ms']:.3f} ms/step, captured "
+                print(f"  {res}x{res} x{worlds} {r['backend']} {r['preconditioner']}: {r['step_ms']:.3f} ms/step, "
+                      f"captured "
                       f"{r['captured_ms']:.3f}", flush=True)
     common.print_table(
         ["grid", "worlds", "backend", "precond", "CG it", "launches", "allocs", "step ms", "sync0 ms", "captured ms",

@@ -14,7 +14,7 @@ out=${OUT:-/tmp/out}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt" 2>&1
 py=python3
-parts=" ${PARTS:-tests graph_step deterministic projection_qp estimate_cuda control_cuda global_search capture_probe} "
+parts=" ${PARTS:-tests graph_step tiled_multigrid deterministic projection_qp estimate_cuda control_cuda global_search capture_probe} "
 # a hung test dumps its stack into tests.log (pytest's faulthandler) before the part's timeout
 part() {  # part NAME SECONDS COMMAND...: runs COMMAND if NAME is in PARTS
   local name=$1 limit=$2; shift 2
@@ -34,6 +34,12 @@ part graph_step 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --sizes
   --worlds "${WORLDS:-1,1024}" --steps 50 --reps 3 --preconditioners "${PRECONDITIONERS:-auto,block_jacobi,multigrid}" \
   --out "$out/graph_step_cuda.json"  # the multigrids against block Jacobi on one card (tiled: 16x16, 1024 worlds)
 tail -n 16 "$out/graph_step.log" >> "$out/summary.txt"
+# the tiled CG with the multigrid's V-cycle on each world's block against block Jacobi, 64x64 included ("auto" runs
+# that one on the warp backend): whether the multigrid should become CUDA's default for worlds
+part tiled_multigrid 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --backends tiled \
+  --preconditioners block_jacobi,multigrid --sizes 16,64 --worlds 1,1024 --steps 50 --reps 3 \
+  --out "$out/graph_step_tiled_cuda.json"
+tail -n 12 "$out/tiled_multigrid.log" >> "$out/summary.txt"
 # Warp's deterministic mode: what it costs a step, and max diff (captured against uncaptured) should read 0
 part deterministic 150 $py "$root/benchmarks/graph_step.py" --device cuda:0 --deterministic --sizes 16,64 \
   --worlds 1,1024 --steps 50 --reps 3 --out "$out/graph_step_deterministic_cuda.json"
