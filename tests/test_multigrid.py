@@ -179,8 +179,9 @@ def test_all_pinned_model_falls_back_and_explicit_multigrid_is_refused():
         b.add_pin(p)
     model = b.finalize("cpu")
     assert wc.LinearSolver(model, wc.SolverOptions()).preconditioner == "block_ssor"
-    with pytest.raises(ValueError, match="not pinned"):
-        wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid"))
+    for backend in ("sequential", "tiled", "warp"):
+        with pytest.raises(ValueError, match="not pinned; use preconditioner='block_ssor' .* or 'block_jacobi'"):
+            wc.LinearSolver(model, wc.SolverOptions(preconditioner="multigrid", cg_backend=backend))
 
 
 def test_block_ssor_has_no_parallel_form():

@@ -106,7 +106,7 @@ class Hierarchy:
             agg, count = aggregate(neighbours, active)
             if count == 0:
                 raise ValueError("the multigrid preconditioner needs at least one particle that is not pinned; "
-                                 "use preconditioner='block_ssor'")
+                                 "use preconditioner='block_ssor' (the sequential CG backend) or 'block_jacobi'")
             ca, cb = agg[rows], agg[cols]
             keep = (ca >= 0) & (cb >= 0)
             keys = ca * count + cb
