@@ -28,12 +28,12 @@ from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
 
 TILED_MAX_PARTICLES = 1024
-_KIND = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}  # the CG kernels' preconditioner codes
 """The largest world the "auto" backend gives the tiled CG on CUDA (one thread block a world); larger worlds get
 warp.optim's CG, whose every operation spans the GPU. Measured on an H200 (benchmarks/results/gpu/, hanging sheet,
 block Jacobi, captured steps): 16x16 (289 particles) 0.77 ms a step tiled against 2.0 ms with warp.optim's CG;
 64x64 (4225) 28.3 ms against 7.3 ms. A tiled CG iteration costs about 10 us at 289 rows and 110 us at 4225 (a
 block of 256 threads), warp.optim's about 27 us at both (its launches): they cross near 1000 particles."""
+_KIND = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}  # the CG kernels' preconditioner codes
 
 
 class SolveInfo(NamedTuple):
