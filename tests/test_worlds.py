@@ -174,6 +174,23 @@ def test_worlds_with_contact_equal_single_runs_states_and_gradients(solve, devic
     assert sim.proximity.last_count == pairs > 0  # the cloths rest on their spheres, each world's pairs its own
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_multigrid_asked_for_runs_several_large_worlds_on_every_device(device):
+    # worlds over linear.TILED_MAX_PARTICLES: on CUDA "auto" would give them warp.optim's CG, whose multigrid takes one
+    # world, so they get the tiled CG (a V-cycle on each world's block); on the CPU the sequential CG
+    many = wc.ModelBuilder(gravity=(0.0, 0.0, -2.0))
+    many.replicate(hanging_builder(res=32), 2)
+    model = many.finalize(device)
+    assert model.particle_count // 2 > wc.solver.linear.TILED_MAX_PARTICLES
+    sim = wc.Simulator(model, 0.02, options=wc.SolverOptions(preconditioner="multigrid", cg_tol=1e-6))
+    solver = sim.linear_solver
+    assert solver.preconditioner == "multigrid"
+    assert solver.backend == ("sequential" if wp.get_device(device).is_cpu else "tiled")
+    x = wc.rollout(sim, model.state(), steps=2)[-1].particle_x.numpy()
+    assert solver.info().converged and np.all(np.isfinite(x))
+    np.testing.assert_allclose(x[model.world_slice(0)], x[model.world_slice(1)], atol=1e-5)
+
+
 @pytest.mark.parametrize("solver", ["device", "numpy"])
 def test_second_try_and_fail_safe_act_on_their_worlds_alone(solver):
     """Worlds whose steps need the collision stage's second try (a sheet between two planes) or its fail-safe (a

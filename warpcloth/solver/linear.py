@@ -59,8 +59,8 @@ class LinearSolver:
     A preconditioner the resolved backend cannot run is mapped to one it can when the backend was chosen by the
     device (``cg_backend="auto"``): block SSOR is a sequential sweep, so the tiled and warp backends (CUDA) run
     block Jacobi instead, and ``note`` says so. The multigrid runs in parallel form (damped block-Jacobi sweeps)
-    with the warp backend (one world) and the tiled one (each world's V-cycle on its thread block). Asking for an
-    impossible pair explicitly raises ValueError.
+    with the warp backend (one world) and the tiled one (each world's V-cycle on its thread block), which the device
+    then chooses for several worlds of any size. Asking for an impossible pair explicitly raises ValueError.
     """
 
     def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None,
@@ -80,6 +80,8 @@ class LinearSolver:
                 backend = "sequential"
             else:  # a thread block per world while a world fits one well; else the many-block warp.optim CG
                 backend = "tiled" if largest <= TILED_MAX_PARTICLES else "warp"
+                if backend == "warp" and options.preconditioner == "multigrid" and model.world_count > 1:
+                    backend = "tiled"  # warp.optim's CG takes the multigrid for one world; the tiled CG for each
         self.backend = backend
         """``"sequential"``, ``"tiled"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
         self.note = ""

@@ -128,7 +128,8 @@ class SolverOptions:
     block, in one launch, with tile reductions: the GPU's form of the sequential one), ``"warp"``
     (``warp.optim.linear.cg``, a launch per operation, convergence tested on the device on CUDA), or ``"auto"``
     (sequential on the CPU; on CUDA tiled for worlds of up to ``linear.TILED_MAX_PARTICLES`` particles, warp for
-    larger ones). See benchmarks/cg_solvers.py and benchmarks/graph_step.py."""
+    larger ones, but tiled for several larger worlds with the multigrid, which warp's CG takes for one world
+    only). See benchmarks/cg_solvers.py and benchmarks/graph_step.py."""
     cg_block_dim: int = 0
     """Threads per world of the tiled backend (a power of two up to 256: the kernel's registers allow no more; 0:
     chosen from the worlds' sizes and count)."""
