@@ -216,25 +216,28 @@ def median(values) -> float:
 # -- profiling -------------------------------------------------------------------------------------------------------
 @contextlib.contextmanager
 def launch_profile():
-    """Time every ``wp.launch`` and recorded ``wp.Launch.launch`` (CPU launches are synchronous, so wall time =
-    kernel + launch overhead).
+    """Time every ``wp.launch``, ``wp.launch_tiled`` and recorded ``wp.Launch.launch`` (CPU launches are
+    synchronous, so wall time = kernel + launch overhead).
 
-    Yields a dict ``{kernel key (+ " [adj]" for adjoint launches): [calls, seconds]}``. Patches ``warp.launch``,
-    which the simulator and ``Tape.backward`` both look up at call time.
+    Yields a dict ``{kernel key (+ " [adj]" for adjoint launches): [calls, seconds]}``. Patches ``warp.launch`` and
+    ``warp.launch_tiled``, which the simulator and ``Tape.backward`` look up at call time (``launch_tiled`` calls
+    Warp's own ``launch``, so a tiled launch counts once).
     """
-    orig = wp.launch
+    orig, orig_tiled = wp.launch, wp.launch_tiled
     stats = defaultdict(lambda: [0, 0.0])
 
-    def launch(kernel, *args, **kwargs):
-        t0 = time.perf_counter()
-        try:
-            return orig(kernel, *args, **kwargs)
-        finally:
-            key = getattr(kernel, "key", str(kernel)).split("__locals__")[-1]
-            key += " [adj]" if kwargs.get("adjoint") else ""
-            s = stats[key]
-            s[0] += 1
-            s[1] += time.perf_counter() - t0
+    def timed_launch(launcher):
+        def launch(kernel, *args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return launcher(kernel, *args, **kwargs)
+            finally:
+                key = getattr(kernel, "key", str(kernel)).split("__locals__")[-1]
+                key += " [adj]" if kwargs.get("adjoint") else ""
+                s = stats[key]
+                s[0] += 1
+                s[1] += time.perf_counter() - t0
+        return launch
 
     orig_cmd = wp.Launch.launch
 
@@ -247,12 +250,12 @@ def launch_profile():
             s[0] += 1
             s[1] += time.perf_counter() - t0
 
-    wp.launch = launch
+    wp.launch, wp.launch_tiled = timed_launch(orig), timed_launch(orig_tiled)
     wp.Launch.launch = launch_cmd
     try:
         yield stats
     finally:
-        wp.launch = orig
+        wp.launch, wp.launch_tiled = orig, orig_tiled
         wp.Launch.launch = orig_cmd
 
 
