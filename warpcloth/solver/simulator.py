@@ -394,10 +394,14 @@ class Simulator:
         if not model.collision.obstacles or model.obstacle_count == 0:
             empty = self._arrays.empty("no_obstacle", 0, model.types.vec3, False)
             return empty, empty
-        return tuple(obstacle_points(model, control, t, motion=self._obstacle_motion(t),
-                                     out=self._arrays.empty(name, model.obstacle_vertex_count, model.types.vec3,
-                                                            recording))
-                     for name, t in (("obstacle_start", t_start), ("obstacle_end", t_start + self.dt)))
+        times = (("obstacle_start", t_start), ("obstacle_end", t_start + self.dt))
+        if not any(m is not None for m in model.obstacle_motion):
+            times = times[:1]  # no scripted motion: the end is the start, one launch (and one adjoint) a step
+        points = tuple(obstacle_points(model, control, t, motion=self._obstacle_motion(t),
+                                       out=self._arrays.empty(name, model.obstacle_vertex_count, model.types.vec3,
+                                                              recording))
+                       for name, t in times)
+        return points[0], points[-1]
 
     def _obstacle_motion(self, t: float) -> wp.array:
         """The obstacles' scripted motions at time ``t``: one array for all times where none moves; else a new one,
