@@ -644,10 +644,11 @@ def linear_kernels(scalar):
     cg_tiled = tiled_cg(False)
     cg_tiled_multigrid = tiled_cg(True)
 
-    # -- the parallel multigrid (the warp backend's "multigrid"): the same hierarchy, a thread per node or block.
-    # Galerkin sums gather their sources (no atomics: the same sums in the same order on every device), damped
-    # block-Jacobi smoothing replaces the Gauss-Seidel sweeps (warpcloth/solver/multigrid.py ParallelMultigrid has
-    # the measurements), and the coarsest level keeps its dense Cholesky solve on one thread.
+    # -- the parallel multigrid (the warp backend's "multigrid", a launch a stage; the tiled CG's, on each world's
+    # thread block): the same hierarchy, a thread per node or block. Galerkin sums gather their sources (no atomics:
+    # the same sums in the same order on every device), damped block-Jacobi smoothing replaces the Gauss-Seidel
+    # sweeps (warpcloth/solver/multigrid.py ParallelMultigrid has the measurements), and the coarsest level keeps
+    # its dense Cholesky solve on one thread.
     @wp.func
     def row_residual(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                      values: wp.array(dtype=mat33), row: int, b: vec3, x: wp.array(dtype=vec3)):
