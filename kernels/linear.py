@@ -749,12 +749,13 @@ def linear_kernels(scalar):
         return acc
 
     @wp.func
-    def block_sweeps_down(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
-                          values: wp.array(dtype=mat33), row_base: int, lo: int, hi: int, dinv: wp.array(dtype=mat33),
-                          b: wp.array(dtype=vec3), x: wp.array(dtype=vec3), other: wp.array(dtype=vec3),
-                          omega: scalar, lane: int, stride: int):
-        """Nodes [lo, hi) of x after two damped Jacobi sweeps from zero, on the threads of one block. A barrier
-        is cheaper than forming the first sweep where it is read (sweep_from_zero: a launch's fusion), and the
+    def block_down(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                   values: wp.array(dtype=mat33), row_base: int, lo: int, hi: int, coarse_lo: int, coarse_hi: int,
+                   dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), mg: Multigrid, other: wp.array(dtype=vec3),
+                   omega: scalar, lane: int, stride: int):
+        """A level's way down on the threads of one block: its nodes [lo, hi) of mg.x after two damped Jacobi sweeps
+        from zero, then the next level's right-hand side (its nodes [coarse_lo, coarse_hi) of mg.b). A barrier is
+        cheaper here than forming the first sweep where it is read (sweep_from_zero: a launch's fusion), and the
         arithmetic is the same."""
         i = lo + lane
         while i < hi:
@@ -763,31 +764,36 @@ def linear_kernels(scalar):
         block_barrier()
         i = lo + lane
         while i < hi:
-            x[i] = sweep(offsets, columns, values, row_base, dinv, b, other, omega, i)
+            mg.x[i] = sweep(offsets, columns, values, row_base, dinv, b, other, omega, i)
             i += stride
+        block_barrier()
+        c = coarse_lo + lane
+        while c < coarse_hi:
+            mg.b[c] = restricted(offsets, columns, values, row_base, mg, b, mg.x, c)
+            c += stride
         block_barrier()
 
     @wp.func
-    def block_sweeps_up(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
-                        values: wp.array(dtype=mat33), row_base: int, lo: int, hi: int, dinv: wp.array(dtype=mat33),
-                        b: wp.array(dtype=vec3), aggregate: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3),
-                        other: wp.array(dtype=vec3), omega: scalar, out: wp.array(dtype=vec3), lane: int,
-                        stride: int):
-        """Nodes [lo, hi) of x plus the next level's correction (in x too), then two damped Jacobi sweeps, on the
-        threads of one block; the result in ``out`` (not x: the last sweep reads x)."""
+    def block_up(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                 values: wp.array(dtype=mat33), row_base: int, lo: int, hi: int, dinv: wp.array(dtype=mat33),
+                 b: wp.array(dtype=vec3), mg: Multigrid, other: wp.array(dtype=vec3), omega: scalar,
+                 out: wp.array(dtype=vec3), lane: int, stride: int):
+        """A level's way up on the threads of one block: its nodes [lo, hi) of mg.x plus the next level's correction
+        (in place: a node reads only itself and its aggregate), then two damped Jacobi sweeps, the last into
+        ``out`` (mg.x itself on a coarse level: that sweep reads ``other`` only)."""
         i = lo + lane
         while i < hi:
-            other[i] = prolonged(aggregate, x, i)
+            mg.x[i] = prolonged(mg.aggregate, mg.x, i)
             i += stride
         block_barrier()
         i = lo + lane
         while i < hi:
-            x[i] = sweep(offsets, columns, values, row_base, dinv, b, other, omega, i)
+            other[i] = sweep(offsets, columns, values, row_base, dinv, b, mg.x, omega, i)
             i += stride
         block_barrier()
         i = lo + lane
         while i < hi:
-            out[i] = sweep(offsets, columns, values, row_base, dinv, b, x, omega, i)
+            out[i] = sweep(offsets, columns, values, row_base, dinv, b, other, omega, i)
             i += stride
         block_barrier()
 
@@ -800,27 +806,16 @@ def linear_kernels(scalar):
         row_base = mg.level_start[1]
         coarsest = mg.world_levels[w] - 1
         for level in range(first, coarsest):
-            lo, hi = mg.world_level_lo[w, level], mg.world_level_hi[w, level]
-            block_sweeps_down(mg.offsets, mg.columns, mg.values, row_base, lo, hi, dinv, mg.b, mg.x, other, omega,
-                              lane, stride)
-            c = mg.world_level_lo[w, level + 1] + lane
-            while c < mg.world_level_hi[w, level + 1]:
-                mg.b[c] = restricted(mg.offsets, mg.columns, mg.values, row_base, mg, mg.b, mg.x, c)
-                c += stride
-            block_barrier()
+            block_down(mg.offsets, mg.columns, mg.values, row_base, mg.world_level_lo[w, level],
+                       mg.world_level_hi[w, level], mg.world_level_lo[w, level + 1], mg.world_level_hi[w, level + 1],
+                       dinv, mg.b, mg, other, omega, lane, stride)
         if lane == 0:
             solve_coarsest(mg, w, mg.b, mg.x)
         block_barrier()
         for up in range(coarsest - first):
             level = coarsest - 1 - up
-            up_lo, up_hi = mg.world_level_lo[w, level], mg.world_level_hi[w, level]
-            block_sweeps_up(mg.offsets, mg.columns, mg.values, row_base, up_lo, up_hi, dinv, mg.b, mg.aggregate,
-                            mg.x, other, omega, other, lane, stride)
-            i = up_lo + lane  # the level's result where the level above reads it
-            while i < up_hi:
-                mg.x[i] = other[i]
-                i += stride
-            block_barrier()
+            block_up(mg.offsets, mg.columns, mg.values, row_base, mg.world_level_lo[w, level],
+                     mg.world_level_hi[w, level], dinv, mg.b, mg, other, omega, mg.x, lane, stride)
 
     @wp.func
     def tiled_v_cycle(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), r: wp.array(dtype=vec3),
@@ -829,15 +824,10 @@ def linear_kernels(scalar):
         """z = one V-cycle of world w on r, on the threads of its block (the tiled CG's multigrid): the stages of
         ParallelMultigrid.apply, the same arithmetic."""
         lo, hi = mg.world_level_lo[w, 0], mg.world_level_hi[w, 0]
-        block_sweeps_down(A.offsets, A.columns, A.values, 0, lo, hi, dinv, r, mg.x, other, omega, lane, stride)
-        c = mg.world_level_lo[w, 1] + lane
-        while c < mg.world_level_hi[w, 1]:
-            mg.b[c] = restricted(A.offsets, A.columns, A.values, 0, mg, r, mg.x, c)
-            c += stride
-        block_barrier()
+        block_down(A.offsets, A.columns, A.values, 0, lo, hi, mg.world_level_lo[w, 1], mg.world_level_hi[w, 1], dinv,
+                   r, mg, other, omega, lane, stride)
         coarse_cycle(mg, dinv, other, 1, omega, w, lane, stride)
-        block_sweeps_up(A.offsets, A.columns, A.values, 0, lo, hi, dinv, r, mg.aggregate, mg.x, other, omega, z,
-                        lane, stride)
+        block_up(A.offsets, A.columns, A.values, 0, lo, hi, dinv, r, mg, other, omega, z, lane, stride)
 
     @wp.func
     def tiled_multigrid_setup(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), w: int, lane: int,
