@@ -724,3 +724,164 @@ def test_a_replay_refuses_options_or_arrays_replaced_since_the_capture():
                                       requires_grad=True)  # a new array: the graph reads the old one
     with pytest.raises(ValueError, match="rebound since the capture"):
         captured.run()
+
+
+# -- segments: a captured rollout whose backward pass re-simulates its segments ---------------------------------------
+
+def loss_of_every_state(trajectory):
+    """A loss on every state, so the gradient reaches each step both from the loss and from the steps after it."""
+    loss = wp.zeros(1, dtype=float, requires_grad=True)
+    for state in trajectory[1:]:
+        wp.launch(height_loss, state.particle_x.shape[0], inputs=[state.particle_x], outputs=[loss])
+    return loss
+
+
+def segment_scenes():
+    """name -> a function making (model, sim, state, control, the arrays whose gradients are compared)."""
+    def hanging(**options):
+        model, sim, state, control = scene("cpu", **options)
+        return model, sim, state, control, gradient_arrays(model, state, control)
+
+    def contact(**kwargs):
+        maker = sheets_scene if kwargs.pop("sheets", False) else lambda **k: landing_scene("cpu", **k)
+        model, sim = maker(**kwargs)
+        state, control = model.state(requires_grad=True), model.control(requires_grad=True, particle_force=True)
+        arrays = {"particle_x": state.particle_x, "particle_v": state.particle_v, "density": model.material_density,
+                  "stretching": model.material_stretching, "bending": model.material_bending,
+                  "gravity": model.gravity, "force": control.particle_force}
+        if control.obstacle_transform is not None:
+            arrays["obstacle_transform"] = control.obstacle_transform
+        if kwargs.get("repulsion", True):
+            arrays.update(friction=model.contact_friction, repulsion=model.contact_repulsion_stiffness)
+        if kwargs.get("lagged"):
+            arrays["wind"] = model.wind_velocity
+        return model, sim, state, control, arrays
+
+    return {
+        "hanging": hanging,
+        "hanging-bdf2": lambda: hanging(integrator="bdf2"),
+        "landing-pairs": lambda: contact(),
+        "landing-contacts": lambda: contact(repulsion=False),
+        "landing-numpy-projection": lambda: contact(repulsion=False, solver="numpy"),
+        "landing-lagged-wind": lambda: contact(repulsion=False, lagged=True),
+        "sheets-self-collision": lambda: contact(sheets=True),
+    }
+
+
+@pytest.mark.parametrize("name", list(segment_scenes()))
+def test_segmented_gradients_equal_the_whole_tapes(name):
+    # segments of 4 and of 5 steps (the last one shorter) over 14 steps, two runs each from one start, then from a
+    # lower or faster one (other contacts: steps leave their plans and run again): every run's loss and every
+    # parameter's gradient are bitwise those of one tape over the whole rollout
+    make = segment_scenes()[name]
+    steps = 14
+    model, sim, state, control, arrays = make()
+    reference = make()
+    first_x, first_v = state.particle_x.numpy(), state.particle_v.numpy()
+    for segment in (4, 5):
+        state.particle_x.assign(first_x)
+        state.particle_v.assign(first_v)
+        captured = wc.CapturedRollout(sim, state, control, steps=steps, loss=loss_of_every_state,
+                                      segment_steps=segment)
+        for start in ("same", "moved"):
+            if start == "moved":
+                if name.startswith("hanging"):
+                    state.particle_v.assign(state.particle_v.numpy() + np.float32(0.3))
+                else:
+                    state.particle_x.assign(lowered(state, 0.02))
+            ref_model, ref_sim, ref_state, ref_control, ref_arrays = reference
+            ref_state.particle_x.assign(state.particle_x.numpy())  # from an array, assign copies its gradient too
+            ref_state.particle_v.assign(state.particle_v.numpy())
+            tape = wp.Tape()
+            with tape:
+                loss = loss_of_every_state(wc.rollout(ref_sim, ref_state, ref_control, steps=steps))
+            tape.backward(loss)
+            for run in range(2):
+                captured.run()
+                assert captured.loss.numpy()[0] == loss.numpy()[0], (segment, start, run)
+                for key, array in arrays.items():
+                    expected = ref_arrays[key].grad.numpy()
+                    assert np.any(expected), key
+                    np.testing.assert_array_equal(array.grad.numpy(), expected,
+                                                  err_msg=f"{key}, segments of {segment}, {start} start, run {run}")
+            tape.zero()
+        if name == "landing-numpy-projection":
+            assert captured.rerun_steps, "the NumPy projection's steps run uncaptured"
+
+
+def test_segmented_memory_does_not_grow_with_the_steps():
+    # the taped arrays of a segmented rollout live in one arena per place in a segment: as many bytes for 24 steps
+    # as for 12, and fewer than the whole rollout's kept arrays
+    model, sim, state, control = scene("cpu")
+    held = {}
+    for steps in (12, 24):
+        captured = wc.CapturedRollout(sim, state, control, steps=steps, loss=loss_of, segment_steps=4)
+        held[steps] = captured.taped_bytes
+    whole = wc.CapturedRollout(sim, state, control, steps=24, loss=loss_of, segment_steps=None)
+    assert held[12] == held[24] > 0
+    assert whole.taped_bytes > 5 * held[24], (whole.taped_bytes, held)
+
+
+def test_a_segmented_backward_pass_from_other_seeds_re_simulates_every_segment():
+    model, sim, state, control = scene("cpu")
+    captured = wc.CapturedRollout(sim, state, control, steps=10, loss=loss_of_every_state, segment_steps=3)
+    captured.run()
+    once = {"density": model.material_density.grad.numpy().copy(), "x0": state.particle_x.grad.numpy().copy()}
+    for _ in range(2):
+        captured.backward({captured.loss: [2.0]})
+        for key, array in (("density", model.material_density), ("x0", state.particle_x)):
+            np.testing.assert_array_equal(array.grad.numpy(), 2.0 * once[key], err_msg=key)
+    captured.run(backward=False)
+    captured.backward({captured.loss: [1.0]})  # the last segment is the one the forward pass left
+    np.testing.assert_array_equal(model.material_density.grad.numpy(), once["density"])
+
+
+def test_segment_steps_is_checked():
+    model, sim, state, control = scene("cpu")
+    for bad in (0, -2, 2.5, True):
+        with pytest.raises(ValueError, match="segment_steps must be a positive integer"):
+            wc.CapturedRollout(sim, state, control, steps=6, loss=loss_of, segment_steps=bad)
+    with pytest.raises(ValueError, match="segment_steps needs a loss"):
+        wc.CapturedRollout(sim, state, control, steps=6, segment_steps=2)
+    model, sim = landing_scene("cpu", integrator="bdf2")
+    with pytest.raises(ValueError, match="BDF2 integrator in a scene with a collision stage"):
+        wc.CapturedRollout(sim, model.state(requires_grad=True), steps=6, loss=loss_of, segment_steps=2)
+    if wp.is_cuda_available():
+        model, sim, state, control = scene("cuda:0")
+        with pytest.raises(ValueError, match="captured on the CPU only"):
+            wc.CapturedRollout(sim, state, control, steps=6, loss=loss_of, segment_steps=2)
+
+
+def test_memory_operations_inside_a_cpu_capture_are_kernels_that_replay_live_values():
+    # warpcloth's captures replace Warp's memsets, fills and copies of host memory with kernels (Warp 1.19 records
+    # those with a snapshot of the region): at replay they zero, fill and copy what the arrays hold then, in every
+    # word size and alignment, and a fill of a 12-byte value is left to Warp
+    from warpcloth.tape import memory_ops_as_kernels
+
+    src = wp.array(np.arange(12, dtype=np.float64), device="cpu")
+    arrays = {"f64": wp.empty(12, dtype=wp.float64, device="cpu"), "f32": wp.empty(10, dtype=wp.float32, device="cpu"),
+              "u8": wp.empty(7, dtype=wp.uint8, device="cpu"), "vec3": wp.empty(4, dtype=wp.vec3, device="cpu"),
+              "i16": wp.empty(6, dtype=wp.int16, device="cpu")}
+    copied = wp.empty(12, dtype=wp.float64, device="cpu")
+    odd = wp.empty(7, dtype=wp.uint8, device="cpu")
+    with memory_ops_as_kernels("cpu"), wp.ScopedCapture(device="cpu") as capture:
+        arrays["f64"].zero_()
+        arrays["f32"].fill_(2.5)
+        arrays["u8"].fill_(7)
+        arrays["vec3"].fill_(wp.vec3(1.0, 2.0, 3.0))
+        arrays["i16"].fill_(-3)
+        wp.copy(copied, src)
+        wp.copy(odd, arrays["u8"])
+    for a in (*arrays.values(), copied, odd):
+        a.assign(np.ones(a.shape + (3,) if a.dtype == wp.vec3 else a.shape))
+    src.assign(np.arange(12, dtype=np.float64) * 2.0)  # after the capture: a replay copies what src holds now
+    wp.capture_launch(capture.graph)
+    np.testing.assert_array_equal(arrays["f64"].numpy(), 0.0)
+    np.testing.assert_array_equal(arrays["f32"].numpy(), 2.5)
+    np.testing.assert_array_equal(arrays["u8"].numpy(), 7)
+    np.testing.assert_array_equal(arrays["vec3"].numpy(), np.tile([1.0, 2.0, 3.0], (4, 1)))
+    np.testing.assert_array_equal(arrays["i16"].numpy(), -3)
+    np.testing.assert_array_equal(copied.numpy(), np.arange(12) * 2.0)
+    np.testing.assert_array_equal(odd.numpy(), 7)
+    wp.copy(odd, wp.zeros(7, dtype=wp.uint8, device="cpu"))  # outside: Warp's own again
+    assert not np.any(odd.numpy())

@@ -375,13 +375,14 @@ def test_world_errors():
 
 
 # -- the control task's batches ---------------------------------------------------------------------------------------
-def draped_task(steps=30):
+def draped_task(steps=30, **kw):
     """Pushes on the corners of the cloth dropped on a sphere (contact from step 1) towards a centre of mass."""
     from warpcloth.tasks.control import ControlTask
 
     model = draped_builder().finalize("cpu", requires_grad=True, dtype=wp.float64)
     return ControlTask(model, 0.01, particles=(0, 6, 42, 48), interval_steps=10, intervals=2, steps=steps,
-                       target_com=(0.05, 0.0, -0.05), options=wc.SolverOptions(**SSOR), template=draped_builder())
+                       target_com=(0.05, 0.0, -0.05), options=wc.SolverOptions(**SSOR), template=draped_builder(),
+                       **kw)
 
 
 def test_control_batches_equal_single_evaluations_with_contact():
@@ -530,6 +531,30 @@ def test_a_tasks_replayed_simulations_equal_its_first_uncaptured_ones():
                 np.testing.assert_array_equal(r[c].grad, rows[0][c].grad)
         assert np.any(evaluations[0].grad) and np.any(rows[0][2].grad)
     assert task.rerun_steps == []  # the throw's 30 steps are free flight
+
+
+def test_a_checkpointed_tasks_replayed_evaluations_equal_its_first_uncaptured_one(monkeypatch):
+    """A task whose rollouts are checkpointed (segment_steps < steps: wc.checkpointed_backward, uncaptured) replays
+    them in segments from its second evaluation on (wc.CapturedRollout's segment_steps): the losses, gradients and
+    final positions are the uncaptured first evaluation's, bitwise."""
+    rng = np.random.default_rng(4)
+    uncaptured = wc.checkpointed_backward
+    for make in (lambda: draped_task(steps=20, segment_steps=6), lambda: throw_task(steps=30, segment_steps=7)):
+        monkeypatch.setattr(wc, "checkpointed_backward", uncaptured)
+        task = make()
+        p = rng.normal(0.0, 2.0, task.n_params)
+        evaluations = [task.evaluate(p) for _ in range(2)]  # the first uncaptured, the second captures
+
+        def refused(*args, **kwargs):
+            raise AssertionError("a captured task ran its rollout uncaptured")
+
+        monkeypatch.setattr(wc, "checkpointed_backward", refused)
+        evaluations += [task.evaluate(p) for _ in range(2)]
+        for e in evaluations[1:]:
+            assert e.loss == evaluations[0].loss
+            np.testing.assert_array_equal(e.positions, evaluations[0].positions)
+            np.testing.assert_array_equal(e.grad, evaluations[0].grad)
+        assert np.any(evaluations[0].grad)
 
 
 def test_a_task_captures_again_where_the_models_default_placements_changed():

@@ -1,6 +1,8 @@
 """The one place that touches Warp's tape internals."""
 
+import ctypes
 import gc
+import weakref
 from contextlib import contextmanager
 
 import warp as wp
@@ -103,3 +105,174 @@ class StepArrays:
         array = self.empty(name, n, dtype, recording)
         array.zero_()
         return array
+
+
+class Arena:
+    """Memory handed out in allocation order, for graphs that never run at the same time (wc.CapturedRollout's
+    segments): while :func:`allocating_from` is active, the n-th allocation since the arena was last rewound gets
+    the arena's n-th block (grown where a later one asks for more; the smaller one stays for the graphs that use it).
+    Graphs captured after the same rewind share no memory; graphs captured after different rewinds share it, so one
+    set of blocks holds the taped arrays of every step that records at that place in a segment. Freeing is a no-op:
+    the blocks live as long as the arena."""
+
+    deallocate_requires_context_guard = False
+
+    def __init__(self, device):
+        device = wp.get_device(device)
+        if not device.is_cpu:
+            raise ValueError(f"Arena: only on the CPU, not {device} (a backward pass is not captured on CUDA)")
+        self.device = device
+        self._inner = device.default_allocator
+        self.memory_kind = self._inner.memory_kind
+        self._blocks: list[tuple[int, int]] = []  # (pointer, bytes), in allocation order
+        self._outgrown: list[tuple[int, int]] = []  # blocks replaced by larger ones, still read by earlier graphs
+        self._cursor = 0
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes this arena holds."""
+        return sum(size for _, size in self._blocks + self._outgrown)
+
+    def rewind(self) -> None:
+        """The next allocation gets the first block again."""
+        self._cursor = 0
+
+    def owns(self, ptr: int | None) -> bool:
+        """Whether ``ptr`` points into one of this arena's blocks."""
+        return ptr is not None and any(start <= ptr < start + max(size, 1)
+                                       for start, size in self._blocks + self._outgrown)
+
+    def allocate(self, size_in_bytes: int) -> int:
+        i = self._cursor
+        self._cursor += 1
+        if i == len(self._blocks) or self._blocks[i][1] < size_in_bytes:
+            block = (self._inner.allocate(max(size_in_bytes, 1)), size_in_bytes)
+            if i == len(self._blocks):
+                self._blocks.append(block)
+            else:
+                self._outgrown.append(self._blocks[i])
+                self._blocks[i] = block
+        return self._blocks[i][0]
+
+    def deallocate(self, ptr, size_in_bytes) -> None:
+        pass  # the arena owns its blocks
+
+    def __del__(self):
+        for ptr, size in getattr(self, "_blocks", []) + getattr(self, "_outgrown", []):
+            self._inner.deallocate(ptr, size)
+
+
+class Tally:
+    """The CPU device's own allocator, counting the bytes it holds for the arrays made while
+    :func:`allocating_from` is active (what a graph's captures keep)."""
+
+    deallocate_requires_context_guard = False
+
+    def __init__(self, device):
+        device = wp.get_device(device)
+        if not device.is_cpu:
+            raise ValueError(f"Tally: only on the CPU (got {device})")
+        self.device = device
+        self._inner = device.default_allocator
+        self.memory_kind = self._inner.memory_kind
+        self.nbytes = 0
+        """The bytes held now."""
+
+    def rewind(self) -> None:
+        pass
+
+    def allocate(self, size_in_bytes: int) -> int:
+        self.nbytes += size_in_bytes
+        return self._inner.allocate(size_in_bytes)
+
+    def deallocate(self, ptr, size_in_bytes) -> None:
+        self.nbytes -= size_in_bytes
+        self._inner.deallocate(ptr, size_in_bytes)
+
+
+@contextmanager
+def allocating_from(arena: Arena | Tally | None, *, rewind: bool = True):
+    """Every Warp array made on the arena's device inside takes its memory from ``arena`` (rewound first where
+    ``rewind``); None: the device's own allocator (1.19: the CPU device's ``default_allocator``)."""
+    if arena is None:
+        yield
+        return
+    if rewind:
+        arena.rewind()
+    device = arena.device
+    original, device.default_allocator = device.default_allocator, arena
+    try:
+        yield
+    finally:
+        device.default_allocator = original
+
+
+def gradient_owners(tape: wp.Tape) -> list:
+    """Weak references to the arrays whose gradients ``tape.zero()`` zeroes (those its backward pass reached; a
+    struct's arrays are among them), so that those that outlive the tape can still be zeroed: :func:`zero_gradients`."""
+    return [weakref.ref(a) for a in tape.gradients if isinstance(a, wp.array)]
+
+
+def zero_gradients(owners: list) -> None:
+    """Zero the gradients of the arrays of ``owners`` (from :func:`gradient_owners`) still alive."""
+    for ref in owners:
+        array = ref()
+        if array is not None and array.grad is not None:
+            array.grad.zero_()
+
+
+@contextmanager
+def memory_ops_as_kernels(device):
+    """Inside (a graph capture on the CPU), Warp's memsets, fills and copies of host memory launch kernels instead
+    (kernels/memory.py). Warp 1.19 records those operations with a snapshot of the region they touch, so a graph
+    holds a copy of every array it zeroes or copies: 225 kB a graph of one untaped step of a 16x16 sheet, in
+    float64, against 1 kB for a kernel launch (2026-11-29). A fill whose value is not 1, 2, 4 or 8 bytes long (a
+    vec3's) is left to Warp. No effect on CUDA."""
+    device = wp.get_device(device)
+    if not device.is_cpu:
+        yield
+        return
+    from warpcloth.kernels import memory as km  # noqa: PLC0415 - only captures need these kernels
+
+    wp.load_module(km, device=device)  # loaded now: a capture records launches, it does not load modules
+    core = wp._src.context.runtime.core
+    memset, memtile, memcpy = device.memset, device.memtile, core.wp_memcpy_h2h
+
+    fills = ((wp.uint64, 8, km.fill_u64), (wp.uint32, 4, km.fill_u32), (wp.uint8, 1, km.fill_u8))
+    copies = ((wp.uint64, 8, km.copy_u64), (wp.uint32, 4, km.copy_u32), (wp.uint8, 1, km.copy_u8))
+
+    def view(ptr: int, dtype, count: int) -> wp.array:
+        return wp.array(ptr=ptr, dtype=dtype, shape=(count,), device=device)
+
+    def fill(dst: int, pattern: bytes, nbytes: int) -> bool:
+        """``nbytes`` bytes at ``dst`` <- ``pattern`` repeated, in the widest words that hold whole patterns."""
+        for dtype, size, kernel in fills:
+            if size % len(pattern) == 0 and dst % size == 0 and nbytes % size == 0:
+                value = int.from_bytes(pattern * (size // len(pattern)), "little")
+                wp.launch(kernel, nbytes // size, inputs=[view(dst, dtype, nbytes // size), dtype(value)],
+                          device=device, record_tape=False)
+                return True
+        return False
+
+    def kernel_memset(dst, value, nbytes):
+        return True if not nbytes else fill(int(dst), bytes([int(value) & 0xFF]), int(nbytes))
+
+    def kernel_memtile(dst, src, srcsize, count):
+        if count and not fill(int(dst), ctypes.string_at(src, srcsize), int(srcsize) * int(count)):
+            memtile(dst, src, srcsize, count)  # a pattern of another length: Warp's, with its snapshot
+
+    def kernel_memcpy(dst, src, nbytes):
+        dst, src, nbytes = int(dst), int(src), int(nbytes)
+        for dtype, size, kernel in copies:
+            if nbytes and dst % size == 0 and src % size == 0 and nbytes % size == 0:
+                count = nbytes // size
+                wp.launch(kernel, count, inputs=[view(dst, dtype, count), view(src, dtype, count)], device=device,
+                          record_tape=False)
+                break
+        return True
+
+    device.memset, device.memtile, core.wp_memcpy_h2h = kernel_memset, kernel_memtile, kernel_memcpy
+    try:
+        yield
+    finally:
+        device.memset, device.memtile, core.wp_memcpy_h2h = memset, memtile, memcpy

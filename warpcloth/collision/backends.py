@@ -236,6 +236,10 @@ class DeviceBackend:
         theirs back); :meth:`check_adjoints` warns where it is too large."""
         self.begin(None, None, None, False)
 
+    STEP_LOCAL = frozenset({"_x_hat", "_obstacle_end", "_mass", "_rounds", "_solution", "_constants"})
+    """The attributes that hold one step's arrays: set anew by :meth:`begin`, never read by a later step (a
+    segmented wc.CapturedRollout lets other steps reuse their memory)."""
+
     def begin(self, x_hat: wp.array | None, obstacle_end: wp.array | None, mass: wp.array | None,
               recording: bool) -> None:
         """Start a try at a step (as :meth:`ZoneBackend.begin`)."""

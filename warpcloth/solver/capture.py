@@ -18,7 +18,16 @@ import warp as wp
 from warpcloth.model import State
 from warpcloth.solver.rollout import ControlSchedule, check_schedule, control_at, rollout
 from warpcloth.solver.simulator import Simulator, model_arrays
-from warpcloth.tape import arrays_kept, paused_gc
+from warpcloth.tape import (
+    Arena,
+    Tally,
+    allocating_from,
+    arrays_kept,
+    gradient_owners,
+    memory_ops_as_kernels,
+    paused_gc,
+    zero_gradients,
+)
 
 
 class CapturedRollout:
@@ -47,6 +56,14 @@ class CapturedRollout:
             ``run(backward=False)`` skips it, :meth:`backward` runs it again from other seeds): gradients land in
             the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed at the start of each replay),
             and :attr:`loss` holds the value.
+        segment_steps: with a loss, back-propagate in segments of this many steps, as
+            :func:`~warpcloth.checkpointed_backward` does, but replayed: the rollout is captured one graph a step, the
+            steps at the same place in their segments share the memory of their taped arrays (one segment's worth:
+            :attr:`taped_bytes`), and the backward pass replays each segment's steps again (all but the last) before
+            their backward graphs. The same gradients bitwise (on the CPU, where it runs; on CUDA use
+            ``checkpointed_backward``), for one more forward pass. Every State of the rollout is kept (a few of the
+            tape's arrays a step) and so are the graphs, whose bookkeeping in Warp costs about 0.2-0.3 MB a step
+            (benchmarks/memory.py). Not with BDF2 in a scene with a collision stage (:meth:`segments_unsupported`).
 
     The first run is an ordinary one (it loads the kernels and makes the arrays the step keeps), then the same
     rollout is captured (on the CPU with its backward pass as a graph of its own); each :meth:`run` replays it and
@@ -56,7 +73,7 @@ class CapturedRollout:
     """
 
     def __init__(self, sim: Simulator, state: State, control: ControlSchedule = None, *, steps: int,
-                 loss: Callable[[list[State]], wp.array] | None = None):
+                 loss: Callable[[list[State]], wp.array] | None = None, segment_steps: int | None = None):
         if int(steps) != steps or steps < 1:
             raise ValueError(f"steps must be a positive integer, got {steps!r}")
         check_schedule(control, steps)
@@ -65,6 +82,7 @@ class CapturedRollout:
             raise ValueError(f"CapturedRollout: {reason}; use wc.rollout")
         if loss is not None and not sim.model.requires_grad:
             raise ValueError("CapturedRollout: a loss needs a model finalized with requires_grad=True")
+        segment = _segment(sim, steps, loss, segment_steps)
         self.sim, self.state, self.control, self.steps, self._loss_fn = sim, state, control, int(steps), loss
         # what the graph baked in: the options (kernel arguments) and the model's arrays (pointers)
         self._captured_with = (sim.options, model_arrays(sim.model))
@@ -82,8 +100,9 @@ class CapturedRollout:
         """The graphs a replay launches in turn (empty where the rollout is not captured: see below)."""
         self._steps = None
         self._kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
-        if _stepwise(sim) and not (sim.device.is_cuda and loss is not None):
-            self._steps = _StepGraphs(sim, state, control, self.steps, loss)
+        self._tally = Tally(sim.device) if sim.device.is_cpu else None  # their bytes (taped_bytes)
+        if segment is not None or _stepwise(sim) and not (sim.device.is_cuda and loss is not None):
+            self._steps = _StepGraphs(sim, state, control, self.steps, loss, segment)
             self.trajectory = self._steps.states
             return
         self._record_forward()  # an ordinary run: loads modules, builds the solver's lazily made buffers
@@ -100,20 +119,20 @@ class CapturedRollout:
                           "instantiate with Warp 1.19); each run() records and differentiates it afresh",
                           RuntimeWarning, stacklevel=2)
         elif warmup is None:  # the forward pass alone: one graph
-            with _capture(device, self._kept) as capture:
+            with _capture(device, self._kept, self._tally) as capture:
                 self._record_forward()
             self.graphs = [capture.graph]
         else:
             # On the CPU (Warp 1.19) a graph holding both a recorded forward pass and the element adjoints'
             # launches crashed on replay; the forward pass, the backward pass and the zeroing of the gradients as
             # three graphs replay correctly.
-            with _capture(device, self._kept) as capture:
+            with _capture(device, self._kept, self._tally) as capture:
                 self._record_forward()
             forward = capture.graph
-            with _capture(device, self._kept) as capture:
+            with _capture(device, self._kept, self._tally) as capture:
                 self._backward()
             backward = capture.graph
-            with _capture(device, self._kept) as capture:
+            with _capture(device, self._kept, self._tally) as capture:
                 self.tape.zero()
             self.graphs = [capture.graph, forward, backward]
 
@@ -124,6 +143,26 @@ class CapturedRollout:
             return ("the warp CG backend tests its convergence on the host on the CPU; use cg_backend 'sequential' "
                     "or 'tiled' there")
         return None
+
+    @staticmethod
+    def segments_unsupported(sim: Simulator) -> str | None:
+        """Why ``sim``'s rollouts with a loss cannot be captured in segments (``segment_steps``), or None."""
+        if not sim.device.is_cpu:
+            return (f"segment_steps on {sim.device}: a rollout's backward pass is captured on the CPU only; use "
+                    "wc.checkpointed_backward there")
+        if sim.options.integrator == "bdf2" and sim.collision is not None:
+            return ("segment_steps with the BDF2 integrator in a scene with a collision stage (a step after a "
+                    "collision response hands the next one BDF2 history arrays of its own); use "
+                    "wc.checkpointed_backward")
+        return CapturedRollout.unsupported(sim)
+
+    @property
+    def taped_bytes(self) -> int | None:
+        """The bytes of the arrays the graphs hold, the taped steps' above all: with ``segment_steps``, those of one
+        segment (the segments share them), else the whole rollout's. None on CUDA (not counted there)."""
+        if self._steps is not None:
+            return self._steps.taped_bytes
+        return None if self._tally is None else self._tally.nbytes
 
     @property
     def pair_budgets(self) -> list[int]:
@@ -236,10 +275,28 @@ def _write_seeds(seed: wp.array, loss: wp.array, grads: dict) -> None:
 
 
 @contextlib.contextmanager
-def _capture(device, kept: list):
-    """A graph capture on ``device`` whose new arrays are appended to ``kept`` (tape.py arrays_kept says why)."""
-    with arrays_kept(kept), wp.ScopedCapture(device=device) as capture:
+def _capture(device, kept: list, arena: Arena | Tally | None = None, *, rewind: bool = True):
+    """A graph capture on ``device`` whose new arrays are appended to ``kept`` (tape.py arrays_kept says why), and take
+    their memory from ``arena`` where one is given (rewound first where ``rewind``)."""
+    with allocating_from(arena, rewind=rewind), memory_ops_as_kernels(device), arrays_kept(kept), \
+            wp.ScopedCapture(device=device) as capture:
         yield capture
+
+
+def _segment(sim: Simulator, steps: int, loss, segment_steps: int | None) -> int | None:
+    """The steps per re-simulated segment of a CapturedRollout (None: the whole rollout's taped arrays kept)."""
+    if segment_steps is None:
+        return None
+    if isinstance(segment_steps, bool) or int(segment_steps) != segment_steps or segment_steps < 1:
+        raise ValueError(f"CapturedRollout: segment_steps must be a positive integer, got {segment_steps!r}")
+    if loss is None:
+        raise ValueError("CapturedRollout: segment_steps needs a loss (a rollout without one keeps no taped arrays)")
+    if segment_steps >= steps:
+        return None  # one segment: the whole rollout's taped arrays
+    reason = CapturedRollout.segments_unsupported(sim)
+    if reason is not None:
+        raise ValueError(f"CapturedRollout: {reason}")
+    return int(segment_steps)
 
 
 def _stepwise(sim: Simulator) -> bool:
@@ -285,8 +342,15 @@ class _StepGraphs:
     """
 
     def __init__(self, sim: Simulator, state: State, control: ControlSchedule, steps: int,
-                 loss: Callable[[list[State]], wp.array] | None):
+                 loss: Callable[[list[State]], wp.array] | None, segment: int | None = None):
         self.sim, self.loss_fn = sim, loss
+        self.segment = segment  # steps per re-simulated segment; None: every step's taped arrays are kept
+        # segment mode: one arena per place in a segment, shared by the steps at that place (tape.py Arena)
+        self.arenas = None if segment is None else [Arena(sim.device) for _ in range(min(segment, steps))]
+        self._live: int | None = None  # the segment whose taped arrays the arenas and re-run tapes hold now
+        self._dropped: list = []  # the gradient owners of the re-run tapes dropped since the last zeroing
+        self._handed = None  # a segment's end State's adjoint first guess, kept while the segment is re-simulated
+        self.tally = Tally(sim.device) if sim.device.is_cpu else None  # the bytes the captures hold besides
         self.states = [state] + [sim.model.empty_state() for _ in range(steps)]
         self.controls = [control_at(control, k) for k in range(steps)]
         # the arrays made during each capture (tape.py arrays_kept says why), released with its graph
@@ -311,6 +375,7 @@ class _StepGraphs:
             for k in range(steps):
                 self.reruns[k] = self._rerun(k)
                 self._note(k, set())
+            self._forward_done()
             if taped:
                 first = wp.Tape()
                 with wp.ScopedDevice(sim.device), first:
@@ -325,6 +390,7 @@ class _StepGraphs:
                 self._capture_zero()
                 self._zero_reruns()
                 wp.capture_launch(self._zero)
+            self._check_arenas()
 
     def _note(self, k: int, changed: set) -> None:
         """After step k ran uncaptured: its contact plan and pairs. A step whose plan changed or whose pairs outgrew
@@ -350,13 +416,19 @@ class _StepGraphs:
         kept = self.kept[k] = []
         self.handed[k] = _handed_on(self.states[k])
         tape = self.tapes[k] = wp.Tape() if self.loss_fn is not None else None
-        with sim._speculating(self.pair_budget[k], self.plans[k]), _capture(device, kept) as capture:  # noqa: SLF001
+        arena = self.tally if self.arenas is None else self.arenas[k % self.segment]
+        self._live = None  # a capture may write scratch
+        report = None if sim.collision is None else sim.collision.last
+        speculating = sim._speculating(self.pair_budget[k], self.plans[k])  # noqa: SLF001
+        with speculating, _capture(device, kept, arena) as capture:
             with tape if tape is not None else contextlib.nullcontext():
                 sim.step(self.states[k], self.states[k + 1], self.controls[k])
             sim._note_plan_miss(k, self.first_miss)  # noqa: SLF001
+        if sim.collision is not None:  # the last step run keeps its report; a captured one has not run
+            sim.collision.last = report
         self.forward[k] = capture.graph
         if tape is not None:
-            with _capture(device, kept) as capture:
+            with _capture(device, kept, arena, rewind=False) as capture:
                 tape.backward()
             self.backward_graphs[k] = capture.graph
 
@@ -364,19 +436,19 @@ class _StepGraphs:
         """Capture the loss and its backward pass (its seed: ones at every run; backward() writes others)."""
         sim, kept = self.sim, self.kept.setdefault("loss", [])
         self._loss_tape = wp.Tape()
-        with _capture(sim.device, kept) as capture:
+        with _capture(sim.device, kept, self.tally) as capture:
             with wp.ScopedDevice(sim.device), self._loss_tape:
                 self.loss = self.loss_fn(self.states)
             self._seed = wp.ones_like(self.loss, requires_grad=False)
         self.loss_graphs.append(capture.graph)
-        with _capture(sim.device, kept) as capture:
+        with _capture(sim.device, kept, self.tally) as capture:
             self._loss_tape.backward(grads={self.loss: self._seed})
         self.loss_graphs.append(capture.graph)
 
     def _capture_zero(self) -> None:
         """Capture the zeroing of every gradient the captured tapes reach."""
         self.kept["zero"] = []
-        with _capture(self.sim.device, self.kept["zero"]) as capture:
+        with _capture(self.sim.device, self.kept["zero"], self.tally) as capture:
             for tape in [*self.tapes, self._loss_tape]:
                 tape.zero()
         self._zero = capture.graph
@@ -406,6 +478,7 @@ class _StepGraphs:
                             self._capture_step(k)
                 if self.loss_fn is not None:
                     self._capture_zero()
+                self._check_arenas()
         return sorted(self.reruns)
 
     def _forward(self, predicted: set, changed: set) -> None:
@@ -437,6 +510,7 @@ class _StepGraphs:
             self.reruns[k] = self._rerun(k)
             self._note(k, changed)
             k += 1
+        self._forward_done()
 
     def _current(self, k: int) -> bool:
         """Whether step k's input State hands it the arrays its graph was captured with (_handed_on)."""
@@ -466,11 +540,64 @@ class _StepGraphs:
             wp.capture_launch(self._zero)
 
     def _rerun(self, k: int) -> wp.Tape | None:
-        """Step k, uncaptured, on a tape of its own where there is a loss."""
+        """Step k, uncaptured, on a tape of its own where there is a loss (in segment mode, dropped at once outside
+        the last segment: its re-simulation runs it again)."""
         tape = wp.Tape() if self.loss_fn is not None else None
         with tape if tape is not None else contextlib.nullcontext():
             self.sim.step(self.states[k], self.states[k + 1], self.controls[k])
+        if self.segment is not None and k // self.segment != (len(self.forward) - 1) // self.segment:
+            return None
         return tape
+
+    @property
+    def taped_bytes(self) -> int | None:
+        """CapturedRollout.taped_bytes."""
+        if self.tally is None:
+            return None
+        return self.tally.nbytes + sum(arena.nbytes for arena in self.arenas or ())
+
+    def _forward_done(self) -> None:
+        """After a forward pass: in segment mode the arenas and the kept re-run tapes hold the last segment's."""
+        if self.segment is not None:
+            self._live = (len(self.forward) - 1) // self.segment
+
+    def _resimulate(self, first: int, last: int) -> None:
+        """Steps ``first`` to ``last - 1`` again (their graphs, or uncaptured on new tapes), so that the arenas and
+        tapes hold what their backward passes read; bitwise the forward pass's results on the CPU. The adjoint
+        first guess that the step after them handed to their end State (which their last step's forward pass
+        zeroes) is kept across, as one tape over the rollout would keep it."""
+        handed = self.states[last].solve_adjoint
+        if handed is not None:
+            if self._handed is None or self._handed.shape != handed.shape or self._handed.dtype != handed.dtype:
+                self._handed = wp.empty_like(handed)
+            wp.copy(self._handed, handed)
+        for k in range(first, last):
+            if k in self.reruns:
+                self.reruns[k] = self._taped_rerun(k)
+            else:
+                wp.capture_launch(self.forward[k])
+        if handed is not None:
+            wp.copy(self.states[last].solve_adjoint, self._handed)
+        self._live = first // self.segment
+
+    def _taped_rerun(self, k: int) -> wp.Tape:
+        """Step k, uncaptured, on a tape of its own that is kept (a segment being re-simulated)."""
+        tape = wp.Tape()
+        with tape:
+            self.sim.step(self.states[k], self.states[k + 1], self.controls[k])
+        return tape
+
+    def _check_arenas(self) -> None:
+        """Raise where an array in an arena outlives its step: something the Simulator keeps or a State hands on,
+        made during a step's capture, would be overwritten by the steps that share the arena (a bug to fix in the
+        step: such arrays must be made by its ordinary run before the captures)."""
+        if self.arenas is None:
+            return
+        for path, array in _persistent_arrays({"sim": self.sim, "states": self.states, "controls": self.controls}):
+            for a in (array, array.grad):
+                if a is not None and any(arena.owns(a.ptr) for arena in self.arenas):
+                    raise RuntimeError(f"CapturedRollout: {path} was made during a step's capture in memory that "
+                                       "the steps of the segments share (an internal error; please report it)")
 
     def _backward(self) -> None:
         """The loss's backward pass from its seed, then the steps', last first: a re-run step's tape, a replayed
@@ -479,14 +606,53 @@ class _StepGraphs:
         self._backward_steps()
 
     def _backward_steps(self) -> None:
-        for k in reversed(range(len(self.states) - 1)):
-            if k in self.reruns:
-                self.reruns[k].backward()
-            else:
-                wp.capture_launch(self.backward_graphs[k])
+        """The steps' backward passes, last first. In segment mode a segment at a time, re-simulated first where the
+        arenas do not hold it, its re-run steps' tapes dropped after it."""
+        steps = len(self.forward)
+        seg = self.segment or steps
+        for first in reversed(range(0, steps, seg)):
+            last = min(first + seg, steps)
+            if self.segment is not None and self._live != first // seg:
+                self._resimulate(first, last)
+            for k in reversed(range(first, last)):
+                if k in self.reruns:
+                    self.reruns[k].backward()
+                else:
+                    wp.capture_launch(self.backward_graphs[k])
+            if self.segment is not None:
+                for k in range(first, last):
+                    if self.reruns.get(k) is not None:
+                        self._dropped += gradient_owners(self.reruns[k])
+                        self.reruns[k] = None
+                self._live = None
 
     def _zero_reruns(self) -> None:
         """Zero the gradients the last run's re-run steps reached (arrays of their own, and shared ones such as the
-        friction coefficients that no captured step's tape records)."""
+        friction coefficients that no captured step's tape records), those of tapes dropped too."""
         for tape in self.reruns.values():
-            tape.zero()
+            if tape is not None:
+                tape.zero()
+        zero_gradients(self._dropped)
+        self._dropped = []
+
+
+def _persistent_arrays(root, path: str = "", seen: set | None = None):
+    """(path, array) for every Warp array reachable from ``root`` through warpcloth's objects and containers, but for
+    their STEP_LOCAL attributes."""
+    seen = set() if seen is None else seen
+    if id(root) in seen:
+        return
+    seen.add(id(root))
+    if isinstance(root, wp.array):
+        yield path, root
+    elif isinstance(root, dict):
+        for key, value in root.items():
+            yield from _persistent_arrays(value, f"{path}[{key!r}]" if path else str(key), seen)
+    elif isinstance(root, (list, tuple)):
+        for i, value in enumerate(root):
+            yield from _persistent_arrays(value, f"{path}[{i}]", seen)
+    elif type(root).__module__.startswith("warpcloth") and hasattr(root, "__dict__"):
+        step_local = getattr(type(root), "STEP_LOCAL", frozenset())  # one step's arrays, not read by the next
+        for name, value in vars(root).items():
+            if name not in step_local:
+                yield from _persistent_arrays(value, f"{path}.{name}", seen)

@@ -376,7 +376,8 @@ class ControlTask:
         1.0-1.1 s uncaptured, 4.6-5.0 s capturing, 0.23-0.29 s replayed; benchmarks/graph_step.py), so a task
         evaluated once is not made to capture."""
         if wc.CapturedRollout.unsupported(self.sim) is not None or kind == "evaluate" and (
-                not self.model.device.is_cpu or self.segment_steps < self.steps):
+                not self.model.device.is_cpu
+                or self.segment_steps < self.steps and wc.CapturedRollout.segments_unsupported(self.sim) is not None):
             return None
         captured = self._captures.get(kind)
         if captured is None or not captured.current():
@@ -739,7 +740,7 @@ class _CapturedEvaluation(_Captured):
             return values
 
         self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
-                                          steps=task.steps, loss=loss)
+                                          steps=task.steps, loss=loss, segment_steps=task.segment_steps)
 
     def run(self, push: np.ndarray, *, backward: bool = True) -> dict:
         """The loss of every world, the final positions and (with ``backward``) the gradients with respect to the
