@@ -746,13 +746,26 @@ def memory(d: dict) -> str:
              g(r["ratio"], 2), g(r["full"]["seconds"], 2), g(r["checkpointed"]["seconds"], 2),
              g(r["grad_rel_diff"], 2)] for r in d["records"]]
     ok = all(r["ratio"] <= d["target_ratio"] and r["grad_rel_diff"] <= 1e-6 for r in d["records"])
-    return "\n".join([
+    parts = [
         "Peak resident memory above the start of one forward + backward (`benchmarks/memory.py`, a fresh process "
         "per scene and mode):", "",
         table(["scene", "steps", "full tape MB", "checkpointed MB", "ratio", "full tape s", "checkpointed s",
                "gradient rel. difference"], rows), "",
         f"Target from issue 24: checkpointed at most {d['target_ratio']:g} of the full tape's peak with the same "
-        f"gradient to 1e-6: {met(ok)}.", "", provenance(d)])
+        f"gradient to 1e-6: {met(ok)}."]
+    captured = [r for r in d["records"] if "captured checkpointed" in r]
+    if captured:
+        rows = [[r["scene"], str(r["steps"]), g(r["captured full"]["peak_mb"], 3),
+                 g(r["captured checkpointed"]["peak_mb"], 3), g(r["captured_ratio"], 2),
+                 g(r["captured full"]["seconds"], 2), g(r["captured checkpointed"]["seconds"], 2),
+                 g(r["captured checkpointed"]["capture_seconds"], 2), g(r["captured_grad_rel_diff"], 2)]
+                for r in captured]
+        parts += ["", "The same replayed from graphs (`wc.CapturedRollout`, in `segment_steps` segments when "
+                  "checkpointed; MB: the peak over the capture and the replays; s: the median of "
+                  f"{len(captured[0]['captured full']['replay_seconds'])} replays):", "",
+                  table(["scene", "steps", "full tape MB", "checkpointed MB", "ratio", "full tape s",
+                         "checkpointed s", "capturing s", "gradient rel. difference"], rows)]
+    return "\n".join([*parts, "", provenance(d)])
 
 
 def prediction(d: dict) -> str:

@@ -107,7 +107,25 @@ class StepArrays:
         return array
 
 
-class Arena:
+class _CpuAllocator:
+    """An allocator for Warp's CPU device (Warp 1.19's allocator protocol) over the device's own; graphs are
+    captured with a backward pass on the CPU only."""
+
+    deallocate_requires_context_guard = False
+
+    def __init__(self, device):
+        device = wp.get_device(device)
+        if not device.is_cpu:
+            raise ValueError(f"{type(self).__name__}: only on the CPU, not {device}")
+        self.device = device
+        self._inner = device.default_allocator
+        self.memory_kind = self._inner.memory_kind
+
+    def rewind(self) -> None:
+        """Where the next allocation starts (an Arena's first block; nothing otherwise)."""
+
+
+class Arena(_CpuAllocator):
     """Memory handed out in allocation order, for graphs that never run at the same time (wc.CapturedRollout's
     segments): while :func:`allocating_from` is active, the n-th allocation since the arena was last rewound gets
     the arena's n-th block (grown where a later one asks for more; the smaller one stays for the graphs that use it).
@@ -115,15 +133,8 @@ class Arena:
     set of blocks holds the taped arrays of every step that records at that place in a segment. Freeing is a no-op:
     the blocks live as long as the arena."""
 
-    deallocate_requires_context_guard = False
-
     def __init__(self, device):
-        device = wp.get_device(device)
-        if not device.is_cpu:
-            raise ValueError(f"Arena: only on the CPU, not {device} (a backward pass is not captured on CUDA)")
-        self.device = device
-        self._inner = device.default_allocator
-        self.memory_kind = self._inner.memory_kind
+        super().__init__(device)
         self._blocks: list[tuple[int, int]] = []  # (pointer, bytes), in allocation order
         self._outgrown: list[tuple[int, int]] = []  # blocks replaced by larger ones, still read by earlier graphs
         self._cursor = 0
@@ -162,24 +173,14 @@ class Arena:
             self._inner.deallocate(ptr, size)
 
 
-class Tally:
+class Tally(_CpuAllocator):
     """The CPU device's own allocator, counting the bytes it holds for the arrays made while
     :func:`allocating_from` is active (what a graph's captures keep)."""
 
-    deallocate_requires_context_guard = False
-
     def __init__(self, device):
-        device = wp.get_device(device)
-        if not device.is_cpu:
-            raise ValueError(f"Tally: only on the CPU (got {device})")
-        self.device = device
-        self._inner = device.default_allocator
-        self.memory_kind = self._inner.memory_kind
+        super().__init__(device)
         self.nbytes = 0
         """The bytes held now."""
-
-    def rewind(self) -> None:
-        pass
 
     def allocate(self, size_in_bytes: int) -> int:
         self.nbytes += size_in_bytes
