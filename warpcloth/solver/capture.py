@@ -63,7 +63,8 @@ class CapturedRollout:
             their backward graphs. The same gradients bitwise (on the CPU, where it runs; on CUDA use
             ``checkpointed_backward``), for one more forward pass. Every State of the rollout is kept (a few of the
             tape's arrays a step) and so are the graphs, whose record in Warp costs 0.3-1.0 MB a step
-            (benchmarks/memory.py): more than an uncaptured checkpointed tape, less than a captured whole one. Not with BDF2 in a scene with a collision stage (:meth:`segments_unsupported`).
+            (benchmarks/memory.py): more than an uncaptured checkpointed tape, less than a captured whole one. Not
+            with BDF2 in a scene with a collision stage (:meth:`segments_unsupported`).
 
     The first run is an ordinary one (it loads the kernels and makes the arrays the step keeps), then the same
     rollout is captured (on the CPU with its backward pass as a graph of its own); each :meth:`run` replays it and
