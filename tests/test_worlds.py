@@ -557,6 +557,22 @@ def test_a_checkpointed_tasks_replayed_evaluations_equal_its_first_uncaptured_on
         assert np.any(evaluations[0].grad)
 
 
+def test_a_checkpointed_task_past_the_captured_segments_budget_runs_uncaptured(monkeypatch):
+    """The replay in segments keeps every State: a task of more particle-steps than
+    control.CAPTURED_SEGMENTS_PARTICLE_STEPS stays with wc.checkpointed_backward at every evaluation."""
+    from warpcloth.tasks import control
+
+    task = draped_task(steps=20, segment_steps=6)
+    monkeypatch.setattr(control, "CAPTURED_SEGMENTS_PARTICLE_STEPS", task.model.particle_count * 20 - 1)
+    calls = []
+    uncaptured = wc.checkpointed_backward
+    monkeypatch.setattr(wc, "checkpointed_backward", lambda *a, **k: calls.append(1) or uncaptured(*a, **k))
+    p = np.random.default_rng(4).normal(0.0, 2.0, task.n_params)
+    evaluations = [task.evaluate(p) for _ in range(3)]
+    assert len(calls) == 3
+    assert evaluations[2].loss == evaluations[0].loss
+
+
 def test_a_task_captures_again_where_the_models_default_placements_changed():
     """The captured controls hold the model's default targets and placements (host arrays a user may edit): moved
     in place after the capture, the next evaluation is the moved scene's, bitwise what a new task gives."""

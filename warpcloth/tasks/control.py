@@ -41,6 +41,11 @@ WHOLE_TAPE_PARTICLE_STEPS = 200_000
 """A control task tapes a rollout whole, without checkpoints, up to this many particle-steps (particles of all
 worlds times steps): the throw's full tape takes 164 MB for 81 particles and 700 steps, 2.9 kB a particle-step
 (README, checkpointing), so this is about 0.6 GB. Beyond it a rollout is checkpointed (``wc.checkpointed_backward``)."""
+CAPTURED_SEGMENTS_PARTICLE_STEPS = 2_000_000
+"""A checkpointed rollout is replayed from graphs in segments (``wc.CapturedRollout(segment_steps=...)``) up to this
+many particle-steps: the replay keeps every State (168 B a particle-step in float64: about 0.34 GB here) besides
+Warp's record of the graphs (0.3-1 MB a step), where ``wc.checkpointed_backward`` keeps a segment's. 16 throw worlds
+(0.9 million) replay; 64 (3.6 million) run uncaptured."""
 
 
 @dataclass
@@ -371,13 +376,16 @@ class ControlTask:
         :meth:`losses_worlds` (``"losses"``: forward) recorded as graphs (``wc.CapturedRollout``: one graph a
         step, following the contacts it met before, in a scene with contact) where that can be: the forward pass on
         any device, the backward pass on the CPU (on CUDA its graph does not replay yet: capture.py) for a rollout
-        taped whole. Made at the second call that can use it (and again where the solver's options or an array of
+        taped whole, or checkpointed up to CAPTURED_SEGMENTS_PARTICLE_STEPS (replayed in segments). Made at the
+        second call that can use it (and again where the solver's options or an array of
         the model were replaced since): the evaluation that captures costs about five uncaptured ones (the throw:
         1.0-1.1 s uncaptured, 4.6-5.0 s capturing, 0.23-0.29 s replayed; benchmarks/graph_step.py), so a task
         evaluated once is not made to capture."""
+        segmented = kind == "evaluate" and self.segment_steps < self.steps
         if wc.CapturedRollout.unsupported(self.sim) is not None or kind == "evaluate" and (
-                not self.model.device.is_cpu
-                or self.segment_steps < self.steps and wc.CapturedRollout.segments_unsupported(self.sim) is not None):
+                not self.model.device.is_cpu or segmented and (
+                    wc.CapturedRollout.segments_unsupported(self.sim) is not None
+                    or self.model.particle_count * self.steps > CAPTURED_SEGMENTS_PARTICLE_STEPS)):
             return None
         captured = self._captures.get(kind)
         if captured is None or not captured.current():
