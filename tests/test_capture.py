@@ -885,3 +885,29 @@ def test_memory_operations_inside_a_cpu_capture_are_kernels_that_replay_live_val
     np.testing.assert_array_equal(odd.numpy(), 7)
     wp.copy(odd, wp.zeros(7, dtype=wp.uint8, device="cpu"))  # outside: Warp's own again
     assert not np.any(odd.numpy())
+
+
+def test_the_gradients_a_dropped_tape_reached_are_zeroed_where_their_arrays_live_on():
+    # a segmented replay drops the tapes of the steps it re-ran uncaptured; the next run still zeroes the gradients
+    # those tapes reached in arrays that outlive them (a model's), and forgets the arrays that died with them
+    from warpcloth.tape import gradient_owners, zero_gradients
+
+    persistent = wp.array([1.0, 2.0, 3.0], dtype=float, requires_grad=True, device="cpu")
+    temporary = wp.zeros(3, dtype=float, requires_grad=True, device="cpu")
+    loss = wp.zeros(1, dtype=float, requires_grad=True, device="cpu")
+    tape = wp.Tape()
+    with tape:
+        wp.launch(height_loss_1d, 3, inputs=[persistent, temporary], outputs=[loss], device="cpu")
+    tape.backward(loss)
+    assert np.any(persistent.grad.numpy())
+    owners = gradient_owners(tape)
+    del tape, temporary
+    zero_gradients(owners)
+    assert not np.any(persistent.grad.numpy())
+    assert sum(ref() is not None for ref in owners) >= 1
+
+
+@wp.kernel
+def height_loss_1d(a: wp.array(dtype=float), b: wp.array(dtype=float), loss: wp.array(dtype=float)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, a[i] * a[i] + b[i])

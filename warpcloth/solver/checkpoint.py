@@ -45,6 +45,9 @@ def checkpointed_backward(
     ceil(sqrt(steps)), the minimum). Time: one forward pass, a second one of every segment but the last, and one
     backward pass; with ``segment_steps >= steps`` that is one taped forward pass, as a full tape's.
 
+    The same back-propagation replayed from graphs, for a rollout run many times (on the CPU: faster, but holding
+    every State and Warp's record of the graphs): ``wc.CapturedRollout(..., loss=..., segment_steps=...)``.
+
     Args:
         sim: the Simulator (its model should have ``requires_grad=True``).
         state: the initial State; its arrays get gradients if they require them.
