@@ -161,7 +161,9 @@ def measure(scene: str, steps: int) -> dict:
     out = {"scene": scene, "steps": steps}
     for mode in MODES:
         proc = subprocess.run([sys.executable, __file__, "--child", scene, mode, str(steps)], capture_output=True,
-                              text=True, check=True)
+                              text=True)
+        if proc.returncode:
+            raise RuntimeError(f"{scene}, {mode}: the child process failed:\n{proc.stderr[-3000:]}")
         out[mode] = json.loads(proc.stdout.strip().splitlines()[-1])
     grads = {m: np.asarray(out[m].pop("grad")) for m in MODES}
     full = grads["full"]

@@ -236,7 +236,7 @@ class DeviceBackend:
         theirs back); :meth:`check_adjoints` warns where it is too large."""
         self.begin(None, None, None, False)
 
-    STEP_LOCAL = frozenset({"_x_hat", "_obstacle_end", "_mass", "_rounds", "_solution", "_constants"})
+    STEP_LOCAL = frozenset({"_x_hat", "_obstacle_end", "_mass", "_rounds", "_solution", "_constants", "solver_stats"})
     """The attributes that hold one step's arrays: set anew by :meth:`begin`, never read by a later step (a
     segmented wc.CapturedRollout lets other steps reuse their memory)."""
 

@@ -646,10 +646,10 @@ def _persistent_arrays(root, path: str = "", seen: set | None = None):
     seen.add(id(root))
     if isinstance(root, wp.array):
         yield path, root
-    elif isinstance(root, dict):
+    elif type(root) is dict:  # not a subclass: one may read the device lazily (backends.py _SolverStats)
         for key, value in root.items():
             yield from _persistent_arrays(value, f"{path}[{key!r}]" if path else str(key), seen)
-    elif isinstance(root, (list, tuple)):
+    elif type(root) in (list, tuple):
         for i, value in enumerate(root):
             yield from _persistent_arrays(value, f"{path}[{i}]", seen)
     elif type(root).__module__.startswith("warpcloth") and hasattr(root, "__dict__"):
