@@ -1,4 +1,5 @@
-"""The one place that touches Warp's tape internals."""
+"""The one place that touches Warp's internals: its tape, its CPU allocator, and the memory operations a CPU graph
+capture records."""
 
 import ctypes
 import gc
@@ -224,8 +225,8 @@ def zero_gradients(owners: list) -> None:
 
 @contextmanager
 def memory_ops_as_kernels(device):
-    """Inside (a graph capture on the CPU), Warp's memsets, fills and copies of host memory launch kernels instead
-    (kernels/memory.py). Warp 1.19 records those operations with a snapshot of the region they touch, so a graph
+    """Inside (meant for a graph capture on the CPU), Warp's memsets, fills and copies of host memory launch kernels
+    instead (kernels/memory.py). Warp 1.19 records those operations with a snapshot of the region they touch, so a graph
     holds a copy of every array it zeroes or copies: 225 kB a graph of one untaped step of a 16x16 sheet, in
     float64, against 1 kB for a kernel launch (2026-11-29). A fill whose value is not 1, 2, 4 or 8 bytes long (a
     vec3's) is left to Warp. No effect on CUDA."""
