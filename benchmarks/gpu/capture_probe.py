@@ -17,9 +17,19 @@ gradient:
     per_step_kept      a graph per step and one per step's backward pass, each step on a tape of its own, then the
                        loss's two graphs, every array kept (what CapturedRollout does for a contact scene on the
                        CPU, _StepGraphs; on CUDA it is not tried for a rollout with a loss until this replays)
+    one_graph_slab     one_graph_kept, every array made during the capture taken from one block of device memory
+                       reserved before it (Slab), so that the graph holds no memory nodes: the allocations a graph
+                       makes and frees itself are the suspects left for error 719 once arrays are kept alive
+    two_graphs_slab    two_graphs_kept, the same
+    per_step_slab      per_step_kept, the same
 
-Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME]
-(without --variant it runs every variant in a subprocess and prints a line each)
+On the CPU (Warp 1.19, 2026-11-29) the two_graphs and per_step variants replay exactly (a test holds them to it);
+the one_graph variants crash there too: with ``--debug`` the replay's first element kernel (the forward pass) reads
+out of bounds, so a graph holding both passes is not a way to capture on either device yet.
+
+Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME] [--debug]
+(without --variant it runs every variant in a subprocess and prints a line each; ``--debug`` compiles the kernels in
+Warp's debug mode, bounds-checked, so a fault names the access that failed instead of a bare CUDA error)
 """
 
 from __future__ import annotations
@@ -41,8 +51,48 @@ from warpcloth.tape import arrays_kept  # noqa: E402
 from warpcloth.tasks import scenes  # noqa: E402
 
 VARIANTS = ("one_graph", "one_graph_no_gc", "preallocated", "two_graphs", "two_graphs_no_gc", "one_graph_kept",
-            "two_graphs_kept", "per_step_kept")
+            "two_graphs_kept", "per_step_kept", "one_graph_slab", "two_graphs_slab", "per_step_slab")
+SLAB_BYTES = 1 << 30
+"""The memory a slab variant reserves before its captures (6 steps of a 6x6 cloth take a few MB)."""
 STEPS = 6
+
+
+class Slab:
+    """An allocator handing out one block of memory, reserved up front from the device's plain allocator
+    (cudaMalloc on CUDA, not the stream-ordered pool), in order; freeing is a no-op. Arrays made during a CUDA capture
+    with it are ordinary device memory, not the graph's own allocation nodes."""
+
+    def __init__(self, device, nbytes: int):
+        self.device = wp.get_device(device)
+        self._inner = self.device.default_allocator
+        self.memory_kind = self._inner.memory_kind
+        self.deallocate_requires_context_guard = getattr(self._inner, "deallocate_requires_context_guard", False)
+        self.base, self.nbytes, self.used = self._inner.allocate(nbytes), nbytes, 0
+
+    def allocate(self, size_in_bytes: int) -> int:
+        start = -(-self.used // 256) * 256  # CUDA's allocation alignment
+        if start + size_in_bytes > self.nbytes:
+            raise RuntimeError(f"Slab: {size_in_bytes} bytes more do not fit in {self.nbytes} ({start} used)")
+        self.used = start + size_in_bytes
+        return self.base + start
+
+    def deallocate(self, ptr, size_in_bytes) -> None:
+        pass  # the slab lives as long as the probe's process
+
+    @contextlib.contextmanager
+    def active(self):
+        """Every array made inside on the slab's device takes its memory from the slab."""
+        if self.device.is_cuda:
+            wp.set_device_allocator(self.device, self)
+        else:
+            original, self.device.default_allocator = self.device.default_allocator, self
+        try:
+            yield
+        finally:
+            if self.device.is_cuda:
+                wp.set_device_allocator(self.device, None)
+            else:
+                self.device.default_allocator = original
 
 
 @wp.kernel
@@ -121,10 +171,17 @@ def run_variant(variant: str, device: str) -> str:
     kept = contextlib.nullcontext
     if variant.endswith("kept"):
         kept = functools.partial(arrays_kept, keep)
+    elif variant.endswith("slab"):
+        slab = Slab(device, SLAB_BYTES)
+
+        @contextlib.contextmanager
+        def kept():
+            with arrays_kept(keep), slab.active():
+                yield
     try:
-        if variant == "per_step_kept":
+        if variant.startswith("per_step"):
             graphs = _per_step_graphs(model, sim, state, kept, keep)
-        elif variant in ("one_graph", "one_graph_no_gc", "preallocated", "one_graph_kept"):
+        elif variant.startswith("one_graph") or variant == "preallocated":
             states = [model.empty_state(requires_grad=True) for _ in range(STEPS)] if variant == "preallocated" \
                 else None
             with kept(), wp.ScopedCapture(device=device) as capture:
@@ -160,15 +217,19 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cuda:0" if wp.is_cuda_available() else "cpu")
     p.add_argument("--variant", choices=VARIANTS)
+    p.add_argument("--debug", action="store_true", help="Warp's debug mode: bounds-checked kernels (slow to compile)")
     args = p.parse_args()
+    if args.debug:
+        wp.config.mode = "debug"
     if args.variant:
         print(run_variant(args.variant, args.device), flush=True)
         return
     for variant in VARIANTS:
-        proc = subprocess.run([sys.executable, __file__, "--device", args.device, "--variant", variant],
-                              capture_output=True, text=True, timeout=300)
+        proc = subprocess.run([sys.executable, __file__, "--device", args.device, "--variant", variant,
+                               *(["--debug"] if args.debug else [])], capture_output=True, text=True, timeout=600)
         text = proc.stdout.strip().splitlines()[-1:] if proc.returncode == 0 else \
-            [f"failed (rc {proc.returncode}): " + (proc.stderr.strip().splitlines() or ["?"])[-1]]
+            [f"failed (rc {proc.returncode}): " + " | ".join(
+                line for line in proc.stderr.strip().splitlines() if "CUDA driver" not in line)[-300:]]
         print(f"{variant:18s} {text[0] if text else '?'}", flush=True)
 
 

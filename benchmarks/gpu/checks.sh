@@ -4,8 +4,8 @@
 # (or `sync`) as
 #   root=$(pwd); . /tmp/warp/env.sh; cd /tmp && bash "$root/benchmarks/gpu/checks.sh" "$root"
 # Logs and JSON go to $OUT (they come back); each part has its own timeout so one hang does not cost the rest.
-# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, PRECONDITIONERS, BLOCK_DIMS, ITERS and
-# VARIANT (capture_probe's) override what runs. The first CUDA compile of the kernel modules takes about a minute on a
+# PARTS (part names, space-separated; default: all), TESTS, SIZES, WORLDS, PRECONDITIONERS, BLOCK_DIMS, ITERS,
+# VARIANT and PROBE_DEBUG (capture_probe's) override what runs. The first CUDA compile of the kernel modules takes about a minute on a
 # fresh machine (2026-11-27, H200). On an H100 (2026-11-27, cold kernel cache) the tests below took 164 s; all the parts
 # together take longer than one session's 15 minutes of device time: choose PARTS.
 set -u
@@ -60,5 +60,7 @@ tail -n 7 "$out/estimation_batch.log" >> "$out/summary.txt"
 # not in the default PARTS: every optimisable parameter's gradient through contact, against central differences
 part gradient_matrix 400 $py -m pytest -q -p no:cacheprovider -k cuda "$root/tests/test_contact_gradient_matrix.py"
 tail -n 5 "$out/gradient_matrix.log" >> "$out/summary.txt"
-part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0 ${VARIANT:+--variant $VARIANT}
+# PROBE_DEBUG=1: bounds-checked kernels (Warp's debug mode; compiling takes minutes), so a fault names its access
+part capture_probe 240 $py "$root/benchmarks/gpu/capture_probe.py" --device cuda:0 ${VARIANT:+--variant $VARIANT} \
+  ${PROBE_DEBUG:+--debug}
 cat "$out/capture_probe.log" >> "$out/summary.txt"
