@@ -161,10 +161,12 @@ def implicit_kernels(scalar):
           differentiates this instead of the assembly (~10x cheaper; SPEC §4.1);
         - ``"energy"``: add kinetic, stretching and gravitational energy (faces) and bending energy (hinges) to
           ``scalars`` [J].
-        Arrays a mode does not use may be passed as None.
+        Arrays a mode does not use may be passed as None. Each kernel is named for its mode: Warp 1.19's CPU graphs
+        find a kernel by its name within its module, so two modes under one name in one graph (a taped step and its
+        backward pass captured together) would replay one mode's code for both.
         """
 
-        @wp.kernel
+        @wp.kernel(name=f"faces_{mode}")
         def faces(
             face: FaceData,
             s: ElementState,
@@ -244,7 +246,7 @@ def implicit_kernels(scalar):
                 wp.atomic_add(scalars, 1, area * st.energy_density(k, G00, G11, G01))
                 wp.atomic_add(scalars, 2, -node_mass * wp.dot(g, x[idx[0]] + x[idx[1]] + x[idx[2]]))
 
-        @wp.kernel
+        @wp.kernel(name=f"hinges_{mode}")
         def hinges(
             hinge: HingeData,
             s: ElementState,

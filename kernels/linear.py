@@ -501,7 +501,8 @@ def linear_kernels(scalar):
         return pq
 
     def tiled_cg(with_multigrid: bool):
-        @wp.kernel
+        # named for its preconditioner: a CPU graph finds a kernel by name (element_kernel_pair says why)
+        @wp.kernel(name="cg_tiled_multigrid" if with_multigrid else "cg_tiled")
         def cg_tiled(
             A: BlockMatrix,
             b: wp.array(dtype=vec3),

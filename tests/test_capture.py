@@ -91,6 +91,34 @@ def test_captured_gradients_equal_uncaptured_for_every_parameter(device, options
             same(a.grad.numpy(), expected[name])
 
 
+def test_a_taped_rollout_and_its_backward_pass_captured_by_hand_as_one_graph_replay_every_gradient():
+    # the way Newton's diffsim examples capture: forward pass on a tape, loss and tape.backward, all in one graph.
+    # On the CPU this replayed the assembly's code where its adjoint ran until the kernels got names of their own
+    # (tests/test_kernels.py: no two kernels share one). On CUDA Warp 1.19 could not instantiate such a graph
+    # (benchmarks/gpu/capture_probe.py, one_graph): not tried here
+    model, sim, state, control = scene("cpu")
+    arrays = gradient_arrays(model, state, control)
+    tape = wp.Tape()
+    with tape:
+        loss = loss_of(wc.rollout(sim, state, control, steps=STEPS))
+    tape.backward(loss)
+    expected = {name: a.grad.numpy().copy() for name, a in arrays.items()}
+    expected_loss = loss.numpy().copy()
+    tape.zero()
+    with wp.ScopedCapture(device="cpu") as capture:
+        graph_tape = wp.Tape()
+        with graph_tape:
+            graph_loss = loss_of(wc.rollout(sim, state, control, steps=STEPS))
+        graph_tape.backward(graph_loss)
+    assert not np.any(model.wind_velocity.grad.numpy()), "the CPU capture ran the backward pass"
+    for _ in range(2):
+        graph_tape.zero()
+        wp.capture_launch(capture.graph)
+        np.testing.assert_array_equal(graph_loss.numpy(), expected_loss)
+        for name, a in arrays.items():
+            np.testing.assert_array_equal(a.grad.numpy(), expected[name], err_msg=name)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_a_replay_reads_inputs_changed_in_place(device):
     model, sim, state, control = scene(device)

@@ -211,3 +211,25 @@ def test_wind_and_handle_kernels_gradcheck():
     assert warp.autograd.gradcheck(
         k.wind, dim=2, inputs=[tris, area, free, world, wind, rho, drag, x, v, wp.float64(DT)], outputs=[rhs],
         eps=1e-7, atol=1e-6, rtol=1e-5, raise_exception=False, show_summary=False)
+
+
+FACTORIES = {"implicit": "implicit_kernels", "linear": "linear_kernels", "collision": "collision_kernels",
+             "contact": "contact_kernels", "failsafe": "failsafe_kernels", "losses": "loss_kernels",
+             "obstacle": "obstacle_kernels", "projection": "device_round_kernels", "proximity": "proximity_kernels"}
+
+
+@pytest.mark.parametrize("scalar", [wp.float32, wp.float64], ids=["float32", "float64"])
+def test_no_two_kernels_of_one_precision_share_a_name(scalar):
+    # Warp 1.19's CPU graphs look each launched kernel up by its module and name, so two kernels of one name in one
+    # graph replay one's code for both: a taped step and its backward pass captured together (the assembly and its
+    # adjoint's "potential", once both "faces") read out of bounds (benchmarks/gpu/capture_probe.py, one_graph)
+    import importlib
+
+    seen = {}
+    for module, factory in FACTORIES.items():
+        namespace = getattr(importlib.import_module(f"warpcloth.kernels.{module}"), factory)(scalar)
+        for attr, kernel in vars(namespace).items():
+            if isinstance(kernel, wp.Kernel):
+                other = seen.setdefault((kernel.module.name, kernel.key), (attr, kernel))
+                assert other[1] is kernel, f"{module}.{factory}: {attr} and {other[0]} share the name {kernel.key}"
+    assert len(seen) > 70  # every factory was walked

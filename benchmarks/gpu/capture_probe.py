@@ -23,9 +23,11 @@ gradient:
     two_graphs_slab    two_graphs_kept, the same
     per_step_slab      per_step_kept, the same
 
-On the CPU (Warp 1.19, 2026-11-29) the two_graphs and per_step variants replay exactly (a test holds them to it);
-the one_graph variants crash there too: with ``--debug`` the replay's first element kernel (the forward pass) reads
-out of bounds, so a graph holding both passes is not a way to capture on either device yet.
+On the CPU (Warp 1.19, 2026-11-29) every variant replays exactly. The one_graph variants crashed there too until the
+element kernels got a name per use: a CPU graph finds each kernel by its module and name, and the assembly and its
+adjoint's "potential" were both "faces", so the replay ran one's code for both (``--debug`` showed the read out of
+bounds; tests/test_kernels.py now holds every kernel factory to distinct names). CUDA graphs hold the kernels
+themselves, so that was not what failed on the H200.
 
 Usage: python benchmarks/gpu/capture_probe.py [--device cuda:0] [--variant NAME] [--debug]
 (without --variant it runs every variant in a subprocess and prints a line each; ``--debug`` compiles the kernels in
