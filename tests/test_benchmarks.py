@@ -88,7 +88,7 @@ def test_quick_run(name, tmp_path):
         pytest.skip("torch is not installed: motion_control.py skipped its MLP controller")
 
 
-@pytest.mark.parametrize("variant", ["two_graphs_kept", "per_step_kept", "per_step_slab"])
+@pytest.mark.parametrize("variant", ["two_graphs_kept_zero_after", "per_step_kept", "per_step_slab"])
 def test_the_gpu_capture_probe_replays_on_the_cpu(variant):
     # benchmarks/gpu/capture_probe.py asks a GPU which captures of a taped rollout replay; the ways warpcloth captures
     # on the CPU must replay there to the uncaptured gradient, or the probe would not tell a GPU's fault from its own

@@ -114,8 +114,10 @@ class CapturedRollout:
         device = sim.device
         if device.is_cuda and warmup is not None:
             # On an H200 (Warp 1.19) a graph holding the taped forward pass and its backward pass failed to
-            # instantiate ("invalid argument"), and as separate graphs the backward one crashed on replay
-            # (benchmarks/results/gpu/): until that is understood, such a rollout is run, not replayed.
+            # instantiate ("invalid argument"), and as separate graphs, replayed zeroing first, they crashed
+            # (error 719; benchmarks/gpu/capture_probe.py): until a GPU replays them, such a rollout is run, not
+            # replayed. The suspect: arrays made in a CUDA capture are its graph's own allocations, backed only once
+            # that graph has run, and the zeroing wrote to their gradients before the forward graph had.
             warnings.warn("CapturedRollout: a rollout with a loss is not captured on CUDA yet (its graph did not "
                           "instantiate with Warp 1.19); each run() records and differentiates it afresh",
                           RuntimeWarning, stacklevel=2)
@@ -124,9 +126,9 @@ class CapturedRollout:
                 self._record_forward()
             self.graphs = [capture.graph]
         else:
-            # On the CPU (Warp 1.19) a graph holding both a recorded forward pass and the element adjoints'
-            # launches crashed on replay; the forward pass, the backward pass and the zeroing of the gradients as
-            # three graphs replay correctly.
+            # three graphs, so that a run without its backward pass, and a backward pass from other seeds
+            # (backward()), replay only their parts; the gradients are zeroed after the forward pass, whose graph
+            # (on CUDA) owns the memory of the arrays it makes
             with _capture(device, self._kept, self._tally) as capture:
                 self._record_forward()
             forward = capture.graph
@@ -135,7 +137,7 @@ class CapturedRollout:
             backward = capture.graph
             with _capture(device, self._kept, self._tally) as capture:
                 self.tape.zero()
-            self.graphs = [capture.graph, forward, backward]
+            self.graphs = [forward, capture.graph, backward]
 
     @staticmethod
     def unsupported(sim: Simulator) -> str | None:
@@ -224,7 +226,7 @@ class CapturedRollout:
                 self._backward()
                 self.sim.check()  # the adjoint solves' failures
         else:
-            for graph in self.graphs[:2] if taped and not backward else self.graphs:
+            for graph in self.graphs[:2] if taped and not backward else self.graphs:  # zeroed either way
                 wp.capture_launch(graph)
             self.sim._count_replayed(self.steps)  # noqa: SLF001 - the solver package's own bookkeeping
         self.sim.check(self.trajectory)
@@ -243,7 +245,7 @@ class CapturedRollout:
             self._steps.backward(grads)
         else:
             if self.graphs:
-                wp.capture_launch(self.graphs[0])
+                wp.capture_launch(self.graphs[1])  # the zeroing
             else:
                 self.tape.zero()
             _write_seeds(self._seed, self.loss, grads)
