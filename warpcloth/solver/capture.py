@@ -54,8 +54,8 @@ class CapturedRollout:
         loss: optional ``loss(trajectory) -> wp.array`` that launches kernels on the trajectory. With it, each
             replay also runs the backward pass (of the sum of the loss array's entries, e.g. one loss per world;
             ``run(backward=False)`` skips it, :meth:`backward` runs it again from other seeds): gradients land in
-            the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed before each replay's backward pass),
-            and :attr:`loss` holds the value.
+            the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed before each replay's backward
+            pass), and :attr:`loss` holds the value.
         segment_steps: with a loss, back-propagate in segments of this many steps, as
             :func:`~warpcloth.checkpointed_backward` does, but replayed: the rollout is captured one graph a step, the
             steps at the same place in their segments share the memory of their taped arrays (one segment's worth:
