@@ -94,8 +94,8 @@ def test_captured_gradients_equal_uncaptured_for_every_parameter(device, options
 def test_a_taped_rollout_and_its_backward_pass_captured_by_hand_as_one_graph_replay_every_gradient():
     # the way Newton's diffsim examples capture: forward pass on a tape, loss and tape.backward, all in one graph.
     # On the CPU this replayed the assembly's code where its adjoint ran until the kernels got names of their own
-    # (tests/test_kernels.py: no two kernels share one). On CUDA Warp 1.19 could not instantiate such a graph
-    # (benchmarks/gpu/capture_probe.py, one_graph): not tried here
+    # (tests/test_kernels.py: no two kernels of one precision share one). On CUDA Warp 1.19 could not instantiate
+    # such a graph (benchmarks/gpu/capture_probe.py, one_graph): not tried here
     model, sim, state, control = scene("cpu")
     arrays = gradient_arrays(model, state, control)
     tape = wp.Tape()

@@ -1,6 +1,8 @@
 """Element physics: forces are minus energy gradients, Hessian blocks are force Jacobians, and the kernels agree
 with an independent NumPy transcription of SPEC.md §1.2-1.3 (tests/reference.py)."""
 
+import importlib
+
 import numpy as np
 import pytest
 import reference
@@ -223,8 +225,6 @@ def test_no_two_kernels_of_one_precision_share_a_name(scalar):
     # Warp 1.19's CPU graphs look each launched kernel up by its module and name, so two kernels of one name in one
     # graph replay one's code for both: a taped step and its backward pass captured together (the assembly and its
     # adjoint's "potential", once both "faces") read out of bounds (benchmarks/gpu/capture_probe.py, one_graph)
-    import importlib
-
     seen = {}
     for module, factory in FACTORIES.items():
         namespace = getattr(importlib.import_module(f"warpcloth.kernels.{module}"), factory)(scalar)
