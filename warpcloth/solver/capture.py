@@ -542,15 +542,20 @@ class _StepGraphs:
             self._zero_reruns()
             wp.capture_launch(self._zero)
 
-    def _rerun(self, k: int) -> wp.Tape | None:
+    def _rerun(self, k: int, *, keep: bool = False) -> wp.Tape | None:
         """Step k, uncaptured, on a tape of its own where there is a loss (in segment mode, dropped at once outside
-        the last segment: its re-simulation runs it again)."""
+        the last segment, unless ``keep``: a segment being re-simulated)."""
         tape = wp.Tape() if self.loss_fn is not None else None
         with tape if tape is not None else contextlib.nullcontext():
             self.sim.step(self.states[k], self.states[k + 1], self.controls[k])
-        if self.segment is not None and k // self.segment != (len(self.forward) - 1) // self.segment:
+        if not keep and self.segment is not None and k // self.segment != self._last_segment:
             return None
         return tape
+
+    @property
+    def _last_segment(self) -> int:
+        """The index of the rollout's last segment (segment mode)."""
+        return (len(self.forward) - 1) // self.segment
 
     @property
     def taped_bytes(self) -> int | None:
@@ -562,7 +567,7 @@ class _StepGraphs:
     def _forward_done(self) -> None:
         """After a forward pass: in segment mode the arenas and the kept re-run tapes hold the last segment's."""
         if self.segment is not None:
-            self._live = (len(self.forward) - 1) // self.segment
+            self._live = self._last_segment
 
     def _resimulate(self, first: int, last: int) -> None:
         """Steps ``first`` to ``last - 1`` again (their graphs, or uncaptured on new tapes), so that the arenas and
@@ -576,19 +581,12 @@ class _StepGraphs:
             wp.copy(self._handed, handed)
         for k in range(first, last):
             if k in self.reruns:
-                self.reruns[k] = self._taped_rerun(k)
+                self.reruns[k] = self._rerun(k, keep=True)
             else:
                 wp.capture_launch(self.forward[k])
         if handed is not None:
             wp.copy(self.states[last].solve_adjoint, self._handed)
         self._live = first // self.segment
-
-    def _taped_rerun(self, k: int) -> wp.Tape:
-        """Step k, uncaptured, on a tape of its own that is kept (a segment being re-simulated)."""
-        tape = wp.Tape()
-        with tape:
-            self.sim.step(self.states[k], self.states[k + 1], self.controls[k])
-        return tape
 
     def _check_arenas(self) -> None:
         """Raise where an array in an arena outlives its step: something the Simulator keeps or a State hands on,
