@@ -43,7 +43,7 @@ def throw_points(task: throw.ThrowTask, count: int) -> list[tuple[str, np.ndarra
     landing = np.zeros((throw.SECONDS_CONTROLLED, len(throw.CORNERS), 3))
     landing[0] = (2.0, -0.3, 12.8)
     landing = landing.reshape(-1) + np.random.default_rng(0).normal(0.0, 0.1, throw.N_PARAMS)
-    points = [("no pushes", np.zeros(throw.N_PARAMS)), ("landing throw (issue 22)", landing)]
+    points = [("no pushes", np.zeros(throw.N_PARAMS)), ("landing throw", landing)]
     # the motion-control benchmark's random starts (benchmarks/motion_control.py START_SIGMA), where the open loop
     # stalled while its loss took the vertex mean
     points += [(f"random start (seed {k}, sigma 5)", np.random.default_rng(k).normal(scale=5.0, size=throw.N_PARAMS))

@@ -23,9 +23,9 @@ import numpy as np
 import warp as wp
 from common import wc
 
-from warpcloth.scene import SearchSpec
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
+from warpcloth.tasks.specs import SearchSpec
 
 QUICK_SEARCH = SearchSpec(population=4, refine=4)
 """--quick: small populations, so that 24 evaluations make whole generations and steps."""

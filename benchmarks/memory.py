@@ -41,7 +41,7 @@ SCENES = {"throw": throw.STEPS, "throw-16": throw.STEPS, "hanging": 500, "drape"
 """Steps of each scene's rollout."""
 WORLDS = {"throw-16": 16}
 """Worlds of a scene simulated as one batch (``ControlTask.worlds``: each world its own pushes): where a control task
-checkpoints by default (more than WHOLE_TAPE_PARTICLE_STEPS particle-steps)."""
+checkpoints by default (more than gradients.WHOLE_TAPE_PARTICLE_STEPS particle-steps)."""
 TARGET_RATIO = 0.25
 """Issue 24: the checkpointed backward's peak at most this fraction of the full tape's."""
 

@@ -1,4 +1,4 @@
-"""The device projection's QP and its adjoint (warpcloth/collision/device_projection.py): time per call.
+"""The device projection's QP and its adjoint (warpcloth/collision/projection.py): time per call.
 
 Each world's QP is solved by one thread block (kernels/projection.py; on the CPU a block is one thread). The problem:
 ``layers`` cloth layers of res x res particles (10 g each) over a floor, every particle in a vertex-face contact,
@@ -17,7 +17,7 @@ import common
 import numpy as np
 import warp as wp
 
-from warpcloth.collision.device_projection import DeviceProjection
+from warpcloth.collision.projection import DeviceProjection
 
 THICKNESS = 1.0e-3
 SPACING = 0.01

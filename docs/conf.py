@@ -17,6 +17,7 @@ exclude_patterns = ["_build"]
 
 html_theme = "furo"
 html_title = "warpcloth"
+html_static_path = ["_static"]  # the pictures of cloth (make_pictures.py regenerates them)
 
 myst_heading_anchors = 3  # [text](page.md#a-heading) links
 myst_enable_extensions = ["colon_fence"]

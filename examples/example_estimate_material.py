@@ -3,7 +3,7 @@
 A 1 m cloth hangs from two soft handles in a 5 m/s wind. Its motion over 1 s is simulated with a measured fabric;
 starting from the mean of 8 fabrics, L-BFGS on Warp's tape fits density, stretching and bending to that motion.
 
-The fitted cloth's motion is drawn against the target's (translucent grey) with matplotlib.
+The fitted cloth's motion is drawn against the target's (translucent).
 
     python examples/example_estimate_material.py --material tango-red-jet-set --iters 60 --preview fit.gif
 """

@@ -9,7 +9,7 @@ The rollout, its loss and its backward pass are recorded once as a graph (``wc.C
 every iteration: the wind is changed in place between replays, and each replay leaves the loss's gradient in
 ``model.wind_velocity.grad``.
 
-At the end the cloth blown by the fitted wind is drawn against the target (translucent grey) with matplotlib.
+At the end the cloth blown by the fitted wind is drawn against the target (translucent).
 
     python examples/example_estimate_wind.py --iters 30 --preview wind.gif
 """

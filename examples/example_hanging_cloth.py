@@ -37,7 +37,7 @@ class Example:
             from warpcloth.usd import write_usd
 
             write_usd(self.usd_path, triangles=self.model.triangles_np, frames=self.frames, fps=1.0 / self.sim.dt)
-        if self.preview_path:  # a picture without a USD viewer (matplotlib; .gif, .png or, with ffmpeg, .mp4)
+        if self.preview_path:  # a picture without a USD viewer (.gif, .png or, with ffmpeg, .mp4)
             from warpcloth.preview import write_preview
 
             write_preview(self.preview_path, triangles=self.model.triangles_np, frames=self.frames,

@@ -34,7 +34,7 @@ def main(iters: int = 30, steps: int = control.STEPS, mlp: bool = False, usd: st
         if usd:
             wc.write_usd(usd, **drawing)
             print(f"wrote {usd}")
-        if preview:  # the cloth, the wall and the basket drawn with matplotlib
+        if preview:  # the cloth, the wall and the basket drawn
             write_preview(preview, **drawing, title="throw into a basket")
             print(f"wrote {preview}")
     return result

@@ -1,8 +1,6 @@
-"""Reductions over the threads of one thread block, for kernels launched with ``wp.launch_tiled`` as one block per
-world (a world's CG, its collision QP). Each is a tile reduction, so each is also a barrier: what the block's
-threads wrote before it, every thread reads after it. Every thread gets the result, so a loop whose test reads only
-reduced values runs the same on every thread of the block. On the CPU a block is one thread: each returns the
-thread's own value, and a kernel written with them runs as a sequential loop would."""
+"""Reductions over one thread block (``wp.launch_tiled``, one block per world). Each is a barrier and returns its
+result to every thread, so loops testing reduced values run alike on all; on the CPU a block is one thread, and
+each returns that thread's own value."""
 
 import warp as wp
 

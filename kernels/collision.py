@@ -48,18 +48,13 @@ TOUCHING = wp.constant(wp.float64(1.0e-3))
 start side is rounding noise, and the side at the step's unprojected end decides (kernels/collision.py start_side)."""
 
 PROXIMITY_MARGIN = wp.constant(wp.float64(1.0 - 1.0e-2))
-"""Proximity contacts need a distance below thickness * margin: pairs the projection just left at the thickness
-are not found again as new contacts in the next round (that would only add dependent constraints). The 1 % slack
-absorbs the float32 rounding of the projected positions (~1e-7 m at 1 m from the origin) and the error of the
-frozen normals' linearisation; with 1e-6 a cloth resting on a tessellated sphere kept re-finding the same pairs
-for 100 rounds (16x16 on a 0.3 m sphere, dt 0.01)."""
+"""Proximity contacts need a distance below thickness * margin, so that pairs the projection just left at the
+thickness are not found again in the next round. Why 1 %: docs/decisions.md, 'Proximity margin'."""
 
 START_SLACK = wp.constant(wp.float64(1.0e-2))
-"""With ``keep_start_gaps`` (the collision stage's second try at a step whose projection failed), a pair that starts
-the step closer than the thickness keeps its start gap as its target (kernels/contact.py): it is a proximity contact
-only where it comes closer than that gap by more than this fraction of the thickness (the same slack as
-PROXIMITY_MARGIN's), and a crossing of its linear path that ends on its start side no closer than it started (a
-double crossing) is no contact."""
+"""With ``keep_start_gaps`` (the collision stage's second try), a pair that starts inside the thickness keeps its
+start gap as its target: it is a proximity contact only where it comes closer than that gap by more than this
+fraction of the thickness, and a double crossing that ends no closer than it started is no contact."""
 
 
 @wp.func
@@ -189,11 +184,7 @@ def start_side(vertex_face: bool, x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: 
                xr: wp.vec3d, yr: wp.vec3d, zr: wp.vec3d, wr: wp.vec3d, thickness: wp.float64):
     """(+1 or -1, touching): the side (signed_volume's convention) the primitives start on; ``touching`` when they
     start closer than TOUCHING * thickness along the normal, the side then being the one at the reference positions
-    xr.. (the step's end before any projection), or +1 if those touch too.
-
-    A pair that starts touching (a triangle folded flat onto its neighbour in the seed's crumpled 64x64 cloth) has no
-    start side: its rounding noise chose opposite sides for one vertex-face pair in successive rounds, contacts no
-    positions satisfy. The reference positions are the same in every round, so each pair keeps one side."""
+    xr.. (the step's unprojected end, the same in every round), or +1 if those touch too."""
     one = wp.float64(1.0)
     volume = signed_volume(vertex_face, x0, y0, z0, w0)
     if wp.abs(volume) > TOUCHING * thickness * normal_length(vertex_face, x0, y0, z0, w0):
@@ -222,9 +213,7 @@ def earliest_crossing(vertex_face: bool, roots: wp.vec3d, count: int, side0: wp.
     (x, y) against edge (z, w), touching when the segments cross and are not closer to parallel than MIN_EDGE_SINE.
     Positions x0.. are at the start of the step, x1.. at its end. ``sign`` makes the normal at t (the face's, or the
     cross product of the edges) point to the side the primitives were on just before t: the sign of their signed
-    volume halfway between the previous root (or the start) and t. ARCSim uses the net relative motion instead; a
-    double crossing that ends back on the start side then asks for nothing new. A pair that starts ``touching`` keeps
-    its ``side0`` (start_side).
+    volume halfway between the previous root (or the start) and t. A pair that starts ``touching`` keeps ``side0``.
     """
     one = wp.float64(1.0)
     zero = wp.float64(0.0)
@@ -273,15 +262,10 @@ def apart_along(n: wp.vec3d, p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.ve
 def stay_apart(vertex_face: bool, x0: wp.vec3d, y0: wp.vec3d, z0: wp.vec3d, w0: wp.vec3d,
                x1: wp.vec3d, y1: wp.vec3d, z1: wp.vec3d, w1: wp.vec3d, thickness: wp.float64):
     """True where vertex x and triangle (y, z, w) (``vertex_face``), or edge (x, y) and edge (z, w), stay further
-    apart than the thickness through the whole step, so that vertex_face_test or edge_edge_test cannot report them
-    (a crossing needs them to touch, to within BARY_EPS of their sizes; a proximity contact needs them closer than
-    the thickness at the end). A cheap exact filter in front of those tests: most pairs a query's box meets are a
-    cloth's own neighbours a ring or two away, which the tests' cubic solve and bisection would only reject.
-
-    Along a fixed unit direction n, the separation of two linearly moving points is linear in time, so the gap
-    along n between the two primitives (min over one's corners of n.x minus max over the other's) is smallest at
-    the start or at the end of the step, and any gap along any direction bounds their distance from below. n: from
-    the other primitive's centroid to the vertex, or between the edges' midpoints, at the start."""
+    apart than the thickness through the whole step, so that vertex_face_test or edge_edge_test cannot report them:
+    a cheap exact filter in front of those tests. The gap along a fixed direction n is linear in time, so smallest at
+    the start or the end, and bounds the distance from below; n runs from the other primitive's centroid to the
+    vertex, or between the edges' midpoints, at the start."""
     # the two point sets: the vertex (twice) and the triangle's corners, or one edge's ends and the other's (its
     # second end twice)
     if vertex_face:

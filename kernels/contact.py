@@ -7,9 +7,8 @@ dL/dn and dL/dw (from the projection's adjoint) back to the start and end positi
 The time of impact of a continuous contact (t < 1: the four points coplanar, f(t) = (b - a) . (c - a) x (d - a) = 0)
 moves with the positions: dt/dx = -(df/dx) / f'(t) (implicit function theorem). It enters as
 t - (f(t) - f(t)|const) / f'(t) (``frozen``: a copy with a zero adjoint), exactly the detected t, whose derivative
-is that one. Leaving it out put the gradients of a cloth landing across a box's edge 2-70 % off. Not differentiated,
-by design: which contacts exist (the active set: the trajectory's piece), the side sign, and a grazing impact's t
-(f'(t) near 0, where dt/dx is unbounded).
+is that one (why: docs/decisions.md, 'Time of impact takes gradients'). Not differentiated, by design: which
+contacts exist, the side sign, and a grazing impact's t (f'(t) near 0, where dt/dx is unbounded).
 """
 
 from types import SimpleNamespace

@@ -141,9 +141,7 @@ def world_starts(keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32)
                  start: wp.array(dtype=wp.int32)):
     """Rows (contacts, proximity pairs) sorted by a key whose world w owns [w span, (w + 1) span): ``start[w]``,
     world w's first row, one thread a world (launch world_count + 1 threads: ``start[world_count]`` is the count).
-    The rows were ordered by ``wp.utils.radix_sort_pairs``, a stable parallel sort on both devices, so each world's
-    rows come out in one order, however the queries that found them interleaved their appends (on CUDA, in no set
-    order): a world's rows are those a model of that world alone finds, in the same order."""
+    Sorted by ``wp.utils.radix_sort_pairs`` (stable), a world's rows are those a model of it alone finds, in order."""
     w = wp.tid()
     start[w] = first_at_least(keys, count[0], wp.int64(w) * span)
 

@@ -96,8 +96,7 @@ def implicit_kernels(scalar):
                      stretching: wp.array3d(dtype=scalar), thickens: wp.array(dtype=scalar),
                      lut_weight: wp.array(dtype=vec3), lut_row: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3)):
         """Everything a face kernel needs: nodes, shape gradients, F's columns, Green strain, stiffness [N/m],
-        rest area and each node's lumped mass (a third of the face's, ARCSim compute_masses). (Arrays, not the
-        FaceData struct: a struct passed to a function is copied whole, which made the face kernels 60 % slower.)"""
+        rest area and each node's lumped mass (a third of the face's, ARCSim compute_masses)."""
         idx = wp.vec3i(indices[f, 0], indices[f, 1], indices[f, 2])
         mat = material[f]
         area = areas[f]
@@ -158,12 +157,11 @@ def implicit_kernels(scalar):
         - ``"assemble"``: add the elements' blocks to A (``values``) and their share of b (``rhs``);
         - ``"potential"``: add phi = sum_a lam_a . b_a - sum_ab lam_a^T A_ab w_b to ``scalars[0]``, whose gradient
           (lam and w = v + dv held constant) is the elements' share of the solve's adjoint: the backward pass
-          differentiates this instead of the assembly (~10x cheaper; SPEC §4.1);
+          differentiates this instead of the assembly (SPEC §4.1);
         - ``"energy"``: add kinetic, stretching and gravitational energy (faces) and bending energy (hinges) to
           ``scalars`` [J].
-        Arrays a mode does not use may be passed as None. Each kernel is named for its mode: Warp 1.19's CPU graphs
-        find a kernel by its name within its module, so two modes under one name in one graph (a taped step and its
-        backward pass captured together) would replay one mode's code for both.
+        Arrays a mode does not use may be passed as None. Each kernel is named for its mode: Warp's CPU graphs find a
+        kernel by its name within its module, so two modes under one name in one graph would replay one's code.
         """
 
         @wp.kernel(name=f"faces_{mode}")
@@ -388,7 +386,7 @@ def implicit_kernels(scalar):
         x_new = x[i] + dt * v_new
         v_out[i] = v_new
         x_out[i] = x_new
-        # the divergence guard, here rather than in a launch of its own (a launch is ~5 % of a 16x16 step)
+        # the divergence guard, here rather than in a launch of its own
         flag_divergence(i, x_new, v_new, max_speed, step, record)
 
     @wp.kernel
@@ -429,7 +427,7 @@ def implicit_kernels(scalar):
     ):
         # The history BDF2's next step blends. A particle the collision response moved (x_new != x^) changed its
         # velocity inelastically: its real previous state would make the next blend (4 v_new - v_prev) / 3 send it
-        # back off the obstacle at a third of its impact speed (a cloth dropped on a plane bounced 2 mm). It
+        # back off the obstacle at a third of its impact speed. It
         # restarts from a history that moved at its new velocity, x_new - dt v_new: the blend then advances it by dt
         # at that velocity, as a backward Euler step would.
         i = wp.tid()

@@ -16,16 +16,9 @@ from warpcloth.kernels.types import per_precision, types
 
 @per_precision
 def loss_kernels(scalar):
-    """The loss kernels for one precision.
-
-    Args:
-        scalar: ``wp.float32`` or ``wp.float64``; vectors are ``types(scalar).vec3``.
-
-    Returns:
-        A namespace with the kernels ``squared_distance``, ``world_squared_distance``, ``centre_of_mass``,
-        ``add_component``, ``point_squared_distance``, ``add_sum`` and ``push_forces`` (the ``world_`` kernels and
-        those after it sum each world of a model into its own entry), and ``store_frame``.
-    """
+    """The loss kernels for ``scalar`` (``wp.float32`` or ``wp.float64``): a namespace of ``squared_distance``,
+    ``world_squared_distance``, ``centre_of_mass``, ``add_component``, ``point_squared_distance``, ``add_sum`` and
+    ``push_forces`` (from ``world_`` on, one entry per world), and ``store_frame``."""
     vec3 = types(scalar).vec3
 
     @wp.kernel

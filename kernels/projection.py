@@ -1,28 +1,22 @@
 """The collision projection and its adjoint on the device, over all contacts at once (no impact zones needed).
 
-The problem is warpcloth/collision/qp.py's: contact j couples nodes a = 0..3 (cloth particles, then obstacle
+The problem is warpcloth/collision/reference/qp.py's: contact j couples nodes a = 0..3 (cloth particles, then obstacle
 vertices) with weights w_ja along a unit normal n_j; with g_j the row that gathers sum_a w_ja n_j . z_a over the
 free particles and h_j = delta - sum_{constant a} w_ja n_j . p_a, the constraint is c_j(z) = g_j z - h_j >= 0 and
 
     min_z 1/2 (z - x^)^T W (z - x^)  s.t.  c(z) >= 0,   z = x^ + W^-1 G^T lam,  lam >= 0,  lam_j c_j = 0.
 
-Solver (one thread block per world, on that world's contacts: worlds share no node, so each is its own QP, solved
-as a model of that world alone solves it; the block's threads share the contacts, and its dot products and maxima
-are block reductions, kernels/blocks.py; on the CPU a block is one thread, which solves a world bit for bit as a
-model of that world alone does): the dual, min 1/2
-lam^T H lam - b^T lam over lam >= 0 (H = G W^-1 G^T applied matrix-free, b = h - G x^), by MPRGP (Dostal's modified
-proportioning with reduced gradient projections: conjugate gradient steps on the free multipliers, expansion steps
-by projected gradient when a step would cross the bound, proportioning steps that release multipliers whose gradient
-says they should grow), on the Jacobi-scaled variables x = D lam (D = sqrt(diag H)), which keeps the bounds. It
-converges where projected Gauss-Seidel stalls and where a primal-dual active set cycles: on the seed's crumpled
-16x16 cloth, 205-1949 iterations per round, 9-36 ms, against Gauss-Seidel still 1e-5 m off after 20000 sweeps and an
-active set cycling from anything short of a converged Gauss-Seidel iterate (measured on the dumped rounds). The
-dual's gradient H lam - b is c(z), so the stopping test is the projection's KKT test itself: max violation and max
-|c_j| over lam_j > 0 within ``tol``.
+Solver (one thread block per world on its own contacts, dot products and maxima by block reductions,
+kernels/blocks.py; on the CPU a block is one thread, solving a world bit for bit as a model of it alone does): the
+dual, min 1/2 lam^T H lam - b^T lam over lam >= 0 (H = G W^-1 G^T applied matrix-free, b = h - G x^), by MPRGP
+(Dostal's modified proportioning with reduced gradient projections: CG steps on the free multipliers, projected
+gradient expansions at the bound, proportioning steps that release multipliers) on the Jacobi-scaled x = D lam
+(D = sqrt(diag H)). Why MPRGP: docs/decisions.md, 'MPRGP for the collision QP'. The dual's gradient H lam - b is
+c(z), so the stopping test is the projection's KKT test: max violation and max |c_j| over lam_j > 0 within ``tol``.
 
-Adjoint (the same formulas as warpcloth/collision/adjoint.py): on the active set A, CG on H_AA d_lam = G_A W^-1 g
-(g = dL/dz), then d_z = W^-1 (g - G_A^T d_lam). A consistent singular H_AA (dependent contacts) is fine for CG
-from zero: d_z is unique, d_lam is the minimum-norm split among the dependent contacts.
+Adjoint (the same formulas as warpcloth/collision/reference/adjoint.py): on the active set A, CG on
+H_AA d_lam = G_A W^-1 g (g = dL/dz), then d_z = W^-1 (g - G_A^T d_lam). A consistent singular H_AA (dependent
+contacts) is fine for CG from zero: d_z is unique, d_lam is the minimum-norm split among the dependent contacts.
 """
 
 from types import SimpleNamespace
@@ -39,9 +33,7 @@ UNBOUNDED = 2
 DEPENDENT_SHIFT = 1.0e-10
 """The adjoint solves (H_AA + DEPENDENT_SHIFT diag(H_AA)) d_lam = rhs: a contact that is dependent on others to
 within this (its squared distance from their span, relative to its own squared norm: the NumPy adjoint's
-DEPENDENT_PIVOT, warpcloth/collision/linalg.py) is damped out of d_lam as the QR adjoint drops it. Without it a
-nearly dependent active set (a cloth edge lying across an obstacle's edge, its vertices on the faces) made d_lam,
-and the gradients on the contacts' weights and normals, 1e10 times too large."""
+DEPENDENT_PIVOT, warpcloth/collision/reference/linalg.py) is damped out of d_lam as the QR adjoint drops it."""
 REFINEMENTS = 2
 """Passes of iterative refinement after the shifted adjoint solve (``adjoint``)."""
 DIVERGED = 1.0e4
@@ -408,9 +400,7 @@ def solve(r: Rows, x_hat: wp.array(dtype=wp.vec3d), tol: wp.float64, max_iters: 
     if solve_world[world] == 0 or hi == lo:
         return
     # the step of the expansions: 1.9 / ||Hs|| (projected gradient steps converge up to 2 / ||Hs||), with ||Hs|| by
-    # the bound of scaled_norm_bound (within 1.6-1.7x of it on stacked layers of cloth, exact for one layer over a
-    # floor; it replaced 30 power iterations, as many products with Hs, and the stacks of benchmarks/projection_qp.py
-    # then took the same or fewer MPRGP iterations)
+    # the bound of scaled_norm_bound (why a bound: docs/decisions.md, 'MPRGP step from a norm bound')
     norm = scaled_norm_bound(r, lo, hi, lane, stride, tmp)
     step = wp.float64(1.9) / wp.max(norm, wp.float64(1.0e-300))
     # start: x = D lam (projected)
@@ -581,8 +571,8 @@ def adjoint(r: Rows, active: wp.array(dtype=wp.int32), rtol: wp.float64,
     iters = masked_cg(r, lo, hi, lane, stride, active, rhs, d_lam, res, p, q, scratch, rtol, bb, max_iters, shift)
     # iterative refinement against the unshifted H_AA: it takes the shift's error off independent contacts (a
     # factor shift * cond(H_AA) a pass) and leaves dependent ones damped. Each pass solves to the first solve's
-    # accuracy, rtol of the first right-hand side: relative to its own, far smaller, right-hand side it took as many
-    # iterations again (about 100 a pass on benchmarks/projection_qp.py's stacks) for digits no gradient keeps
+    # accuracy, rtol of the first right-hand side, not of its own, far smaller, one (docs/decisions.md, 'Adjoint
+    # refinement tolerance')
     for _refine in range(REFINEMENTS):
         dual_product(r, lo, hi, lane, stride, active, d_lam, scratch, q)
         j = lo + lane
@@ -708,7 +698,7 @@ def device_round_kernels(scalar):
                       d_lam: wp.array(dtype=wp.float64),
                       grad_w: wp.array(dtype=wp.vec4d), grad_n: wp.array(dtype=wp.vec3d),
                       grad_const: wp.array(dtype=wp.vec3d), grad_target: wp.array(dtype=wp.float64)):
-        # warpcloth/collision/adjoint.py push_onto_contacts, with the kernels' d_lam (its negative there):
+        # warpcloth/collision/reference/adjoint.py push_onto_contacts, with the kernels' d_lam (its negative there):
         # dL/dw_ja = (-d_lam_j p_a + lam_j d_a) . n_j, dL/dn_j = sum_a w_ja (...), constant nodes -d_lam_j w_ja n_j,
         # and the target gap's dL/dh_j = d_lam_j
         j = wp.tid()

@@ -1,15 +1,11 @@
 """Proximity repulsion and friction inside the implicit step (ARCSim's, SPEC.md §1.4), differentiated.
 
 Detection (not differentiated) finds, at the start of a step, vertex-face and edge-edge pairs closer than twice the
-repulsion thickness delta: for each vertex the closest triangle (ARCSim keeps the closest per primitive); for each
-edge every edge whose closest points lie inside both, the pair's stiffness fading to 0 near either end (so pairs
-appear and vanish with zero force, and ties between equally close edges of flat sheets cannot move the force).
-Primitives of neighbouring elements pair only where the cloth folds onto itself (a vertex over the interior of a
-triangle, edges crossing at more than 30 degrees): a sharp crease repels as in ARCSim, which excludes only primitives
-sharing a node, while a flat or gently curved cloth has no such pairs.
-Each pair k has nodes (up to 4, in the
-combined node space: cloth particles, then obstacle vertices) and weights w with sum_i w_i x_i = the gap vector
-(VF: w = (1, -b0, -b1, -b2); EE: w = (1 - s, s, -(1 - u), -u)), unit normal n along it and distance
+repulsion thickness delta: for each vertex the closest triangle; for each edge every edge whose closest points lie
+inside both, the stiffness fading to 0 near either end. Primitives of neighbouring elements pair only where the
+cloth folds onto itself (a vertex over a triangle's interior, edges crossing at more than 30 degrees). Each pair k
+has nodes (up to 4: cloth particles, then obstacle vertices) and weights w with sum_i w_i x_i = the gap vector
+(VF: w = (1, -b0, -b1, -b2); EE: w = (1 - s, s, -(1 - u), -u)), unit normal n along it, distance
 d = n . sum_i w_i x_i.
 
 With c = d - delta, the pair's energy is E(c) = k max(-c, 0)^3 / (6 delta) (k = repulsion stiffness [N/m^3] times
@@ -20,19 +16,14 @@ f_n = k max(-c, 0)^2 / (2 delta) along w_i n, stiffness h = k max(-c, 0) / delta
 One linearised backward-Euler step (Baraff and Witkin) adds, for free nodes i, j of a pair,
     A_ij += w_i w_j K,  b_i += w_i R,   K = dt^2 h n n^T,   R = dt (f_n - h dt (n . u)) n
 (u = sum_i w_i V_i: V the start velocity of free nodes, the known end velocity of pinned and obstacle nodes), the
-exact Newton linearisation of the normal force in the step's velocity change. The solver keeps each free node's own
-block w_i^2 K on the block diagonal and applies the cross blocks matrix-free (they couple cloth nodes that may share
-no element). The pair's normal impulse over the step is then j_n = dt max(f_n - h dt (n . u_end), 0), u_end the
-pair's relative velocity at the solution (friction between cloth pieces is bounded by it).
+Newton linearisation of the normal force. The own blocks w_i^2 K go on the block diagonal, the cross blocks are
+applied matrix-free. The normal impulse is j_n = dt max(f_n - h dt (n . u_end), 0), u_end at the solution.
 
 Friction is Coulomb's law applied to the solved velocities as impulses (after Bridson, Fedkiw and Anderson 2002),
-bounded by mu times the normal impulse over the step. It sticks exactly where the bound allows: the relative
-tangential velocity goes to 0, so a sticking particle moves with its contact point, and so do its gradients (not
-the derivative of a stiff regulariser); where it slides it takes exactly mu times the normal impulse off the slip,
-which can slow it but never reverse it. No creep, no overshoot.
+bounded by mu times the normal impulse: it sticks exactly where the bound allows (the relative tangential velocity
+goes to 0) and otherwise takes mu times the normal impulse off the slip, never reversing it.
 - Against obstacles, per particle (one pass, exact): its pairs' loads add up, L = sum_k |w_k| dt f_n,k (the normal
-  forces at the step's start, as ARCSim: the step's own normal impulse, which depends on the solved velocities,
-  makes a draped cloth chatter between sticking and sliding), their normal forces give the tangent plane (n along
+  forces at the step's start, as ARCSim), their normal forces give the tangent plane (n along
   sum_k w_k f_n,k n_k), and the obstacle's velocity there is the load-weighted mean of its contact points'. The
   particle's slip s against it is removed if |s| <= mu L / m, else shortened by mu L / m.
 - Between cloth pieces, per pair (both sides move): FRICTION_SWEEPS projected Jacobi sweeps, each adding to the
@@ -92,8 +83,7 @@ def proximity_kernels(scalar):
                         # out:
                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
         # a target's box grown by the search radius: a query box, grown by rounding alone, meets it wherever the
-        # two primitives may be closer than the radius (growing both by the radius, as before, searched twice as far
-        # and cost the edge-edge queries of a draped cloth half their time)
+        # two primitives may be closer than the radius (growing both would search twice as far)
         i = wp.tid()
         lo = wp.vec3(x[indices[i, 0]])
         hi = lo
@@ -121,7 +111,7 @@ def proximity_kernels(scalar):
         node_world: wp.array(dtype=wp.int32)  # the world of every node; BVHs grouped by world where grouped != 0
         grouped: int
         # each pair's sort key (world, query row, target primitive) and its slot, by which the pairs are sorted
-        # (warpcloth/collision/proximity.py detect): query rows numbered across the queries (row_count in all),
+        # (warpcloth/solver/proximity.py detect): query rows numbered across the queries (row_count in all),
         # targets below target_count
         keys: wp.array(dtype=wp.int64)
         slot_of: wp.array(dtype=wp.int32)

@@ -335,14 +335,14 @@ def test_what_a_replay_that_left_its_plan_latched_is_forgotten(sync_every):
 def test_a_replayed_contact_adjoint_warns_where_its_solve_falls_short(monkeypatch):
     # the projection's adjoint CG cannot read its residual back inside a graph: the replayed backward pass keeps
     # the largest on the device and warns after it (here every residual above 1e-300 is "too large")
-    from warpcloth.collision import backends
+    from warpcloth.collision import projection
 
     model, sim = landing_scene("cpu", repulsion=False)
     state = model.state(requires_grad=True)
     captured = wc.CapturedRollout(sim, state, steps=14, loss=loss_of)
     assert captured.rerun_steps == [] and any(captured.contact_plans)
     captured.run()  # within the bound: no warning
-    monkeypatch.setattr(backends, "ADJOINT_WARN", 1e-300)
+    monkeypatch.setattr(projection, "ADJOINT_WARN", 1e-300)
     with pytest.warns(RuntimeWarning, match="adjoint CG of a replayed step stopped at relative residual"):
         captured.run()
 

@@ -162,8 +162,8 @@ HEAVY = wc.Material.isotropic(density=0.8, stretch_stiffness=200.0, shear_stiffn
 
 def test_density_gradients_of_two_fabrics_in_contact_match_finite_differences(device):
     # The projection weighs each particle's move by its mass: which fabric gives way depends on both densities.
-    # The tape's dL/d(density) includes that dependence (collision/adjoint.py mass_gradient); without it this test
-    # fails: the implicit step's share alone is 0.3 % off for the lower sheet.
+    # The tape's dL/d(density) includes that dependence (collision/reference/adjoint.py mass_gradient); without it
+    # this test fails: the implicit step's share alone is 0.3 % off for the lower sheet.
     model = layers_scene(top=HEAVY).finalize(device, requires_grad=True, dtype=wp.float64)
     assert model.material_density.shape[0] == 2
     sim, run = loss_fn(model, 1, 0.005)

@@ -1,4 +1,4 @@
-"""Proximity repulsion and friction inside the implicit step (warpcloth/collision/proximity.py): closed-form
+"""Proximity repulsion and friction inside the implicit step (warpcloth/solver/proximity.py): closed-form
 physics on small scenes, the linear system against a dense solve, and gradients against central differences."""
 
 import math

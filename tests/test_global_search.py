@@ -14,12 +14,13 @@ import warp as wp
 
 import warpcloth as wc
 from warpcloth.cli import main
-from warpcloth.scene import SearchSpec, load_scene
+from warpcloth.scene import load_scene
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
 from warpcloth.tasks.controllers import optimize_open_loop, train_mlp
 from warpcloth.tasks.optim import cmaes, smoothed_gradient
+from warpcloth.tasks.specs import SearchSpec
 
 
 def evaluator(loss, grad):

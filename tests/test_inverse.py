@@ -11,11 +11,12 @@ from conftest import DEVICES
 
 import warpcloth as wc
 from warpcloth.solver.checkpoint import checkpointed_backward
+from warpcloth.solver.gradients import WHOLE_TAPE_PARTICLE_STEPS
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
-from warpcloth.tasks.control import WHOLE_TAPE_PARTICLE_STEPS, scene_task_args
+from warpcloth.tasks.control import scene_task_args
 from warpcloth.tasks.optim import lbfgs
 
 EXACT = wc.SolverOptions(cg_tol=1e-12, warm_start=False)

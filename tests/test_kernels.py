@@ -215,7 +215,9 @@ def test_wind_and_handle_kernels_gradcheck():
         eps=1e-7, atol=1e-6, rtol=1e-5, raise_exception=False, show_summary=False)
 
 
-FACTORIES = {"implicit": "implicit_kernels", "linear": "linear_kernels", "collision": "collision_kernels",
+FACTORIES = {"implicit": "implicit_kernels", "block_matrix": "block_matrix_kernels",
+             "cg_sequential": "sequential_cg_kernels", "cg_tiled": "tiled_cg_kernels", "cg_warp": "warp_cg_kernels",
+             "multigrid": "multigrid_kernels", "collision": "collision_kernels",
              "contact": "contact_kernels", "failsafe": "failsafe_kernels", "losses": "loss_kernels",
              "obstacle": "obstacle_kernels", "projection": "device_round_kernels", "proximity": "proximity_kernels"}
 

@@ -1,4 +1,4 @@
-"""The collision QP over impact zones (warpcloth/collision/projection.py): KKT conditions, an independent oracle,
+"""The collision QP over impact zones (warpcloth/collision/reference/): KKT conditions, an independent oracle,
 the QR and dense KKT adjoints against each other and against central finite differences, and the errors."""
 
 import functools
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from warpcloth.collision.dual import ZoneSolver
-from warpcloth.collision.projection import ProjectionError, backward, mass_gradient, project
+from warpcloth.collision.reference import ProjectionError, backward, mass_gradient, project
+from warpcloth.collision.reference.dual import ZoneSolver
 
 DELTA = 5.0e-4
 
@@ -506,7 +506,7 @@ def test_no_contacts():
 @pytest.mark.parametrize("one_block", [0, 64])
 def test_qr_equals_kkt_independent(one_block, monkeypatch):
     # one_block 0: every zone split into groups of active contacts sharing no particle (the path of big zones)
-    monkeypatch.setattr("warpcloth.collision.adjoint.ONE_BLOCK", one_block)
+    monkeypatch.setattr("warpcloth.collision.reference.adjoint.ONE_BLOCK", one_block)
     blocks = 0
     for prob in clean_problems(5):
         res = solve(prob, precompute_qr=True)
@@ -643,7 +643,7 @@ def test_lazy_qr():
 
 
 def test_gram_cholesky_is_qr_r_without_q_and_drops_dependent_columns():
-    from warpcloth.collision.linalg import gram_cholesky
+    from warpcloth.collision.reference.linalg import gram_cholesky
 
     rng = np.random.default_rng(11)
     A = rng.normal(size=(12, 5))
@@ -665,7 +665,7 @@ def _device_solve(prob, device, node_world=None, world_count=1, **kw):
     vertices); returns the solver and its kept solution."""
     import warp as wp
 
-    from warpcloth.collision.device_projection import DeviceProjection
+    from warpcloth.collision.projection import DeviceProjection
 
     n, V = prob["x_hat"].shape[0], prob["obstacle_x"].shape[0]
     inv_mass = np.zeros(n + V)
@@ -789,7 +789,7 @@ def test_device_solver_solves_each_world_as_that_world_alone_bit_for_bit(device)
 
 @pytest.mark.parametrize("block_dim", [0, 48, 2048])
 def test_device_projection_refuses_a_block_that_is_not_a_power_of_two_up_to_1024(block_dim):
-    from warpcloth.collision.device_projection import DeviceProjection
+    from warpcloth.collision.projection import DeviceProjection
 
     with pytest.raises(ValueError, match=f"block_dim must be a power of two up to 1024, got {block_dim}"):
         DeviceProjection("cpu", 4, 4, block_dim=block_dim)

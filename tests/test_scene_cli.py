@@ -1,3 +1,4 @@
+import re
 import textwrap
 
 import numpy as np
@@ -283,3 +284,92 @@ def test_cli_bad_scene_file(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "wind.velocity: expected an array of 3 numbers" in err and err.count("\n") == 1
     assert not (tmp_path / "x.usda").exists()
+
+
+# -- estimate and control: pointers, the seed's column, progress over jobs ---------------------------------------------
+
+SMALL_TASKS = MINIMAL.replace('name = "test"', 'name = "my-cloth"') + """\
+[[pins]]
+grid_row = -1
+[control]
+grid_vertices = [[0, 0]]
+interval = 0.01
+intervals = 2
+loss = { com = [0.0, 0.0, -0.1] }
+iters = 3
+[estimate]
+iters = 1
+"""
+
+
+def test_estimate_points_at_a_page_and_shows_the_seed_only_for_its_task(tmp_path, capsys):
+    from pathlib import Path
+
+    from warpcloth.tasks.jobs import ControlJob, EstimateJob
+
+    own = tmp_path / "my-cloth.toml"
+    own.write_text(SMALL_TASKS)
+    assert main(["estimate", str(own), "--device", "cpu"]) == 0
+    out = capsys.readouterr().out
+    assert "seed (published" not in out
+    page = re.search(r"see (docs/\S+\.md), '([^']+)'", out)
+    assert page, out
+    text = (Path(__file__).resolve().parents[1] / page[1]).read_text(encoding="utf-8")
+    assert f"## {page[2]}\n" in text  # the section the pointer names is on the page
+    assert main(["estimate", "--steps", "2", "--iters", "1", "--device", "cpu"]) == 0  # the seed's hanging cloth
+    assert "seed (published" in capsys.readouterr().out
+    assert EstimateJob().seed_published() is not None and EstimateJob(scene="material-estimation").seed_published()
+    assert EstimateJob(scene=str(own)).seed_published() is None and EstimateJob(target="x").seed_published() is None
+    assert ControlJob().seed_published("mlp") is not None and ControlJob(scene="basket-throw").seed_published("mlp")
+    assert ControlJob(scene=str(own)).seed_published("open-loop") is None
+    assert ControlJob(scene="tall-wall-throw").seed_published("open-loop") is None
+
+
+def test_control_starts_show_progress_by_simulations(tmp_path, capsys):
+    own = tmp_path / "my-cloth.toml"
+    own.write_text(SMALL_TASKS)
+    assert main(["control", str(own), "--starts", "2", "--device", "cpu"]) == 0
+    err = capsys.readouterr().err
+    assert "6/6 [" in err and "jobs=2/2" in err  # 2 jobs of 3 simulations each
+
+
+class _CountingJob:
+    """A job of ``n`` simulations that records, after each, where the bar over all jobs stands."""
+
+    def __init__(self, n, seen):
+        self.n, self.seen = n, seen
+
+    def simulations(self):
+        return self.n
+
+    def run(self, progress=False):
+        from tqdm import tqdm
+
+        from warpcloth.progress import progress_bar
+
+        with progress_bar(self.n, "inner", "sim") as bar:
+            for _ in range(self.n):
+                bar.update()
+                self.seen.append([b.n for b in tqdm._instances if not b.disable])
+        return {}
+
+    def label(self):
+        return "counting"
+
+
+class _SilentJob:
+    def run(self):
+        return {}
+
+    def label(self):
+        return "silent"
+
+
+def test_jobs_bar_advances_with_each_simulation():
+    from warpcloth.tasks.jobs import run_jobs
+
+    seen = []
+    results = run_jobs([_CountingJob(3, seen), _SilentJob(), _CountingJob(2, seen)], progress=True)
+    assert all(r.ok for r in results)
+    # one bar (total 3 + 1 + 2), advanced as each simulation ran; the job that cannot count, by one at its end
+    assert seen == [[1], [2], [3], [5], [6]]

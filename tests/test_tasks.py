@@ -6,6 +6,7 @@ central differences for every parameter a user can optimise (the pushes).
 """
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 from warpcloth.tasks import throw as C
 from warpcloth.tasks.control import ControlTask
-from warpcloth.tasks.controllers import optimize_open_loop
+from warpcloth.tasks.controllers import ControlResult, optimize_open_loop
 
 # A small hanging sheet: 4x4 cells, two soft handles, no contact; pushes on two lower corners.
 SMALL = """
@@ -211,6 +212,8 @@ def test_estimate_frees_only_what_the_scene_says(tmp_path):
     assert np.array_equal(result.material.stretching, start.stretching)
     assert np.array_equal(result.material.bending, start.bending)
     assert result.material.density != start.density and min(result.losses) < result.losses[0]
+    whole = [loss for loss, steps in zip(result.losses, result.horizons) if steps == max(result.horizons)]
+    assert result.evaluations == 4 and result.first_loss == result.losses[0] and result.best_loss == min(whole)
 
 
 def test_estimate_fits_recorded_frames(tmp_path):
@@ -378,3 +381,18 @@ def test_estimation_targets_are_simulated_with_the_scenes_solver(tmp_path):
     euler = E.TrajectoryFit.simulate_targets(task.fit.model, task.truth, steps=12, dt=0.02)  # another integrator
     mismatch = sum(float(np.sum((a - b) ** 2)) for a, b in zip(euler, [t.numpy() for t in task.fit.targets]))
     assert task.fit.loss(task.truth) < 1e-6 * mismatch
+
+
+# -- what a fit's result says ----------------------------------------------------------------------------------------
+def test_a_fits_result_names_its_first_and_best_loss():
+    r = ControlResult(params=np.zeros((1, 1, 3)), losses=[4e-4, math.inf, 2e-4, 3e-5, 3e-5, 5e-5])
+    assert (r.first_loss, r.best_loss, r.best_evaluation, r.evaluations) == (4e-4, 3e-5, 4, 6)
+    assert r.summary() == "best loss 3.00e-05 at evaluation 4 of 6 (first 4.00e-04)"
+    # a curriculum's shorter horizons take fewer frames: only the longest horizon's losses compare
+    m = wc.preset("gray-interlock", thicken=2)
+    e = E.EstimationResult(material=m, initial=m, losses=[1e-5, 2e-4, 1e-4, 3e-4], horizons=[20, 50, 50, 50])
+    assert (e.first_loss, e.best_loss, e.best_evaluation, e.evaluations) == (1e-5, 1e-4, 3, 4)
+    assert e.summary() == "best loss 1.00e-04 at evaluation 3 of 4 (first 1.00e-05, over 20 of 50 steps)"
+    empty = ControlResult(params=np.zeros((1, 1, 3)))
+    assert (empty.evaluations, empty.best_evaluation, empty.summary()) == (0, 0, "no evaluations")
+    assert math.isnan(empty.first_loss) and math.isnan(empty.best_loss)

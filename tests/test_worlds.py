@@ -559,11 +559,11 @@ def test_a_checkpointed_tasks_replayed_evaluations_equal_its_first_uncaptured_on
 
 def test_a_checkpointed_task_past_the_captured_segments_budget_runs_uncaptured(monkeypatch):
     """The replay in segments keeps every State: a task of more particle-steps than
-    control.CAPTURED_SEGMENTS_PARTICLE_STEPS stays with wc.checkpointed_backward at every evaluation."""
-    from warpcloth.tasks import control
+    gradients.CAPTURED_SEGMENTS_PARTICLE_STEPS stays with wc.checkpointed_backward at every evaluation."""
+    from warpcloth.solver import gradients
 
     task = draped_task(steps=20, segment_steps=6)
-    monkeypatch.setattr(control, "CAPTURED_SEGMENTS_PARTICLE_STEPS", task.model.particle_count * 20 - 1)
+    monkeypatch.setattr(gradients, "CAPTURED_SEGMENTS_PARTICLE_STEPS", task.model.particle_count * 20 - 1)
     calls = []
     uncaptured = wc.checkpointed_backward
     monkeypatch.setattr(wc, "checkpointed_backward", lambda *a, **k: calls.append(1) or uncaptured(*a, **k))

@@ -1,12 +1,6 @@
-"""``warpcloth.kernels`` when warpcloth is imported from a source tree (imported first by ``warpcloth/__init__.py``).
-
-An installed wheel has ``warpcloth/kernels/`` inside the package: pyproject.toml maps the checkout's top-level
-``kernels/`` there. In a checkout the two directories are siblings, so where ``./warpcloth`` comes first on
-``sys.path`` (the checkout's root is the current directory, or holds the script being run) it shadows any installed
-copy and nothing would find the kernels. Importing this module registers the sibling ``kernels/`` as the
-``warpcloth.kernels`` subpackage: the directory an editable install maps it to. In an installed package it does
-nothing.
-"""
+"""Registers a source checkout's top-level ``kernels/`` as ``warpcloth.kernels``, where the checkout's ``warpcloth/``
+comes first on ``sys.path`` and would find no kernels (a wheel has them inside, per pyproject.toml); does nothing
+in an installed package. Imported first by ``warpcloth/__init__.py``."""
 
 import importlib.util
 import sys

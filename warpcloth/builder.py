@@ -21,16 +21,13 @@ from warpcloth.obstacles import Obstacle, RigidMotion
 DEFAULT_HANDLE_STIFFNESS = 1.0e3
 """ARCSim's ``magic.handle_stiffness`` [N/m]."""
 
+# Collision defaults: the seed's BVH thickness [m]; ARCSim's repulsion thickness [m], collision_stiffness [N/m^3]
+# and cloth-cloth and cloth-obstacle friction coefficients (SPEC §1.4).
 DEFAULT_COLLISION_THICKNESS = 5.0e-4
-"""Collision thickness delta [m] of the seed's collision handling (SPEC: BVH thickness 5e-4)."""
 DEFAULT_REPULSION_THICKNESS = 5.0e-3
-"""ARCSim's repulsion thickness [m] (SPEC §1.4): proximity pairs within twice it repel."""
 DEFAULT_REPULSION_STIFFNESS = 1.0e6
-"""ARCSim's collision_stiffness [N/m^3]: a pair's penalty stiffness per m^2 of rest area (SPEC §1.4)."""
 DEFAULT_FRICTION = 0.6
-"""ARCSim's cloth-cloth friction coefficient mu (SPEC §1.4)."""
 DEFAULT_OBSTACLE_FRICTION = 0.3
-"""ARCSim's cloth-obstacle friction coefficient mu (SPEC §1.4)."""
 
 
 def _finite_vector(name: str, value, length: int = 3) -> np.ndarray:
@@ -77,9 +74,6 @@ def _local_frame_uv(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _World:
-    """What a world of a model has of its own beyond its particles and obstacles: the builder settings it was added
-    with (``ModelBuilder.add_world``)."""
-
     first_particle: int
     first_obstacle: int
     gravity: np.ndarray
@@ -94,15 +88,13 @@ class ModelBuilder:
     Example:
         >>> b = ModelBuilder()
         >>> b.add_cloth_grid((16, 16), (1.0, 1.0), material=preset("gray-interlock"))
-        >>> model = b.finalize(device="cpu", requires_grad=True)
-    """
+        >>> model = b.finalize(device="cpu", requires_grad=True)"""
 
     max_particles: int = 4_000_000
-    """Most particles a model may have; more is refused before anything is allocated (a 5000x5000 grid grew past
-    14 GB for minutes before). An instance may raise it."""
+    """Most particles a model may have; more raises ValueError before anything is allocated. An instance may raise
+    it. Why: docs/decisions.md, 'A particle limit before allocation'."""
     BYTES_PER_PARTICLE = 6000
-    """Peak memory of building and stepping a model, per particle (measured: 256x256 grid, float32, CPU, gradients
-    on, one taped step: 6.1 kB; the error message's estimate)."""
+    """Peak memory [bytes] per particle of building and stepping a model with gradients: the error's estimate."""
 
     def __init__(self, *, gravity: Sequence[float] = (0.0, 0.0, -9.8)):
         self.gravity = _finite_vector("gravity", gravity)
@@ -142,26 +134,13 @@ class ModelBuilder:
 
     # -- worlds ------------------------------------------------------------------------------------------------------
     def add_world(self, builder: ModelBuilder, *, own_materials: bool = False) -> int:
-        """Add a copy of everything ``builder`` holds (cloths, materials, handles, pins, obstacles and their motions,
-        gravity and wind) as a new world of this builder's model, and return the world's index.
-
-        Worlds never interact: contact detection, proximity forces and the collision response pair nothing across
-        worlds, even where they overlap in space; each world's linear solve converges on its own (with the
-        sequential CG backend, the CPU's; Warp's CG, CUDA's default, stops on the whole batch's residual). Gravity,
-        wind,
-        materials and controls may differ between worlds (build each world's builder with its own); the scene-wide
-        settings (damping, collision settings, the wind's lagged normals) must be the same in every world. A
-        builder holds either its own scene or worlds added here, not both; its own ``gravity`` is not used once it
-        holds worlds. Obstacles are renamed ``<name>_<world>`` (names stay unique). ``builder`` may itself hold
-        worlds: each becomes a world here. A material object is registered once, so worlds added from builders that
-        share one share it; ``own_materials`` registers copies of ``builder``'s materials instead, so that this
-        world's can be set on their own (a material fitted per world: ``estimation.TrajectoryFit``).
+        """Add a copy of ``builder`` as a new, non-interacting world; returns its index. Damping, collision settings
+        and lagged normals must match other worlds'. Obstacles become ``<name>_<world>``; materials are shared unless
+        ``own_materials``.
 
         Raises:
-            ValueError: this builder has a scene of its own (a cloth, obstacles, wind, damping or collision
-                settings), ``builder`` has no cloth, or a scene-wide setting of
-                ``builder`` differs from the worlds added before (naming the setting).
-        """
+            ValueError: this builder has a scene of its own, ``builder`` has no cloth, or a scene-wide setting
+                differs from the worlds added before (naming it)."""
         if not isinstance(builder, ModelBuilder):
             raise TypeError(f"add_world: expected a ModelBuilder, got {type(builder).__name__}")
         if builder is self:
@@ -207,8 +186,7 @@ class ModelBuilder:
         return len(self._worlds) - 1
 
     def replicate(self, builder: ModelBuilder, count: int, *, own_materials: bool = False) -> range:
-        """Add ``count`` copies of ``builder`` as worlds (``add_world``, after Newton's ``replicate``; with
-        ``own_materials``, each world its own copies of the materials); returns their world indices."""
+        """Add ``count`` copies of ``builder`` as worlds (:meth:`add_world`); returns their world indices."""
         if not _is_integer(count) or count < 1:
             raise ValueError(f"replicate: count must be a positive integer, got {count!r}")
         self._check_size(builder.particle_count * int(count), f"{count} worlds")
@@ -223,14 +201,12 @@ class ModelBuilder:
         return len(self._worlds) or 1
 
     def _own_world(self) -> _World:
-        """This builder's own scene as a world."""
         shared = (self.damping_mass, self.damping_stiffness, self.self_collision, self.collision_thickness,
                   self.repulsion, self.wind_lagged_normals)
         wind = None if self.wind is None else (self.wind[0].copy(), self.wind[1], self.wind[2])
         return _World(0, 0, self.gravity.copy(), wind, shared)
 
     def _check_own(self, what: str) -> None:
-        """Refuse to add to a builder that holds worlds: what is added belongs in a world's own builder."""
         if self._worlds:
             raise ValueError(f"{what}: this builder holds worlds added with add_world/replicate; add it to the "
                              "world's own builder before adding the world")
@@ -256,17 +232,14 @@ class ModelBuilder:
         vel: Sequence[float] | None = None,
         rest_angle: str = "flat",
     ) -> int:
-        """Add a cloth from a triangle mesh (positions used as given) and return the index of its first particle.
+        """Add a cloth of ``material`` from a triangle mesh; returns the index of its first particle.
 
-        Args:
-            mesh: positions [m], triangles, and optional per-corner material coordinates ``tri_uv`` [m]. Without
-                ``tri_uv`` each triangle's rest shape is its initial shape, in an arbitrary in-plane frame (so
-                anisotropic materials have no consistent warp/weft direction: prefer isotropic ones).
-            material: the cloth's material.
-            vel: initial velocity of every particle [m/s]; default: the mesh's own ``velocities`` (ARCSim ``nv``
-                lines) if it has them, else zero.
-            rest_angle: ``"flat"`` (ARCSim's default: rest dihedral angle 0) or ``"initial"`` (the initial shape's).
-        """
+        Without ``mesh.tri_uv`` [m] each triangle rests in its initial shape. ``vel`` [m/s]: default the mesh's, else
+        zero. ``rest_angle``: ``"flat"`` (ARCSim's) or ``"initial"`` (the initial shape's dihedral angles).
+
+        Raises:
+            ValueError: an invalid mesh or ``rest_angle``, a vertex in no triangle, a non-finite velocity, or more
+                than ``max_particles``."""
         self._check_own("add_cloth_mesh")
         if rest_angle not in ("flat", "initial"):
             raise ValueError(f"rest_angle must be 'flat' or 'initial', got {rest_angle!r}")
@@ -316,11 +289,8 @@ class ModelBuilder:
         rot: np.ndarray | None = None,
         vel: Sequence[float] = (0.0, 0.0, 0.0),
     ) -> int:
-        """Add a flat rectangular cloth of ``res`` = (cells_x, cells_y) cells and ``size`` = (width, height) [m].
-
-        The grid lies in its local XY plane with its corner at the origin (material coordinates = local XY),
-        vertices row-major with x fastest; it is rotated by ``rot`` (3x3) and then translated by ``pos``.
-        """
+        """Add a flat cloth of ``res`` = (cells_x, cells_y) cells and ``size`` = (width, height) [m]: the
+        :func:`~warpcloth.grid_mesh` rotated by ``rot`` (3x3), then translated by ``pos`` [m]."""
         res = tuple(res)
         if len(res) != 2 or not all(_is_integer(r) and r >= 1 for r in res):
             raise ValueError(f"res must be two positive cell counts, got {res}")
@@ -346,8 +316,7 @@ class ModelBuilder:
         pos: Sequence[float] = (0.0, 0.0, 0.0),
         vel: Sequence[float] | None = None,
     ) -> int:
-        """Add a cloth from an OBJ file (``vt`` = material coordinates), transformed like ARCSim's ``transform``:
-        scale (positions and material coordinates), then rotate, then translate."""
+        """Add a cloth from an OBJ file (``vt``: material coordinates): scaled, rotated, then translated."""
         mesh = mesh_io.load_obj(path, scale=scale)
         if rot is not None:
             mesh.positions = mesh.positions @ np.asarray(rot, dtype=np.float64).T
@@ -363,7 +332,6 @@ class ModelBuilder:
 
     # -- handles -----------------------------------------------------------------------------------------------------
     def _check_size(self, added: int, what: str) -> None:
-        """Refuse, before allocating, a model past ``max_particles``: its memory would grow for minutes first."""
         total = self._particle_count + added
         if total > self.max_particles:
             raise ValueError(
@@ -380,11 +348,8 @@ class ModelBuilder:
         return p
 
     def add_handle(self, particle: int, *, stiffness: float = DEFAULT_HANDLE_STIFFNESS, motion=None) -> int:
-        """Hold ``particle`` near a target with a soft penalty spring ``1/2 k |x - target|^2`` (ARCSim handles).
-
-        The target starts at the particle's initial position; ``Control.handle_target`` can move it, and
-        ``motion`` (a list of ``(time [s], (dx, dy, dz) [m])`` keyframes, piecewise linear) adds a scripted offset.
-        """
+        """Hold ``particle`` by a spring ``1/2 k |x - target|^2`` (``k`` [N/m]) to its initial position plus
+        ``Control.handle_target``'s change and ``motion`` (``(time [s], (dx, dy, dz) [m])`` keys); returns its index."""
         self._check_own("add_handle")
         p = self._check_particle("add_handle", particle)
         if any(q == p for q, _, _ in self._handles):
@@ -396,7 +361,7 @@ class ModelBuilder:
         return len(self._handles) - 1
 
     def add_pin(self, particle: int, *, motion=None) -> int:
-        """Fix ``particle`` exactly to a target (hard constraint: its velocity is prescribed each step)."""
+        """Fix ``particle`` exactly to a target (its velocity is prescribed); ``motion`` as in :meth:`add_handle`."""
         self._check_own("add_pin")
         p = self._check_particle("add_pin", particle)
         if any(q == p for q, _ in self._pins):
@@ -415,28 +380,17 @@ class ModelBuilder:
         rot=None,
         motion=None,
     ) -> int:
-        """Add a rigid obstacle and return its index. Any obstacle turns on cloth-obstacle collisions.
+        """Add a rigid obstacle of body-frame ``vertices`` [m] (V, 3) and ``triangles`` (T, 3), counter-clockwise seen
+        from the cloth, not necessarily closed; returns its index. It turns on cloth-obstacle collisions.
 
-        The mesh need not be closed or manifold; its triangles should be counter-clockwise seen from the side the
-        cloth is on. World position of a body-frame vertex ``u`` at time t (see ``warpcloth.obstacles``):
-        ``x = M(t) (R u + pos)``: first the base placement (rotate by ``rot``, then translate by ``pos``; this is
-        ``Control.obstacle_transform``, differentiable), then the scripted motion ``M(t)``, a rigid transform in
-        world coordinates (its rotation turns about the world origin).
-
-        Args:
-            vertices: body-frame positions [m], shape (V, 3).
-            triangles: vertex indices, shape (T, 3).
-            name: a valid USD identifier, unique among the obstacles; default ``"obstacle<k>"`` (the first free k
-                from the obstacle's index on).
-            pos: base position [m].
-            rot: base rotation: a 3x3 rotation matrix or a unit quaternion (x, y, z, w); default none.
-            motion: a ``RigidMotion``, or keyframes ``[(time [s], (tx, ty, tz) [m], (qx, qy, qz, qw)), ...]``:
-                piecewise-linear translation and slerp rotation, held outside the keys. None: static.
+        A vertex ``u`` is at ``M(t) (R u + pos)``: the base placement (``rot``, a 3x3 matrix or unit quaternion
+        (x, y, z, w), ``pos`` [m]; differentiable as ``Control.obstacle_transform``), then ``motion`` ``M(t)``, a
+        ``RigidMotion`` or keyframes ``[(time [s], (tx, ty, tz) [m], (qx, qy, qz, qw)), ...]``. ``name``: a USD
+        identifier unique among the obstacles, default ``"obstacle<k>"``.
 
         Raises:
-            ValueError: naming the obstacle for a repeated or invalid name, a bad placement or motion, a
-                non-finite vertex, an index out of range or a degenerate triangle (naming the triangle).
-        """
+            ValueError: naming the obstacle: a repeated or invalid name, bad placement or motion, a non-finite
+                vertex, an index out of range or a degenerate triangle."""
         self._check_own("add_obstacle_mesh")
         index = len(self._obstacles)
         taken = {o.name for o in self._obstacles}
@@ -459,8 +413,7 @@ class ModelBuilder:
 
     def add_obstacle_obj(self, path, *, scale: float = 1.0, name: str | None = None,
                          pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
-        """Add an obstacle from an OBJ file (polygons fan-triangulated, ``vt`` ignored), scaled by ``scale``;
-        the file's coordinates are the body frame. Other options as in :meth:`add_obstacle_mesh`."""
+        """Add an obstacle from an OBJ file scaled by ``scale`` (the body frame); see :meth:`add_obstacle_mesh`."""
         mesh = mesh_io.load_obj(path, scale=scale, validate=False)
         try:
             return self.add_obstacle_mesh(mesh.positions, mesh.triangles, name=name, pos=pos, rot=rot, motion=motion)
@@ -469,11 +422,7 @@ class ModelBuilder:
 
     def add_obstacle_usd(self, path, *, prim_path: str | None = None, scale: float = 1.0, name: str | None = None,
                          pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
-        """Add an obstacle from a USD mesh prim (the first mesh when ``prim_path`` is None), at its default time.
-
-        The prim's local-to-world transform is applied to its points, and the result scaled by ``scale``; that is the
-        body frame. Other options as in :meth:`add_obstacle_mesh`.
-        """
+        """Add an obstacle from a USD mesh prim scaled by ``scale`` (the body frame); see :meth:`add_obstacle_mesh`."""
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
             raise ValueError(f"add_obstacle_usd: scale must be a finite number > 0, got {scale!r}")
         mesh = mesh_io.load_usd_mesh(path, prim_path=prim_path, validate=False)
@@ -486,27 +435,25 @@ class ModelBuilder:
     def add_obstacle_plane(self, size: Sequence[float] = (1.0, 1.0), res: Sequence[int] = (1, 1), *,
                            name: str | None = None, pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None,
                            motion=None) -> int:
-        """Add a rectangle (``warpcloth.geometry.primitives.plane_mesh``: centred, body XY plane, facing +z)."""
+        """Add a rectangle (:func:`~warpcloth.plane_mesh`: centred, body XY plane, facing +z)."""
         vertices, triangles = plane_mesh(size, res)
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
     def add_obstacle_box(self, half_extents: Sequence[float], *, name: str | None = None,
                          pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
-        """Add a box of half sizes ``half_extents`` [m] centred on its body origin (``geometry.primitives.box_mesh``).
-        """
+        """Add a box of half sizes ``half_extents`` [m] centred on its body origin (:func:`~warpcloth.box_mesh`)."""
         vertices, triangles = box_mesh(half_extents)
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
     def add_obstacle_sphere(self, radius: float, subdivisions: int = 3, *, name: str | None = None,
                             pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None, motion=None) -> int:
-        """Add an icosphere of ``radius`` [m] centred on its body origin (``geometry.primitives.sphere_mesh``)."""
+        """Add an icosphere of ``radius`` [m] centred on its body origin (:func:`~warpcloth.sphere_mesh`)."""
         vertices, triangles = sphere_mesh(radius, subdivisions)
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
     def add_obstacle_funnel(self, *, name: str | None = None, pos: Sequence[float] = (0.0, 0.0, 0.0), rot=None,
                             motion=None) -> int:
-        """Add the seed's funnel (``geometry.primitives.funnel_mesh``; the seed's demo uses
-        ``pos=(-0.5, -1, -0.55)``)."""
+        """Add the seed's funnel (:func:`~warpcloth.funnel_mesh`; the seed places it at ``(-0.5, -1, -0.55)``)."""
         vertices, triangles = funnel_mesh()
         return self.add_obstacle_mesh(vertices, triangles, name=name, pos=pos, rot=rot, motion=motion)
 
@@ -514,20 +461,9 @@ class ModelBuilder:
                       repulsion_thickness: float = DEFAULT_REPULSION_THICKNESS,
                       repulsion_stiffness: float = DEFAULT_REPULSION_STIFFNESS, friction: float = DEFAULT_FRICTION,
                       obstacle_friction: float = DEFAULT_OBSTACLE_FRICTION) -> None:
-        """Collision settings (ARCSim's defaults, SPEC §1.4).
-
-        Cloth-obstacle collisions are on whenever an obstacle is added; without obstacles and self-collision the
-        model has no collisions (``model.collision is None``).
-
-        Args:
-            self_collision: cloth-cloth collisions.
-            thickness: the impact-zone projection's collision thickness delta [m], > 0.
-            repulsion_thickness: proximity repulsion thickness [m], > 0: pairs closer than twice it are found at
-                the start of a step; the penalty acts inside it.
-            repulsion_stiffness: penalty stiffness per m^2 of rest area [N/m^3], >= 0 (0: no repulsion).
-            friction: cloth-cloth Coulomb friction coefficient, >= 0 (0: none).
-            obstacle_friction: cloth-obstacle Coulomb friction coefficient, >= 0 (0: none).
-        """
+        """Collision settings, defaults ARCSim's; see :class:`~warpcloth.CollisionSettings`. ``repulsion_stiffness``
+        [N/m^3] >= 0 acts per m^2 of rest area; ``friction``, ``obstacle_friction`` >= 0: Coulomb coefficients,
+        cloth-cloth and cloth-obstacle; 0 turns a force off. ValueError for a setting out of range."""
         self._check_own("set_collision")
         if not isinstance(self_collision, (bool, np.bool_)):
             raise ValueError(f"self_collision must be a boolean, got {self_collision!r}")
@@ -547,13 +483,9 @@ class ModelBuilder:
     # -- scene forces --------------------------------------------------------------------------------------------
     def set_wind(self, velocity: Sequence[float], *, density: float = 1.0, drag: float = 0.0,
                  lagged_normals: bool = False) -> None:
-        """Constant wind (ARCSim ``wind_force``): normal pressure ``density*A*|vn|*vn`` and tangential ``drag*A*vt``.
-
-        ARCSim's defaults are density 1 (not air's 1.2) and drag 0. With ``lagged_normals`` the face normals come
-        from the previous step's start positions, as ARCSim computes them (SPEC §2: ``compute_ws_data`` runs before
-        ``step_mesh``, and again after a collision response that moved the cloth: the step after one sees current
-        normals); use it to reproduce the seed's trajectories, not for new work.
-        """
+        """Constant wind ``velocity`` [m/s] (ARCSim ``wind_force``): pressure ``density*A*|vn|*vn`` (``density``
+        [kg/m^3]), drag ``drag*A*vt`` (``drag`` [kg/(m^2 s)]). ``lagged_normals``: face normals from the last step's
+        start positions (the current ones after a collision response), as ARCSim does."""
         self._check_own("set_wind")
         v = _finite_vector("wind velocity", velocity)
         for name, val in (("wind density", density), ("wind drag", drag)):
@@ -573,14 +505,9 @@ class ModelBuilder:
 
     # -- finalize ---------------------------------------------------------------------------------------------------
     def finalize(self, device=None, *, requires_grad: bool = False, dtype=wp.float32) -> Model:
-        """Build the device Model.
-
-        Args:
-            device: Warp device (``"cpu"``, ``"cuda:0"``, ...); default: Warp's default device.
-            requires_grad: allocate gradients for the differentiable arrays (materials, gravity, wind, states,
-                obstacle body-frame vertices).
-            dtype: ``wp.float32`` (default) or ``wp.float64``.
-        """
+        """Build the Model on Warp ``device`` (default: Warp's) with floats of ``dtype`` (``wp.float32`` or
+        ``wp.float64``); ``requires_grad`` gives gradients to materials, gravity, wind, states, handle stiffness,
+        contact parameters and obstacle vertices. ValueError: no cloth, another dtype, or a pinned handle."""
         if not self._triangles:
             raise ValueError("the model has no cloth: add one with add_cloth_grid/add_cloth_mesh first")
         if dtype not in (wp.float32, wp.float64):
@@ -716,7 +643,6 @@ class ModelBuilder:
         return model
 
     def _obstacle_fields(self, arr, t) -> dict:
-        """The Model's obstacle fields: all obstacles' meshes concatenated (arrays None without obstacles)."""
         obs = self._obstacles
         if not obs:
             return {}
@@ -748,7 +674,7 @@ class ModelBuilder:
 
 
 def _hinges(triangles, tri_uv, area, tri_material):
-    """Interior edges as (x0, x1, x2, x3) hinges: face 0's index and material coordinates of the edge in both faces."""
+    """Interior edges as (x0, x1, x2, x3) hinges, face 0, the edge's material coordinates in both faces."""
     T = len(triangles)
     a = triangles.reshape(-1)
     b = triangles[:, [1, 2, 0]].reshape(-1)
@@ -798,10 +724,7 @@ def _dihedral_angles(positions: np.ndarray, hinges: np.ndarray) -> np.ndarray:
 
 
 def _block_structure(n, triangles, hinges):
-    """Fixed block-sparse pattern of A: every vertex pair that shares a triangle or a hinge.
-
-    Returns CSR ``offsets``/``columns`` and the block slot of each element's vertex pairs.
-    """
+    """Block-sparse pattern of A (vertex pairs sharing a triangle or hinge): CSR offsets, columns, element slots."""
     tri_rows = np.repeat(triangles, 3, axis=1).reshape(-1)
     tri_cols = np.tile(triangles, (1, 3)).reshape(-1)
     h_rows = np.repeat(hinges, 4, axis=1).reshape(-1)
@@ -824,5 +747,4 @@ def _block_structure(n, triangles, hinges):
 
 
 def _is_integer(value) -> bool:
-    """An int or NumPy integer, not a bool, float or string."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))

@@ -1,12 +1,5 @@
-"""Command line: ``warpcloth simulate [SCENE]`` writes a time-sampled USD (and, with ``--preview``, a picture drawn
-with matplotlib: warpcloth/preview.py); ``warpcloth scenes`` lists scenes and their tasks; ``warpcloth estimate
-[SCENE]`` fits a fabric's material to a trajectory (a scene's ``[estimate]`` task; by default the seed's hanging
-cloth); ``warpcloth control [SCENE]`` finds the pushes of a scene's ``[control]`` task (by default the seed's throw
-into a basket). ``warpcloth --version`` prints the version; ``python -m warpcloth`` runs the same command line.
-
-Exit status: 0 on success, 2 for a usage error (bad arguments, unknown scene, invalid scene file), 1 when the
-simulation itself fails (diverges). Errors are one line on stderr, without a traceback.
-"""
+"""The ``warpcloth`` command line (also ``python -m warpcloth``): ``simulate``, ``scenes``, ``estimate`` and
+``control``, each described by its ``--help``; errors are one line on stderr, the exit status :func:`main`'s."""
 
 from __future__ import annotations
 
@@ -20,6 +13,7 @@ from warpcloth.tasks.jobs import CONTROL_SCENE, ESTIMATE_SCENE  # the scenes run
 
 __all__ = ["main"]
 
+_IDENTIFIABILITY = ("docs/results/seed.md", "Material estimation (Table 2)")  # the page and section that explain it
 _USAGE_ERROR = 2
 _RUNTIME_ERROR = 1
 
@@ -43,14 +37,14 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--dt", type=float, default=None, help="time step in seconds (default: the scene's)")
     sim.add_argument("--usd", metavar="PATH", default=None, help="output USD file (default: <scene name>.usda)")
     sim.add_argument("--preview", metavar="PATH", default=None,
-                     help="also draw the cloth and its obstacles with matplotlib, to see the result without a USD "
+                     help="also draw the cloth and its obstacles (ray cast), to see the result without a USD "
                      "viewer: an animated .gif, an .mp4 (needs ffmpeg) or a .png contact sheet of 9 frames")
     sim.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
     sub.add_parser("scenes", help="list the embedded scenes")
 
     from warpcloth.materials import PRESET_NAMES
-    from warpcloth.scene import CONTROL_OPTIMIZERS, CONTROLLERS, ESTIMATION_OPTIMIZERS
+    from warpcloth.tasks.specs import CONTROL_OPTIMIZERS, CONTROLLERS, ESTIMATION_OPTIMIZERS
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from how it moves (a scene's [estimate] task)")
     est.add_argument("scene", nargs="*", default=[],
@@ -66,7 +60,7 @@ def _parser() -> argparse.ArgumentParser:
     est.add_argument("--optimizer", default=None, choices=ESTIMATION_OPTIMIZERS, help="default: the scene's (lbfgs)")
     est.add_argument("--batch", action="store_true",
                      help="a global search (cmaes, multistart, smoothed) simulates its trials as worlds of one batch: "
-                     "the same search; on a CPU 8-15 %% slower (benchmarks/estimation_batch.py), meant for a GPU")
+                     "the same search, slower on a CPU (docs/results/worlds-and-jobs.md), meant for a GPU")
     est.add_argument("--iters", type=int, default=None, help="forward+backward evaluations (default: the scene's)")
     est.add_argument("--steps", type=int, default=None, help="steps compared (default: the scene's)")
     est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
@@ -113,7 +107,7 @@ def _add_outputs(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", metavar="PNG", default=None, help="write the loss curve")
     parser.add_argument("--usd", metavar="PATH", default=None, help="write the final trajectory")
     parser.add_argument("--preview", metavar="PATH", default=None,
-                        help="draw the final trajectory with matplotlib: .gif, .mp4 (needs ffmpeg) or .png")
+                        help="draw the final trajectory (ray cast): .gif, .mp4 (needs ffmpeg) or .png")
     parser.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
 
 
@@ -345,19 +339,22 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         print(f"start scan: {len(result.scan)} forward simulations; the fit started from density "
               f"x{f.get('density', 1.0):.3g}, warp and weft stretch x{f.get('stretch', 1.0):.3g}, then "
               f"{len(result.losses) - len(result.scan)} forward+backward")
-    seed = E.SEED_PUBLISHED
-    rows = [["runtime [s/step/iter]", "-", result.seconds_per_step_iter, seed["runtime_s_per_step_iter"]]]
+    rows = {"runtime_s_per_step_iter": ["runtime [s/step/iter]", "-", result.seconds_per_step_iter]}
     if truth is not None:
         before = E.parameter_errors(task.start, truth)
-        for key, label in E.ERROR_LABELS.items():
-            rows.append([label, before[key], record[key], seed[key]])
-    rows.append(["simulation error [%]", result.initial_simulation_error_pct, result.simulation_error_pct,
-                 seed["sim_err_pct"]])
+        rows.update({key: [label, before[key], record[key]] for key, label in E.ERROR_LABELS.items()})
+    rows["sim_err_pct"] = ["simulation error [%]", result.initial_simulation_error_pct, result.simulation_error_pct]
+    header = ["", "start", "warpcloth"]
+    seed = job.seed_published()  # None unless this is the seed's own task
+    if seed is not None:
+        header.append("seed (published, its hanging cloth, mean of 10)")
+        for key, row in rows.items():
+            row.append(seed[key])
     print()
-    _print_table(["", "start", "warpcloth", "seed (published, its hanging cloth, mean of 10)"], rows)
+    _print_table(header, list(rows.values()))
     if truth is not None:
         print("what a motion barely excites (bending, the non-linear stretching rows of a hanging cloth) is barely "
-              "identifiable from it: see the README")
+              f"identifiable from it: see {_IDENTIFIABILITY[0]}, '{_IDENTIFIABILITY[1]}', in the source tree")
     if args.json:
         _write_json(args.json, record)
         print(f"wrote {os.path.abspath(args.json)}")
@@ -429,10 +426,10 @@ def _cmd_control(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
     from warpcloth.obstacles import obstacle_meshes_numpy
     from warpcloth.preview import write_preview
-    from warpcloth.scene import check_control_optimizer, load_scene
-    from warpcloth.tasks import throw as C
+    from warpcloth.scene import load_scene
     from warpcloth.tasks.control import ControlTask
     from warpcloth.tasks.jobs import ControlJob
+    from warpcloth.tasks.specs import check_control_optimizer
     from warpcloth.usd import write_usd
 
     if args.starts < 1:
@@ -481,8 +478,8 @@ def _cmd_control(args: argparse.Namespace) -> int:
     print()
     rows = [["error [%]", result.error_pct], ["simulations to reach it", result.simulations]]
     header = ["", "warpcloth"]
-    if scene.name == C.SCENE and scene.source == f"embedded:{C.SCENE}":  # the seed's own task: its published figures
-        seed = C.SEED_PUBLISHED[controller]
+    seed = job.seed_published(controller)  # None unless this is the seed's own task
+    if seed is not None:
         header += ["seed (published)", "target"]
         rows[0] += [seed["error_pct"], seed["target_error_pct"]]
         rows[1] += [seed["simulations"], seed["target_simulations"]]
@@ -518,8 +515,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name; ``sys.argv[1:]`` when None.
 
     Returns:
-        The exit status (0 success, 1 simulation failure, 2 usage error). Invalid arguments make argparse exit
-        with status 2.
+        The exit status: 0 success, 1 a failed simulation (a divergence), 2 a usage error (bad arguments, unknown
+        scene, invalid scene file; argparse exits with 2 itself).
     """
     import warp as wp
 

@@ -4,8 +4,7 @@
 class SimulationError(RuntimeError):
     """The simulation diverged (NaN/inf or a speed beyond ``SolverOptions.max_speed``) or a solve failed.
 
-    ``worlds``: the worlds whose step failed, where the error knows (the collision stage retries those alone, a
-    batched fit rejects their trials alone); None: not known, every world."""
+    ``worlds``: the worlds whose step failed, where known; None: every world."""
 
     def __init__(self, message: str, worlds: list[int] | None = None):
         super().__init__(message)

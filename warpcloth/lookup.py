@@ -1,9 +1,5 @@
-"""Host precompute of the stretching stiffness lookup of ARCSim's ``dde.cpp`` (SPEC.md §1.2).
-
-ARCSim tabulates the stiffness on a 30^3 grid over (G00, G11, |G01|). Each cell samples the 6x4 parameter table
-bilinearly at (strain level, angle of the largest principal stretch); the sample is linear in three table rows,
-so we store, per cell, the three weights and the first angle row, and evaluate ``relu(2 * value)`` on the device.
-"""
+"""Host precompute of ARCSim's stretching stiffness lookup (``dde.cpp``, SPEC.md §1.2): per cell of the 30^3 grid
+over (G00, G11, |G01|), the weights of the three table rows its bilinear sample reads."""
 
 import functools
 
@@ -14,10 +10,8 @@ from warpcloth.kernels.stretching import LUT_SIZE
 
 @functools.cache
 def stretching_lut() -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(weights, row)``: per-cell weights (30^3, 3) of table rows (0, row+1, row+2) and ``row`` (30^3,).
-
-    Cell (i, j, k) sits at G00 = i/30 - 0.25, G11 = j/30 - 0.25, |G01| = k/30 (ARCSim's align-corners grid).
-    """
+    """``(weights, row)``: weights (30^3, 3) of table rows (0, row+1, row+2) and ``row`` (30^3,); cell (i, j, k)
+    sits at G00 = i/30 - 0.25, G11 = j/30 - 0.25, |G01| = k/30."""
     n = LUT_SIZE
     i, j, k = np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij")
     c00 = 0.5 + 2.0 * i / n
@@ -39,9 +33,6 @@ def stretching_lut() -> tuple[np.ndarray, np.ndarray]:
 
 
 def fold_direction(du: np.ndarray) -> np.ndarray:
-    """Bending-table direction index in [0, 2] of material-space edge vectors ``du`` (..., 2).
-
-    atan2(du) * 4/pi, folded by reflection padding (SPEC §1.3): 0 = 0 deg, 1 = 45 deg, 2 = 90 deg, period 180 deg.
-    """
+    """Bending-table direction index in [0, 2] (0, 45, 90 deg, folded, SPEC §1.3) of edge vectors ``du`` (..., 2)."""
     a = np.abs(np.arctan2(du[..., 1], du[..., 0]) * 4.0 / np.pi) % 4.0
     return np.where(a > 2.0, 4.0 - a, a)

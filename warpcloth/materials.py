@@ -1,30 +1,6 @@
-"""Cloth materials: the data-driven anisotropic model of Wang et al. 2011, as ARCSim stores it.
-
-A :class:`Material` holds the raw measured tables of one fabric:
-
-- ``density``: area density [kg/m^2].
-- ``stretching``: a (6, 4) table [N/m]. Row 0 holds the four small-strain coefficients
-  (k0 warp stretch, k1 warp-weft coupling, k2 weft stretch, k3 shear), valid for every direction; rows 1-5 hold the
-  same four coefficients at a principal stretch of 7/6 (strain 1/6) along 0, 22.5, 45, 67.5 and 90 degrees.
-- ``bending``: a (3, 5) table [N*m]. Rows are the bending directions 0, 45 and 90 degrees; columns are five
-  curvature samples, one every 5 m^-1.
-- ``thicken``: ARCSim's ``thicken`` factor, which multiplies density, stretching and bending (every demo of the seed
-  method uses 2).
-
-The physics core interpolates the stretching table and uses ``k = 2 * relu(value) * thicken`` (SPEC.md section 1.2),
-and ``ke = relu(bilinear(bending)) * thicken`` for bending (section 1.3). Because of the relu, negative coupling and
-shear entries (the measured data has several) act as zero stiffness where the interpolated value is negative; negative
-warp/weft stretch or bending entries are rejected by :meth:`Material.validate`.
-
-Units are the *raw* units of the measurements, i.e. ARCSim's. The seed method's code (DiffCloth) stores stretching
-divided by 1e3 and bending multiplied by 1e4; load such files with
-``load_material_json(path, stretching_mult=DIFFCLOTH_STRETCHING_SCALE, bending_mult=DIFFCLOTH_BENDING_SCALE)``.
-
-The ten presets are the fabrics measured by H. Wang, R. Ramamoorthi and J. F. O'Brien, "Data-Driven Elastic Models
-for Cloth: Modeling and Measurement", ACM Trans. Graph. 30(4) (SIGGRAPH 2011),
-http://graphics.berkeley.edu/papers/Wang-DDE-2011-08/. The numbers are those of the ARCSim material database
-(``arcsim/materials/*.json``), shipped at the files' full precision in ``warpcloth/data/materials.json``.
-"""
+"""Cloth materials in ARCSim's raw units: the data-driven anisotropic model and ten measured fabrics of H. Wang,
+R. Ramamoorthi and J. F. O'Brien, "Data-Driven Elastic Models for Cloth" (SIGGRAPH 2011). Negative coupling and shear
+entries act as zero stiffness (SPEC.md sections 1.2 and 1.3)."""
 
 from __future__ import annotations
 
@@ -49,12 +25,10 @@ __all__ = [
 ]
 
 STRETCHING_SHAPE = (6, 4)
-"""Shape of the stretching table: (small strain + 5 directions, 4 coefficients)."""
 BENDING_SHAPE = (3, 5)
-"""Shape of the bending table: (3 directions, 5 curvature samples)."""
 
 DIFFCLOTH_STRETCHING_SCALE = 1e3
-"""Multiply a stretching table in the seed code's scaled units by this to get raw units [N/m]."""
+"""Multiply a stretching table in the seed code's (DiffCloth's) scaled units by this to get raw units [N/m]."""
 DIFFCLOTH_BENDING_SCALE = 1e-4
 """Multiply a bending table in the seed code's scaled units by this to get raw units [N*m]."""
 
@@ -64,10 +38,8 @@ _NONNEGATIVE_STRETCHING_COLUMNS = (0, 2)
 
 
 def check_material_values(where: str, *, density=None, stretching=None, bending=None) -> None:
-    """Raise ValueError naming ``where``, the table and the entry for a value no material may hold: any non-finite
-    value, a density <= 0, a negative warp/weft stretch entry (stretching columns 0 and 2) or a negative bending
-    entry. Tables may carry leading dimensions (one row per material: the model's arrays, the torch bridge's
-    tensors): density (...,), stretching (..., 6, 4), bending (..., 3, 5)."""
+    """Raise ValueError naming ``where`` and the entry for a non-finite value, a density <= 0, or a negative warp/weft
+    stretch (columns 0 and 2) or bending entry. Shapes: density (...,), stretching (..., 6, 4), bending (..., 3, 5)."""
 
     def entry(name, index):
         return f"{name}[{', '.join(str(int(i)) for i in index)}]" if len(index) else name
@@ -99,20 +71,15 @@ def check_material_values(where: str, *, density=None, stretching=None, bending=
 
 @dataclass(eq=False)
 class Material:
-    """A fabric's measured elastic tables in raw Wang et al. 2011 units.
-
-    Construction converts the tables to float64 arrays (a copy) and calls :meth:`validate`. Equality is identity;
-    compare tables with NumPy.
+    """A fabric's elastic tables in raw units, copied to float64 and validated on construction; equality is identity.
 
     Attributes:
         density: Area density [kg/m^2], before ``thicken``.
-        stretching: Stretching table [N/m], shape (6, 4), before ``thicken``. Row 0 = small-strain
-            (k0 warp, k1 coupling, k2 weft, k3 shear); rows 1-5 = the same at strain 1/6 along
-            0, 22.5, 45, 67.5, 90 degrees. Columns 1 and 3 may be negative: the model uses
-            ``k = 2 * relu(interpolated value) * thicken``.
-        bending: Bending table [N*m], shape (3, 5), before ``thicken``. Rows = directions 0, 45, 90 degrees;
-            columns = curvature samples every 5 m^-1.
-        thicken: Multiplies density, stretching and bending (ARCSim's ``thicken``; the seed demos use 2).
+        stretching: Stretching table [N/m], shape (6, 4), before ``thicken``. Row 0: small strain (k0 warp,
+            k1 coupling, k2 weft, k3 shear); rows 1-5: the same at strain 1/6 along 0, 22.5, 45, 67.5, 90 degrees.
+        bending: Bending table [N*m], shape (3, 5), before ``thicken``: directions 0, 45, 90 degrees by curvature
+            samples every 5 m^-1.
+        thicken: Multiplies density, stretching and bending (ARCSim's ``thicken``).
         name: A label for messages and output.
     """
 
@@ -130,13 +97,7 @@ class Material:
         self.validate()
 
     def validate(self) -> None:
-        """Checks the tables.
-
-        Raises:
-            ValueError: naming the field (and the ``(row, col)`` entry) when a value is NaN or infinite, ``density``
-                or ``thicken`` is not positive, a table has the wrong shape, a warp/weft stretch entry
-                (stretching columns 0 and 2) is negative, or a bending entry is negative.
-        """
+        """Check the tables as :func:`check_material_values` does, and their shapes and ``thicken`` > 0."""
         where = f"material '{self.name}'"
         for fname in ("density", "thicken"):
             value = _as_float_scalar(getattr(self, fname), fname, self.name)
@@ -161,27 +122,10 @@ class Material:
         thicken: float = 1.0,
         name: str = "isotropic",
     ) -> Material:
-        """Builds a material whose stiffness is the same at every strain and in every direction.
-
-        With ``k0 = k2 = stretch_stiffness``, ``k1 = poisson_coupling`` and ``k3 = shear_stiffness`` the
-        stretching energy per unit rest area is
-        ``psi = 1/2 (k0 G00^2 + 2 k1 G00 G11 + k2 G11^2) + k3 G01^2`` (G = Green strain), times ``thicken``.
-        Since the model uses ``k = 2 * relu(table value) * thicken``, the table stores half of each stiffness.
-        Every bending entry is ``bend_stiffness``.
-
-        Args:
-            density: Area density [kg/m^2].
-            stretch_stiffness: Warp and weft stretch stiffness k0 = k2 [N/m].
-            shear_stiffness: Shear stiffness k3 [N/m].
-            poisson_coupling: Warp-weft coupling k1 [N/m].
-            bend_stiffness: Bending stiffness [N*m].
-            thicken: Multiplies density and both stiffnesses.
-            name: Label.
-
-        Raises:
-            ValueError: naming the parameter when a stiffness is negative or not finite (a negative coupling would
-                be zeroed by the model's relu, so it is rejected rather than silently ignored).
-        """
+        """The same stiffness at every strain and in every direction: ``density`` [kg/m^2], warp and weft
+        ``stretch_stiffness`` k0 = k2, ``shear_stiffness`` k3, ``poisson_coupling`` k1 [N/m], ``bend_stiffness`` [N*m];
+        energy per rest area ``psi = 1/2 (k0 G00^2 + 2 k1 G00 G11 + k2 G11^2) + k3 G01^2`` (G: Green strain) times
+        ``thicken``, the table holding half of each stiffness. ValueError naming a negative or non-finite stiffness."""
         params = {
             "stretch_stiffness": stretch_stiffness,
             "shear_stiffness": shear_stiffness,
@@ -214,16 +158,8 @@ class Material:
         )
 
     def scaled(self, *, density: float = 1.0, stretching: float = 1.0, bending: float = 1.0) -> Material:
-        """Returns a new material with each table multiplied by a factor.
-
-        Args:
-            density: Factor for the density (> 0).
-            stretching: Factor for the stretching table (>= 0).
-            bending: Factor for the bending table (>= 0).
-
-        Raises:
-            ValueError: naming the factor when it is not finite or out of range.
-        """
+        """A new material with density (> 0), stretching and bending (>= 0) multiplied by these factors; ValueError
+        naming a factor not finite or out of range."""
         _check_multiplier(density, "density", positive=True)
         _check_multiplier(stretching, "stretching")
         _check_multiplier(bending, "bending")
@@ -262,8 +198,7 @@ def _check_multiplier(value: float, pname: str, *, positive: bool = False) -> No
         raise ValueError(f"{pname} must be finite and {bound}, got {value}")
 
 
-# name: {"density" [kg/m^2], "stretching" 6x4 [N/m], "bending" 3x5 [N*m]}, raw ARCSim / Wang et al. 2011 values,
-# shipped as package data in the ARCSim material-file layout.
+# name: {"density" [kg/m^2], "stretching" 6x4 [N/m], "bending" 3x5 [N*m]}, raw values at full precision
 _PRESETS: dict[str, dict] = json.loads(resources.files("warpcloth.data").joinpath("materials.json").read_text("utf-8"))
 
 PRESET_NAMES: tuple[str, ...] = tuple(_PRESETS)
@@ -272,20 +207,12 @@ PRESET_NAMES: tuple[str, ...] = tuple(_PRESETS)
 SEED_INITIAL_GUESS_NAMES: tuple[str, ...] = tuple(
     n for n in PRESET_NAMES if n not in ("royal-target", "white-dots-on-blk")
 )
-"""The 8 fabrics whose mean is the seed's optimisation start point ``init_mat.json`` (all but royal-target and
-white-dots-on-blk)."""
+"""The 8 fabrics whose mean is the seed's start point ``init_mat.json`` (all but royal-target, white-dots-on-blk)."""
 
 
 def preset(name: str, *, thicken: float = 1.0) -> Material:
-    """Returns one of the measured fabrics.
-
-    Args:
-        name: One of :data:`PRESET_NAMES`.
-        thicken: Multiplies density, stretching and bending (the seed demos use 2).
-
-    Raises:
-        ValueError: listing the valid names when ``name`` is unknown.
-    """
+    """One of the measured fabrics, ``name`` from :data:`PRESET_NAMES`, with ``thicken``; ValueError listing the
+    valid names for an unknown one."""
     if name not in _PRESETS:
         raise ValueError(f"unknown material preset {name!r}; valid names: {', '.join(PRESET_NAMES)}")
     data = _PRESETS[name]
@@ -294,17 +221,8 @@ def preset(name: str, *, thicken: float = 1.0) -> Material:
 
 
 def mean_material(names: Sequence[str], *, thicken: float = 1.0) -> Material:
-    """Element-wise mean of presets, in raw units.
-
-    ``mean_material(SEED_INITIAL_GUESS_NAMES)`` is the seed's initial guess ``init_mat.json`` converted to raw units.
-
-    Args:
-        names: Preset names (at least one).
-        thicken: ``thicken`` of the result.
-
-    Raises:
-        ValueError: when ``names`` is empty or a string, or lists an unknown preset.
-    """
+    """Element-wise mean of the presets ``names``, in raw units, with ``thicken``; ValueError when ``names`` is empty
+    or a string, or lists an unknown preset."""
     if isinstance(names, str):
         raise ValueError(f"mean_material: names must be a sequence of preset names, not the string {names!r}")
     if len(names) == 0:
@@ -326,21 +244,9 @@ def load_material_json(
     bending_mult: float = 1.0,
     thicken: float = 1.0,
 ) -> Material:
-    """Loads an ARCSim material file ``{"density": ..., "stretching": 6x4, "bending": 3x5}``.
-
-    The result holds ``file value * mult``. Raw Wang/ARCSim files need no multipliers; the seed code's scaled files
-    (e.g. ``init_mat.json``) need ``stretching_mult=DIFFCLOTH_STRETCHING_SCALE, bending_mult=DIFFCLOTH_BENDING_SCALE``.
-
-    Args:
-        path: The JSON file.
-        stretching_mult: Multiplies the stretching table.
-        bending_mult: Multiplies the bending table.
-        thicken: ``thicken`` of the result.
-
-    Raises:
-        ValueError: naming the file and key when a key is missing or unknown (other ARCSim material keys such as
-            ``damping`` are not supported and not ignored), or the values are invalid.
-    """
+    """Load an ARCSim material file ``{"density": ..., "stretching": 6x4, "bending": 3x5}``, each table times its
+    ``*_mult`` (seed files: the ``DIFFCLOTH_*_SCALE`` constants), with ``thicken``; ValueError naming the file and
+    key for a missing or unknown key (``damping``) or an invalid value."""
     _check_multiplier(stretching_mult, "stretching_mult")
     _check_multiplier(bending_mult, "bending_mult")
     with open(path, encoding="utf-8") as f:

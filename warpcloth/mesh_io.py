@@ -1,8 +1,4 @@
-"""Triangle meshes for cloth and obstacles: OBJ and USD loading, validation, flat grids.
-
-A cloth mesh has two shapes: world positions ``x`` (the current shape, [m]) and material-space coordinates ``u``
-(the flat rest shape, [m]), given per triangle corner so that seams may split material space (ARCSim's OBJ ``vt``).
-"""
+"""Triangle meshes for cloth and obstacles: OBJ and USD loading, validation, flat grids."""
 
 from __future__ import annotations
 
@@ -17,8 +13,7 @@ import numpy as np
 __all__ = ["TriangleMesh", "grid_mesh", "load_obj", "load_obj_sequence", "load_usd_mesh", "obj_sequence_files",
            "validate_triangles"]
 
-# Triangles whose material area is below this fraction of the mean |area| count as degenerate: their inverse rest
-# matrix would be dominated by round-off.
+# Triangles whose material area is below this fraction of the mean |area| count as degenerate (round-off).
 DEGENERATE_AREA_FRACTION = 1e-12
 
 
@@ -29,9 +24,8 @@ class TriangleMesh:
     Attributes:
         positions: World positions [m], shape (N, 3), float64.
         triangles: Vertex indices, shape (T, 3), int32, counterclockwise when seen from the front.
-        tri_uv: Material-space coordinates [m] of each triangle corner, shape (T, 3, 2), float64, or None.
-        velocities: Initial vertex velocities [m/s], shape (N, 3), float64, or None. Read from ARCSim's ``nv`` OBJ
-            lines when the file has them.
+        tri_uv: Material-space coordinates [m] per triangle corner (seams may split them), (T, 3, 2) float64, or None.
+        velocities: Initial vertex velocities [m/s], shape (N, 3), float64, or None (ARCSim's ``nv`` OBJ lines).
     """
 
     positions: np.ndarray
@@ -51,29 +45,19 @@ class TriangleMesh:
 
 
 def _tri_uv_areas(tri_uv: np.ndarray) -> np.ndarray:
-    """Signed material-space area of each triangle, positive when counterclockwise."""
     d1 = tri_uv[:, 1] - tri_uv[:, 0]
     d2 = tri_uv[:, 2] - tri_uv[:, 0]
     return 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
 
 
 def validate_triangles(positions: np.ndarray, triangles: np.ndarray, tri_uv: np.ndarray | None = None) -> None:
-    """Checks a triangle mesh for what the simulator cannot handle.
-
-    Orientation rule: like ARCSim (which needs ``det(Dm) > 0``), the material-space area of every triangle, taken
-    with the triangle's own winding, must be positive. A triangle that is flipped relative to the rest of the mesh
-    therefore is an error, as is a degenerate one (area <= ``DEGENERATE_AREA_FRACTION`` times the mean |area|).
-
-    Args:
-        positions: Vertex positions, shape (N, 3).
-        triangles: Vertex indices, shape (T, 3).
-        tri_uv: Optional material coordinates per triangle corner, shape (T, 3, 2).
+    """Check a mesh for what the simulator cannot handle; every triangle's material-space area, in its own winding,
+    must be positive (ARCSim's ``det(Dm) > 0``).
 
     Raises:
-        ValueError: for a wrong shape or dtype; a non-finite position (naming the vertex); an index out of range or
-            repeated within a triangle (naming the triangle); a triangle listed twice (either winding); a
-            non-finite, zero-area or inverted material triangle (naming the triangle); an edge shared by more than
-            two triangles (naming the edge's vertices and the triangles).
+        ValueError: naming the vertex, triangle or edge: a wrong shape or dtype, a non-finite position, an index out of
+            range or repeated in a triangle, a triangle listed twice (either winding), a non-finite, degenerate or
+            inverted material triangle, an edge of more than two triangles.
     """
     positions = np.asarray(positions)
     triangles = np.asarray(triangles)
@@ -142,7 +126,6 @@ def validate_triangles(positions: np.ndarray, triangles: np.ndarray, tri_uv: np.
 
 
 def _resolve_obj_index(token: str, count: int, what: str, where: str) -> int:
-    """Turns a 1-based (or negative, relative) OBJ index into a 0-based one."""
     try:
         i = int(token)
     except ValueError:
@@ -173,28 +156,14 @@ _OBJ_IGNORED = {"vn", "o", "g", "s", "usemtl", "mtllib"}
 
 
 def load_obj(path: str | os.PathLike, *, scale: float = 1.0, validate: bool = True) -> TriangleMesh:
-    """Loads a triangle mesh from a Wavefront OBJ file.
-
-    Supported: ``v x y z``, ``vt u v [w=0]``, ``f`` with ``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn`` corners and
-    negative (relative) indices; faces with more than 3 corners are fan-triangulated (0, i, i+1). ``vn``, ``o``,
-    ``g``, ``s``, ``usemtl``, ``mtllib`` and comments are ignored. ARCSim's extensions: ``nv`` (node velocity) lines
-    fill :attr:`TriangleMesh.velocities`; ``ny`` (ARCSim's plastic embedding, unused because the model has no
-    plasticity and the rest shape comes from ``vt``) lines are read and ignored. Any other directive (``l``, ``ea``,
-    ...) is an error rather than silently dropped.
-
-    Args:
-        path: The OBJ file.
-        scale: Multiplies positions and material coordinates (ARCSim's ``transform.scale`` scales both).
-        validate: Run :func:`validate_triangles` on the result. Turn off for obstacle meshes that are not manifold.
-
-    Returns:
-        The mesh; ``tri_uv`` is set when the faces reference ``vt`` coordinates.
+    """Loads a triangle mesh from a Wavefront OBJ file, positions and material coordinates times ``scale``: ``v``,
+    ``vt`` (into ``tri_uv``), ``f`` (any corner form, negative indices; polygons fan-triangulated) and ARCSim's ``nv``
+    velocities, ignoring ``vn``, ``o``, ``g``, ``s``, ``usemtl``, ``mtllib``, ``ny`` and comments. ``validate`` runs
+    :func:`validate_triangles` (off for non-manifold obstacles).
 
     Raises:
-        ValueError: naming the file and line for a malformed line, an index out of range, a face with fewer than 3
-            corners, a face without ``vt`` in a file whose other faces have them (or the reverse), a non-zero
-            ``vt`` w, or an ``nv`` count different from the ``v`` count; naming the file and triangle for the
-            checks of :func:`validate_triangles`.
+        ValueError: naming the file and line: a malformed line or unsupported directive, an index out of range,
+            ``vt`` on some faces only, an ``nv`` count other than the ``v`` count; and as :func:`validate_triangles`.
     """
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale) or scale <= 0:
         raise ValueError(f"load_obj: scale must be a finite number > 0, got {scale!r}")
@@ -285,18 +254,9 @@ def load_usd_mesh(
     time_code: float | None = None,
     validate: bool = True,
 ) -> TriangleMesh:
-    """Loads a triangle mesh from a ``UsdGeom.Mesh``.
-
-    Polygons are fan-triangulated (0, i, i+1); a ``leftHanded`` mesh has its triangles reversed so that the result is
-    counterclockwise. Points are transformed by the prim's local-to-world transform. Material coordinates come from
-    a primvar named ``st`` or ``uv`` (2 components, ``faceVarying`` or ``vertex`` interpolation, indexed or not).
-
-    Args:
-        path: A USD file (.usd, .usda, .usdc).
-        prim_path: The mesh prim; the first ``UsdGeom.Mesh`` in traversal order when None.
-        time_code: Time at which to read points and the transform. None reads the default value, or the earliest
-            time sample when the points have only time samples (as :func:`warpcloth.usd.write_usd` writes them).
-        validate: Run :func:`validate_triangles` on the result.
+    """Loads a triangle mesh from a ``UsdGeom.Mesh`` (``prim_path``, None: the first) in world coordinates,
+    counterclockwise, polygons fan-triangulated; material coordinates from an ``st`` or ``uv`` primvar (``faceVarying``
+    or ``vertex``); ``time_code`` None reads the default value, else the earliest time sample.
 
     Raises:
         ImportError: when ``pxr`` (package ``usd-core``) is missing.
@@ -403,23 +363,9 @@ def load_usd_mesh(
 
 
 def grid_mesh(res_x: int, res_y: int, size_x: float, size_y: float) -> TriangleMesh:
-    """A flat rectangular cloth in the XY plane (z = 0), spanning [0, size_x] x [0, size_y].
-
-    Vertex ``(i, j)`` (i along x in 0..res_x, j along y in 0..res_y) has index ``j * (res_x + 1) + i``. Each cell is
-    split along a diagonal that alternates in a checkerboard (from (i, j) to (i+1, j+1) when ``i + j`` is even, else
-    from (i+1, j) to (i, j+1)), so the mesh has no preferred shear direction, like ARCSim's subdivided squares.
-    Triangles are counterclockwise seen from +z. Material coordinates equal the xy positions: the grid is its own
-    rest shape.
-
-    Args:
-        res_x: Cells along x (>= 1).
-        res_y: Cells along y (>= 1).
-        size_x: Extent along x [m] (> 0).
-        size_y: Extent along y [m] (> 0).
-
-    Raises:
-        ValueError: naming the argument when a resolution is not a positive integer or a size not a positive number.
-    """
+    """A flat cloth of ``res_x`` by ``res_y`` cells (>= 1) in the XY plane (z = 0) over [0, size_x] x [0, size_y] [m],
+    its own rest shape; vertex ``(i, j)`` is ``j * (res_x + 1) + i``, cell diagonals alternate in a checkerboard,
+    triangles are counterclockwise from +z. ValueError naming an argument out of range."""
     for pname, value in (("res_x", res_x), ("res_y", res_y)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"grid_mesh: {pname} must be an integer >= 1, got {value!r}")
@@ -449,21 +395,24 @@ def grid_mesh(res_x: int, res_y: int, size_x: float, size_y: float) -> TriangleM
     return TriangleMesh(positions=positions, triangles=triangles, tri_uv=tri_uv)
 
 
+def _natural_key(name: str) -> list:
+    # digit runs compared as numbers: 2.obj before 10.obj
+    return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name)]
+
+
 def obj_sequence_files(directory: str | os.PathLike) -> list[Path]:
-    """The .obj files of a sequence (a trajectory, one frame per file) in frame order, frame 0 (the start shape)
-    first: sorted by name with digit runs compared as numbers, so 2.obj comes before 10.obj."""
+    """The .obj files of a sequence (one frame per file) in frame order: names with digit runs compared as numbers
+    (2.obj before 10.obj). ValueError for a missing directory or fewer than two files."""
     if not Path(directory).is_dir():
         raise ValueError(f"sequence directory {str(directory)!r} does not exist")
-    files = sorted(Path(directory).glob("*.obj"),
-                   key=lambda f: [(0, int(part), "") if part.isdigit() else (1, 0, part)
-                                  for part in re.split(r"(\d+)", f.name)])
+    files = sorted(Path(directory).glob("*.obj"), key=lambda f: _natural_key(f.name))
     if len(files) < 2:
         raise ValueError(f"sequence directory {str(directory)!r} holds {len(files)} .obj files; need >= 2")
     return files
 
 
 def load_obj_sequence(files: Sequence[str | os.PathLike]) -> list[np.ndarray]:
-    """Vertex positions (n, 3) [m] of each frame file."""
+    """Vertex positions (n, 3) [m] of each frame file; ValueError for a frame of another size or non-finite."""
     frames = [load_obj(f, validate=False).positions for f in files]
     for f, x in zip(files, frames):
         if x.shape != frames[0].shape:

@@ -13,12 +13,7 @@ from warpcloth.kernels.types import types
 
 
 class State:
-    """Everything a step reads from the past: the particle state at one instant and what the step that produced it
-    hands on (the solve's first guess, the positions of the lagged wind normals, the step number).
-
-    The simulator writes a new State every step (never in place on a tape). A State built from positions and
-    velocities alone starts a trajectory: step 0, a cold first solve, no lag.
-    """
+    """Particles at one instant and what their step hands to the next; positions and velocities alone start one."""
 
     def __init__(self, particle_x: wp.array, particle_v: wp.array, time: float = 0.0, *, step: int = 0,
                  particle_dv: wp.array | None = None, particle_x_previous: wp.array | None = None,
@@ -30,32 +25,24 @@ class State:
         self.time = time
         """Simulated time [s], scalar (host)."""
         self.step = step
-        """Steps taken since the start of the trajectory [-], scalar (host int): error messages name the step being
-        taken as ``step + 1``."""
+        """Steps taken since the start of the trajectory [-], scalar (host int)."""
         self.particle_dv = particle_dv
-        """Velocity change [m/s] the step that produced this state solved for, shape (particle_count,), vec3:
-        the first guess of the next step's solve (``SolverOptions.warm_start``); None: start from zero."""
+        """Last solve's velocity change [m/s], (particle_count,) vec3: next solve's first guess; None: zero."""
         self.particle_x_previous = particle_x_previous
-        """Positions [m] at the start of the step that produced this state, shape (particle_count,), vec3: the
-        face normals of ARCSim's lagged wind (``ModelBuilder.set_wind(lagged_normals=True)``); None at the start of
-        a trajectory (the current positions are used)."""
+        """Positions [m] at the last step's start, (particle_count,) vec3, for lagged wind normals; None: current."""
         self.particle_x_last = particle_x_last
-        """Positions [m] one step before this state, shape (particle_count,), vec3, for a two-step integrator
-        (``SolverOptions.integrator="bdf2"``); None at the start of a trajectory or with backward Euler."""
+        """Positions [m] one step before, (particle_count,) vec3, for ``integrator="bdf2"``; None otherwise."""
         self.particle_v_last = particle_v_last
-        """Velocities [m/s] one step before this state, shape (particle_count,), vec3 (as ``particle_x_last``)."""
+        """Velocities [m/s] one step before, (particle_count,) vec3 (as ``particle_x_last``)."""
         self.solve_adjoint = None
-        """Adjoint of the linear solve of the step that read this state [m/s per unit loss], shape
-        (particle_count,), vec3, written during a backward pass: the first guess of the adjoint solve of the step
-        that produced this state. Allocated by a recorded step; None otherwise."""
+        """Adjoint solve of the step that read this state [m/s per unit loss], (particle_count,) vec3, or None."""
 
     def numpy(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities as NumPy arrays (particle_count, 3)."""
         return self.particle_x.numpy(), self.particle_v.numpy()
 
     def clone(self, *, requires_grad: bool | None = None) -> State:
-        """A deep copy (positions, velocities and what the next step reads from this one); ``requires_grad``
-        defaults to that of ``particle_x``. Stepping a clone repeats the original's next step bitwise."""
+        """A deep copy (``requires_grad`` None: ``particle_x``'s); stepping it repeats the original's next step."""
         rg = self.particle_x.requires_grad if requires_grad is None else requires_grad
 
         def copy(a):
@@ -92,19 +79,15 @@ class Control:
         self.pin_target = pin_target
         """Base target of each hard pin [m], shape (pin_count,); scripted motion adds to it."""
         self.obstacle_transform = obstacle_transform
-        """Base placement of each obstacle (position [m], unit quaternion (x, y, z, w)), shape (obstacle_count,)
-        transform (``wp.transformf``/``wp.transformd``); scripted motion is applied on top of it (see
-        ``warpcloth.obstacles``). None when the model has no obstacles."""
+        """Base placement of each obstacle ([m], quaternion (x, y, z, w)), (obstacle_count,) transform, or None."""
 
 
 @dataclass(frozen=True)
 class CollisionSettings:
-    """Which collisions a model has and how thick they are."""
+    """Which collisions a model has (``obstacles`` whenever it has an obstacle) and how thick they are."""
 
     obstacles: bool
-    """Cloth-obstacle collisions (on whenever the model has an obstacle)."""
     self_collision: bool
-    """Cloth-cloth collisions."""
     thickness: float
     """Collision thickness delta [m], > 0: the distance the response keeps between the cloth and what it touches."""
     repulsion_thickness: float = 5.0e-3
@@ -119,12 +102,10 @@ class CollisionSettings:
 
 @dataclass
 class Motion:
-    """Piecewise-linear keyframed displacement of a handle or pin target (held constant outside the keys)."""
+    """Piecewise-linear target displacement, ``offsets`` [m] (K, 3) at increasing ``times`` [s] (K,), flat outside."""
 
     times: np.ndarray
-    """Key times [s], increasing, shape (K,)."""
     offsets: np.ndarray
-    """Target displacement at each key [m], shape (K, 3)."""
 
     def at(self, t: float) -> np.ndarray:
         return np.array([np.interp(t, self.times, self.offsets[:, d]) for d in range(3)])
@@ -132,7 +113,7 @@ class Motion:
 
 @dataclass
 class Model:
-    """Everything about a scene that does not change while it is simulated. Built by ``ModelBuilder.finalize``."""
+    """What does not change while a scene runs, from ``ModelBuilder.finalize``; (host) fields are Python or NumPy."""
 
     device: wp.context.Device
     """Warp device every array lives on [-], scalar (host)."""
@@ -168,8 +149,7 @@ class Model:
     hinge_count: int
     """Number of interior edges (bending hinges) [-], scalar (host)."""
     hinge_indices: wp.array
-    """Interior edges as (x0, x1, x2, x3): edge x0-x1, x2 opposite in face 0, x3 in face 1 [-],
-    (hinge_count, 4) int32."""
+    """Interior edges (x0, x1, x2, x3): edge x0-x1, x2 and x3 opposite [-], (hinge_count, 4) int32."""
     hinge_material: wp.array
     """Material of each hinge (that of face 0) [-], (hinge_count,) int32."""
     hinge_rest_angle: wp.array
@@ -201,13 +181,11 @@ class Model:
     """Stretching lookup: angle row r per cell [-], (27000,) int32."""
 
     world_count: int
-    """Number of worlds: independent copies of a scene simulated together (``ModelBuilder.add_world``) [-], scalar
-    (host); 1 for a builder's own scene."""
+    """Number of independent worlds (``ModelBuilder.add_world``) [-], scalar (host)."""
     particle_world: wp.array
     """World of each particle [-], (particle_count,) int32."""
     world_particle_start: np.ndarray
-    """First particle of each world, and the particle count [-], (world_count + 1,) int64 (host): a world's
-    particles are one contiguous range."""
+    """First particle of each world, then particle_count [-], (world_count + 1,) int64 (host)."""
     gravity: wp.array
     """Gravitational acceleration of each world [m/s^2], (world_count,) vec3."""
     wind_velocity: wp.array | None
@@ -217,8 +195,7 @@ class Model:
     wind_drag: wp.array | None
     """Tangential drag coefficient of each world's wind [kg/(m^2 s)], (world_count,) (0 in a world without wind)."""
     wind_lagged_normals: bool
-    """Wind uses face normals of the previous step's start positions (ARCSim's lag), else the current ones [-],
-    scalar (host)."""
+    """Wind uses the last step's start normals (ARCSim's lag) [-], scalar (host)."""
     damping_mass: float
     """Rayleigh mass-proportional damping alpha [1/s], scalar (host)."""
     damping_stiffness: float
@@ -259,14 +236,11 @@ class Model:
     """Rest area of each particle (a third of its triangles') [m^2], (particle_count,)."""
 
     collision: CollisionSettings | None = None
-    """Collision settings (thickness [m], which collisions) [-], scalar (host); None when the model has neither
-    obstacles nor self-collision."""
+    """Collision settings [-], scalar (host); None without obstacles and self-collision."""
     contact_repulsion_stiffness: wp.array | None = None
-    """Proximity repulsion stiffness per m^2 of rest area [N/m^3], (1,); 0 turns repulsion off. Takes gradients.
-    None without collisions."""
+    """Repulsion stiffness per m^2 of rest area [N/m^3], (1,); 0: off. Takes gradients; None without collisions."""
     contact_friction: wp.array | None = None
-    """Coulomb friction coefficients [-], (2,): cloth-cloth, cloth-obstacle; 0 turns friction off. Takes gradients.
-    None without collisions."""
+    """Coulomb friction coefficients [-], (2,): cloth-cloth, cloth-obstacle. Takes gradients; None if no collisions."""
 
     # Obstacles. All obstacles' meshes are concatenated; with no obstacle every array below is None.
     obstacle_count: int = 0
@@ -276,8 +250,7 @@ class Model:
     obstacle_vertex_count: int = 0
     """Number of obstacle vertices, all obstacles together [-], scalar (host)."""
     obstacle_vertex_local: wp.array | None = None
-    """Obstacle vertices in their obstacle's body frame [m], (obstacle_vertex_count,) vec3; has a gradient when the
-    model requires one."""
+    """Obstacle vertices in their body frames [m], (obstacle_vertex_count,) vec3. Takes gradients."""
     obstacle_vertex_body: wp.array | None = None
     """Obstacle index of each obstacle vertex [-], (obstacle_vertex_count,) int32."""
     obstacle_vertex_start: np.ndarray | None = field(repr=False, default=None)
@@ -291,12 +264,9 @@ class Model:
     obstacle_edge_count: int = 0
     """Number of obstacle contact edges, all obstacles together [-], scalar (host)."""
     obstacle_edge_indices: wp.array | None = None
-    """Obstacle edges that contacts use (lo, hi), lo < hi, into the concatenated vertex list (an edge never joins
-    two obstacles): every edge but the flat ones between coplanar faces (geometry.primitives.contact_edges)
-    [-], (obstacle_edge_count, 2) int32."""
+    """Obstacle contact edges (lo, hi), lo < hi, all but flat ones (``contact_edges``) [-], (obstacle_edge_count, 2)."""
     obstacle_rest_transform: np.ndarray | None = None
-    """Base placement of each obstacle (px, py, pz [m], qx, qy, qz, qw), (obstacle_count, 7) float64 (host);
-    ``control()`` copies it into ``Control.obstacle_transform``."""
+    """Base placement (px, py, pz [m], qx, qy, qz, qw), (obstacle_count, 7) float64 (host): ``control()``'s."""
     obstacle_motion: list[RigidMotion | None] = field(default_factory=list)
     """Scripted motion of each obstacle, or None for a static one [-], (obstacle_count,)."""
     obstacle_triangles_np: np.ndarray | None = field(repr=False, default=None)
@@ -315,18 +285,14 @@ class Model:
         return slice(int(self.world_particle_start[world]), int(self.world_particle_start[world + 1]))
 
     def world_of(self, particle: int) -> int:
-        """The world of a particle (host)."""
         return int(np.searchsorted(self.world_particle_start, particle, side="right") - 1)
 
     def world_state(self, state: State, world: int) -> State:
-        """``world``'s part of ``state``: views of its positions and velocities (no copies; writes reach ``state``),
-        at the same time and step."""
+        """``world``'s part of ``state``: views (writes reach ``state``) at the same time and step."""
         part = self.world_slice(world)
         return State(state.particle_x[part], state.particle_v[part], state.time, step=state.step)
 
     def particle_name(self, particle: int) -> str:
-        """How error messages name a particle: ``particle 5``, or ``particle 5 (world 2, its particle 1)`` in a
-        model of several worlds."""
         if self.world_count == 1:
             return f"particle {particle}"
         w = self.world_of(particle)
@@ -354,8 +320,7 @@ class Model:
         )
 
     def control(self, *, particle_force: bool = False, requires_grad: bool | None = None) -> Control:
-        """A Control with handle and pin targets and obstacle placements at their defaults, and optionally zero
-        external forces."""
+        """A Control at the default targets and placements; zero external forces with ``particle_force``."""
         rg = self.requires_grad if requires_grad is None else requires_grad
         vec3 = self.types.vec3
         forces = None

@@ -1,21 +1,7 @@
-"""Rigid obstacles: triangle meshes with a base placement and an optional keyframed rigid motion.
-
-Frames and conventions:
-
-- An obstacle's ``vertices`` are given in its **body frame** [m].
-- Its **base placement** ``transform = (px, py, pz, qx, qy, qz, qw)`` (position [m], unit quaternion in Warp's
-  (x, y, z, w) order) takes body coordinates to world coordinates: ``base * u = R(q) u + p``. On a device it is
-  ``Control.obstacle_transform``, which carries gradients.
-- A scripted :class:`RigidMotion` ``M(t)`` is applied **on top of** the placement, in world coordinates:
-  ``x(t) = M(t) * (base * u) = R_m(t) (R_b u + p_b) + p_m(t)``. Its rotation therefore turns about the **world
-  origin**, not about the obstacle. To spin an obstacle about its own centre, give it ``pos = (0, 0, 0)`` (keep
-  ``rot`` if wanted) and put its position into the motion's translations instead. Motion keyframes get no gradient.
-
-Built-in shapes come from :mod:`warpcloth.geometry.primitives`; obstacle meshes need not be closed or manifold.
-The quaternion and transform maths lives in :mod:`warpcloth.geometry.transforms`, :class:`RigidMotion` in
-:mod:`warpcloth.geometry.motion` (re-exported here). This module builds on :mod:`warpcloth.model` (its functions take
-a Model); the model never imports it.
-"""
+"""Rigid obstacles: triangle meshes, closed or not, with a base placement and an optional keyframed motion. The
+placement (on a device ``Control.obstacle_transform``) carries gradients; a :class:`RigidMotion` ``M(t)`` does not and
+acts in world coordinates, ``x(t) = M(t) * (base * u)``, turning about the world origin: to spin an obstacle about its
+centre, place it at the origin and put its position into the motion's translations."""
 
 from __future__ import annotations
 
@@ -49,15 +35,14 @@ _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 
 @dataclass
 class Obstacle:
-    """A rigid triangle mesh (validated and converted on construction).
+    """A rigid triangle mesh, validated and converted on construction.
 
-    Raises on construction:
-        ValueError: for an invalid name, a wrong shape, a non-finite vertex (naming it), a triangle index out of
-            range or a degenerate (zero-area) triangle (naming the triangle), or a bad transform.
+    Raises:
+        ValueError: a bad name, shape or transform, a non-finite vertex, an index out of range, a zero-area triangle.
     """
 
     name: str
-    """Obstacle name; a valid USD identifier (letters, digits and underscores, not starting with a digit)."""
+    """A USD identifier: letters, digits and underscores, not starting with a digit."""
     vertices: np.ndarray
     """Vertex positions in the obstacle's body frame [m], shape (V, 3), float64."""
     triangles: np.ndarray
@@ -65,7 +50,7 @@ class Obstacle:
     transform: np.ndarray
     """Base placement (px, py, pz [m], qx, qy, qz, qw), shape (7,), float64: world = R(q) body + p."""
     motion: RigidMotion | None = None
-    """Scripted motion applied on top of the placement (see the module docstring), or None for a static obstacle."""
+    """Scripted motion on top of the placement, or None (static)."""
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not _IDENTIFIER.match(self.name):
@@ -135,10 +120,7 @@ def _require_obstacles(model: Model, what: str) -> None:
 
 
 def obstacle_motion_numpy(model: Model, t: float) -> np.ndarray:
-    """The scripted motion of every obstacle at time ``t`` [s] as transforms, shape (obstacle_count, 7).
-
-    Static obstacles get the identity (0, 0, 0, 0, 0, 0, 1).
-    """
+    """Every obstacle's scripted motion at time ``t`` [s], (obstacle_count, 7); the identity for a static one."""
     out = np.tile(IDENTITY_TRANSFORM, (model.obstacle_count, 1))
     for b, motion in enumerate(model.obstacle_motion):
         if motion is not None:
@@ -147,8 +129,7 @@ def obstacle_motion_numpy(model: Model, t: float) -> np.ndarray:
 
 
 def obstacle_motion(model: Model, t: float) -> wp.array:
-    """The scripted motion of every obstacle at time ``t`` [s] (:func:`obstacle_motion_numpy`), as a new array of
-    transforms on the model's device."""
+    """:func:`obstacle_motion_numpy` as a new array of transforms on the model's device."""
     return wp.array(obstacle_motion_numpy(model, t), dtype=model.types.transform, device=model.device)
 
 
@@ -160,17 +141,8 @@ def _check_transforms(model: Model, transforms) -> np.ndarray:
 
 
 def obstacle_points_numpy(model: Model, t: float, transforms=None) -> np.ndarray:
-    """World positions of all obstacle vertices at time ``t`` [s], on the host (float64).
-
-    Args:
-        model: a model with obstacles.
-        t: time [s] at which the scripted motions are evaluated.
-        transforms: base placements, shape (obstacle_count, 7); default ``model.obstacle_rest_transform``
-            (pass ``control.obstacle_transform.numpy()`` to follow an optimised placement).
-
-    Returns:
-        Positions [m], shape (obstacle_vertex_count, 3), in the model's concatenated vertex order.
-    """
+    """World positions [m] (obstacle_vertex_count, 3) float64 of every obstacle vertex at time ``t`` [s], on the
+    host. ``transforms``: base placements (obstacle_count, 7), default ``model.obstacle_rest_transform``."""
     _require_obstacles(model, "obstacle_points_numpy")
     base = model.obstacle_rest_transform if transforms is None else _check_transforms(model, transforms)
     motion = obstacle_motion_numpy(model, t)
@@ -183,12 +155,8 @@ def obstacle_points_numpy(model: Model, t: float, transforms=None) -> np.ndarray
 
 
 def obstacle_meshes_numpy(model: Model, times: Sequence[float], transforms=None) -> list:
-    """Obstacles as ``(name, vertices, triangles)`` for :func:`warpcloth.usd.write_usd`.
-
-    A static obstacle's vertices are (M, 3) (at ``times[0]``); a moving one's are (F, M, 3), one per entry of
-    ``times`` [s]. Triangles (K, 3) index the obstacle's own vertices. ``transforms`` as in
-    :func:`obstacle_points_numpy`. A model without obstacles gives an empty list.
-    """
+    """``(name, vertices, triangles)`` per obstacle for :func:`warpcloth.usd.write_usd`: vertices (M, 3) at ``times[0]``
+    if static, else (F, M, 3) at ``times`` [s], indexed locally; ``transforms`` as in :func:`obstacle_points_numpy`."""
     if model.obstacle_count == 0:
         return []
     times = [float(t) for t in times]
@@ -210,30 +178,15 @@ def obstacle_meshes_numpy(model: Model, times: Sequence[float], transforms=None)
 
 def obstacle_points(model: Model, control: Control, t: float, out: wp.array | None = None, *,
                     motion: wp.array | None = None) -> wp.array:
-    """World positions of all obstacle vertices at time ``t`` [s], computed on the model's device.
-
-    ``x = motion(t) * (control.obstacle_transform[body] * local)``. The launch is recorded on an active ``wp.Tape``
-    like any other, so gradients flow to ``control.obstacle_transform`` (position and quaternion components) and
-    to ``model.obstacle_vertex_local`` when they require them. The motions are evaluated on the host; they get no
-    gradient.
+    """World positions [m] (obstacle_vertex_count,) vec3 at time ``t`` [s] on the model's device,
+    ``motion(t) * (control.obstacle_transform[body] * local)``, taped to both factors.
 
     Args:
-        model: a model with obstacles.
-        control: supplies ``obstacle_transform``, the base placements.
-        t: time [s] at which the scripted motions are evaluated.
-        out: optional output array, (obstacle_vertex_count,) vec3 of the model's scalar type, on its device.
-            A new array (with a gradient when the inputs have one) when None. Do not reuse one array for two
-            times while a tape records.
-        motion: the motions at ``t`` as made by :func:`obstacle_motion` (default: made now). A step captured as a
-            graph passes one made before the capture: an array made inside it from host values would be filled from
-            host memory at every replay, long after that memory is gone.
-
-    Returns:
-        The positions [m], shape (obstacle_vertex_count,) vec3.
+        out: the output array, or None for a new one; not one array for two times on a tape.
+        motion: :func:`obstacle_motion` at ``t`` (default: made now; a captured graph needs one made before).
 
     Raises:
-        ValueError: when the model has no obstacles, the control has no ``obstacle_transform`` of the right size, or
-            ``out`` has the wrong shape, dtype or device.
+        ValueError: no obstacles, no ``obstacle_transform`` of the right size, or a wrong ``out``.
     """
     _require_obstacles(model, "obstacle_points")
     t_ = model.types

@@ -1,9 +1,4 @@
-"""Where output goes: one rule for every output path, checked before any work starts.
-
-A path must end in one of its kind's suffixes and must not be an existing directory; missing parent directories are
-created. An existing file of the right kind is overwritten. The CLI checks all its output flags this way before it
-simulates anything, so a long run is never lost to a bad path at its end.
-"""
+"""Output paths, checked before any work starts: a suffix of their kind, not a directory; parents created."""
 
 from __future__ import annotations
 
@@ -21,19 +16,8 @@ PREVIEW_SUFFIXES = (".gif", ".mp4", ".png")
 
 
 def prepare_output_path(path: str | os.PathLike, what: str, suffixes: tuple[str, ...]) -> Path:
-    """Check an output path and create its missing parent directories.
-
-    Args:
-        path: the file to write.
-        what: how to name it in an error (a CLI flag such as ``"--usd"``, or a function's name).
-        suffixes: accepted file name endings (lower case).
-
-    Returns:
-        The path as a ``Path``.
-
-    Raises:
-        ValueError: a suffix not in ``suffixes``, an existing directory, or a parent that is a file.
-    """
+    """``path`` as a Path, its missing parents created; ValueError naming ``what`` (a flag or function) for a suffix
+    not in ``suffixes`` (lower case), an existing directory, or a parent that is a file."""
     p = Path(path)
     if p.is_dir():
         raise ValueError(f"{what} {str(path)!r} is a directory; give a file name ending in {' or '.join(suffixes)}")
@@ -47,8 +31,8 @@ def prepare_output_path(path: str | os.PathLike, what: str, suffixes: tuple[str,
 
 
 def check_frames(frames, what: str) -> list[np.ndarray]:
-    """``frames`` (a sequence of (N, 3) positions) as float64 arrays; ValueError naming ``what``, the frame and the
-    vertex where one is empty, of another shape or not finite (USD and preview output)."""
+    """``frames`` ((N, 3) positions each) as float64 arrays; ValueError naming ``what``, frame and vertex for an
+    empty list, another shape or a non-finite value."""
     frames = [np.asarray(f, dtype=np.float64) for f in frames]
     if not frames:
         raise ValueError(f"{what}: frames is empty")

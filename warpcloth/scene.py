@@ -1,129 +1,6 @@
-"""Scenes: small TOML files that describe one cloth, its material, handles, pins, forces, obstacles and collisions.
-
-Schema (every key is checked: an unknown key or a wrong type is a ``ValueError`` naming the key path)::
-
-    name = "hanging-wind"              # required
-    description = "..."                # optional
-    gravity = [0.0, 0.0, -9.8]         # optional [m/s^2], default (0, 0, -9.8); Z is up
-
-    [sim]                              # required
-    dt = 0.02                          # time step [s], > 0
-    steps = 50                         # number of steps, >= 1
-
-    [solver]                           # optional: fields of warpcloth.solver.SolverOptions
-    preset = "balanced"                # optional: start from a preset (warpcloth.solver.presets; its max_dt must not
-                                       #   be below sim.dt); the other keys override single fields
-    cg_tol = 1e-5
-    collision = { rounds = 50 }        # optional: fields of warpcloth.solver.CollisionOptions
-
-    [cloth]                            # required; exactly one of grid / mesh
-    grid = { res = [16, 16], size = [1.0, 1.0] }    # cells, metres; corner at the origin, in the local XY plane
-    # mesh = "cloth.obj"  or  mesh = { path = "cloth.obj", scale = 1.0 }   # .obj/.usd*, relative to the scene file
-    rot_deg = [90.0, 0.0, 90.0]        # optional rotation, degrees about world X, then Y, then Z (R = Rz Ry Rx)
-    pos = [0.0, -0.5, -0.5]            # optional translation [m], applied after the rotation
-    vel = [0.0, 0.0, 0.0]              # optional initial velocity [m/s]
-    material = "gray-interlock"        # a preset name, or a table (below)
-    thicken = 2.0                      # optional, default 1 (ARCSim's thicken; the seed demos use 2)
-
-    # material tables:
-    #   { mean = ["gray-interlock", "11oz-black-denim"] }                    element-wise mean of presets
-    #   { file = "mat.json", stretching_mult = 1.0, bending_mult = 1.0 }     ARCSim JSON (relative to the scene)
-    #   { density = 0.2, stretching = [[...] x6], bending = [[...] x3] }    raw tables (see warpcloth.materials)
-    #   { density = 0.2, stretch_stiffness = 50.0, shear_stiffness = 10.0,
-    #     poisson_coupling = 0.0, bend_stiffness = 1e-5 }                    Material.isotropic
-
-    [[handles]]                        # soft penalty springs; any number
-    grid_vertex = [0, -1]              # selector, exactly one of: particle = i | grid_vertex = [i, j] |
-                                       #   grid_row = j | grid_column = i   (grid_* need a grid cloth;
-                                       #   negative values count from the end, as in Python)
-    stiffness = 1000.0                 # optional [N/m], default 1e3 (ARCSim)
-    motion = [[0.0, [0, 0, 0]], [1.0, [0, 0, 0.2]]]   # optional keyframes (time [s], offset [m])
-
-    [[pins]]                           # hard pins; same selectors and motion, no stiffness
-    particle = 0
-
-    [wind]                             # optional
-    velocity = [5.0, 0.0, 0.0]         # [m/s], required in the table
-    density = 1.0                      # optional, default 1 (ARCSim)
-    drag = 0.0                         # optional, default 0
-
-    [damping]                          # optional Rayleigh damping
-    mass = 0.0                         # alpha [1/s]
-    stiffness = 0.0                    # beta [s]
-
-    [[obstacles]]                      # rigid obstacles; any number; each turns on cloth-obstacle collisions
-    shape = "sphere"                   # exactly one of shape / mesh; shape parameters by shape:
-    radius = 0.3                       #   "plane":  size = [sx, sy] (default [1, 1]), res = [nx, ny] (default [1, 1])
-    subdivisions = 3                   #   "box":    half_extents = [hx, hy, hz] (required)
-                                       #   "sphere": radius (required), subdivisions (default 3)
-                                       #   "funnel": none (the seed's contain.obj)
-    # mesh = "bowl.obj"  or  mesh = { path = "bowl.usda", scale = 1.0, prim_path = "/World/Bowl" }
-    #                                  # .obj/.usd*, relative to the scene file; prim_path only for USD
-    name = "ball"                      # optional, a valid USD identifier, unique; default "obstacle<k>"
-    rot_deg = [0.0, 0.0, 0.0]          # optional base rotation, degrees, as for the cloth (R = Rz Ry Rx)
-    pos = [0.0, 0.0, 0.0]              # optional base position [m], applied after the rotation
-    motion = [[0.0, [0, 0, 0], [0, 0, 0, 1]], [1.0, [0, 0, 0.1], [0, 0, 0, 1]]]
-                                       # optional rigid keyframes [time [s], translation [m], quaternion (x,y,z,w)],
-                                       #   applied on top of the base placement (warpcloth.obstacles)
-
-    [collision]                        # optional
-    self_collision = false             # cloth-cloth collisions, default false
-    thickness = 5e-4                   # impact-zone collision thickness [m], > 0, default 5e-4
-    repulsion_thickness = 5e-3         # proximity repulsion thickness [m], > 0, default 5e-3 (ARCSim)
-    repulsion_stiffness = 1e6          # repulsion stiffness per m^2 of rest area [N/m^3], >= 0 (0: off)
-    friction = 0.6                     # cloth-cloth Coulomb friction, >= 0
-    obstacle_friction = 0.3            # cloth-obstacle Coulomb friction, >= 0
-
-A scene may carry its task, run by ``warpcloth control SCENE`` / ``warpcloth estimate SCENE`` (and
-``ControlTask.from_scene`` / ``EstimationTask.from_scene`` in ``warpcloth.tasks``)::
-
-    [control]                          # optional: find pushes that move the cloth where the loss says
-    grid_vertices = [[0, 0], [-1, 0]]  # the pushed particles, exactly one of: particles = [i, ...] |
-                                       #   grid_vertices = [[i, j], ...] (a grid cloth; negative values from the end)
-    interval = 1.0                     # [s] per push, a whole number of sim.dt steps
-    intervals = 3                      # pushes per particle: the first intervals * interval seconds are controlled
-    steps = 700                        # optional horizon [steps], default sim.steps
-    loss = { com = [0.0, 0.0, -0.7] }  # 1/2 |centre of mass - com|^2 (mass-weighted) at the horizon [m^2], or
-                                       #   { positions = "target.obj" }: 1/2 mean_i |x_i - target_i|^2, an OBJ with
-                                       #   the cloth's vertex count, in world coordinates (relative to the scene file)
-    regularizer = 0.0                  # optional: adds regularizer * 1/2 |pushes|^2 [pushes in m/s^2]
-    controller = "open-loop"           # optional: "open-loop" (default) or "mlp" (a PyTorch MLP of the state)
-    optimizer = "gauss-newton"         # optional: "gauss-newton" (default with com; for the MLP, without a
-                                       #   regularizer), else "lbfgs" (open loop) or "adam" (MLP); open loop, a
-                                       #   global search over worlds: "multistart" (local runs from random starts in
-                                       #   lockstep), "cmaes" (CMA-ES, then the local default) or "smoothed" (Adam
-                                       #   on the Gaussian-smoothed loss, then the local default); see search
-    iters = 50                         # optional: simulations spent (default 50 open-loop, 100 mlp)
-    search = { population = 8, sigma = 5.0, seed = 0 }
-                                       # optional, with a global search, every key optional: multistart: starts
-                                       #   (8) and their spread [m/s^2] (5); cmaes: points per generation (one
-                                       #   simulation each, run as worlds of one batch; default 4 + 3 ln n), initial
-                                       #   spread (5) and refine = simulations left to the local optimiser (a fifth
-                                       #   of iters); smoothed: copies a step (8), their spread (5), refine
-                                       #   as cmaes's; random seed (0)
-    warm_start = 20                    # optional, the MLP only: first optimise the pushes themselves with this many
-                                       #   simulations and fit the network's output layer to them (default 0: none)
-
-    [estimate]                         # optional: fit the cloth's material to a trajectory
-    targets = "frames"                 # optional: a directory of OBJ frames (frame 0 = the start), relative to the
-                                       #   scene file; default: the scene simulated with cloth.material (a known truth)
-    frame_stride = 2                   # optional: steps per target frame, default 1
-    steps = 50                         # optional: steps compared, default sim.steps
-    start = "gray-interlock"           # optional material (the forms above); default the mean of 8 fabrics (the seed's)
-    free = ["density", "stretching", "bending"]   # optional: what is fitted (default all); the rest stays at start
-    optimizer = "lbfgs"                # optional: "lbfgs" (default), "adam", "seed-sgd", or a global search with a
-                                       #   search table as [control]'s, sigma in the log-scale parameters' units:
-                                       #   "cmaes" (then L-BFGS; sigma 0.5), "multistart" (L-BFGS runs, one after
-                                       #   another; sigma 0.5) or "smoothed" (then L-BFGS; sigma 0.05)
-    iters = 100                        # optional: forward + backward evaluations, default 100
-
-A push is a constant force ``(M / k) p`` on each of the k pushed particles over its interval (M the cloth's mass),
-so ``p`` [m/s^2] is the acceleration k equal pushes give the whole cloth.
-
-A ``grid_row``/``grid_column`` selector adds one handle (or pin) per vertex of that row/column, all with the same
-stiffness and motion. Particle indices are those of the cloth (the scene's only one). Embedded scenes live in
-``warpcloth/scenes/*.toml``; their names are :data:`SCENE_NAMES`.
-"""
+"""Scenes: TOML files that describe one cloth, its material, handles, pins, forces, obstacles and collisions, and may
+carry a task (:mod:`warpcloth.tasks.specs`); the embedded ones are ``warpcloth/scenes/*.toml``. Every key is checked;
+the schema, with units and defaults: docs/concepts/scenes-and-tasks.md, "The schema"."""
 
 from __future__ import annotations
 
@@ -141,11 +18,27 @@ import numpy as np
 
 from warpcloth import materials as _materials
 from warpcloth import mesh_io
+from warpcloth._toml_fields import (
+    _check_keys,
+    _Context,
+    _err,
+    _existing_file,
+    _float,
+    _grid_index,
+    _grid_vertex,
+    _int,
+    _parse_material,
+    _SceneError,
+    _str,
+    _table,
+    _type_name,
+    _vector,
+)
 from warpcloth.builder import DEFAULT_HANDLE_STIFFNESS
 from warpcloth.geometry.transforms import QUAT_UNIT_TOL
+from warpcloth.tasks.specs import ControlSpec, EstimateSpec, parse_control, parse_estimate
 
-__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "ControlSpec", "EstimateSpec", "Scene", "SearchSpec", "load_scene",
-           "scene_from_toml"]
+__all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "Scene", "load_scene", "scene_from_toml"]
 
 DEFAULT_SCENE = "hanging-wind"
 """The scene ``warpcloth simulate`` runs when none is named."""
@@ -159,115 +52,18 @@ _DEFAULT_GRAVITY = (0.0, 0.0, -9.8)
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 
 
-@dataclass(frozen=True)
-class SearchSpec:
-    """A global search's settings (a ``search`` table in ``[control]`` or ``[estimate]``). A control task's search
-    simulates its candidates as worlds of one batch; an estimation's one after another (``estimate_material(...,
-    batch=True)`` batches them: slower on the CPU). ``optimizer = "cmaes"``: CMA-ES over the task's parameters (its
-    generations forward only), then the task's local optimiser from the best point found
-    (``warpcloth.tasks.optim.cmaes``). ``optimizer = "multistart"``: local runs from random starts (in lockstep when
-    batched). ``optimizer = "smoothed"``: Adam on the Gaussian-smoothed loss
-    (``warpcloth.tasks.optim.smoothed_descent``), then the local optimiser.
-
-    Attributes:
-        population: CMA-ES's points per generation, each one simulation (default 4 + floor(3 ln n), n parameters);
-            the multistart's starts (default 8); the smoothed search's copies a step (default 8, even).
-        sigma: CMA-ES's initial standard deviation, the multistart's spread of starts, the smoothing's, in the
-            parameters' units (default: the task's; for control, pushes 5 m/s^2, also smoothed; for estimation, 0.5
-            of the material's log-scale parameters and 0.05 smoothed).
-        refine: CMA-ES and the smoothed search: simulations left to the local optimiser (default a fifth of the
-            budget).
-        seed: Seed of the search's random numbers.
-    """
-
-    population: int | None = None
-    sigma: float | None = None
-    refine: int | None = None
-    seed: int = 0
-
-
-@dataclass
-class ControlSpec:
-    """A scene's ``[control]`` table, checked (``warpcloth.tasks.control.ControlTask.from_scene`` runs it).
-
-    Attributes:
-        particles: The pushed particles (model indices), in the order of the pushes.
-        interval_steps: Steps per push: each particle gets one push (a constant acceleration [m/s^2]) per interval.
-        intervals: Pushes per particle; the first ``intervals * interval_steps`` steps are controlled.
-        steps: The horizon [steps].
-        target_com: The centre of mass's target [m], or None.
-        target_positions: Every particle's target position [m] (particle_count, 3), or None; exactly one of the two.
-        regularizer: Weight of ``1/2 |pushes|^2`` in the loss.
-        controller: ``"open-loop"`` or ``"mlp"``.
-        optimizer: The controller's optimiser (``CONTROL_OPTIMIZERS``): ``"gauss-newton"`` (a centre-of-mass target
-            only; for the MLP, without a regulariser), ``"lbfgs"`` (open loop), ``"multistart"``, ``"cmaes"`` or
-            ``"smoothed"`` (open loop: global searches, the last two then the local default) or ``"adam"`` (MLP).
-        iters: Simulations the optimisation may spend.
-        search: The global stage's settings (``optimizer = "multistart"``, ``"cmaes"`` or ``"smoothed"``).
-        warm_start: The MLP's warm start: simulations of the open-loop optimisation it is first fitted to (0: none).
-    """
-
-    particles: tuple[int, ...]
-    interval_steps: int
-    intervals: int
-    steps: int
-    target_com: tuple[float, float, float] | None
-    target_positions: np.ndarray | None
-    regularizer: float
-    controller: str
-    optimizer: str
-    iters: int
-    search: SearchSpec = SearchSpec()
-    warm_start: int = 0
-
-
-@dataclass
-class EstimateSpec:
-    """A scene's ``[estimate]`` table, checked (``warpcloth.tasks.estimation.EstimationTask.from_scene`` runs it).
-
-    Attributes:
-        targets: The target frames (particle_count, 3) [m], frame 0 the start; None: the scene simulated with its own
-            cloth material (a known truth).
-        targets_source: Where the targets came from (the directory), or None.
-        frame_stride: Steps per target frame.
-        steps: Steps compared.
-        start: The material the fit starts from.
-        free: The material parameters fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others stay at
-            ``start``'s.
-        optimizer: ``"lbfgs"``, ``"adam"``, ``"seed-sgd"`` or ``"cmaes"`` (global search, then L-BFGS).
-        iters: Forward + backward evaluations (a global search's forward-only simulations count one each).
-        search: The global stage's settings (``optimizer = "cmaes"``).
-    """
-
-    targets: list[np.ndarray] | None
-    targets_source: str | None
-    frame_stride: int
-    steps: int
-    start: _materials.Material
-    free: tuple[str, ...]
-    optimizer: str
-    iters: int
-    search: SearchSpec = SearchSpec()
-
-
 @dataclass
 class Scene:
     """A loaded scene: its builder (already holding the cloth, handles and forces) and run settings.
 
     Attributes:
-        name: Scene name.
-        description: One-line description.
         dt: Time step [s].
-        steps: Number of steps to simulate.
-        model_builder: A ``ModelBuilder`` with everything added; ``build`` finalises it.
-        solver_options: ``SolverOptions`` for the simulator.
+        steps: Steps to simulate.
+        model_builder: A ``ModelBuilder`` with everything added; :meth:`build` finalises it.
         source: Where the scene came from (file path, or ``embedded:<name>``).
-        grid_res: (cells_x, cells_y) of a grid cloth, else None; grid vertex (i, j) is particle
-            ``j * (cells_x + 1) + i``.
-        max_dt: the solver preset's time-step ceiling [s], else None (:meth:`set_dt` keeps to it).
-        cloth_material: The cloth's material.
-        control: The scene's control task (its ``[control]`` table), else None.
-        estimate: The scene's estimation task (its ``[estimate]`` table), else None.
+        grid_res: (cells_x, cells_y) of a grid cloth, else None; vertex (i, j) is particle ``j * (cells_x + 1) + i``.
+        max_dt: The solver preset's time-step ceiling [s], else None (:meth:`set_dt` keeps to it).
+        control: The checked ``[control]`` table, else None; ``estimate`` likewise.
     """
 
     name: str
@@ -287,8 +83,7 @@ class Scene:
     """Most memory the frames of one ``warpcloth simulate`` run may take (they are kept until the USD is written)."""
 
     def set_dt(self, dt: float) -> None:
-        """Change the time step; raises ValueError for a dt that is not finite and > 0, or above the preset's
-        ceiling (the one the scene file's own sim.dt is held to)."""
+        """Change the time step; ValueError for a dt not finite and > 0, or above the preset's ceiling ``max_dt``."""
         if not (isinstance(dt, (int, float)) and 0.0 < dt < math.inf):
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
         if self.max_dt is not None and dt > self.max_dt * (1.0 + 1e-9):
@@ -312,16 +107,7 @@ class Scene:
         return tuple(k for k in ("control", "estimate") if getattr(self, k) is not None)
 
     def build(self, device=None, requires_grad: bool = False, dtype=None):
-        """Finalises the model and creates its simulator.
-
-        Args:
-            device: Warp device; Warp's default when None.
-            requires_grad: Allocate gradient arrays in the model.
-            dtype: ``wp.float32`` (default) or ``wp.float64``.
-
-        Returns:
-            ``(model, sim)``: the ``Model`` and a ``Simulator`` with this scene's ``dt`` and solver options.
-        """
+        """``(model, sim)``: :meth:`finalize`'s model and a ``Simulator`` with the scene's ``dt`` and solver options."""
         from warpcloth.solver.simulator import Simulator
 
         model = self.finalize(device=device, requires_grad=requires_grad, dtype=dtype)
@@ -330,17 +116,14 @@ class Scene:
 
 
     def finalize(self, device=None, requires_grad: bool = False, dtype=None):
-        """The scene's ``Model`` (``ModelBuilder.finalize``; float32 when ``dtype`` is None)."""
+        """The scene's ``Model`` on ``device`` (Warp's default when None), in ``dtype`` (None: ``wp.float32``)."""
         if dtype is None:
             return self.model_builder.finalize(device=device, requires_grad=requires_grad)
         return self.model_builder.finalize(device=device, requires_grad=requires_grad, dtype=dtype)
 
 
 def load_scene(name_or_path: str | os.PathLike) -> Scene:
-    """Loads an embedded scene by name, or a scene file by path.
-
-    Args:
-        name_or_path: One of :data:`SCENE_NAMES`, or a path to a ``.toml`` file.
+    """Loads an embedded scene by name (one of :data:`SCENE_NAMES`), or a ``.toml`` scene file by path.
 
     Raises:
         ValueError: for an unknown name (listing the embedded ones) or an invalid scene (naming the key path).
@@ -361,10 +144,9 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
 
 
 def scene_from_toml(text: str, *, source: str = "<string>", base_dir: str | os.PathLike | None = None) -> Scene:
-    """Parses a scene from TOML text (schema in this module's docstring).
+    """Parses a scene from TOML text (schema: docs/concepts/scenes-and-tasks.md).
 
     Args:
-        text: TOML document.
         source: Name used in error messages.
         base_dir: Directory against which relative mesh and material paths are resolved (the current directory
             when None).
@@ -384,70 +166,7 @@ def scene_from_toml(text: str, *, source: str = "<string>", base_dir: str | os.P
 
 
 # ----------------------------------------------------------------------------------------------------------------------
-# Parsing helpers. Each takes the key path of the value it checks, so every error names it.
-
-
-class _SceneError(ValueError):
-    pass
-
-
-def _err(path: str, message: str) -> _SceneError:
-    return _SceneError(f"{path}: {message}" if path else message)
-
-
-def _type_name(value: Any) -> str:
-    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array", dict: "table"}.get(
-        type(value), type(value).__name__
-    )
-
-
-def _table(value: Any, path: str) -> dict:
-    if not isinstance(value, dict):
-        raise _err(path, f"expected a table, got {_type_name(value)}")
-    return value
-
-
-def _check_keys(table: dict, path: str, allowed: tuple[str, ...], required: tuple[str, ...] = ()) -> None:
-    for key in table:
-        if key not in allowed:
-            full = f"{path}.{key}" if path else key
-            raise _err(full, f"unknown key; allowed here: {', '.join(allowed)}")
-    for key in required:
-        if key not in table:
-            full = f"{path}.{key}" if path else key
-            raise _err(full, "missing required key")
-
-
-def _float(value: Any, path: str, *, min_value: float | None = None, strict: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise _err(path, f"expected a number, got {_type_name(value)}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise _err(path, f"must be finite, got {x}")
-    if min_value is not None and (x < min_value or (strict and x == min_value)):
-        raise _err(path, f"must be {'>' if strict else '>='} {min_value}, got {x}")
-    return x
-
-
-def _int(value: Any, path: str, *, min_value: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise _err(path, f"expected an integer, got {_type_name(value)}")
-    if min_value is not None and value < min_value:
-        raise _err(path, f"must be >= {min_value}, got {value}")
-    return value
-
-
-def _str(value: Any, path: str) -> str:
-    if not isinstance(value, str):
-        raise _err(path, f"expected a string, got {_type_name(value)}")
-    return value
-
-
-def _vector(value: Any, path: str, n: int = 3) -> tuple[float, ...]:
-    if not isinstance(value, list) or len(value) != n:
-        got = f"an array of {len(value)}" if isinstance(value, list) else _type_name(value)
-        raise _err(path, f"expected an array of {n} numbers, got {got}")
-    return tuple(_float(v, f"{path}[{i}]") for i, v in enumerate(value))
+# Parsing. Each check takes the key path of the value it checks, so every error names it (warpcloth/_toml_fields.py).
 
 
 def _cos_sin_deg(angle: float) -> tuple[float, float]:
@@ -468,28 +187,6 @@ def _rotation_xyz_deg(angles: tuple[float, float, float]) -> np.ndarray:
     rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
     return rz @ ry @ rx
 
-
-def _existing_file(base_dir: Path, value: Any, key: str, context: str) -> Path:
-    """``base_dir / value`` (a string at ``key``), which must be a file: a ValueError under ``context`` otherwise."""
-    file = base_dir / _str(value, key)
-    if not file.is_file():
-        raise _err(context, f"file not found: {file}")
-    return file
-
-
-class _Context:
-    """Re-raises a ValueError from library code (materials, mesh loading, builder) under a key path."""
-
-    def __init__(self, path: str):
-        self.path = path
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is not None and issubclass(exc_type, ValueError) and not isinstance(exc, _SceneError):
-            raise _err(self.path, str(exc)) from None
-        return False
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -574,10 +271,10 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
 
     control = estimate = None
     if "control" in data:
-        control = _parse_control(_table(data["control"], "control"), dt, steps, first, count, grid_res, attached,
-                                 base_dir)
+        control = parse_control(_table(data["control"], "control"), dt, steps, first, count, grid_res, attached,
+                                base_dir)
     if "estimate" in data:
-        estimate = _parse_estimate(_table(data["estimate"], "estimate"), steps, count, cloth_material, base_dir)
+        estimate = parse_estimate(_table(data["estimate"], "estimate"), steps, count, cloth_material, base_dir)
 
     return Scene(
         name=name,
@@ -704,78 +401,8 @@ def _parse_cloth(builder, cloth: dict, base_dir: Path):
     return first, grid_res, builder.particle_count - before, material
 
 
-_MATERIAL_FORMS = (
-    "a preset name",
-    "{ mean = [names] }",
-    "{ file = ..., stretching_mult, bending_mult }",
-    "{ density, stretching, bending }",
-    "{ density, stretch_stiffness, shear_stiffness, poisson_coupling, bend_stiffness }",
-)
-
-
-def _parse_material(value: Any, path: str, thicken: float, base_dir: Path) -> _materials.Material:
-    if isinstance(value, str):
-        with _Context(path):
-            return _materials.preset(value, thicken=thicken)
-    table = _table(value, path) if isinstance(value, dict) else None
-    if table is None:
-        raise _err(path, f"expected a string or a table, got {_type_name(value)}")
-    if "file" in table:
-        _check_keys(table, path, ("file", "stretching_mult", "bending_mult"))
-        file = _existing_file(base_dir, table["file"], f"{path}.file", path)
-        smult = _float(table.get("stretching_mult", 1.0), f"{path}.stretching_mult", min_value=0.0)
-        bmult = _float(table.get("bending_mult", 1.0), f"{path}.bending_mult", min_value=0.0)
-        with _Context(path):
-            return _materials.load_material_json(file, stretching_mult=smult, bending_mult=bmult, thicken=thicken)
-    if "mean" in table:
-        _check_keys(table, path, ("mean",))
-        names = table["mean"]
-        if not isinstance(names, list) or not names:
-            raise _err(f"{path}.mean", "expected a non-empty array of preset names")
-        names = [_str(n, f"{path}.mean[{i}]") for i, n in enumerate(names)]
-        with _Context(f"{path}.mean"):
-            return _materials.mean_material(names, thicken=thicken)
-    if "stretching" in table or "bending" in table:
-        required = ("density", "stretching", "bending")
-        _check_keys(table, path, required + ("name",), required=required)
-        density = _float(table["density"], f"{path}.density")
-        tables = {}
-        for key, shape in (("stretching", _materials.STRETCHING_SHAPE), ("bending", _materials.BENDING_SHAPE)):
-            rows = table[key]
-            if not isinstance(rows, list) or len(rows) != shape[0]:
-                raise _err(f"{path}.{key}", f"expected {shape[0]} rows of {shape[1]} numbers")
-            tables[key] = [_vector(r, f"{path}.{key}[{i}]", shape[1]) for i, r in enumerate(rows)]
-        name = _str(table.get("name", "custom"), f"{path}.name")
-        with _Context(path):
-            return _materials.Material(density=density, thicken=thicken, name=name, **tables)
-    if "stretch_stiffness" in table:
-        keys = ("density", "stretch_stiffness", "shear_stiffness", "poisson_coupling", "bend_stiffness", "name")
-        _check_keys(table, path, keys, required=("density", "stretch_stiffness", "shear_stiffness", "bend_stiffness"))
-        kwargs = {k: _float(table[k], f"{path}.{k}") for k in keys[:-1] if k in table}
-        name = _str(table.get("name", "isotropic"), f"{path}.name")
-        with _Context(path):
-            return _materials.Material.isotropic(thicken=thicken, name=name, **kwargs)
-    raise _err(path, "unrecognised material table; use one of: " + "; ".join(_MATERIAL_FORMS))
-
 
 _SELECTORS = ("particle", "grid_vertex", "grid_row", "grid_column")
-
-
-def _grid_index(value: int, extent: int, path: str) -> int:
-    """Python-style index into 0..extent-1."""
-    if not -extent <= value < extent:
-        raise _err(path, f"index {value} out of range for {extent} vertices")
-    return value % extent
-
-
-def _grid_vertex(value: Any, path: str, grid_res: tuple[int, int]) -> int:
-    """The particle of grid vertex ``[i, j]`` (Python-style indices)."""
-    if not isinstance(value, list) or len(value) != 2:
-        raise _err(path, f"expected an array of 2 integers [i, j], got {_type_name(value)}")
-    nx, ny = grid_res[0] + 1, grid_res[1] + 1
-    i = _grid_index(_int(value[0], f"{path}[0]"), nx, f"{path}[0]")
-    j = _grid_index(_int(value[1], f"{path}[1]"), ny, f"{path}[1]")
-    return j * nx + i
 
 
 def _parse_attachment(
@@ -948,200 +575,3 @@ def _parse_rigid_motion(value: Any, path: str) -> list:
             )
         keys.append((t, _vector(key[1], f"{kp}[1]"), q))
     return keys
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# Tasks: [control] and [estimate]. Each names its run's choices; the task modules (warpcloth.tasks) run them.
-
-CONTROLLERS = ("open-loop", "mlp")
-"""Controllers of a ``[control]`` task."""
-CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes", "smoothed"),
-                      "mlp": ("gauss-newton", "adam")}
-GLOBAL_OPTIMIZERS = ("multistart", "cmaes", "smoothed")
-"""The optimisers that take a ``search`` table."""
-"""Optimisers of each controller of a ``[control]`` task (Gauss-Newton needs a centre-of-mass target, and for the MLP
-no regulariser)."""
-
-
-def default_control_optimizer(controller: str, target_com, regularizer: float) -> str:
-    """A controller's optimiser where a task names none: Gauss-Newton where it applies, else L-BFGS (open loop) or
-    Adam (MLP)."""
-    if target_com is not None and (controller == "open-loop" or not regularizer):
-        return "gauss-newton"
-    return "lbfgs" if controller == "open-loop" else "adam"
-
-
-def check_control_optimizer(optimizer: str, controller: str, target_com, regularizer: float) -> str | None:
-    """Why ``optimizer`` cannot run ``controller`` on this loss, or None where it can."""
-    if optimizer not in CONTROL_OPTIMIZERS[controller]:
-        return f"unknown value {optimizer!r}; one of: {', '.join(CONTROL_OPTIMIZERS[controller])}"
-    if optimizer == "gauss-newton" and target_com is None:
-        return ("gauss-newton fits a centre-of-mass target (control.loss.com); use "
-                f"{default_control_optimizer(controller, None, regularizer)} with target positions")
-    if optimizer == "gauss-newton" and controller == "mlp" and regularizer:
-        return "gauss-newton trains the MLP without a regulariser; use adam with control.regularizer"
-    return None
-
-
-ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd", "cmaes", "multistart", "smoothed")
-"""Optimisers of an ``[estimate]`` task."""
-MATERIAL_PARTS = ("density", "stretching", "bending")
-"""The parts of a material an ``[estimate]`` task may free."""
-
-
-def _choice(value: Any, path: str, choices: tuple[str, ...]) -> str:
-    value = _str(value, path)
-    if value not in choices:
-        raise _err(path, f"unknown value {value!r}; one of: {', '.join(choices)}")
-    return value
-
-
-def _steps_within(table: dict, path: str, sim_steps: int) -> int:
-    return _int(table.get("steps", sim_steps), f"{path}.steps", min_value=1)
-
-
-def _parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int, grid_res, attached: dict[int, str],
-                   base_dir: Path) -> ControlSpec:
-    keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "controller",
-            "optimizer", "iters", "search", "warm_start")
-    _check_keys(table, "control", keys, required=("interval", "intervals", "loss"))
-    if ("particles" in table) == ("grid_vertices" in table):
-        raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
-    key = "particles" if "particles" in table else "grid_vertices"
-    values = table[key]
-    if not isinstance(values, list) or not values:
-        raise _err(f"control.{key}", f"expected a non-empty array, got {_type_name(values)}")
-    particles = []
-    for k, value in enumerate(values):
-        item = f"control.{key}[{k}]"
-        if key == "particles":
-            p = _int(value, item, min_value=0)
-            if p >= count:
-                raise _err(item, f"particle {p} out of range: the cloth has {count} particles")
-        else:
-            if grid_res is None:
-                raise _err(f"control.{key}", "needs a grid cloth (cloth.grid)")
-            p = _grid_vertex(value, item, grid_res)
-        if p in particles:
-            raise _err(item, f"particle {p} is pushed twice")
-        if attached.get(p, "").startswith("pins"):
-            raise _err(item, f"particle {p} is pinned by {attached[p]}: a push on it would do nothing")
-        particles.append(p)
-
-    interval = _float(table["interval"], "control.interval", min_value=0.0, strict=True)
-    interval_steps = round(interval / dt)
-    if interval_steps < 1 or abs(interval_steps * dt - interval) > 1e-9 * interval:
-        raise _err("control.interval", f"{interval:g} s is not a whole number of sim.dt = {dt:g} s steps")
-    intervals = _int(table["intervals"], "control.intervals", min_value=1)
-    steps = _steps_within(table, "control", sim_steps)
-    if intervals * interval_steps > steps:
-        raise _err("control.intervals", f"{intervals} pushes of {interval_steps} steps outlast the horizon of "
-                                        f"{steps} steps")
-
-    loss = _table(table["loss"], "control.loss")
-    _check_keys(loss, "control.loss", ("com", "positions"))
-    if len(loss) != 1:
-        raise _err("control.loss", "give exactly one of 'com' (a centre-of-mass target [m]) and 'positions' (an OBJ "
-                                   "file of every particle's target)")
-    target_com = target_positions = None
-    if "com" in loss:
-        target_com = _vector(loss["com"], "control.loss.com")
-    else:
-        file = _existing_file(base_dir, loss["positions"], "control.loss.positions", "control.loss.positions")
-        with _Context("control.loss.positions"):
-            target_positions = mesh_io.load_obj(file, validate=False).positions
-        if len(target_positions) != count:
-            raise _err("control.loss.positions", f"{file.name} has {len(target_positions)} vertices, the cloth has "
-                                                 f"{count}")
-        if not np.all(np.isfinite(target_positions)):
-            raise _err("control.loss.positions", f"{file.name} has non-finite positions")
-    regularizer = _float(table.get("regularizer", 0.0), "control.regularizer", min_value=0.0)
-    controller = _choice(table.get("controller", "open-loop"), "control.controller", CONTROLLERS)
-    optimizer = _str(table.get("optimizer", default_control_optimizer(controller, target_com, regularizer)),
-                     "control.optimizer")
-    problem = check_control_optimizer(optimizer, controller, target_com, regularizer)
-    if problem:
-        raise _err("control.optimizer", problem)
-    iters = _int(table.get("iters", 50 if controller == "open-loop" else 100), "control.iters", min_value=1)
-    search = _parse_search(table, "control", optimizer, iters)
-    warm_start = 0
-    if "warm_start" in table:
-        if controller != "mlp":
-            raise _err("control.warm_start", f"warm-starts the MLP controller, not {controller!r}")
-        warm_start = _int(table["warm_start"], "control.warm_start", min_value=0)
-        if warm_start >= iters:
-            raise _err("control.warm_start", f"{warm_start} simulations leave nothing of control.iters = {iters} to "
-                                             "the MLP")
-    return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
-                       intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,
-                       regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters, search=search,
-                       warm_start=warm_start)
-
-
-def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchSpec:
-    """The ``search`` table of a ``[control]`` or ``[estimate]`` task (only with ``optimizer = "cmaes"``)."""
-    if "search" not in table:
-        return SearchSpec()
-    if optimizer not in GLOBAL_OPTIMIZERS:
-        raise _err(f"{path}.search", f"configures a global search ({' or '.join(GLOBAL_OPTIMIZERS)}), not optimizer = "
-                                     f"{optimizer!r}")
-    search = _table(table["search"], f"{path}.search")
-    refine_key = ("refine",) if optimizer != "multistart" else ()  # the multistart has no local stage of its own
-    _check_keys(search, f"{path}.search", ("population", "sigma", "seed") + refine_key)
-    population = sigma = refine = None
-    if "population" in search:
-        population = _int(search["population"], f"{path}.search.population", min_value=2)
-        if optimizer == "multistart" and population > iters:
-            raise _err(f"{path}.search.population", f"{population} starts for {path}.iters = {iters} simulations: "
-                                                    "each start needs one at least")
-    if "sigma" in search:
-        sigma = _float(search["sigma"], f"{path}.search.sigma", min_value=0.0, strict=True)
-    if "refine" in search:
-        refine = _int(search["refine"], f"{path}.search.refine", min_value=0)
-        if refine >= iters:
-            raise _err(f"{path}.search.refine", f"{refine} simulations leave nothing of {path}.iters = {iters} to "
-                                                "the global search")
-    seed = _int(search.get("seed", 0), f"{path}.search.seed", min_value=0)
-    return SearchSpec(population=population, sigma=sigma, refine=refine, seed=seed)
-
-
-def _parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _materials.Material,
-                    base_dir: Path) -> EstimateSpec:
-    keys = ("targets", "frame_stride", "steps", "start", "free", "optimizer", "iters", "search")
-    _check_keys(table, "estimate", keys)
-    frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
-    steps = _steps_within(table, "estimate", sim_steps)
-    if steps % frame_stride:
-        raise _err("estimate.frame_stride", f"the {steps} steps compared are not a whole number of frames of "
-                                            f"{frame_stride} steps")
-    targets = source = None
-    if "targets" in table:
-        directory = base_dir / _str(table["targets"], "estimate.targets")
-        with _Context("estimate.targets"):
-            targets = mesh_io.load_obj_sequence(mesh_io.obj_sequence_files(directory))
-        source = str(directory)
-        if targets[0].shape[0] != count:
-            raise _err("estimate.targets", f"its frames have {targets[0].shape[0]} vertices, the cloth has {count}")
-        need = steps // frame_stride + 1
-        if len(targets) < need:
-            raise _err("estimate.targets", f"{steps} steps compare {need} frames (frame 0 included) every "
-                                           f"{frame_stride} steps, but {directory} holds {len(targets)}")
-    thicken = cloth_material.thicken
-    if "start" in table:
-        start = _parse_material(table["start"], "estimate.start", thicken, base_dir)
-    else:  # the seed's start: the mean of 8 measured fabrics
-        start = _materials.mean_material(_materials.SEED_INITIAL_GUESS_NAMES, thicken=thicken)
-    free = table.get("free", list(MATERIAL_PARTS))
-    if not isinstance(free, list) or not free:
-        raise _err("estimate.free", f"expected a non-empty array of {', '.join(MATERIAL_PARTS)}")
-    free = tuple(_choice(v, f"estimate.free[{k}]", MATERIAL_PARTS) for k, v in enumerate(free))
-    if len(set(free)) != len(free):
-        k = next(k for k in range(len(free)) if free[k] in free[:k])
-        raise _err(f"estimate.free[{k}]", f"names {free[k]!r} a second time")
-    optimizer = _choice(table.get("optimizer", "lbfgs"), "estimate.optimizer", ESTIMATION_OPTIMIZERS)
-    if optimizer == "seed-sgd" and set(free) != set(MATERIAL_PARTS):
-        raise _err("estimate.optimizer", "seed-sgd fits the whole material; use lbfgs or adam to free only some of it")
-    iters = _int(table.get("iters", 100), "estimate.iters", min_value=1)
-    search = _parse_search(table, "estimate", optimizer, iters)
-    return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
-                        free=free, optimizer=optimizer, iters=iters, search=search)

@@ -1,5 +1,4 @@
-"""The one place that touches Warp's internals: its tape, its CPU allocator, and the memory operations a CPU graph
-capture records."""
+"""The one place that touches Warp's internals: its tape, its CPU allocator and CPU captures' memory operations."""
 
 import ctypes
 import gc
@@ -23,8 +22,7 @@ def record_adjoint(backward, *, arrays) -> None:
 
 @contextmanager
 def untaped():
-    """Launches inside are not recorded on the active tape (library code that launches its own kernels without a
-    ``record_tape`` flag, such as ``warp.optim.linear.cg``, whose adjoint the caller records by hand)."""
+    """Launches inside are not recorded on the active tape (for library code such as ``warp.optim.linear.cg``)."""
     runtime = wp._src.context.runtime
     tape, runtime.tape = runtime.tape, None
     try:
@@ -35,10 +33,8 @@ def untaped():
 
 @contextmanager
 def paused_gc():
-    """Python's cyclic garbage collector off inside (as it was after). A rollout makes no reference cycles (one
-    evaluation of the throw left 0 unreachable objects), but a tape holds every step's arrays and launch records, and
-    each full collection walks all of them: on the throw's forward + backward (700 steps) the collector took 0.4 s
-    of 1.46 s (issue 37)."""
+    """Python's cyclic garbage collector off inside (as it was after): a tape's records are many objects, and
+    rollouts make no cycles. Why: docs/decisions.md, "Garbage collector paused during rollouts"."""
     enabled = gc.isenabled()
     gc.disable()
     try:
@@ -49,8 +45,7 @@ def paused_gc():
 
 
 def capturing(device) -> bool:
-    """Whether a graph is being captured on ``device`` (CUDA: a stream capture; CPU: Warp's APIC recording): its
-    launches are recorded, not run, so nothing may read the device back (1.19)."""
+    """Whether a graph is being captured on ``device``: launches are recorded, not run; nothing may read back."""
     device = wp.get_device(device)
     if device.is_cuda:
         return device.is_capturing
@@ -59,9 +54,8 @@ def capturing(device) -> bool:
 
 @contextmanager
 def arrays_kept(keep: list):
-    """Append every Warp array made inside to ``keep``. A graph captured inside reads and writes the arrays made
-    during its capture at every replay, but Warp's graphs (1.19) hold no reference to them: an array that only the
-    step's locals held would be freed and its memory reused under the graph."""
+    """Append every Warp array made inside to ``keep``: a graph captured inside uses them at every replay but holds
+    no reference to them (Warp 1.19)."""
     original = wp.array.__init__
 
     def init(self, *args, **kwargs):
@@ -76,10 +70,8 @@ def arrays_kept(keep: list):
 
 
 class StepArrays:
-    """The arrays a step makes for itself. Where a tape records, each is new, with a gradient (the tape keeps it for
-    the backward pass); otherwise one array per name serves every step, grown to the largest size asked, so an
-    untaped step allocates nothing once it has seen its sizes. A name must not be asked for twice in one step while
-    the first is still read."""
+    """The arrays a step makes for itself: new, with a gradient, where a tape records; otherwise one per name for
+    every step, grown to the largest size asked. A name must not be asked for twice while the first is read."""
 
     def __init__(self, device):
         self.device = device
@@ -88,7 +80,6 @@ class StepArrays:
         self._retired: list[wp.array] = []
 
     def empty(self, name: str, n: int, dtype, recording: bool) -> wp.array:
-        """``n`` entries of ``dtype``, uninitialised."""
         if recording:
             return wp.empty(n, dtype=dtype, device=self.device, requires_grad=True)
         array = self._arrays.get(name)
@@ -100,7 +91,6 @@ class StepArrays:
         return array if array.shape[0] == n else array[:n]
 
     def zeros(self, name: str, n: int, dtype, recording: bool) -> wp.array:
-        """``n`` zeros of ``dtype``."""
         if recording:
             return wp.zeros(n, dtype=dtype, device=self.device, requires_grad=True)
         array = self.empty(name, n, dtype, recording)
@@ -109,8 +99,7 @@ class StepArrays:
 
 
 class _CpuAllocator:
-    """An allocator for Warp's CPU device (Warp 1.19's allocator protocol) over the device's own; graphs are
-    captured with a backward pass on the CPU only."""
+    """An allocator for Warp's CPU device (Warp 1.19's allocator protocol) over the device's own."""
 
     deallocate_requires_context_guard = False
 
@@ -127,12 +116,9 @@ class _CpuAllocator:
 
 
 class Arena(_CpuAllocator):
-    """Memory handed out in allocation order, for graphs that never run at the same time (wc.CapturedRollout's
-    segments): while :func:`allocating_from` is active, the n-th allocation since the arena was last rewound gets
-    the arena's n-th block (grown where a later one asks for more; the smaller one stays for the graphs that use it).
-    Graphs captured after the same rewind share no memory; graphs captured after different rewinds share it, so one
-    set of blocks holds the taped arrays of every step that records at that place in a segment. Freeing is a no-op:
-    the blocks live as long as the arena."""
+    """Memory for graphs that never run at the same time: inside :func:`allocating_from`, the n-th allocation since
+    the last rewind gets the n-th block (grown where asked for more), so graphs captured after different rewinds
+    share memory. Freeing is a no-op: the blocks live as long as the arena."""
 
     def __init__(self, device):
         super().__init__(device)
@@ -142,7 +128,6 @@ class Arena(_CpuAllocator):
 
     @property
     def nbytes(self) -> int:
-        """The bytes this arena holds."""
         return sum(size for _, size in self._blocks + self._outgrown)
 
     def rewind(self) -> None:
@@ -175,8 +160,7 @@ class Arena(_CpuAllocator):
 
 
 class Tally(_CpuAllocator):
-    """The CPU device's own allocator, counting the bytes it holds for the arrays made while
-    :func:`allocating_from` is active (what a graph's captures keep)."""
+    """The CPU device's own allocator, counting the bytes of the arrays made inside :func:`allocating_from`."""
 
     def __init__(self, device):
         super().__init__(device)
@@ -195,7 +179,7 @@ class Tally(_CpuAllocator):
 @contextmanager
 def allocating_from(arena: Arena | Tally | None, *, rewind: bool = True):
     """Every Warp array made on the arena's device inside takes its memory from ``arena`` (rewound first where
-    ``rewind``); None: the device's own allocator (1.19: the CPU device's ``default_allocator``)."""
+    ``rewind``); None: the device's own allocator."""
     if arena is None:
         yield
         return
@@ -210,8 +194,7 @@ def allocating_from(arena: Arena | Tally | None, *, rewind: bool = True):
 
 
 def gradient_owners(tape: wp.Tape) -> list:
-    """Weak references to the arrays whose gradients ``tape.zero()`` zeroes (those its backward pass reached; a
-    struct's arrays are among them), so that those that outlive the tape can still be zeroed: :func:`zero_gradients`."""
+    """Weak references to the arrays whose gradients ``tape.zero()`` zeroes, for :func:`zero_gradients`."""
     return [weakref.ref(a) for a in tape.gradients if isinstance(a, wp.array)]
 
 
@@ -225,11 +208,8 @@ def zero_gradients(owners: list) -> None:
 
 @contextmanager
 def memory_ops_as_kernels(device):
-    """Inside (meant for a graph capture on the CPU), Warp's memsets, fills and copies of host memory launch kernels
-    instead (kernels/memory.py). Warp 1.19 records those operations with a snapshot of the region they touch, so a graph
-    holds a copy of every array it zeroes or copies: 225 kB a graph of one untaped step of a 16x16 sheet, in
-    float64, against 1 kB for a kernel launch (2026-11-29). A fill whose value is not 1, 2, 4 or 8 bytes long (a
-    vec3's) is left to Warp. No effect on CUDA."""
+    """Inside a CPU graph capture, Warp's memsets, fills (of 1, 2, 4 or 8 bytes) and host copies launch kernels; no
+    effect on CUDA. Why: docs/decisions.md, "Memory operations as kernels in CPU captures"."""
     device = wp.get_device(device)
     if not device.is_cpu:
         yield

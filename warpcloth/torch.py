@@ -1,12 +1,5 @@
-"""PyTorch bridge: a simulator rollout as a differentiable torch function.
-
-``simulate`` lets a torch model (a network predicting forces or materials, an optimiser over torch parameters)
-train through the cloth simulator: the forward runs the Warp steps, the backward runs their Warp tape. The
-trajectory tensors share memory with the States the simulator writes, and the per-step forces with the tensor
-given, so nothing is copied per step.
-
-Importing ``warpcloth`` never imports torch; only ``import warpcloth.torch`` does (``pip install warpcloth[torch]``).
-"""
+"""PyTorch bridge: a simulator rollout as a differentiable torch function (``pip install warpcloth[torch]``); only
+``import warpcloth.torch`` imports torch."""
 
 from __future__ import annotations
 
@@ -27,6 +20,7 @@ from warpcloth.kernels.losses import loss_kernels
 from warpcloth.materials import check_material_values
 from warpcloth.model import Control, Model, State
 from warpcloth.solver.capture import CapturedRollout
+from warpcloth.solver.gradients import GraphCache, plan_gradient
 from warpcloth.solver.simulator import Simulator
 
 __all__ = ["MAX_CAPTURES", "simulate"]
@@ -38,7 +32,6 @@ def torch_dtype(model: Model) -> torch.dtype:
 
 
 def torch_device(model: Model) -> torch.device:
-    """The torch device of the model's arrays."""
     return torch.device(wp.device_to_torch(model.device))
 
 
@@ -55,44 +48,25 @@ def simulate(
     time: float = 0.0,
     capture: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Simulate ``steps`` steps from (x0, v0) and return the trajectory ``(x, v)``, each (steps+1, n, 3).
+    """Simulate ``steps`` (>= 0) steps from positions x0 [m] and velocities v0 [m/s], (n, 3); returns the trajectory
+    ``(x, v)``, each (steps+1, n, 3), row 0 the initial state. Gradients flow to x0, v0, ``particle_force`` and the
+    material tensors; ``sim``'s model must have been built with ``requires_grad=True`` for them.
 
-    Row 0 is the initial state, so a loss may weigh every frame. Gradients flow to x0, v0, ``particle_force`` and
-    the material tensors.
+    ``particle_force`` [N]: (n, 3) for every step, (steps, n, 3) one a step, or None. ``density``, ``stretching``,
+    ``bending``: raw tables before thicken, (material_count,), (material_count, 6, 4), (material_count, 3, 5), written
+    into the model's arrays (they stay there; the backward uses this call's values); None: the model's, without
+    gradient. ``time`` [s]: the simulated time of x0, to which scripted motion is keyed. A model of W worlds of m
+    particles takes x0, v0 (W, m, 3) and forces (W, m, 3) or (W, steps, m, 3), and returns (W, steps+1, m, 3) each.
 
-    The material tensors are written into ``sim.model``'s arrays (``material_density`` (material_count,),
-    ``material_stretching`` (material_count, 6, 4), ``material_bending`` (material_count, 3, 5), raw units before
-    thicken), which stay overwritten after the call: that is what the simulator reads. None uses the model's
-    current values, which then get no gradient. The backward puts this call's values back temporarily, so calls
-    with different materials can be chained before one backward.
+    ``capture`` replays the rollout from graphs (``wc.CapturedRollout``) from the second call with this Simulator,
+    ``steps``, ``time`` and form of ``particle_force`` on, with the uncaptured call's results and gradients (bitwise
+    on the CPU); the Simulator keeps its last ``MAX_CAPTURES``. Why: docs/concepts/torch.md. Backward runs again only
+    with ``retain_graph=True``; there is no double backward.
 
-    Args:
-        sim: the Simulator; its model must be built with ``requires_grad=True`` for gradients.
-        x0, v0: initial positions [m] and velocities [m/s], (n, 3).
-        steps: number of steps (>= 0).
-        particle_force: external forces [N]: (n, 3) for every step, or (steps, n, 3) one per step; None for none.
-        density, stretching, bending: material tables in the shapes of the model's arrays, or None.
-        time: simulated time of x0 [s]; scripted handle, pin and obstacle motion is keyed to it, so a chained call
-            continues with ``time = previous start + previous steps * sim.dt``.
-        capture: replay the rollout from graphs (``wc.CapturedRollout``) when the same call comes again: the second
-            call with this Simulator, ``steps``, ``time`` and form of ``particle_force`` (none, (n, 3) or
-            (steps, n, 3)) records it, with its backward pass, and every later one replays it. The inputs are copied
-            into the graphs' arrays, the trajectory out of them; results and gradients are the uncaptured call's
-            (bitwise on the CPU). A training loop that simulates the same intervals at every iteration spends a
-            fraction of the launch overhead (``docs/concepts/torch.md`` has the figures). The Simulator keeps the
-            graphs of its last ``MAX_CAPTURES`` calls. Where two calls of one graph are both waiting for their
-            backward passes, the older one's forward pass is replayed again before its backward (as a checkpoint).
-            ValueError where the Simulator's steps cannot be captured (``wc.CapturedRollout.unsupported``).
-
-    A batch dimension: for a model of W worlds of m particles each (``ModelBuilder.replicate``), x0 and v0 may be
-    (W, m, 3), ``particle_force`` then (W, m, 3) or (W, steps, m, 3), and the trajectory comes back as
-    (W, steps+1, m, 3) each: world w's is ``x[w]``. The worlds are simulated together, one launch per kernel for
-    all of them, and one backward pass gives every world's gradient.
-
-    Every tensor must have the model's float dtype and live on its device (ValueError naming the argument
-    otherwise). Each call starts a new trajectory: with ``set_wind(lagged_normals=True)`` its first step uses
-    x0's normals. Backward can run again only with ``retain_graph=True``; double backward is not supported.
-    """
+    Raises:
+        ValueError: naming the argument for a tensor of another shape, dtype or device, or invalid material values;
+            a gradient asked of a model without one; ``capture`` where the steps cannot be captured.
+        TypeError: ``sim`` is not a Simulator, or an argument is not a tensor."""
     if not isinstance(sim, Simulator):
         raise TypeError(f"sim must be a warpcloth.Simulator, got {type(sim).__name__}")
     if isinstance(steps, bool) or int(steps) != steps or steps < 0:
@@ -127,8 +101,7 @@ def simulate(
 
 
 def _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, bending, time, capture):
-    """``simulate`` with a leading world dimension: the worlds' tensors flattened into the model's particle order
-    (each world's particles are one contiguous range), the trajectory split back into worlds."""
+    """``simulate`` with a leading world dimension, through the model's contiguous particle order."""
     model = sim.model
     sizes = set(np.diff(model.world_particle_start).tolist())
     if len(sizes) != 1:
@@ -147,7 +120,6 @@ def _simulate_batch(sim, x0, v0, steps, particle_force, density, stretching, ben
 
 
 def _check_tensor(name: str, t, model: Model, shapes: list[tuple[int, ...]]) -> None:
-    """Raise a ValueError that names the argument when a tensor cannot be handed to the model's kernels."""
     if not isinstance(t, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
     dtype, device = torch_dtype(model), torch_device(model)
@@ -162,7 +134,6 @@ def _check_tensor(name: str, t, model: Model, shapes: list[tuple[int, ...]]) -> 
 
 
 class _Config:
-    """The non-tensor arguments of the autograd function."""
 
     def __init__(self, sim: Simulator, steps: int, time: float, capture: bool):
         self.sim, self.steps, self.time, self.capture = sim, steps, time, capture
@@ -175,12 +146,8 @@ MAX_CAPTURES = 32
 
 
 class _Recording:
-    """What the backward pass needs from the forward: the tape and the buffers its launches read and write (an
-    uncaptured call), or the replay whose graphs hold the rollout and the inputs to run it again (a captured one).
-
-    Released (so the tape's per-step buffers are freed) as soon as torch frees the node's saved tensors: after a
-    backward without retain_graph, or when the graph is dropped.
-    """
+    """What the backward needs from the forward: the tape and its buffers, or the replay and its inputs. Released
+    when torch frees the node's saved tensors."""
 
     def __init__(self, tape, grads, material_values, keep, replay=None):
         self.tape = tape
@@ -194,9 +161,8 @@ class _Recording:
 
 
 class _Replay:
-    """One call of ``simulate`` recorded as graphs (wc.CapturedRollout) over arrays of its own: each call copies its
-    inputs in and the trajectory out. With gradients, the rollout's "loss" is its trajectory gathered into two
-    (steps+1, n) arrays (loss_kernels' ``store_frame``), so a backward pass seeds their gradients with torch's."""
+    """One call of ``simulate`` captured over arrays of its own (inputs copied in, trajectory out); with gradients
+    its "loss" is the trajectory gathered into (steps+1, n) arrays, whose gradients torch's seed."""
 
     def __init__(self, sim: Simulator, steps: int, time: float, force_form: str | None, x0, v0, force):
         model = sim.model
@@ -237,7 +203,7 @@ class _Replay:
             wp.copy(self.force, wp.from_torch(force.detach().contiguous(), dtype=self.vec3))
 
     def forward(self, x0, v0, force, owner: _Recording | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Replay the rollout from these inputs; the trajectory (new tensors) and the graphs' owner set."""
+        """Replay from these inputs; returns the trajectory as new tensors."""
         self.load(x0, v0, force)
         trajectory = self.rollout.run(backward=False)
         self.owner = owner
@@ -256,38 +222,12 @@ class _Replay:
         self.rollout.backward(seeds)
 
 
-class _Replays:
-    """A Simulator's captured calls, by (steps, time, force form): a call seen once is remembered, the second
-    captures it, later ones replay it."""
-
-    def __init__(self):
-        self.seen: dict = {}  # keys seen once (insertion order: the oldest are forgotten first)
-        self.graphs: dict = {}  # key -> _Replay, least recently used first
-
-    def get(self, sim: Simulator, steps: int, time: float, force_form, x0, v0, force) -> _Replay | None:
-        """The key's replay (captured now on its second call, again where the graphs went stale), or None on its
-        first call."""
-        key = (steps, time, force_form)
-        replay = self.graphs.pop(key, None)
-        if replay is None and self.seen.pop(key, None) is None:
-            self.seen[key] = True
-            while len(self.seen) > MAX_CAPTURES:
-                del self.seen[next(iter(self.seen))]
-            return None
-        if replay is None or not replay.rollout.current():
-            replay = _Replay(sim, steps, time, force_form, x0, v0, force)
-        self.graphs[key] = replay
-        while len(self.graphs) > MAX_CAPTURES:
-            del self.graphs[next(iter(self.graphs))]
-        return replay
-
-
-_replays: weakref.WeakKeyDictionary[Simulator, _Replays] = weakref.WeakKeyDictionary()
+_graphs: weakref.WeakKeyDictionary[Simulator, GraphCache[_Replay]] = weakref.WeakKeyDictionary()
+"""Each Simulator's captured calls, by (steps, time, force form): the second call captures, later ones replay."""
 
 
 def _controls(model: Model, steps: int, force) -> list[Control]:
-    """A Control a step with the model's default targets and placements and the forces ``force``: None, one array
-    for every step, or a list of one array a step."""
+    """A Control a step at the model's defaults, with ``force``: None, one array, or a list of one a step."""
     base = model.control(requires_grad=False)
 
     def control(f):
@@ -307,9 +247,8 @@ def _vec3_view(t: torch.Tensor, vec3, grad: torch.Tensor | None) -> wp.array:
 
 @contextlib.contextmanager
 def _materials_of(model: Model, values: dict):
-    """The model's material arrays hold ``values`` (one call's) inside the block, their current values after it:
-    another simulate call may have overwritten them since that call's forward pass, and its recorded launches read
-    the arrays when they run."""
+    """The model's material arrays hold one call's ``values`` inside the block (its launches read them), their
+    current values after it."""
     arrays = {name: getattr(model, f"material_{name}") for name in _MATERIALS}
     current = {name: wp.clone(a, requires_grad=False) for name, a in arrays.items()}
     try:
@@ -337,10 +276,14 @@ class _Rollout(torch.autograd.Function):
 
         replay = None
         fd = None if force is None else force.detach().contiguous()
-        if cfg.capture and steps > 0:
+        if cfg.capture and steps > 0 and plan_gradient(sim, steps, backward=model.requires_grad).captured:
             force_form = None if fd is None else "shared" if fd.dim() == 2 else "steps"
-            replays = _replays.setdefault(sim, _Replays())
-            replay = replays.get(sim, steps, cfg.time, force_form, x0, v0, fd)
+            graphs = _graphs.get(sim)
+            if graphs is None:
+                graphs = _graphs[sim] = GraphCache(after=2, size=MAX_CAPTURES)
+            replay = graphs.get((steps, cfg.time, force_form),
+                                lambda: _Replay(sim, steps, cfg.time, force_form, x0, v0, fd),
+                                lambda r: r.rollout.current())
         if replay is not None:
             rec = _Recording(None, None, _material_values(model), keep=None, replay=replay) if recording else None
             x, v = replay.forward(x0, v0, fd, rec)
@@ -407,8 +350,7 @@ def _material_values(model: Model) -> dict:
 
 
 def _run(ctx, cfg: _Config, x0, v0, fd, recording: bool):
-    """An uncaptured call: the steps into States that alias the trajectory tensors, on a tape when recording.
-    Returns (x, v, its _Recording or None)."""
+    """An uncaptured call into States aliasing the trajectory, taped when recording: (x, v, _Recording or None)."""
     sim, steps = cfg.sim, cfg.steps
     model = sim.model
     vec3, n = model.types.vec3, model.particle_count
@@ -451,8 +393,7 @@ def _run(ctx, cfg: _Config, x0, v0, fd, recording: bool):
 
 
 def _replayed_backward(rec: _Recording, grad_x, grad_v):
-    """A captured call's backward pass (its forward replayed again first where a later call of the same graphs ran
-    since); returns the force's gradient as a tensor (None without a force)."""
+    """A captured call's backward (its forward replayed first where another call ran since); the force's gradient."""
     replay = rec.replay
     if not replay.rollout.current():
         raise RuntimeError("warpcloth.torch.simulate: the Simulator's options or a model array were replaced between "

@@ -41,32 +41,18 @@ def write_usd(
     up_axis: str = "Z",
     cloth_prim: str = "/World/Cloth",
 ) -> None:
-    """Writes a cloth trajectory as a time-sampled USD stage.
+    """Writes a cloth trajectory to ``path`` (.usd, .usda text, .usdc; overwritten, parents created) as a USD stage.
 
-    The cloth is one ``UsdGeom.Mesh`` whose ``points`` and ``extent`` are sampled at time codes 0, 1, ...
-    (frame index); the stage's ``timeCodesPerSecond`` and ``framesPerSecond`` are ``fps``, ``metersPerUnit`` is 1.
-    Obstacles are meshes under ``/World/Obstacles/<name>``: static (points as the default value) when their
-    vertices are (M, 3), time-sampled like the cloth when they are (F, M, 3). The file format follows the extension
-    (``.usda`` text, ``.usdc``/``.usd`` binary). Points are stored as float32.
-
-    Args:
-        path: Output file; overwritten if it exists.
-        triangles: Cloth vertex indices, shape (T, 3).
-        frames: Cloth positions [m] per frame: a sequence of (N, 3) arrays or an (F, N, 3) array.
-        fps: Frames per second (> 0); for one frame per step, ``1 / dt``.
-        obstacles: ``(name, vertices, triangles (K, 3))`` per obstacle, with vertices [m] either (M, 3) (static)
-            or (F, M, 3) (one per cloth frame, same F); names must be valid USD identifiers
-            (``warpcloth.obstacles.obstacle_meshes_numpy`` builds this list from a model).
-        up_axis: ``"Z"`` (warpcloth's convention) or ``"Y"``.
-        cloth_prim: Prim path of the cloth mesh.
+    ``frames``: cloth positions [m], (N, 3) arrays or an (F, N, 3) array, stored as float32 points of the mesh
+    ``cloth_prim`` (vertex indices ``triangles`` (T, 3)) at time codes 0, 1, ..., ``fps`` (> 0) of them a second.
+    ``obstacles``: ``(name, vertices [m], triangles (K, 3))`` each, vertices (M, 3) static or (F, M, 3) a frame
+    (:func:`~warpcloth.obstacle_meshes_numpy` builds the list), written under ``/World/Obstacles/<name>``.
+    ``up_axis``: ``"Z"`` (warpcloth's) or ``"Y"``; ``metersPerUnit`` is 1.
 
     Raises:
         ImportError: when ``pxr`` is missing.
-        ValueError: for a path that does not end in .usd, .usda or .usdc or is a directory (warpcloth/outputs.py;
-            missing parent directories are created); no frames, frames of different shapes, a non-finite position
-            (naming frame and vertex), an index out of range, a bad ``fps``/``up_axis``/prim path, an invalid or
-            repeated obstacle name, or time-sampled obstacle vertices whose frame count differs from the cloth's.
-    """
+        ValueError: for a bad path, frames (naming frame and vertex), index, ``fps``, ``up_axis``, prim path or
+            obstacle name, or obstacle frames other than the cloth's."""
     Gf, Sdf, Usd, UsdGeom, Vt = _import_pxr()
 
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
@@ -152,18 +138,8 @@ def write_usd(
 
 
 def read_usd_points(path: str | os.PathLike, prim: str = "/World/Cloth") -> np.ndarray:
-    """Reads a mesh's points at every time sample (or its default value when it has none).
-
-    Args:
-        path: A USD file.
-        prim: Prim path of the mesh.
-
-    Returns:
-        Positions, shape (F, N, 3), float64, in time-sample order.
-
-    Raises:
-        ValueError: when the file cannot be opened or the prim has no points.
-    """
+    """The points [m] of mesh ``prim`` at every time sample (else its default value), shape (F, N, 3), float64;
+    ValueError when the file cannot be opened or the prim has no points."""
     _, _, Usd, UsdGeom, _ = _import_pxr()
     stage = Usd.Stage.Open(os.fspath(path))
     if stage is None:

@@ -1,5 +1,6 @@
-"""The collision stage of a step: detection, contact geometry and the impact-zone projection with its adjoints."""
+"""The collision stage of a step: detection, contact geometry, the device projection with its adjoint, the fail-safe;
+the NumPy reference solver in :mod:`warpcloth.collision.reference`."""
 
-from warpcloth.collision.stage import CollisionStage
+from warpcloth.collision.stage import CollisionReport, CollisionStage
 
-__all__ = ["CollisionStage"]
+__all__ = ["CollisionReport", "CollisionStage"]

@@ -1,5 +1,4 @@
-"""Contact detection of the collision stage: the :class:`Contacts` it finds and the :class:`ContactDetector` that
-holds the primitive sets, their BVHs and the device buffers of one Simulator (kernels in kernels/collision.py)."""
+"""Contact detection of the collision stage: BVH queries over swept boxes (kernels in kernels/collision.py)."""
 
 from __future__ import annotations
 
@@ -18,37 +17,33 @@ from warpcloth.obstacles import obstacle_points_numpy
 
 @dataclass
 class Contacts:
-    """Contacts on the host, one row each; kernels/collision.py describes what each mode constrains."""
+    """Contacts on the host, one row each (the modes: kernels/collision.py)."""
 
     nodes: np.ndarray
-    """Node ids, shape (m, 4), int32: cloth particles 0..n-1, then obstacle vertices n..n+V-1 (vertex and face
-    for VF_PLANE, two edges otherwise)."""
+    """Node ids (m, 4) int32, cloth particles then obstacle vertices: vertex and face, or two edges."""
     mode: np.ndarray
-    """Contact mode VF_PLANE, EE_PLANE or EE_DIRECTION (kernels/collision.py), shape (m,), int32."""
+    """VF_PLANE, EE_PLANE or EE_DIRECTION, (m,) int32."""
     t: np.ndarray
-    """Time of impact in [0, 1] of the step (1 for a proximity contact), shape (m,), float64."""
+    """Time of impact in [0, 1] of the step (1 for proximity), (m,) float64."""
     sign: np.ndarray
-    """Side of the normal, +1 or −1 (unused by EE_DIRECTION), shape (m,), float64."""
+    """Side of the normal, ±1 (unused by EE_DIRECTION), (m,) float64."""
 
     def __len__(self) -> int:
         return len(self.mode)
 
     @classmethod
     def empty(cls) -> Contacts:
-        """No contacts."""
         return cls(nodes=np.zeros((0, 4), dtype=np.int32), mode=np.zeros(0, dtype=np.int32),
                    t=np.zeros(0, dtype=np.float64), sign=np.zeros(0, dtype=np.float64))
 
     @classmethod
     def concatenate(cls, parts: Sequence[Contacts]) -> Contacts:
-        """The rows of ``parts``, in order."""
         return cls(nodes=np.concatenate([p.nodes for p in parts]), mode=np.concatenate([p.mode for p in parts]),
                    t=np.concatenate([p.t for p in parts]), sign=np.concatenate([p.sign for p in parts]))
 
 
 def node_worlds(model: Model, obstacles: bool) -> np.ndarray:
-    """The world of every contact node: the cloth particles, then (with ``obstacles``) the obstacle vertices,
-    (particle_count [+ obstacle_vertex_count],) int32."""
+    """The world of every node, (particle_count [+ obstacle_vertex_count with ``obstacles``],) int32."""
     worlds = [model.particle_world.numpy()]
     if obstacles:
         worlds.append(model.obstacle_world[model.obstacle_vertex_body.numpy()])
@@ -56,19 +51,15 @@ def node_worlds(model: Model, obstacles: bool) -> np.ndarray:
 
 
 BVH_CONSTRUCTOR = {"cpu": "median", "cuda": "lbvh"}
-"""The BVH build per device, one Warp 1.19 rebuilds in place (``Bvh.rebuild``; on CUDA Warp's default). On the CPU
-the median split rebuilds 2.5x faster than Warp's default SAH (this machine: 10 against 26 us at 128 boxes, 43
-against 109 us at 512)."""
+"""The BVH build per device. Why the median split on the CPU: docs/decisions.md, "BVH build on the CPU"."""
 
 MOTION_BLOCK_DIM = 128
-"""Threads of the block that sums a world's cloth displacement on CUDA (kernels/collision.py world_motion; on the
-CPU a block is one thread)."""
+"""Threads of the block that sums a world's cloth displacement on CUDA (on the CPU a block is one thread)."""
 
 
 class PrimitiveSet:
-    """Vertices, edges or triangles (node indices, one row each) with their bounding boxes and a BVH over them,
-    grouped by world where the model has several (``node_world``: the world of each node), so that a query meets
-    only its own world's primitives (kernels/geometry.py world_root)."""
+    """Vertices, edges or triangles (node indices, one row each), their boxes and a BVH over them, grouped by world
+    (``node_world``: each node's) so that a query meets only its own world's primitives."""
 
     def __init__(self, indices: np.ndarray, device, node_world: np.ndarray | None = None,
                  boxes: tuple[wp.array, wp.array] | None = None, rebuild: bool = True):
@@ -79,7 +70,7 @@ class PrimitiveSet:
             boxes = (wp.zeros(self.count, dtype=wp.vec3, device=device),
                      wp.zeros(self.count, dtype=wp.vec3, device=device))
         self.lowers, self.uppers = boxes
-        """The boxes (count,) vec3: arrays of their own, or ``boxes``, views into a detector's boxes of all sets."""
+        """The boxes (count,) vec3: their own, or views into a detector's (``boxes``)."""
         self.bvh: wp.Bvh | None = None
         self._constructor = BVH_CONSTRUCTOR["cpu" if self.indices.device.is_cpu else "cuda"]
         self.rebuild = rebuild
@@ -88,9 +79,7 @@ class PrimitiveSet:
             self.groups = wp.array(node_world[indices[:, 0]], dtype=wp.int32, device=device)
 
     def update_bvh(self) -> None:
-        """Build the BVH over the current boxes: a new one the first time, then in place (no allocation, the same
-        id, recorded by a graph capture), or refitted where ``rebuild`` is False (CollisionOptions.bvh). Its
-        topology orders a query's visits, not what the query finds: contacts and pairs are sorted by key (RowSort)."""
+        """Build the BVH over the current boxes, then rebuild it in place (the same id) or, ``rebuild`` False, refit."""
         if self.bvh is None:
             self.bvh = wp.Bvh(self.lowers, self.uppers, groups=self.groups, constructor=self._constructor)
         elif self.rebuild:
@@ -100,9 +89,8 @@ class PrimitiveSet:
 
 
 class RowSort:
-    """Keys and values for ``wp.utils.radix_sort_pairs`` of up to ``capacity`` rows (contacts, proximity pairs)
-    whose keys lie below ``key_bound``: a stable parallel sort on both devices, so that rows appended through an
-    atomic counter (on CUDA in no set order) come out in one order, the order their keys say."""
+    """A stable radix sort of up to ``capacity`` rows by keys below ``key_bound`` (ValueError beyond int64): rows
+    appended through an atomic counter come out in one order on both devices."""
 
     def __init__(self, capacity: int, key_bound: int, device, what: str = "rows"):
         m = max(int(capacity), 1)
@@ -110,14 +98,13 @@ class RowSort:
             raise ValueError(f"the sort keys of the {what} ({key_bound}) do not fit in int64: a model this large "
                              "cannot be simulated as one")
         self.keys = wp.zeros(2 * m, dtype=wp.int64, device=device)
-        """Each row's key (the sort needs twice the rows' room)."""
         self.values = wp.zeros(2 * m, dtype=wp.int32, device=device)
         self.order = self.values[:m]
         """After :meth:`sort`: the row in each sorted slot."""
         self.bits = max(int(key_bound - 1).bit_length(), 1)  # passes over the bits the keys use only
         if self.keys.device.is_cuda:
             # the sort's scratch sized for every count to come, outside any graph capture: growing it inside one
-            # broke the CUDA context (NVIDIA/warp issue 1373)
+            # breaks the CUDA context (https://github.com/NVIDIA/warp/issues/1373)
             wp.utils.radix_sort_pairs(self.keys, self.values, m, end_bit=self.bits)
 
     def sort(self, count: int) -> None:
@@ -127,25 +114,15 @@ class RowSort:
 
 
 FOUND, DEGENERATE, FAILED, STRAINED = kp.FOUND, kp.DEGENERATE, kp.FAILED, kp.STRAINED
-"""The slots of :attr:`ContactDetector.flags`: contacts the last detection found (beyond the capacity, only
-counted); 1 + the first contact of the last round whose normal is degenerate (the round's count + 1: none); 1 where
-the last projection failed in a world; 1 where the projection stretched an edge past
-``CollisionOptions.max_projection_strain``. The collision stage reads them together, once after each detection and
-once after each projection."""
+"""Slots of :attr:`ContactDetector.flags`: contacts found (counted past the capacity); 1 + the round's first contact
+with a degenerate normal (count + 1: none); 1 where the last projection failed; 1 where it overstretched an edge."""
 
 
 class ContactDetector:
-    """Vertex-face and edge-edge contacts (CCD and proximity) between node positions at the start and the end of a
-    step, by BVH queries over swept boxes. Nodes are the cloth particles, then the obstacle vertices.
-
-    Args:
-        model: the model (its cloth triangles and edges, and its obstacles' when ``obstacles``).
-        thickness: collision thickness δ [m].
-        capacity: most contacts one :meth:`detect` call may find.
-        obstacles: detect cloth–obstacle contacts.
-        self_collision: detect cloth–cloth contacts.
-        rebuild_bvh: rebuild the BVHs at each detection, else refit them (CollisionOptions.bvh).
-    """
+    """Vertex-face and edge-edge contacts (CCD and proximity) between node positions (cloth particles, then obstacle
+    vertices) at a step's start and end. ``thickness``: δ [m]; ``capacity``: most contacts one :meth:`detect` may
+    find; ``obstacles``, ``self_collision``: detect cloth–obstacle, cloth–cloth contacts; ``rebuild_bvh``: rebuild
+    the BVHs at each detection, else refit them (CollisionOptions.bvh)."""
 
     def __init__(self, model: Model, *, thickness: float, capacity: int, obstacles: bool, self_collision: bool,
                  rebuild_bvh: bool = True):
@@ -158,7 +135,6 @@ class ContactDetector:
         self.node_world = wp.array(worlds, dtype=wp.int32, device=dev)
         """The world of every node (cloth particles, then obstacle vertices), (nodes,) int32."""
         self.node_world_host = worlds
-        """:attr:`node_world` on the host (error messages)."""
         self.grouped = int(model.world_count > 1)
         rows = [model.triangles_np, np.arange(n)[:, None], model.edge_indices.numpy()]
         if obstacles:
@@ -175,7 +151,7 @@ class ContactDetector:
         self._particle_start = wp.array(np.asarray(model.world_particle_start, dtype=np.int32), dtype=wp.int32,
                                         device=dev)
         self._shift = wp.zeros(model.world_count, dtype=wp.vec3, device=dev)
-        """Each world's cloth's mean displacement over the step: the boxes' frame (kernels/collision.py)."""
+        # each world's cloth's mean displacement over the step: the boxes' frame
         self._lowers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
         self._uppers = wp.zeros(max(self._prims.shape[0], 1), dtype=wp.vec3, device=dev)
         ends = [int(e) for e in np.cumsum([0] + [len(r) for r in rows])]
@@ -208,18 +184,13 @@ class ContactDetector:
             [q[3] for q in live])]
         self._bvh_ids: wp.array | None = None
         self.skip = wp.zeros(1, dtype=wp.int32, device=dev)
-        """Detection finds nothing while ``skip[0]`` is not 0: the Simulator points it at its failure record's
-        error flag, so that a step whose candidate positions diverged (not yet read on the host) meets no contact."""
+        """Detection finds nothing while ``skip[0]`` is not 0 (the Simulator's failure flag: diverged positions)."""
         self._world_modes: dict[bytes, wp.array] = {}  # set_world_modes: one array per pattern, never written again
         self.set_world_modes(np.zeros(model.world_count, dtype=np.int32))
-        """Each world's mode in the collision stage's current try (kernels/contact.py WORLD_SKIPPED...): set by
-        :meth:`set_world_modes`; every world at the full thickness until then."""
         self.flags = wp.zeros(4, dtype=wp.int32, device=dev)
-        """The collision stage's round flags (FOUND, DEGENERATE, FAILED, STRAINED), int32 on the device."""
+        """The round flags, (4,) int32 (FOUND, DEGENERATE, FAILED, STRAINED)."""
         self._count, self.degenerate, self.failed, self.strained = (self.flags[i:i + 1] for i in range(4))
-        """Views of one slot each, as the kernels that write them take them."""
         self.last_flags = np.zeros(4, dtype=np.int64)
-        """The flags as the last read saw them (:meth:`read_flags`)."""
         # the contacts as the queries append them, and sorted by their keys (query thread, side): each query's
         # contacts in the queries' order, one order on both devices (RowSort)
         self._appended = (wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev),
@@ -233,9 +204,8 @@ class ContactDetector:
         self._sign = wp.zeros(self.capacity, dtype=wp.float64, device=dev)
 
     def set_world_modes(self, modes) -> None:
-        """Each world's mode for the detections that follow (kernels/contact.py): 0 the full thickness, 1 keep start
-        gaps (pairs that start inside the thickness are contacts only where they come closer than they started,
-        kernels/collision.py START_SLACK), -1 skip the world (no contacts)."""
+        """Set :attr:`world_mode`, each world's for the detections that follow: 0 the full thickness, 1 keep start gaps
+        (a pair starting inside the thickness is a contact only where it comes closer), -1 skip the world."""
         # Never assigned into: the tape's contact-geometry launches keep the modes array of their try for the
         # backward pass. One array per pattern of modes, made the first time it is asked for and never written
         # again, so a step reuses it without allocating (the common pattern, all worlds at full thickness, is made
@@ -247,14 +217,11 @@ class ContactDetector:
         self.world_mode = array
 
     def detect(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None) -> Contacts:
-        """Contacts between node positions ``x0`` (start) and ``x1`` (end), copied to the host. ``reference``
-        (default ``x1``): positions that give the side of a pair touching at the start (kernels/collision.py
-        start_side); the collision stage passes the step's unprojected end in every round, so a pair keeps its side.
-        Each world as :attr:`world_mode` says.
+        """Contacts between node positions ``x0`` (start) and ``x1`` (end) on the host; ``reference`` (None: ``x1``)
+        gives the side of a pair touching at the start.
 
         Raises:
-            ContactCapacityError: more contacts than ``capacity`` (the message names CollisionOptions.contact_capacity
-                and the count needed).
+            ContactCapacityError: more contacts than ``capacity``.
         """
         count = self.detect_on_device(x0, x1, reference)
         return Contacts(nodes=self.nodes.numpy()[:count].copy(), mode=self.mode.numpy()[:count].copy(),
@@ -282,10 +249,8 @@ class ContactDetector:
 
     def detect_on_device(self, x0: wp.array, x1: wp.array, reference: wp.array | None = None, *,
                          expected: int | None = None) -> int | None:
-        """:meth:`detect` leaving the contacts in the device buffers (:attr:`nodes`, :attr:`mode`, :attr:`t`,
-        :attr:`sign`); returns their count. The one read back: :attr:`flags`, whose STRAINED slot carries the last
-        projection's strain-guard flag along. With ``expected`` (a captured step's plan: the count it expects) none:
-        that many rows are sorted, and None is returned (the caller checks the count on the device)."""
+        """:meth:`detect` into the device buffers (:attr:`nodes` ...); returns the count, its one read :attr:`flags`.
+        With ``expected`` (a captured step's plan) nothing is read: that many rows are sorted and None returned."""
         k = self.kernels
         half = 0.5 * self.thickness
         if self._prims.shape[0]:

@@ -1,20 +1,22 @@
-"""The collision stage's error messages: what went wrong, named by step, contact, particle or edge (host code,
-run only on the failure path)."""
+"""The collision stage's phase timings and error messages."""
 
 from __future__ import annotations
+
+import time
+from contextlib import contextmanager
 
 import numpy as np
 import warp as wp
 
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.geometry import segment_parameters, triangle_barycentric
+from warpcloth.model import Model
 
 
 def rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarray, mode: int, start: wp.array,
                  thickness: float, worlds: list[int] | None = None) -> CollisionError:
-    """The round limit's error, naming an unresolved contact (``worlds``: those with contacts still found); and,
-    where that contact's primitives started the step inside the thickness (a cloth laid on an obstacle or on
-    itself), saying so: from there the projection can have no consistent side to push them to."""
+    """The round limit's error, naming an unresolved contact and saying so where its primitives started the step
+    inside the thickness (``worlds``: those with contacts still found)."""
     gap = round(start_gap(start.numpy().astype(np.float64)[nodes], mode), 12)  # below a picometre: rounding
     inside = ""
     if gap < thickness:
@@ -28,9 +30,7 @@ def rounds_error(step: int, rounds: int, found: int, total: int, nodes: np.ndarr
 
 
 def start_gap(p: np.ndarray, mode: int) -> float:
-    """Distance between a contact's primitives (positions p of its 4 nodes): vertex p[0] and triangle p[1:4]
-    (mode VF_PLANE), or segments p[0:2] and p[2:4] (the edge-edge modes); the detection's own closest-point
-    functions, evaluated on the host."""
+    """Distance between a contact's primitives p (4, 3): vertex p[0] and face p[1:4] (VF_PLANE), else p[0:2], p[2:4]."""
     a, b, c, d = (wp.vec3d(*row) for row in p)
     if mode == 0:  # VF_PLANE
         u, v, w = triangle_barycentric(a, b, c, d)
@@ -42,15 +42,8 @@ def start_gap(p: np.ndarray, mode: int) -> float:
 def strain_error(step: int, x_hat: np.ndarray, z: np.ndarray, edge_ends: np.ndarray, edge_rest: np.ndarray,
                  limit: float, particle_world: np.ndarray | None = None) -> CollisionError | None:
     """The projection-strain guard's error naming the edge the projection lengthened most, if by more than ``limit``
-    of its rest length (None otherwise); with ``particle_world``, it names every world with such an edge.
-
-    The projection moves particles onto the contacts' linearised constraints; when a step carries the cloth further
-    than an element past an obstacle's curvature (a coarse cloth wrapping a small sphere at speed), neighbours land
-    on different sides, the edges between them are stretched by the projection, and the next implicit step turns
-    that stretch into motion that the next projection stretches again: energy grows step after step (a 20 m/s impact
-    on a 0.25 m sphere at dt 0.01: 66 J to 2600 J in 12 steps). Well-resolved contact stays far below the limit (0.23
-    at most for that impact at dt 1 ms and a drape at dt 0.01).
-    """
+    of its rest length, else None; with ``particle_world``, it names every world with such an edge. Why the guard:
+    docs/decisions.md, "Projection-strain guard"."""
     a, b = edge_ends[:, 0], edge_ends[:, 1]
     # lengthening only: stopping a falling strip's lowest vertices shortens edges, which buckling absorbs
     strain = (np.linalg.norm(z[a] - z[b], axis=1) - np.linalg.norm(x_hat[a] - x_hat[b], axis=1)) / edge_rest
@@ -63,3 +56,20 @@ def strain_error(step: int, x_hat: np.ndarray, z: np.ndarray, edge_ends: np.ndar
         f"{strain[j]:.3g} of its rest length in one step (CollisionOptions.max_projection_strain {limit:g}): the "
         "cloth moves too far per step for the contacts' linearisation, which then pumps energy into it step after "
         "step; lower dt", worlds=worlds)
+
+
+@contextmanager
+def timed(totals: dict, phase: str):
+    """Add the wall time of the ``with`` block to ``totals[phase]``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        totals[phase] += time.perf_counter() - t0
+
+
+def worlds_suffix(model: Model, worlds: list[int]) -> str:
+    """", world 2" / ", worlds 0, 3" for an error message; "" in a model of one world."""
+    if model.world_count == 1 or not worlds:
+        return ""
+    return f", world{'s' if len(worlds) > 1 else ''} {', '.join(map(str, worlds))}"

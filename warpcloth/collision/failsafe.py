@@ -1,14 +1,5 @@
-"""The collision stage's fail-safe: rigid impact zones (Provot 1997; Bridson, Fedkiw and Anderson 2002).
-
-When the projection cannot make a step collision-free (its rounds run out, its QP is infeasible or stalls, or it
-would stretch the cloth past CollisionOptions.max_projection_strain), the particles of the step's contacts are
-grouped into zones (connected through contacts) and each zone moves as a rigid body from its start positions
-(kernels/failsafe.py): a rigid motion cannot make a zone intersect itself more than it did at the start. Contacts
-that the rigid motion leaves with particles outside a zone, or between zones, merge them, until detection finds no
-contact that is not inside one zone. A zone moves freely first; one that then still meets an obstacle or a pinned
-particle moves with them (a cloth laid on a floor that its repulsion lifts is not held down). The motion is
-taped kernels, so gradients reach the start positions, the unprojected end positions, the masses and the obstacles.
-"""
+"""The collision stage's fail-safe: rigid impact zones (Provot 1997; Bridson, Fedkiw and Anderson 2002), taped.
+The method: docs/concepts/contact.md."""
 
 from __future__ import annotations
 
@@ -17,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warpcloth.collision.backends import contact_geometry, gather_nodes
+from warpcloth.collision.contact import contact_geometry, gather_nodes
 from warpcloth.collision.detection import ContactDetector
-from warpcloth.collision.zones import components
+from warpcloth.collision.reference.zones import components
 from warpcloth.errors import CollisionError
 from warpcloth.kernels.failsafe import failsafe_kernels
 
@@ -42,8 +33,7 @@ class FailSafeReport:
 
 
 class RigidImpactZones:
-    """Rigid impact zones over a model's cloth particles; ``detector``: the collision stage's (it finds the contacts
-    the rigid motion leaves)."""
+    """Rigid impact zones over a model's cloth particles; ``detector``: the collision stage's."""
 
     def __init__(self, model, detector: ContactDetector):
         self.model = model
@@ -54,9 +44,8 @@ class RigidImpactZones:
         self.kernels = failsafe_kernels(model.scalar)
 
     def zones(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(zone of each cloth particle, -1 for none; anchor zones; anchor nodes) of contacts ``rows`` (m, 4): free
-        particles that share a contact share a zone (zones numbered by their smallest particle); the contacts' other
-        nodes (obstacle vertices, pinned particles) anchor it."""
+        """(zone of each cloth particle or -1, anchor zones, anchor nodes) of contacts ``rows`` (m, 4): free particles
+        that share a contact share a zone; the contacts' constant nodes anchor it."""
         n = self.cloth_count
         rows = np.asarray(rows, dtype=np.int64).reshape(-1, 4)
         free = (rows < n) & self.free[np.where(rows < n, rows, 0)]
@@ -74,8 +63,7 @@ class RigidImpactZones:
 
     def positions(self, x0: wp.array, x_hat: wp.array, mass: wp.array, start: wp.array, end: wp.array,
                   zone: np.ndarray, anchor_zone: np.ndarray, anchor_node: np.ndarray, recording: bool) -> wp.array:
-        """The zones' rigid positions (x^ outside them), by taped kernels. ``start``/``end``: every node's
-        position at the step's start and end (the anchors' displacements)."""
+        """The zones' rigid positions (x^ outside them), taped; ``start``, ``end``: every node at the step's ends."""
         model = self.model
         dev = model.device
         scalar, vec3, mat33 = model.scalar, model.types.vec3, model.types.mat33
@@ -106,7 +94,7 @@ class RigidImpactZones:
                 mass: wp.array, rows: np.ndarray, recording: bool, reason: str, step: int
                 ) -> tuple[wp.array, FailSafeReport]:
         """Positions that leave no contact outside a rigid zone, from the contacts ``rows`` the projection gave up
-        on (``reason``: why)."""
+        on (``reason``: why); raises CollisionError where the zones do not settle in MERGES passes."""
         model = self.model
         self.free = model.particle_pin.numpy() < 0  # the model's pins as they are now
         start = gather_nodes(model, x0, obstacle_start, recording)
@@ -139,8 +127,7 @@ class RigidImpactZones:
                              f"projection failed ({reason})")
 
     def _violated(self, start: wp.array, end: wp.array, step: int) -> np.ndarray:
-        """The nodes of the contacts detected between ``start`` and ``end`` whose constraint the end positions
-        violate (detection also reports pairs that touched at the start and have since moved apart)."""
+        """The nodes of the contacts detected between ``start`` and ``end`` that the end positions violate."""
         found = self.detector.detect(start, end)
         if len(found) == 0:
             return found.nodes
@@ -150,10 +137,8 @@ class RigidImpactZones:
         return found.nodes[gap < target.numpy() - 1.0e-6 * self.thickness]
 
     def _place(self, row: np.ndarray, zone: np.ndarray, anchored: np.ndarray) -> str:
-        """Where a contact found after the rigid motion lies: "inside" one zone (its free particles in one zone,
-        any obstacle vertex or pinned particle only where that zone moves with them), "hold" (one free zone
-        against an obstacle or a pin: the zone must move with them), or "outside" (particles in no zone or in two
-        zones: they merge)."""
+        """Where a contact found after the rigid motion lies: "inside" one zone, "hold" (a free zone against an
+        obstacle or a pin: it must move with them) or "outside" (particles in no zone or in two: they merge)."""
         n = self.cloth_count
         free = [int(a) for a in row if a < n and self.free[a]]
         if not free:  # only constant nodes: nothing to move

@@ -1,47 +1,6 @@
-"""The collision stage of a step: detect, project onto the non-penetrating set, repeat (SPEC.md §3).
-
-After the implicit step has moved the cloth from x0 to x̂, each round
-1. detects contacts between the start positions x0 and the current end positions (warpcloth/collision/detection.py:
-   BVH broad phase over swept boxes; vertex-face and edge-edge CCD and proximity within the thickness δ:
-   kernels/collision.py, not differentiated);
-2. evaluates the new contacts at their time of impact, from the positions they were found at: unit normal n and
-   weights w (kernels/contact.py, differentiated by Warp, the time of impact included); they stay in later rounds;
-3. solves min ½(z − x̂)ᵀW(z − x̂) s.t. Σ_k w_jk n_j·z_k ≥ δ over all contacts so far and records its adjoint on
-   the tape, by one of two backends (warpcloth/collision/backends.py, ``CollisionOptions.solver``): on the device
-   (the default) or zone by zone in NumPy.
-Rounds repeat until detection finds nothing new; the velocities then take the displacement, v += (z − x̂)/dt.
-Where the projection gives up (rounds run out, an infeasible or stalled QP, a response that would stretch the cloth
-past ``CollisionOptions.max_projection_strain``), the stage tries the step once more keeping start gaps: a pair that
-starts the step inside the thickness (a cloth crumpled or laid on itself or an obstacle) is only kept from coming
-closer than it started, where the first try pushed it a full thickness apart, which contradicts its neighbours'
-contacts when layers are stacked closer than the thickness. Where that fails too, the fail-safe
-(warpcloth/collision/failsafe.py: rigid impact zones) resolves the step. In a model of several worlds each world
-goes through these tries on its own (a failure names its worlds: ``CollisionError.worlds``), so a world ends the
-step as it would alone. ``resolve`` returns a :class:`CollisionReport` of what happened.
-
-Gradients reach x̂, the step's start positions x0 and the obstacles' start and end positions (hence the obstacle
-transforms of the Control) through n, w and the times of impact, and the masses in W (the Simulator's taped lumped
-masses, on to the densities). Deliberately dropped: which contacts exist and which are active (piecewise constant:
-the trajectory's piece).
-
-What the host does in a step (issue 37). Detection reads one small array (the detector's flags: contacts found,
-and the last projection's strain-guard flag); a round with contacts reads it once more after its projection (a
-degenerate normal, a failed solve). A step without contacts therefore reads one value, runs four launches (the
-nodes, the swept boxes, every query, the result) and the BVH refits, and, taped, records one hand-written adjoint
-(one launch) and nothing else; an untaped step allocates nothing here (tests/test_collision.py).
-
-A step is captured as a graph (``wc.CapturedRollout``) by following a plan (:attr:`CollisionStage.plan`): the
-counts its detection rounds found when it last ran uncaptured. Every host decision of a step with the device
-projection is made from those counts (launch sizes, the rounds, the arrays the tape keeps) or from flags, so a
-replay that finds the same counts and raises no flag is the uncaptured step, bitwise on the CPU. The checks run on
-the device (kernels/projection.py expect_found, expect_solved: other counts, a degenerate contact, a failed solve,
-a stretched edge) and raise one flag that the replay reads once; where it is up, the step runs again, uncaptured,
-and so raises, tries again keeping start gaps, or falls back to the fail-safe as it would. What is not captured:
-steps resolved by a second try or the fail-safe (their worlds' tries branch on the host, and the fail-safe runs in
-NumPy) and the NumPy zone solver's steps; they run uncaptured. A true device-side round loop (``wp.capture_while``
-over "found new contacts") would need launches sized by a capacity with counts held on the device, and a tape that
-walks a device-counted number of rounds back, which Warp's tape (a fixed list of launches) cannot record.
-"""
+"""The collision stage of a step: detect, project x̂ onto every contact so far, repeat; then v += (z − x̂)/dt. A failed
+world retries keeping start gaps, then falls back on :mod:`warpcloth.collision.failsafe`. Method:
+docs/concepts/contact.md; why the rounds run on the host: docs/decisions.md, "Collision rounds on the host"."""
 
 from __future__ import annotations
 
@@ -52,10 +11,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from warpcloth.collision.backends import DeviceBackend, ZoneBackend, gather_nodes, timed
+from warpcloth.collision.contact import gather_nodes
 from warpcloth.collision.detection import STRAINED, ContactDetector
-from warpcloth.collision.diagnostics import rounds_error, strain_error
+from warpcloth.collision.diagnostics import rounds_error, strain_error, timed
 from warpcloth.collision.failsafe import FailSafeReport, RigidImpactZones
+from warpcloth.collision.projection import DeviceBackend
+from warpcloth.collision.reference.backend import ZoneBackend
 from warpcloth.errors import CollisionError, ContactCapacityError
 from warpcloth.kernels.contact import WORLD_SKIPPED, contact_kernels
 from warpcloth.kernels.projection import device_round_kernels, expect_found
@@ -75,14 +36,11 @@ class CollisionReport:
     contacts: int = 0
     """Contacts of the step (those the fail-safe was handed, where it ran)."""
     kept_start_gaps: str | None = None
-    """Why the projection with the full thickness failed, where the step was resolved by its second try, which keeps
-    the start gaps of pairs that start inside the thickness; else None."""
+    """Why the full-thickness try failed, where the second try (keeping start gaps) resolved the step; else None."""
     found: list[int] = field(default_factory=list)
-    """Contacts each round's detection found, of the try that resolved the step (a captured step's plan: what its
-    graph expects)."""
+    """Contacts each detection round found in the try that resolved the step (a captured step's plan)."""
     zones: list[dict] = field(default_factory=list)
-    """The NumPy backend's per-zone records of its last round (sizes, iterations, timings; after a backward pass
-    also the adjoint's)."""
+    """The NumPy backend's per-zone records of its last round (the adjoint's too, after a backward pass)."""
     projections: list = field(default_factory=list)
     """The NumPy backend's (ProjectionResult, z) of each round; ``z.grad`` holds dL/dz after a backward pass."""
     device: dict | None = None
@@ -106,8 +64,7 @@ class CollisionReport:
 
 
 class CollisionStage:
-    """The contact detector, the projection backends and the round loop of one Simulator (built only for scenes
-    with collisions)."""
+    """The contact detector, projection backends and round loop of one Simulator whose scene has collisions."""
 
     def __init__(self, model: Model, dt: float, options):
         settings = model.collision
@@ -126,36 +83,26 @@ class CollisionStage:
         if obstacles:
             self.detector.check_start_outside(model)
         self.phase_seconds = dict.fromkeys(("detection", "geometry", "projection", "adjoint", "fail_safe"), 0.0)
-        """Wall time per phase, accumulated over steps (forward) and backward passes (``adjoint``): contact detection
-        (swept BVH queries; the NumPy backend's also copies the contacts to the host), the contacts' normals and
-        weights, the projection, its adjoint, and the fail-safe."""
+        """Wall time [s] per phase, summed over steps and (``adjoint``) backward passes."""
         self.backends = {"device": DeviceBackend(model, self.detector, self.phase_seconds, n + V),
                          "numpy": ZoneBackend(model, self.detector, self.phase_seconds)}
-        """The projection backends by ``CollisionOptions.solver``."""
         self.fail_safe = RigidImpactZones(model, self.detector)
-        """The fail-safe of steps the projection cannot resolve (rigid impact zones)."""
         self.fail_safe_steps = 0
-        """Steps resolved by the fail-safe over this stage's life (each also reported in its CollisionReport)."""
+        """Steps resolved by the fail-safe over this stage's life."""
         self.start_gap_steps = 0
         """Steps resolved by the second try, which keeps start gaps, over this stage's life."""
         self.last: CollisionReport | None = None
-        """The report of the last step (diagnostics: no step reads it)."""
+        """The report of the last step."""
         self.speculative = False
-        """Whether steps follow :attr:`plan` without reading the detector (set while ``wc.CapturedRollout`` captures
-        a step; :attr:`mismatch` then tells whether the step kept to it)."""
+        """Whether steps follow :attr:`plan` without reading the device (while ``wc.CapturedRollout`` captures)."""
         self.plan: list[int] = []
-        """The contacts each detection round of a speculative step expects ([]: none: the step keeps x̂), from the
-        step's last run (:attr:`CollisionReport.found`). A step with contacts is planned on the device projection
-        only, at the full thickness in every world: its launches are sized by the plan, and a check on the device
-        raises a flag where detection finds other counts or a projection fails; the replay then runs the step
-        again, uncaptured."""
+        """The contacts each round of a speculative step expects ([]: none), the step's last
+        :attr:`CollisionReport.found`; other counts or a failed projection raise :attr:`mismatch`."""
         self.mismatch = wp.zeros(1, dtype=wp.int32, device=self.device)
         """The flag of a speculative step that did not keep to its plan (zeroed at the step's start)."""
         self._full_thickness = np.zeros(model.world_count, dtype=np.int32)  # every world's detection mode
         self.record = wp.zeros(RECORD_SIZE, dtype=wp.int32, device=self.device)
-        """The failure record (kernels/status.py) the divergence guard on the stage's result latches into: the
-        Simulator's (it also points ``detector.skip`` at it, so that candidate positions that diverged meet no
-        contact); one of the stage's own otherwise."""
+        """The failure record (kernels/status.py) the result's divergence guard latches into (the Simulator's)."""
         # every triangle's three edges and their rest lengths (material space): the projection-strain guard
         tris = model.triangles_np
         dm = np.linalg.inv(model.tri_inv_dm.numpy().astype(np.float64))  # columns: rest edges x1 - x0, x2 - x0
@@ -180,13 +127,10 @@ class CollisionStage:
     def resolve(self, state_in: State, x_hat: wp.array, v_hat: wp.array, obstacle_start: wp.array,
                 obstacle_end: wp.array, state_out: State, step: int, mass: wp.array | Callable[[], wp.array],
                 implicit_dt: float | None = None) -> CollisionReport:
-        """Write the collision-free positions and corrected velocities of the step into ``state_out`` and report
-        what it took. ``obstacle_start`` and ``obstacle_end`` are the obstacle vertices at the step's start and end
-        (empty without obstacles); ``mass``: the particles' lumped masses (the adjoint adds to ``mass.grad``), or a
-        function that makes them (called once, where the step has contacts: a step without costs no launch for them).
-        ``implicit_dt``: the length of the implicit step that gave x̂ = start + implicit_dt v̂, where it is not the
-        time step (BDF2: 2/3 dt from its blend); the velocity change is (z − x̂) / implicit_dt, so the result keeps
-        that relation."""
+        """Write the step's collision-free positions and velocities into ``state_out``; returns the report.
+        ``obstacle_start``, ``obstacle_end``: obstacle vertices (empty without); ``mass``: the lumped masses (the
+        adjoint adds to ``mass.grad``) or a function making them where needed; ``implicit_dt``: the implicit step's
+        length where not ``dt`` (BDF2: 2/3 dt), x̂ = start + implicit_dt v̂ and v changes by (z − x̂) / implicit_dt."""
         model = self.model
         recording = active_tape() is not None and model.requires_grad
         opt = self.options.collision
@@ -239,15 +183,13 @@ class CollisionStage:
         return report
 
     def check_adjoints(self) -> None:
-        """Warn where a projection's adjoint replayed from a graph did not converge (one read, after a backward pass
-        replayed from graphs)."""
+        """Warn where a projection's adjoint replayed from a graph did not converge (one read)."""
         self.backends["device"].check_adjoints()
 
     def _planned_rounds(self, report: CollisionReport, state_in: State, start: wp.array, x_hat: wp.array,
                         obstacle_start: wp.array, obstacle_end: wp.array, step: int, mass: Callable[[], wp.array],
                         recording: bool) -> wp.array:
-        """A step being captured that follows :attr:`plan`: the round loop of the device projection at the full
-        thickness, its launches sized by the plan's counts, with no read: its checks raise :attr:`mismatch`."""
+        """The device round loop of a captured step, sized by :attr:`plan`, with no read (checks: :attr:`mismatch`)."""
         model = self.model
         backend = self.backends["device"]
         taped_start = functools.cache(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
@@ -266,8 +208,7 @@ class CollisionStage:
     def _tries(self, backend, report: CollisionReport, state_in: State, start: wp.array, x_hat: wp.array,
                obstacle_start: wp.array, obstacle_end: wp.array, step: int, mass: Callable[[], wp.array],
                recording: bool) -> wp.array:
-        """Each world's tries at the step (the round loop at the full thickness, keeping start gaps, the fail-safe),
-        filling ``report``; returns the resolved positions."""
+        """Each world's tries (full thickness, keeping start gaps, the fail-safe), filling ``report``; returns z."""
         model, opt = self.model, self.options.collision
         # the step's start nodes taped, made at the first round that finds contacts (shared by the step's tries)
         taped_start = functools.cache(lambda: gather_nodes(model, state_in.particle_x, obstacle_start, True))
@@ -324,10 +265,8 @@ class CollisionStage:
     def _rounds(self, backend, start: wp.array, taped_start: Callable[[], wp.array], x_hat: wp.array,
                 obstacle_end: wp.array, step: int, report: CollisionReport, recording: bool,
                 plan: list[int] | None = None) -> wp.array:
-        """The round loop: detect from the start positions to the current end positions, add the new contacts,
-        project x̂ onto all of them; until detection finds nothing new. Returns the projected positions.
-        ``start``: the start nodes (the stage's buffer); ``taped_start``: the same, taped, made when first needed;
-        ``plan``: each round's count, expected without a read (a captured step; the device backend checks it)."""
+        """Detect, add, project x̂ until detection finds nothing new; returns z. ``taped_start`` makes ``start`` taped;
+        ``plan``: each round's count, expected without a read."""
         opt = self.options.collision
         phases = self.phase_seconds
         z = x_hat
@@ -368,10 +307,7 @@ class CollisionStage:
         return z
 
     def _test_strain(self, x_hat: wp.array, z: wp.array) -> None:
-        """Flag (the detector's STRAINED flag) a projection that alone lengthened an edge by more than
-        ``CollisionOptions.max_projection_strain`` of its rest length (diagnostics.strain_error says why). Run after
-        every projection, so that the next detection's read carries the flag of the round's positions: the last
-        round's is the step's (that detection finds nothing new)."""
+        """Raise the detector's STRAINED flag where z stretches an edge past ``max_projection_strain``."""
         limit = self.options.collision.max_projection_strain
         self.detector.strained.zero_()
         wp.launch(device_round_kernels(self.model.scalar).largest_strain, len(self._edge_rest), device=self.device,
@@ -379,8 +315,6 @@ class CollisionStage:
                   outputs=[self.detector.strained], record_tape=False)
 
     def _strain_error(self, x_hat: wp.array, z: wp.array, step: int) -> None:
-        """Raise the CollisionError naming the edge the projection stretched past the limit (flagged on the device:
-        the host reads the positions only then)."""
         limit = self.options.collision.max_projection_strain
         error = strain_error(step, x_hat.numpy().astype(np.float64), z.numpy().astype(np.float64),
                              self._edge_ends, self._edge_rest, limit, self.detector.node_world_host)

@@ -1,2 +1,1 @@
-"""Host-side geometry that needs no Model: rigid transforms, keyframed rigid motions and the meshes of
-simple shapes."""
+"""Host-side geometry that needs no Model: rigid transforms and motions, meshes of simple shapes."""

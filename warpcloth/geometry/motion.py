@@ -1,8 +1,4 @@
-"""Keyframed rigid motion on the host: piecewise-linear translation and slerp rotation between key times.
-
-An obstacle's scripted motion (:class:`warpcloth.obstacles.Obstacle`, ``Model.obstacle_motion``); it needs no
-Model, so both the model and the obstacles module can name it. Quaternions are in Warp's (x, y, z, w) order.
-"""
+"""Keyframed rigid motion on the host (an obstacle's scripted motion); quaternions in Warp's (x, y, z, w) order."""
 
 from __future__ import annotations
 
@@ -18,10 +14,8 @@ __all__ = ["RigidMotion"]
 
 @dataclass
 class RigidMotion:
-    """Keyframed rigid motion: piecewise-linear translation, slerp rotation, held constant outside the keys.
-
-    Built from arrays (converted to float64 and validated on construction) or with :meth:`from_keyframes`.
-    """
+    """Piecewise-linear translation and slerp rotation (shorter arc) between keys, the nearest key's outside them;
+    from arrays (validated, raising ValueError) or :meth:`from_keyframes`."""
 
     times: np.ndarray
     """Key times [s], strictly increasing, shape (K,), K >= 1."""
@@ -55,11 +49,8 @@ class RigidMotion:
 
     @classmethod
     def from_keyframes(cls, keyframes) -> RigidMotion:
-        """Builds a motion from ``[(time [s], (tx, ty, tz) [m], (qx, qy, qz, qw)), ...]``.
-
-        Raises:
-            ValueError: naming the keyframe for a malformed, non-finite, out-of-order or non-unit entry.
-        """
+        """A motion from ``[(time [s], (tx, ty, tz) [m], (qx, qy, qz, qw)), ...]``; ValueError naming a malformed,
+        non-finite, out-of-order or non-unit keyframe."""
         keys = list(keyframes)
         if not keys:
             raise ValueError("motion needs at least one (time, translation, quaternion) keyframe")
@@ -84,11 +75,7 @@ class RigidMotion:
         return int(self.times.shape[0])
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Translation (3,) [m] and unit quaternion (4,) (x, y, z, w) at time ``t`` [s].
-
-        Before the first key and after the last one the motion holds that key's value. Between keys the translation
-        is linear and the rotation a slerp along the shorter arc (renormalised against rounding).
-        """
+        """Translation (3,) [m] and unit quaternion (4,) at time ``t`` [s]."""
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"motion: time must be finite, got {t}")

@@ -1,6 +1,5 @@
-"""Triangle meshes of simple shapes, in their body frame: ``(vertices [m] (V, 3), triangles (T, 3) int32)``, the
-triangles counter-clockwise seen from the side the cloth is meant to be on (outside a closed shape); and the unique
-edges of a triangle mesh."""
+"""Meshes of simple shapes in their body frame, ``(vertices [m] (V, 3), triangles (T, 3) int32)``, counter-clockwise
+seen from the side the cloth is meant to be on (outside a closed shape); the edges of a triangle mesh."""
 
 from __future__ import annotations
 
@@ -32,15 +31,8 @@ def _count(what: str, value, min_value: int) -> int:
 
 
 def plane_mesh(size: Sequence[float] = (1.0, 1.0), res: Sequence[int] = (1, 1)) -> tuple[np.ndarray, np.ndarray]:
-    """A rectangle in the body XY plane, centred on the origin, facing +z.
-
-    Args:
-        size: (width along x, height along y) [m], > 0.
-        res: cells along x and y (>= 1); ``res[0] * res[1] * 2`` triangles.
-
-    Returns:
-        ``(vertices (V, 3) float64, triangles (T, 3) int32)``, triangles counter-clockwise seen from +z.
-    """
+    """A rectangle in the body XY plane, centred on the origin, facing +z: ``size`` (x, y) [m] > 0, ``res`` cells
+    along x and y (>= 1), ``2 * res[0] * res[1]`` triangles."""
     sx, sy = _positive("plane size", size, 2)
     if isinstance(res, (str, bytes)) or len(res) != 2:
         raise ValueError(f"plane res must be two cell counts, got {res!r}")
@@ -50,15 +42,8 @@ def plane_mesh(size: Sequence[float] = (1.0, 1.0), res: Sequence[int] = (1, 1)) 
 
 
 def box_mesh(half_extents: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
-    """An axis-aligned box centred on the origin: 8 vertices, 12 triangles facing outwards.
-
-    Args:
-        half_extents: half sizes (hx, hy, hz) [m], > 0.
-
-    Returns:
-        ``(vertices (8, 3) float64, triangles (12, 3) int32)``; vertex ``i + 2 j + 4 k`` is at
-        ``((2i - 1) hx, (2j - 1) hy, (2k - 1) hz)``.
-    """
+    """An axis-aligned box centred on the origin, ``half_extents`` (hx, hy, hz) [m] > 0: 8 vertices (vertex
+    ``i + 2 j + 4 k`` at ``((2i - 1) hx, (2j - 1) hy, (2k - 1) hz)``), 12 triangles facing outwards."""
     h = _positive("box half_extents", half_extents, 3)
     i, j, k = np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij")
     corner = np.stack([i.ravel("F"), j.ravel("F"), k.ravel("F")], axis=1)  # row i + 2j + 4k
@@ -78,16 +63,8 @@ def box_mesh(half_extents: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def sphere_mesh(radius: float, subdivisions: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """An icosphere: an icosahedron whose faces are split in four ``subdivisions`` times, projected on the sphere.
-
-    Args:
-        radius: sphere radius [m], > 0. Every vertex lies exactly on the sphere (the faces inside it).
-        subdivisions: 0 (the icosahedron, 20 triangles) to 8; ``20 * 4**subdivisions`` triangles and
-            ``10 * 4**subdivisions + 2`` vertices (3: 1280 triangles, 642 vertices).
-
-    Returns:
-        ``(vertices (V, 3) float64, triangles (T, 3) int32)``, triangles facing outwards.
-    """
+    """An icosphere of ``radius`` [m] > 0, its vertices on the sphere, triangles facing outwards: an icosahedron
+    whose faces are split in four ``subdivisions`` (0 to 8) times, ``20 * 4**subdivisions`` triangles."""
     r = float(_positive("sphere radius", radius, 1)[0])
     n = _count("sphere subdivisions", subdivisions, 0)
     if n > _MAX_SPHERE_SUBDIVISIONS:
@@ -139,15 +116,9 @@ _FUNNEL_TRIANGLES = np.array([[0, 1, 2], [2, 3, 4], [3, 2, 1], [4, 0, 2]], dtype
 
 
 def funnel_mesh() -> tuple[np.ndarray, np.ndarray]:
-    """The seed's funnel (``meshes/contain.obj`` of Liang et al. 2019): an inverted square pyramid without a lid.
-
-    The 1 m x 1 m square opening spans [0, 1] x [0, 1] at z = 0 (two corners at z = 1e-6, as in the file) and the apex
-    is at (0.5, 0.5, -0.666539). The seed's collision demo places it with ``pos = (-0.5, -1, -0.55)``. The four
-    triangles are the file's, in its winding: they face up into the cavity, where the cloth falls.
-
-    Returns:
-        ``(vertices (5, 3) float64, triangles (4, 3) int32)``.
-    """
+    """The seed's funnel (``meshes/contain.obj`` of Liang et al. 2019), an inverted square pyramid without a lid:
+    the opening spans [0, 1] x [0, 1] at z = 0 (two corners at z = 1e-6, as in the file), the apex is at
+    (0.5, 0.5, -0.666539); the file's four triangles face up into the cavity."""
     return _FUNNEL_VERTICES.copy(), _FUNNEL_TRIANGLES.copy()
 
 
@@ -157,12 +128,8 @@ FLAT_EDGE_COS = 1.0 - 1.0e-12
 
 
 def contact_edges(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """The edges of a rigid mesh that a cloth can touch first: :func:`unique_edges` without the flat ones, edges
-    between exactly two coplanar, consistently oriented faces (a tessellated plane's diagonals). A segment nearest
-    to, or first reaching, a planar region does so at one of its end vertices or at the region's boundary, never
-    at a flat interior edge; such an edge's contact is implied by the vertex-face contacts of the cloth edge's ends,
-    and only adds a dependent constraint whose multiplier the projection splits arbitrarily (it moved gradients
-    through contact by 15 % on a sheet sliding across a plane's diagonal)."""
+    """:func:`unique_edges` without the flat ones, between exactly two coplanar, consistently oriented faces. Why:
+    docs/decisions.md, "No contacts on flat obstacle edges"."""
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     edges = unique_edges(tri)
     if len(tri) == 0:

@@ -1,5 +1,4 @@
-"""Rigid placements on the host: unit quaternions in Warp's (x, y, z, w) order and transforms
-(px, py, pz, qx, qy, qz, qw) [m]."""
+"""Rigid placements on the host: unit quaternions (x, y, z, w) and transforms (px, py, pz [m], qx, qy, qz, qw)."""
 
 from __future__ import annotations
 
@@ -55,11 +54,8 @@ def quat_to_matrix(q) -> np.ndarray:
 
 
 def quat_from_matrix(R) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) with ``w >= 0`` of a rotation matrix (3, 3).
-
-    Raises:
-        ValueError: when ``R`` is not a 3x3 rotation (orthonormal within 1e-6, determinant +1).
-    """
+    """Unit quaternion (x, y, z, w) with ``w >= 0`` of a rotation matrix ``R``; ValueError unless ``R`` is 3x3,
+    orthonormal within 1e-6, with determinant +1."""
     R = np.asarray(R, dtype=np.float64)
     if R.shape != (3, 3):
         raise ValueError(f"a rotation matrix must have shape (3, 3), got {R.shape}")

@@ -1,6 +1,4 @@
-"""Assembly of the implicit system A dv = b of one step (SPEC.md §2), and the one place that knows the element
-kernels' argument lists (kernels/implicit.py: the same face and hinge kernels assemble, give the solve's adjoint
-potential, and measure energy)."""
+"""Assembly of a step's implicit system A dv = b: the one place that knows kernels/implicit.py's argument lists."""
 
 from __future__ import annotations
 
@@ -13,12 +11,7 @@ from warpcloth.tape import active_tape, record_adjoint
 
 
 class SystemAssembler:
-    """Launches the force and Hessian kernels of one step into A's blocks and b.
-
-    Args:
-        model: the Model.
-        dt: time step [s].
-    """
+    """Launches the force and Hessian kernels of one step, ``dt`` [s], into A's blocks and b."""
 
     def __init__(self, model: Model, dt: float):
         self.model = model
@@ -75,12 +68,8 @@ class SystemAssembler:
     # -- assembly --------------------------------------------------------------------------------------------------
     def assemble(self, state_in: State, control: Control, t_next: float, values, rhs, pin_dv, dv=None,
                  explicit=None) -> None:
-        """Fill ``values`` (BSR blocks of A) and ``rhs`` (b) of the implicit system for one step.
-
-        ``dv`` is the buffer the solve will write; given while recording, the element kernels' adjoint uses it.
-        ``explicit``: (positions, velocities) the explicit wind force is evaluated at (BDF2's extrapolation);
-        ``state_in``'s when None.
-        """
+        """Fill ``values`` (A's blocks) and ``rhs`` (b) for one step. ``dv``: the buffer the solve will write, for the
+        recorded adjoint; ``explicit``: where the wind force is taken (BDF2's extrapolation), None: ``state_in``."""
         model = self.model
         dt = model.scalar(self.dt)
         k = self.kernels
@@ -93,8 +82,8 @@ class SystemAssembler:
                       inputs=[model.pin_particle, model.particle_diag_slot, x, v, control.pin_target,
                               self.offsets("pin", t_next), dt],
                       outputs=[pin_dv, values, rhs])
-        # Warp's autodiff of the element kernels costs ~10x their forward; when recording, their adjoint is the
-        # contracted potential of _record_element_adjoint instead (tested against Warp's in tests/test_solve.py).
+        # when recording, the element kernels' adjoint is the contracted potential of _record_element_adjoint, far
+        # cheaper than Warp's autodiff of them (tested against it in tests/test_solve.py)
         custom = (dv is not None and values.requires_grad and self.element_adjoint == "contracted"
                   and active_tape() is not None)
         for kernel, dim, inputs in self.element_launches((k.faces, k.hinges), self.element_state(x, v, pin_dv)):
@@ -121,13 +110,9 @@ class SystemAssembler:
                       inputs=[model.particle_pin, control.particle_force, dt], outputs=[rhs])
 
     def _record_element_adjoint(self, state_in: State, pin_dv, rhs, dv) -> None:
-        """Record the adjoint of the stretching and bending assembly for one step.
-
-        The only consumer of A and b is the solve, whose adjoint gives dL/db = lam and dL/dA_ab = -lam_a dv_b^T.
-        So the elements' share of dL/d(inputs) is the gradient of the scalar
-        phi = sum_a lam_a . b_a - sum_ab lam_a^T A_ab dv_b with lam and dv held fixed, which contracts to a few dot
-        products per element (the "potential" element kernels). Warp differentiates phi.
-        """
+        """Record the adjoint of the stretching and bending assembly for one step: the gradient of
+        phi = sum_a lam_a . b_a - sum_ab lam_a^T A_ab dv_b with lam and dv held fixed (the solve's adjoint gives
+        dL/db = lam, dL/dA_ab = -lam_a dv_b^T), by Warp's adjoint of the "potential" element kernels."""
         model = self.model
         k = self.kernels
 

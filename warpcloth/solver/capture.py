@@ -1,11 +1,4 @@
-"""A rollout recorded once as a graph and replayed: a CUDA graph on the GPU, Warp's API capture on the CPU.
-
-Replaying a graph skips Python and the launch overhead of every kernel (on CUDA 17.8 us a launch against a few us
-a graph node; on the CPU 25 us against 0.25 us for a small kernel, issue #37), and on CUDA the CG loop runs as a
-conditional node, so the host never waits for the device inside a rollout. With a loss, the graph holds the
-forward pass, the loss and the whole backward pass, as Newton's differentiable-simulation examples capture them.
-A scene with contact is captured one speculative graph per step instead (_StepGraphs).
-"""
+"""A rollout recorded once as graphs and replayed. Why: docs/decisions.md, "Rollouts replayed as graphs"."""
 
 from __future__ import annotations
 
@@ -31,47 +24,24 @@ from warpcloth.tape import (
 
 
 class CapturedRollout:
-    """``steps`` steps from ``state`` recorded as one graph; :meth:`run` replays it.
+    """``steps`` steps from ``state`` recorded as graphs; :meth:`run` replays them.
+
+    Construction runs the rollout once, then captures it; results are the uncaptured rollout's (bitwise on the CPU).
+    A scene with contact is captured a step at a time, each following its last uncaptured run's contacts; a step
+    that leaves that plan runs again uncaptured (:attr:`rerun_steps`). On CUDA a loss's rollout runs uncaptured.
 
     Args:
-        sim: the Simulator. A scene with a collision stage or proximity forces is captured one graph per step,
-            speculatively: a captured step expects the contacts its last uncaptured run found, round by round
-            (:attr:`contact_plans`), and at most a budget of proximity pairs (:attr:`pair_budgets`). Each graph
-            notes on the device whether its step kept to that, and the host reads the first step that did not
-            every ``SolverOptions.sync_every`` steps (0: once, after the forward pass; :attr:`flag_reads`). From
-            such a step the rollout goes on uncaptured from the step's input (:attr:`rerun_steps`; what the steps
-            replayed after it latched is forgotten, and they replay again), and the step is captured again after
-            the run with what it found; a step that left its plan twice, or whose contacts the graph cannot
-            follow (the NumPy projection, a second try keeping start gaps, the fail-safe), runs uncaptured from then
-            on, without its graph. A step whose input holds other arrays than its graph reads, where the step before
-            chose them (the lagged wind normals' positions, BDF2's history after a collision response), runs
-            uncaptured too and is captured again.
-        state: the initial State. Its arrays are the graph's input: assign new values into them (``assign``,
-            ``wp.copy``) between replays; rebinding them has no effect on the graph.
-        control: as for :func:`~warpcloth.rollout` (one Control, one per step, or a function of the step index);
-            its arrays, the model's and ``state``'s are read in place at every replay.
-        steps: number of steps.
-        loss: optional ``loss(trajectory) -> wp.array`` that launches kernels on the trajectory. With it, each
-            replay also runs the backward pass (of the sum of the loss array's entries, e.g. one loss per world;
-            ``run(backward=False)`` skips it, :meth:`backward` runs it again from other seeds): gradients land in
-            the ``.grad`` of the model's, the control's and ``state``'s arrays (zeroed before each replay's backward
-            pass), and :attr:`loss` holds the value.
+        state: the initial State, whose arrays the graph reads: assign new values into them between replays.
+        control: as for :func:`~warpcloth.rollout`; its arrays, like the model's, are read in place at every replay.
+        loss: optional ``loss(trajectory) -> wp.array`` launching kernels on the trajectory; each replay then
+            back-propagates the sum of its entries into the zeroed ``.grad`` of the arrays it depends on.
         segment_steps: with a loss, back-propagate in segments of this many steps, as
-            :func:`~warpcloth.checkpointed_backward` does, but replayed: the rollout is captured one graph a step, the
-            steps at the same place in their segments share the memory of their taped arrays (one segment's worth:
-            :attr:`taped_bytes`), and the backward pass replays each segment's steps again (all but the last) before
-            their backward graphs. The same gradients bitwise (on the CPU, where it runs; on CUDA use
-            ``checkpointed_backward``), for one more forward pass. Every State of the rollout is kept (a few of the
-            tape's arrays a step) and so are the graphs, whose record in Warp costs 0.3-1.0 MB a step
-            (benchmarks/memory.py): more than an uncaptured checkpointed tape, less than a captured whole one. Not
-            with BDF2 in a scene with a collision stage (:meth:`segments_unsupported`).
+            :func:`~warpcloth.checkpointed_backward` does: one segment's taped arrays are held (:attr:`taped_bytes`)
+            for one more forward pass, bitwise the same gradients. CPU only.
 
-    The first run is an ordinary one (it loads the kernels and makes the arrays the step keeps), then the same
-    rollout is captured (on the CPU with its backward pass as a graph of its own); each :meth:`run` replays it and
-    then reads the failure record once (:meth:`Simulator.check`), so a diverged particle or failed solve still
-    raises, naming its step. Results are the uncaptured rollout's: bitwise on the CPU (the same kernels in the same
-    order); on CUDA to rounding, as any two runs there (the assembly adds blocks with atomics).
-    """
+    Raises:
+        ValueError: ``steps`` or ``segment_steps`` not a positive integer, a loss on a model finalized without
+            ``requires_grad``, or steps that cannot be captured (:meth:`unsupported`, :meth:`segments_unsupported`)."""
 
     def __init__(self, sim: Simulator, state: State, control: ControlSchedule = None, *, steps: int,
                  loss: Callable[[list[State]], wp.array] | None = None, segment_steps: int | None = None):
@@ -88,17 +58,14 @@ class CapturedRollout:
         # what the graph baked in: the options (kernel arguments) and the model's arrays (pointers)
         self._captured_with = (sim.options, model_arrays(sim.model))
         self.trajectory: list[State] = []
-        """The states of the last replay, ``[state, s1, ..., s_steps]`` (the same arrays at every replay; new ones at
-        every run where the rollout is not captured, on CUDA with a loss)."""
+        """The states of the last replay, ``[state, s1, ..., s_steps]`` (the same arrays at every replay)."""
         self.loss: wp.array | None = None
         """The loss array the graph writes (None without a loss)."""
         self.tape: wp.Tape | None = None
         self.rerun_steps: list[int] = []
-        """The steps (0-based) of the last run that ran uncaptured (a scene with a collision stage or proximity
-        forces; always empty otherwise): those whose replay left its plan (other contacts, more pairs), run again,
-        and those run uncaptured at once (contacts a graph cannot follow, a graph that left its plan twice)."""
+        """The steps (0-based) of the last run that ran uncaptured (scenes with contact only)."""
         self.graphs: list = []
-        """The graphs a replay launches in turn (empty where the rollout is not captured: see below)."""
+        """The graphs a replay launches in turn (empty where the rollout is captured a step at a time, or not)."""
         self._steps = None
         self._kept: list[wp.array] = []  # the arrays made during the captures (tape.py arrays_kept says why)
         self._tally = Tally(sim.device) if sim.device.is_cpu else None  # their bytes (taped_bytes)
@@ -113,11 +80,7 @@ class CapturedRollout:
             warmup.zero()
         device = sim.device
         if device.is_cuda and warmup is not None:
-            # On an H200 (Warp 1.19) a graph holding the taped forward pass and its backward pass failed to
-            # instantiate ("invalid argument"), and as separate graphs, replayed zeroing first, they crashed
-            # (error 719; benchmarks/gpu/capture_probe.py): until a GPU replays them, such a rollout is run, not
-            # replayed. The suspect: arrays made in a CUDA capture are its graph's own allocations, backed only once
-            # that graph has run, and the zeroing wrote to their gradients before the forward graph had.
+            # run, not replayed: docs/decisions.md, "Loss rollouts not captured on CUDA"
             warnings.warn("CapturedRollout: a rollout with a loss is not captured on CUDA yet (its graph did not "
                           "instantiate with Warp 1.19); each run() records and differentiates it afresh",
                           RuntimeWarning, stacklevel=2)
@@ -161,32 +124,24 @@ class CapturedRollout:
 
     @property
     def taped_bytes(self) -> int | None:
-        """The bytes of the arrays the graphs hold, the taped steps' above all: with ``segment_steps``, those of one
-        segment (the segments share them), else the whole rollout's. None on CUDA (not counted there)."""
+        """Bytes of the arrays the graphs hold (with ``segment_steps``, one segment's); None on CUDA."""
         if self._steps is not None:
             return self._steps.taped_bytes
         return None if self._tally is None else self._tally.nbytes
 
     @property
     def pair_budgets(self) -> list[int]:
-        """Each step's budget of proximity pairs in its graph: how many pairs its pair kernels launch for, twice
-        what its last uncaptured run found, rounded up to a power of two (0: none, no pair kernel runs). Empty
-        where the rollout is not captured one graph a step (a scene without contact)."""
+        """Each step's budget of proximity pairs in its graph (0: no pair kernel runs); empty without contact."""
         return [] if self._steps is None else list(self._steps.pair_budget)
 
     @property
     def flag_reads(self) -> int:
-        """How often the last run read the device to ask whether its replayed steps kept to their plans: every
-        ``SolverOptions.sync_every`` replayed steps (0: once, at the end of the forward pass), before each step run
-        uncaptured, and after every step that follows a step that left its plan. 0 where the rollout is not
-        captured one graph a step."""
+        """How often the last run read whether its replayed steps kept to their contact plans; 0 without contact."""
         return 0 if self._steps is None else self._steps.flag_reads
 
     @property
     def contact_plans(self) -> list[list[int]]:
-        """Each step's contacts in its graph: the contacts each detection round of the collision stage is to find,
-        as the step's last uncaptured run found them ([]: none). A replay that finds others runs the step again,
-        uncaptured. Empty where the rollout is not captured one graph a step."""
+        """Each step's contact plan: the contacts each detection round is to find; empty without contact."""
         return [] if self._steps is None else [list(p) for p in self._steps.plans]
 
     def _record_forward(self) -> None:
@@ -201,19 +156,19 @@ class CapturedRollout:
             self._seed = wp.ones_like(self.loss, requires_grad=False)
 
     def _backward(self) -> None:
-        """The recording tape's backward pass of the loss's sum (its seed: ones, made in the loss's recording)."""
         self.tape.backward(grads={self.loss: self._seed})
 
     def current(self) -> bool:
-        """Whether the graphs still hold the Simulator's options and the model's arrays (:meth:`run` refuses to
-        replay them otherwise)."""
+        """Whether the graphs still hold the Simulator's options and the model's arrays (else :meth:`run` raises)."""
         options, arrays = self._captured_with
         return self.sim.options is options and model_arrays(self.sim.model) == arrays
 
     def run(self, *, backward: bool = True) -> list[State]:
-        """Replay the rollout (and, with a loss and ``backward``, the backward pass); returns the trajectory. Raises
-        ValueError where the Simulator's options were replaced or an array of the model rebound since the capture:
-        the graph would still use the old ones (change values in place, or capture again)."""
+        """Replay the rollout (and, with a loss and ``backward``, the backward pass); returns the trajectory.
+
+        Raises:
+            ValueError: the Simulator's options were replaced or a model array rebound since the capture.
+            SimulationError: a step diverged or (``on_cg_failure="raise"``) a solve failed."""
         self._check_current("run")
         taped = self._loss_fn is not None
         if self._steps is not None:  # one speculative graph a step
@@ -233,11 +188,8 @@ class CapturedRollout:
         return self.trajectory
 
     def backward(self, grads: dict) -> None:
-        """The last run's backward pass again, from other seeds: every gradient is zeroed, each array of ``grads``
-        (the loss, or an array the loss function made and kept, such as an intermediate) takes its values (an
-        array-like of its shape) as its gradient, the loss's own gradient is zero unless given, and the pass leaves
-        the gradients in the ``.grad`` of the arrays as :meth:`run` does. One rollout, several reverse passes: the
-        rows of a Jacobian."""
+        """The last run's backward pass again, all gradients zeroed first, from ``grads``: the loss, or an array the
+        loss function made, to its gradient's values (the loss's zero unless given). Rows of a Jacobian, for one."""
         self._check_current("backward")
         if self._loss_fn is None or self.loss is None:
             raise ValueError("CapturedRollout.backward needs a loss and a run before it")
@@ -267,8 +219,7 @@ class CapturedRollout:
 
 
 def _write_seeds(seed: wp.array, loss: wp.array, grads: dict) -> None:
-    """Write the seeds of a backward pass: ``seed`` (what the pass copies into the loss's gradient) from
-    ``grads[loss]`` or zero, every other array's gradient from its entry (after the gradients were zeroed)."""
+    """``seed`` (copied into the loss's gradient) from ``grads[loss]`` or zero; other arrays' gradients from theirs."""
     seed.zero_()
     for array, values in grads.items():
         target = seed if array is loss else array.grad
@@ -279,8 +230,7 @@ def _write_seeds(seed: wp.array, loss: wp.array, grads: dict) -> None:
 
 @contextlib.contextmanager
 def _capture(device, kept: list, arena: Arena | Tally | None = None, *, rewind: bool = True):
-    """A graph capture on ``device`` whose new arrays are appended to ``kept`` (tape.py arrays_kept says why), and take
-    their memory from ``arena`` where one is given (rewound first where ``rewind``)."""
+    """A graph capture on ``device``; its new arrays go to ``kept`` and take their memory from ``arena``, if given."""
     with allocating_from(arena, rewind=rewind), memory_ops_as_kernels(device), arrays_kept(kept), \
             wp.ScopedCapture(device=device) as capture:
         yield capture
@@ -303,46 +253,21 @@ def _segment(sim: Simulator, steps: int, loss, segment_steps: int | None) -> int
 
 
 def _stepwise(sim: Simulator) -> bool:
-    """Whether ``sim``'s steps read the device for contacts (a collision stage, proximity forces): such a rollout is
-    captured one speculative graph per step."""
     return sim.collision is not None or sim.proximity is not None
 
 
 def _handed_on(state: State) -> tuple:
-    """What a step reads of its input State that the step before chose, not just filled: the wind's lagged normals'
-    positions (the step before's start, or its result after a collision response moved the cloth) and BDF2's history
-    (the step before's start, or, after a collision response, arrays that step made). A graph reads the arrays it
-    was captured with, so a step whose input holds others runs uncaptured."""
+    """The arrays of a step's input State that the step before chose (a graph reads those it was captured with)."""
     return state.particle_x_previous, state.particle_x_last, state.particle_v_last
 
 
-NO_MISS = 2**31 - 1
-"""first_miss when no replayed step left its plan."""
-
-MAX_MISSES = 2
-"""A step whose graph left its plan (other contacts, more pairs) this many times runs uncaptured from then on,
-without its graph: capturing it again costs several uncaptured steps."""
+NO_MISS = 2**31 - 1  # first_miss when no replayed step left its plan
+MAX_MISSES = 2  # a step whose graph left its plan this many times runs uncaptured from then on
 
 
 class _StepGraphs:
-    """A rollout of a contact scene as one graph per step, each captured following a plan: the contacts of each
-    detection round and a budget of proximity pairs (Simulator._speculating).
-
-    A step's plan is what its last uncaptured run found (CollisionStage.plan); its budget of pairs a power of two, at
-    least twice the pairs that run found (0 where it found none: no pair kernel runs), its pair kernels launched at
-    the budget and holding as many pairs as were found. Each graph ends with a check that keeps, on the device, the
-    first step that left its plan (first_miss), which the host reads every SolverOptions.sync_every steps (_forward);
-    such a step runs again uncaptured from the same input State (the graph wrote only its output State and scratch),
-    on a tape of its own when there is a loss, and is captured again after the run (with its backward pass) with what
-    it found; so does a step whose input State holds other arrays than its graph reads where the step before chose
-    them (_handed_on). A step whose graph left its plan MAX_MISSES times, or whose contacts cannot
-    be planned, runs uncaptured at once from then on, without its graph (a cloth pressed into an obstacle whose
-    contacts change at every run would otherwise pay every step twice and a capture). The backward pass
-    walks the steps back: a replayed step's recorded adjoint as a graph of its own, a re-run step's tape as it is.
-    The States are the same arrays at every run, so the graphs serve every run. Made with an ordinary run of every
-    step (it loads the kernels and makes, outside any capture, what steps make lazily or per time), after which
-    every graph is captured (a capture records without running) and every gradient zeroed.
-    """
+    """A contact scene's rollout as one graph per step, each following a plan of contacts and proximity pairs.
+    Why: docs/decisions.md, "Contact rollouts captured a step at a time"."""
 
     def __init__(self, sim: Simulator, state: State, control: ControlSchedule, steps: int,
                  loss: Callable[[list[State]], wp.array] | None, segment: int | None = None):
@@ -396,10 +321,7 @@ class _StepGraphs:
             self._check_arenas()
 
     def _note(self, k: int, changed: set) -> None:
-        """After step k ran uncaptured: its contact plan and pairs. A step whose plan changed or whose pairs outgrew
-        its budget is added to ``changed`` (its graph is captured again after the run), unless its graph has left its
-        plan MAX_MISSES times already or its contacts cannot be planned: then the next run runs it uncaptured at
-        once."""
+        """After step k ran uncaptured: mark it ``changed`` (new plan, more pairs) or ``uncaptured`` (unplannable)."""
         sim = self.sim
         plan = sim._contact_plan()  # noqa: SLF001
         if plan is None or self.misses[k] >= MAX_MISSES:
@@ -414,7 +336,6 @@ class _StepGraphs:
             changed.add(k)
 
     def _capture_step(self, k: int) -> None:
-        """Capture step k's graph (and, with a loss, its recorded adjoint's) following its plan and budget."""
         sim, device = self.sim, self.sim.device
         kept = self.kept[k] = []
         self.handed[k] = _handed_on(self.states[k])
@@ -449,7 +370,6 @@ class _StepGraphs:
         self.loss_graphs.append(capture.graph)
 
     def _capture_zero(self) -> None:
-        """Capture the zeroing of every gradient the captured tapes reach."""
         self.kept["zero"] = []
         with _capture(self.sim.device, self.kept["zero"], self.tally) as capture:
             for tape in [*self.tapes, self._loss_tape]:
@@ -457,8 +377,7 @@ class _StepGraphs:
         self._zero = capture.graph
 
     def run(self, backward: bool = True) -> list[int]:
-        """One run (forward, and with a loss the backward pass unless ``backward`` is false); returns the steps that
-        ran uncaptured."""
+        """One run (with a loss and ``backward``, the backward pass too); returns the steps that ran uncaptured."""
         sim = self.sim
         with paused_gc():
             self._zero_all()
@@ -485,11 +404,7 @@ class _StepGraphs:
         return sorted(self.reruns)
 
     def _forward(self, predicted: set, changed: set) -> None:
-        """The forward pass: the graphs in turn, reading the first step that left its plan every
-        ``SolverOptions.sync_every`` replayed steps (0: at the end, or before a step run uncaptured). From a step
-        that left its plan, the rollout goes on from that step, uncaptured (the graphs after it ran from its wrong
-        result: what they latched is forgotten, and they replay again), and reads after every step from then on
-        (this run's contacts are not the last run's)."""
+        """The graphs in turn, reading every ``sync_every`` steps for a step that left its plan; from it, uncaptured."""
         sim, steps = self.sim, len(self.forward)
         every = sim.options.sync_every or steps
         self.flag_reads = 0
@@ -516,7 +431,6 @@ class _StepGraphs:
         self._forward_done()
 
     def _current(self, k: int) -> bool:
-        """Whether step k's input State hands it the arrays its graph was captured with (_handed_on)."""
         return all(a is b for a, b in zip(_handed_on(self.states[k]), self.handed[k], strict=True))
 
     def _first_miss(self) -> int | None:
@@ -529,7 +443,6 @@ class _StepGraphs:
         return first
 
     def backward(self, grads: dict) -> None:
-        """The last run's backward pass again, from the seeds ``grads`` (CapturedRollout.backward)."""
         with paused_gc():
             self._zero_all()
             _write_seeds(self._seed, self.loss, grads)
@@ -537,14 +450,12 @@ class _StepGraphs:
             self.sim._check_replayed_adjoints()  # noqa: SLF001
 
     def _zero_all(self) -> None:
-        """Zero every gradient the captured tapes and the last run's re-run steps reach."""
         if self._zero is not None:
             self._zero_reruns()
             wp.capture_launch(self._zero)
 
     def _rerun(self, k: int, *, keep: bool = False) -> wp.Tape | None:
-        """Step k, uncaptured, on a tape of its own where there is a loss (in segment mode, dropped at once outside
-        the last segment, unless ``keep``: a segment being re-simulated)."""
+        """Step k uncaptured, on its own tape with a loss (dropped outside the last segment unless ``keep``)."""
         tape = wp.Tape() if self.loss_fn is not None else None
         with tape if tape is not None else contextlib.nullcontext():
             self.sim.step(self.states[k], self.states[k + 1], self.controls[k])
@@ -554,26 +465,20 @@ class _StepGraphs:
 
     @property
     def _last_segment(self) -> int:
-        """The index of the rollout's last segment (segment mode)."""
         return (len(self.forward) - 1) // self.segment
 
     @property
     def taped_bytes(self) -> int | None:
-        """CapturedRollout.taped_bytes."""
         if self.tally is None:
             return None
         return self.tally.nbytes + sum(arena.nbytes for arena in self.arenas or ())
 
-    def _forward_done(self) -> None:
-        """After a forward pass: in segment mode the arenas and the kept re-run tapes hold the last segment's."""
+    def _forward_done(self) -> None:  # in segment mode the arenas hold the last segment's arrays
         if self.segment is not None:
             self._live = self._last_segment
 
     def _resimulate(self, first: int, last: int) -> None:
-        """Steps ``first`` to ``last - 1`` again (their graphs, or uncaptured on new tapes), so that the arenas and
-        tapes hold what their backward passes read; bitwise the forward pass's results on the CPU. The adjoint
-        first guess that the step after them handed to their end State (which their last step's forward pass
-        zeroes) is kept across, as one tape over the rollout would keep it."""
+        """Steps ``first`` to ``last - 1`` again for their backward passes, keeping their end State's adjoint guess."""
         handed = self.states[last].solve_adjoint
         if handed is not None:
             if self._handed is None or self._handed.shape != handed.shape or self._handed.dtype != handed.dtype:
@@ -589,9 +494,7 @@ class _StepGraphs:
         self._live = first // self.segment
 
     def _check_arenas(self) -> None:
-        """Raise where an array in an arena outlives its step: something the Simulator keeps or a State hands on,
-        made during a step's capture, would be overwritten by the steps that share the arena (a bug to fix in the
-        step: such arrays must be made by its ordinary run before the captures)."""
+        """Raise RuntimeError where an array that outlives its step lies in an arena the steps share (a bug)."""
         if self.arenas is None:
             return
         for path, array in _persistent_arrays({"sim": self.sim, "states": self.states, "controls": self.controls}):
@@ -601,14 +504,11 @@ class _StepGraphs:
                                        "the steps of the segments share (an internal error; please report it)")
 
     def _backward(self) -> None:
-        """The loss's backward pass from its seed, then the steps', last first: a re-run step's tape, a replayed
-        step's graph."""
         wp.capture_launch(self.loss_graphs[1])
         self._backward_steps()
 
     def _backward_steps(self) -> None:
-        """The steps' backward passes, last first. In segment mode a segment at a time, re-simulated first where the
-        arenas do not hold it, its re-run steps' tapes dropped after it."""
+        """The steps' backward passes, last first (in segment mode a segment at a time, re-simulated first)."""
         steps = len(self.forward)
         seg = self.segment or steps
         for first in reversed(range(0, steps, seg)):
@@ -628,8 +528,7 @@ class _StepGraphs:
                 self._live = None
 
     def _zero_reruns(self) -> None:
-        """Zero the gradients the last run's re-run steps reached (arrays of their own, and shared ones such as the
-        friction coefficients that no captured step's tape records), those of tapes dropped too."""
+        """Zero the gradients the last run's re-run steps reached, dropped tapes' included."""
         for tape in self.reruns.values():
             if tape is not None:
                 tape.zero()
@@ -638,8 +537,7 @@ class _StepGraphs:
 
 
 def _persistent_arrays(root, path: str = "", seen: set | None = None):
-    """(path, array) for every Warp array reachable from ``root`` through warpcloth's objects and containers, but for
-    their STEP_LOCAL attributes."""
+    """(path, array) for every Warp array reachable from ``root`` through warpcloth's objects, but STEP_LOCAL ones."""
     seen = set() if seen is None else seen
     if id(root) in seen:
         return

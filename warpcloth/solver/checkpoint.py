@@ -1,14 +1,4 @@
-"""Back-propagation through long rollouts with O(sqrt(T)) stored states (checkpointing).
-
-A full ``wp.Tape`` over T steps keeps every step's intermediate arrays alive (assembled matrices, CG buffers,
-contacts): memory grows linearly with T. Here the forward pass runs untaped and keeps only the states at segment
-boundaries; the backward pass re-simulates one segment at a time on its own tape, seeded with the adjoint of the
-segment's end state, and hands the adjoint of its start state to the segment before it. (The last segment is
-taped in the forward pass already: it is the first one the backward pass needs.) A State carries everything
-its next step reads (the solve's first guess, the lagged wind normals' positions), so the re-simulation repeats the
-forward pass bitwise, and each segment hands the adjoint solve of its first step to the segment before it as the
-first guess of that segment's last adjoint solve, as one tape would: the gradients equal the full tape's.
-"""
+"""Back-propagation through long rollouts with O(sqrt(T)) stored states: segments re-simulated on their own tapes."""
 
 from __future__ import annotations
 
@@ -41,25 +31,21 @@ def checkpointed_backward(
     """Simulate ``steps`` steps, sum the per-step loss terms, and add the loss's gradient to the ``.grad`` of every
     differentiable array the rollout reads (``state``'s arrays, the model's materials, the controls' arrays).
 
-    Memory: about ``steps / segment_steps + segment_steps`` states' worth of arrays (``segment_steps`` defaults to
-    ceil(sqrt(steps)), the minimum). Time: one forward pass, a second one of every segment but the last, and one
-    backward pass; with ``segment_steps >= steps`` that is one taped forward pass, as a full tape's.
-
-    The same back-propagation replayed from graphs, for a rollout run many times (on the CPU: faster, but holding
-    every State and Warp's record of the graphs): ``wc.CapturedRollout(..., loss=..., segment_steps=...)``.
+    The gradients equal a full tape's bitwise, for about ``steps / segment_steps + segment_steps`` states of memory
+    and a second forward pass of every segment but the last. Replayed from graphs: ``wc.CapturedRollout``.
 
     Args:
-        sim: the Simulator (its model should have ``requires_grad=True``).
-        state: the initial State; its arrays get gradients if they require them.
+        sim: its model should have ``requires_grad=True``.
         control: one Control for every step, a list with one per step, or a function of the step index.
-        steps: number of steps (>= 1).
-        loss: callback adding step i's loss term to ``out[0]``; it is called on every state after a step.
-        segment_steps: steps per re-simulated segment.
-        progress: show tqdm progress bars.
+        loss: ``loss(i, state_i, out)`` adds step i's loss term (i = 1..steps) to ``out[0]``.
+        segment_steps: steps per re-simulated segment; None: ceil(sqrt(steps)), the least memory.
 
     Returns:
         (loss value, final State).
-    """
+
+    Raises:
+        ValueError: ``steps`` or ``segment_steps`` not a positive integer, or a control sequence shorter than
+            ``steps``."""
     if int(steps) != steps or steps < 1:
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
     steps = int(steps)
@@ -81,8 +67,7 @@ def checkpointed_backward(
         return current
 
     def taped(checkpoint: State, k: int, out: wp.array) -> tuple[State, wp.Tape, State, wp.array]:
-        """Segment k from its checkpoint on a tape, its loss terms added to ``out``: (its start state, the tape,
-        its end state, ``out``)."""
+        """Segment k from its checkpoint on a tape, loss into ``out``: (start state, tape, end state, ``out``)."""
         start = checkpoint.clone(requires_grad=True)
         start.solve_adjoint = wp.zeros_like(start.particle_x, requires_grad=False)  # receives its first step's
         tape = wp.Tape()

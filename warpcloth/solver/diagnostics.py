@@ -1,6 +1,5 @@
-"""What the Simulator says when a step fails: the messages of divergence, non-finite solves and skipped solves,
-naming the step, the particle and, where it explains the failure, the wind's stability limit or the most elongated
-triangle. Host code, run on the failure path only (and once per Simulator for the skipped-solve warning)."""
+"""What the Simulator says when a step fails: the step, the particle and, where they explain it, the wind's stability
+limit or the most elongated triangle."""
 
 from __future__ import annotations
 
@@ -14,12 +13,10 @@ from warpcloth.errors import SimulationError
 from warpcloth.model import Model, State
 
 ELONGATED_ASPECT_RATIO = 100.0
-"""Rest aspect ratio (longest edge^2 / (2 area)) from which a failed solve or a divergence names the most elongated
-triangle: its stiffness relative to its mass, and with it the condition of the system, grows with the ratio."""
+"""Rest aspect ratio (longest edge^2 / (2 area)) from which failure messages name the most elongated triangle."""
 
 
 class StepDiagnostics:
-    """The failure messages of one Simulator's steps (``model``, time step ``dt``)."""
 
     def __init__(self, model: Model, dt: float):
         self.model = model
@@ -84,9 +81,8 @@ class StepDiagnostics:
                 f"overflow {model.scalar.__name__}")
 
     def warn_if_below_atol(self, step: int, cg_atol: float) -> None:
-        """Warn when the model is so light that its weight's impulse over a step, dt |g| |m|, is within ten times
-        SolverOptions.cg_atol: every solve then stops at once on that absolute floor and the cloth never moves (a
-        cloth at rest also skips its solves, rightly: its forces balance, so the test is on the model's scale)."""
+        """Warn (RuntimeWarning) when the weight's impulse over a step, dt |g| |m|, is within ten times ``cg_atol``:
+        every solve then stops at once on that floor and the cloth never moves."""
         g = max(float(np.max(np.linalg.norm(self.model.gravity.numpy(), axis=1))), 1.0)
         impulse = self.dt * g * float(np.linalg.norm(self.model.particle_mass()))
         if impulse <= 10.0 * cg_atol:
@@ -96,12 +92,8 @@ class StepDiagnostics:
                 "solves are skipped and the cloth does not move; lower cg_atol", RuntimeWarning, stacklevel=4)
 
     def wind_hint(self) -> str:
-        """Why the explicit wind force may have diverged: dt beyond its stability limit (else "").
-
-        The wind force has no Jacobian in the system, so per unit area a face's relative normal velocity u changes by
-        -dt (wind density) |u| u / (area density) in a step: it overshoots and grows once dt exceeds
-        2 (area density) / ((wind density) |u|); the tangential drag likewise beyond 2 (area density) / drag.
-        """
+        """Why the explicit wind force may have diverged (else ""): dt beyond 2 (area density) / ((wind density) |u|)
+        for the relative normal velocity u, or 2 (area density) / drag: it has no Jacobian in the system."""
         model = self.model
         if model.wind_velocity is None:
             return ""

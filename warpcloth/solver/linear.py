@@ -1,11 +1,4 @@
-"""The linear solve of the implicit step: preconditioned CG on the model's fixed 3x3 block pattern, and its
-implicit adjoint (one adjoint solve with the same matrix, SPEC.md §4.1) recorded on the tape instead of the CG
-iterations.
-
-Inside a step nothing here reads the device: each solve leaves its per-world result on the device, and one small
-kernel adds its iterations to the running totals and latches a failed world in the step's failure record
-(warpcloth/solver/status.py), which the Simulator reads at its sync points. ``solve`` (the public, synchronous
-call) reads its result back."""
+"""The implicit step's linear solve: preconditioned CG on the model's 3x3 block pattern, its adjoint on the tape."""
 
 from __future__ import annotations
 
@@ -20,7 +13,11 @@ import warp as wp
 
 from warpcloth.errors import SimulationError
 from warpcloth.kernels import status as ks
-from warpcloth.kernels.linear import linear_kernels
+from warpcloth.kernels.block_matrix import block_matrix_kernels
+from warpcloth.kernels.cg_sequential import sequential_cg_kernels
+from warpcloth.kernels.cg_tiled import tiled_cg_kernels
+from warpcloth.kernels.cg_warp import warp_cg_kernels
+from warpcloth.kernels.multigrid import multigrid_kernels
 from warpcloth.model import Model
 from warpcloth.solver.multigrid import ParallelMultigrid, WorldHierarchies
 from warpcloth.solver.options import SolverOptions
@@ -28,11 +25,7 @@ from warpcloth.solver.status import Failure, StepStatus
 from warpcloth.tape import record_adjoint, untaped
 
 TILED_MAX_PARTICLES = 1024
-"""The largest world the "auto" backend gives the tiled CG on CUDA (one thread block a world); larger worlds get
-warp.optim's CG, whose every operation spans the GPU. Measured on an H200 (benchmarks/results/gpu/, hanging sheet,
-block Jacobi, captured steps): 16x16 (289 particles) 0.77 ms a step tiled against 2.0 ms with warp.optim's CG;
-64x64 (4225) 28.3 ms against 7.3 ms. A tiled CG iteration costs about 10 us at 289 rows and 110 us at 4225 (a
-block of 256 threads), warp.optim's about 27 us at both (its launches): they cross near 1000 particles."""
+"""Largest world "auto" gives the tiled CG on CUDA. Why: docs/decisions.md, "Tiled CG up to 1024 particles"."""
 _KIND = {"jacobi": 0, "block_jacobi": 1, "block_ssor": 2, "multigrid": 3}  # the CG kernels' preconditioner codes
 
 
@@ -47,21 +40,16 @@ class SolveInfo(NamedTuple):
 
 
 class LinearSolver:
-    """CG for ``A x = b`` where A is given by its blocks on ``model``'s block pattern (``bsr_offsets``,
-    ``bsr_columns``). Owns its scratch; one solve at a time.
+    """CG for ``A x = b``, A given by its blocks on ``model``'s block pattern; owns its scratch, one solve at a time.
+    With ``cg_backend="auto"``, block SSOR asked of a CUDA backend runs as block Jacobi (:attr:`note` says so).
 
     Args:
-        model: the Model whose block pattern the systems use.
-        options: SolverOptions (tolerances, preconditioner, backend, what a failed solve does).
         hint: returns text appended to a failed solve's message (e.g. the most elongated triangle).
-        status: the failure record the recorded solves latch into (a Simulator shares its own; a new one if None).
+        status: the failure record the recorded solves latch into; None: a new one.
 
-    A preconditioner the resolved backend cannot run is mapped to one it can when the backend was chosen by the
-    device (``cg_backend="auto"``): block SSOR is a sequential sweep, so the tiled and warp backends (CUDA) run
-    block Jacobi instead, and ``note`` says so. The multigrid runs in parallel form (damped block-Jacobi sweeps)
-    with the warp backend (one world) and the tiled one (each world's V-cycle on its thread block), which the device
-    then chooses for several worlds of any size. Asking for an impossible pair explicitly raises ValueError.
-    """
+    Raises:
+        ValueError: a preconditioner the chosen backend cannot run, or the multigrid for a world with every particle
+            pinned."""
 
     def __init__(self, model: Model, options: SolverOptions, *, hint: Callable[[], str] | None = None,
                  status: StepStatus | None = None):
@@ -71,7 +59,7 @@ class LinearSolver:
         self.hint = hint or (lambda: "")
         self.status = status if status is not None else StepStatus(self.device)
         """The failure record and iteration totals the recorded solves write."""
-        self.kernels = linear_kernels(model.scalar)
+        self.kernels = block_matrix_kernels(model.scalar)
         backend = options.cg_backend
         chosen_by_device = backend == "auto"
         largest = int(np.diff(model.world_particle_start).max())
@@ -83,7 +71,7 @@ class LinearSolver:
                 if backend == "warp" and options.preconditioner == "multigrid" and model.world_count > 1:
                     backend = "tiled"  # warp.optim's CG takes the multigrid for one world; the tiled CG for each
         self.backend = backend
-        """``"sequential"``, ``"tiled"`` or ``"warp"``: the backend ``cg_backend`` resolved to on this device."""
+        """``"sequential"``, ``"tiled"`` or ``"warp"``: what ``cg_backend`` resolved to on this device."""
         self.note = ""
         """What was mapped to run on this device (empty if nothing was): the CLI prints it."""
         preconditioner = options.preconditioner
@@ -120,17 +108,16 @@ class LinearSolver:
         self._mg_scratch = wp.empty(0, dtype=vec3, device=self.device)  # the tiled V-cycle's (multigrid only)
         if preconditioner == "multigrid":
             hierarchy = WorldHierarchies.of_model(model)
-            self._multigrid = hierarchy.multigrid(self.kernels, model.scalar, self.device)
+            self._multigrid = hierarchy.multigrid(multigrid_kernels(model.scalar), model.scalar, self.device)
             if backend == "warp":  # the same hierarchy in parallel form: Jacobi smoothing, a thread per node
-                self._parallel_multigrid = ParallelMultigrid(hierarchy, self._multigrid, self.kernels, model,
-                                                             self.device)
+                self._parallel_multigrid = ParallelMultigrid(hierarchy, self._multigrid,
+                                                             multigrid_kernels(model.scalar), model, self.device)
             elif backend == "tiled":  # the same parallel form on the threads of each world's block
                 self._mg_scratch = wp.zeros(self._multigrid.x.shape[0], dtype=vec3, device=self.device)
             self.multigrid_levels = tuple(hierarchy.sizes)
-            """Nodes per level of the multigrid hierarchy, the particles first (all worlds' together; empty without
-            multigrid)."""
+            """Nodes per level of the multigrid hierarchy over all worlds, the particles first (else empty)."""
         else:
-            self._multigrid = self.kernels.Multigrid()  # unused: an empty hierarchy
+            self._multigrid = multigrid_kernels(model.scalar).Multigrid()  # unused: an empty hierarchy
             self._multigrid.levels = 0
             self.multigrid_levels = ()
         # the block inverses of the diagonal: the particles', then (multigrid) every coarse level's
@@ -158,17 +145,12 @@ class LinearSolver:
     # -- solves ------------------------------------------------------------------------------------------------------
     def solve(self, values: wp.array, b: wp.array, x: wp.array, *, guess: wp.array | None = None,
               adjoint: bool = False, pairs=None) -> SolveInfo:
-        """Solve A x = b from the first guess ``guess`` (which may be ``x`` itself), or from zero, and return what
-        the solve did (a read-back: this is the synchronous call, for diagnostics and tests). Not taped.
-
-        A is ``values`` on the model's block pattern plus the cross blocks of proximity ``pairs`` (if any);
-        ``adjoint`` selects the adjoint tolerance (``SolverOptions.adjoint_cg_tol``).
-        """
+        """Solve A x = b (``values`` plus ``pairs``' cross blocks), untaped, from ``guess`` (may be ``x``) or zero;
+        reads the device. ``adjoint`` selects ``SolverOptions.adjoint_cg_tol``."""
         self._launch_solve(values, b, x, guess, adjoint, pairs)
         return self.info(adjoint)
 
     def _launch_solve(self, values, b, x, guess, adjoint: bool, pairs) -> None:
-        """Launch the solve; its per-world result stays on the device (``self._info[adjoint]``)."""
         opt = self.options
         tol = opt.adjoint_cg_tol if adjoint and opt.adjoint_cg_tol is not None else opt.cg_tol
         model = self.model
@@ -179,7 +161,8 @@ class LinearSolver:
             return
         r, z, p, q = self._scratch
         if self.backend == "tiled":
-            kernel = self.kernels.cg_tiled_multigrid if self.preconditioner == "multigrid" else self.kernels.cg_tiled
+            tiled = tiled_cg_kernels(model.scalar)
+            kernel = tiled.cg_tiled_multigrid if self.preconditioner == "multigrid" else tiled.cg_tiled
             wp.launch_tiled(kernel, dim=[model.world_count], block_dim=self.block_dim,
                             device=self.device,
                             inputs=[self.block_matrix(values, pairs), b, float(tol), float(opt.cg_atol),
@@ -189,7 +172,7 @@ class LinearSolver:
                                     self._world_start],
                             outputs=[x, self._info[adjoint]], record_tape=False)
             return
-        wp.launch(self.kernels.cg_sequential, model.world_count, device=self.device,
+        wp.launch(sequential_cg_kernels(model.scalar).cg_sequential, model.world_count, device=self.device,
                   inputs=[self.block_matrix(values, pairs), b,
                           float(tol), float(opt.cg_atol), int(opt.cg_max_iters), _KIND[self.preconditioner],
                           model.scalar(opt.ssor_omega), self._multigrid, int(guess is not None),
@@ -215,20 +198,15 @@ class LinearSolver:
                        guess: wp.array | None = None, adjoint_guess: wp.array | None = None,
                        adjoint_result: wp.array | None = None,
                        after_adjoint: Callable[[], None] | None = None, pairs=None) -> None:
-        """Solve A x = b (as :meth:`solve`, without reading the device: a failure is latched in ``status``), and
-        on the active tape record the implicit adjoint: A lam = dL/dx, dL/db += lam, dL/dA_ij -= lam_i x_j^T on
-        the stored blocks.
+        """Solve A x = b as :meth:`solve` does but without reading the device (failures latch in ``status``), and
+        on the active tape record the adjoint: A lam = dL/dx, dL/db += lam, dL/dA_ij -= lam_i x_j^T.
 
         Args:
             step: the step number that a failed solve's record names.
-            guess: first guess of the forward solve.
-            adjoint_guess: first guess of the adjoint solve (read once, then zeroed, so a second backward pass
-                over the same tape repeats the first bitwise).
-            adjoint_result: receives lam after the adjoint solve (the next adjoint solve's first guess).
-            after_adjoint: called after the adjoint solve (the Simulator checks its record there when it syncs
-                every step).
-            pairs: proximity pairs whose cross blocks A has (their adjoint is the pairs' own, proximity.py).
-        """
+            adjoint_guess: first guess of the adjoint solve (zeroed once read: a second backward pass repeats the
+                first bitwise).
+            adjoint_result: receives lam after the adjoint solve.
+            pairs: proximity pairs whose cross blocks A has (their adjoint is their own)."""
         self._launch_solve(values, rhs, x, guess, False, pairs)
         self._account(step, adjoint=False)
         if not (values.requires_grad and rhs.requires_grad and x.requires_grad):
@@ -259,7 +237,7 @@ class LinearSolver:
 
     def block_matrix(self, values: wp.array, pairs=None):
         """The matrix with blocks ``values`` on the model's pattern and the cross blocks of ``pairs`` (a
-        :class:`~warpcloth.collision.proximity.ProximityPairs`, or None), as the CG kernels read it."""
+        :class:`~warpcloth.solver.proximity.ProximityPairs`, or None), as the CG kernels read it."""
         if pairs is None or pairs.count == 0:
             A = self._plain  # built once: a step without pairs only swaps the blocks
         else:
@@ -273,15 +251,13 @@ class LinearSolver:
 
     # -- failures ----------------------------------------------------------------------------------------------------
     def check(self, info: SolveInfo, which: str, step: int, world: int | None = None) -> None:
-        """Warn or raise (``SolverOptions.on_cg_failure``) when a solve missed its tolerance; always raise on a
-        non-finite residual. ``world`` names the failing world of a model of several."""
+        """Warn or raise SimulationError (``on_cg_failure``) for a missed tolerance; raise for a non-finite one."""
         message, fatal = self.failure_message(info, which, step, world)
         if message is not None:
             self._report(message, fatal, world)
 
     def check_failure(self, failure: Failure, *, cause: str | None = None) -> None:
-        """Warn or raise for a failed solve latched in the failure record (``cause``: what made it non-finite,
-        when the caller can still tell)."""
+        """As :meth:`check`, for a failure from the failure record (``cause``: what made it non-finite, if known)."""
         info = SolveInfo(failure.iterations, failure.residual, False)
         which = "adjoint" if failure.adjoint else "forward"
         message, fatal = self.failure_message(info, which, failure.step, failure.index)
@@ -318,10 +294,7 @@ class LinearSolver:
 
     # -- the warp backend --------------------------------------------------------------------------------------------
     def _warp_backend(self, b: wp.array, x: wp.array) -> SimpleNamespace:
-        """The warp backend's objects, made with the solver (a first solve may be inside a graph capture): a BSR
-        view of the model's block pattern, the operator (batched per world, so each world's CG has its own step
-        sizes and convergence test), the preconditioner (diagonal, or the parallel multigrid), and a CG functor per
-        tolerance (preallocated: a solve allocates nothing)."""
+        """The warp backend's BSR view, operators and CG functors, made before any solve (which may be captured)."""
         if self._warp is not None:
             return self._warp
         import warp.optim.linear as wl
@@ -342,7 +315,7 @@ class LinearSolver:
             batch = dict(batch_offsets=wp.array(3 * starts, dtype=int, device=device),
                          max_batch_length=int(3 * np.diff(starts).max()))
         w = SimpleNamespace(bsr=bsr, batch=batch or {}, functors={}, pairs=None, matrix=self._plain)
-        scalar, kernels = model.scalar, self.kernels
+        scalar, kernels = model.scalar, warp_cg_kernels(model.scalar)
 
         def matvec(x, y, z, alpha, beta):  # z = alpha A x + beta y, plus the pairs' cross blocks
             if beta != 0.0 and z.ptr != y.ptr:
@@ -366,11 +339,8 @@ class LinearSolver:
         return w
 
     def _solve_warp(self, values, b, x, tol: float, guess: wp.array | None, pairs, info: wp.array) -> None:
-        """``warp.optim.linear.cg`` on a BSR view of ``values`` (the CUDA path), plus the pairs' cross blocks as a
-        matrix-free term of the operator (one launch per product, a thread per pair). On CUDA it tests
-        convergence on the device (``check_every=0``: a conditional loop inside a graph, nested in the caller's
-        capture if there is one), so a solve never waits for the host; on the CPU it checks on the host every
-        iteration, and every world reports the worst world's residual."""
+        """``warp.optim.linear.cg``, pairs matrix-free; convergence tested on the device on CUDA, else on the host
+        (every world then reports the worst world's residual)."""
         import warp.optim.linear as wl
 
         model, opt = self.model, self.options
@@ -386,7 +356,7 @@ class LinearSolver:
         if self._parallel_multigrid is not None:
             self._parallel_multigrid.setup(matrix)
         else:
-            wp.launch(self.kernels.diagonal_inverse, model.particle_count, device=self.device,
+            wp.launch(warp_cg_kernels(model.scalar).diagonal_inverse, model.particle_count, device=self.device,
                       inputs=[matrix, int(self.preconditioner != "jacobi")],
                       outputs=[self._precond], record_tape=False)
         device_side = self.device.is_cuda
@@ -397,7 +367,7 @@ class LinearSolver:
         result = w.functors[key](b=b, x=x)
         if device_side:
             iterations, r_norm_sq, atol_sq = result
-            wp.launch(self.kernels.warp_cg_info, model.world_count, device=self.device,
+            wp.launch(warp_cg_kernels(model.scalar).warp_cg_info, model.world_count, device=self.device,
                       inputs=[iterations, r_norm_sq, atol_sq, float(tol)], outputs=[info], record_tape=False)
         else:  # host results: the worst world's residual and threshold
             iterations, residual, threshold = result
@@ -407,8 +377,7 @@ class LinearSolver:
 
 
 def _block_dim(largest_world: int, worlds: int) -> int:
-    """Threads per world of the tiled CG, a power of two: about two rows a thread for a lone world, and one where
-    there are enough worlds to fill a GPU's multiprocessors; from 64 (two warps, so that every reduction
-    synchronises the whole block) to 256 (the kernel's registers: 1024 threads asked for too many on an H200)."""
+    """Threads per world of the tiled CG: a power of two in [64, 256], two rows a thread below 128 worlds.
+    Why: docs/decisions.md, "Tiled CG block sizes"."""
     rows = largest_world if worlds >= 128 else (largest_world + 1) // 2
     return int(min(256, max(64, 1 << max(0, rows - 1).bit_length())))

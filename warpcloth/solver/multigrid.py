@@ -1,19 +1,5 @@
-"""The aggregation hierarchy of the multigrid preconditioner (``SolverOptions(preconditioner="multigrid")``).
-
-Built once per model on the host from the mesh alone (no matrix values), so every step reuses it:
-
-- level 1 aggregates the particles along the cloth's triangle edges (stretching couples them strongly; the
-  longer-range bending couplings of the block pattern are weak, and aggregating along them made coarser, worse
-  levels: 35 against 28 CG iterations on the 64x64 hanging sheet, prototyped in SciPy);
-- each further level aggregates the previous one along its Galerkin pattern, until at most ``MAX_COARSEST``
-  nodes remain, which are solved densely;
-- aggregation is greedy: a node whose neighbours are all free starts an aggregate with them, and the nodes left
-  over join the neighbouring aggregate they touch most (Vanek, Mandel and Brezina 1996, unsmoothed).
-
-The prolongation is piecewise constant (one 3x3 identity per node), so the Galerkin product P^T A P is a sum of
-blocks that the kernel forms each solve through the slot maps built here (kernels/linear.py, Multigrid). Pinned
-particles have identity rows decoupled from the rest and take no part in the hierarchy.
-"""
+"""The multigrid preconditioner's aggregation hierarchy, built once per model on the host from the mesh; the kernels
+form P^T A P each solve. Why: docs/decisions.md, "Multigrid aggregates along triangle edges"."""
 
 from __future__ import annotations
 
@@ -26,10 +12,8 @@ ISOLATED_GROUP = 4
 
 
 def aggregate(neighbours: list[list[int]], active: np.ndarray) -> tuple[np.ndarray, int]:
-    """Greedy aggregation of the ``active`` nodes of a graph (``neighbours[i]``: node i's neighbours). Returns
-    (aggregate of each node, -1 where inactive; the number of aggregates), fewer aggregates than active nodes
-    whenever there are two or more. Plain Python lists: the loop is sequential by nature, and lists index ~10x
-    faster than NumPy arrays one element at a time."""
+    """Greedy aggregation of a graph's ``active`` nodes: a node whose neighbours are all free starts an aggregate with
+    them, the rest join the one they touch most. Returns (each node's aggregate or -1, the aggregate count)."""
     n = len(neighbours)
     on = np.asarray(active, dtype=bool).tolist()
     near = [[j for j in nb if on[j]] for nb in neighbours]
@@ -66,7 +50,6 @@ def _mesh_neighbours(n: int, triangles: np.ndarray) -> list[list[int]]:
 
 
 def _neighbours(n: int, rows: np.ndarray, cols: np.ndarray) -> list[list[int]]:
-    """Each node's distinct neighbours, ascending, from the edges (rows[k], cols[k]) (self-loops dropped)."""
     keep = rows != cols
     rows, cols = rows[keep], cols[keep]
     order = np.lexsort((cols, rows))
@@ -89,8 +72,10 @@ def gather_lists(targets: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarra
 
 
 class Hierarchy:
-    """The levels of the aggregation hierarchy of one world, level-local, built from its block pattern, triangles
-    and pins (:class:`WorldHierarchies` lays the worlds' out flat for the kernels)."""
+    """One world's aggregation hierarchy, level-local, from its block pattern, triangles and pins.
+
+    Raises:
+        ValueError: every particle is pinned."""
 
     def __init__(self, offsets: np.ndarray, columns: np.ndarray, triangles: np.ndarray, pinned: np.ndarray):
         n0 = len(offsets) - 1
@@ -129,21 +114,14 @@ class Hierarchy:
             active = np.ones(count, dtype=bool)
         self.sizes = sizes
         """Nodes per level, the particles first."""
-        self.aggregates = aggregates
-        """Per level but the coarsest: each node's aggregate on the next level (level-local ids, -1: none)."""
-        self.slot_maps = slot_maps
-        """Per level but the coarsest: each of its blocks' slot among the next level's blocks (-1: none)."""
-        self.patterns = patterns
-        """Per coarse level: its block pattern (offsets, columns, diagonal slots), level-local."""
+        self.aggregates = aggregates  # per level but the coarsest: each node's aggregate on the next (-1: none)
+        self.slot_maps = slot_maps  # per level but the coarsest: each block's slot in the next level's (-1: none)
+        self.patterns = patterns  # per coarse level: (offsets, columns, diagonal slots), level-local
 
 
 class WorldHierarchies:
-    """The hierarchies of a model's worlds in the flat layout ``Multigrid`` (kernels/linear.py) reads: one
-    :class:`Hierarchy` per world (worlds never share a block, so none spans two), their nodes numbered level by
-    level and, within a level, world by world (level 0: the particles); coarse blocks likewise. World w's nodes of
-    level l are ``[world_level_lo[w, l], world_level_hi[w, l])``, so one thread per world runs its own V-cycle over
-    its own ranges (cg_sequential) and gets bitwise what a model of that world alone gets. Worlds of one shape share
-    one Hierarchy (built once)."""
+    """A model's worlds' hierarchies in the kernels' flat layout: nodes by level, then world; world w's nodes of level
+    l are ``[world_level_lo[w, l], world_level_hi[w, l])``, so its V-cycle is bitwise that of the world alone."""
 
     def __init__(self, offsets: np.ndarray, columns: np.ndarray, triangles: np.ndarray, pinned: np.ndarray,
                  world_particle_start: np.ndarray):
@@ -223,12 +201,11 @@ class WorldHierarchies:
 
     @classmethod
     def of_model(cls, model) -> WorldHierarchies:
-        """The hierarchies of ``model``'s worlds, from its block pattern, triangles and pins."""
         return cls(model.bsr_offsets.numpy(), model.bsr_columns.numpy(), model.tri_indices.numpy(),
                    model.particle_pin.numpy() >= 0, model.world_particle_start)
 
     def multigrid(self, kernels, scalar, device):
-        """The ``Multigrid`` struct of ``kernels`` (linear_kernels(scalar)) with these arrays and its scratch."""
+        """The ``Multigrid`` struct of ``kernels`` (multigrid_kernels(scalar)) with these arrays and its scratch."""
         vec3, mat33 = wp.types.vector(3, scalar), wp.types.matrix((3, 3), scalar)
 
         def ints(a):
@@ -257,35 +234,15 @@ class WorldHierarchies:
 
 
 class ParallelMultigrid:
-    """The multigrid preconditioner in parallel form (the warp backend's ``"multigrid"``): one symmetric V-cycle
-    over a :class:`Hierarchy`, a thread per node or block (kernels/linear.py, mg_*).
-
-    Per solve, :meth:`setup` forms the coarse levels' Galerkin blocks (each gathers its sources: no atomics),
-    their diagonal inverses and the coarsest level's Cholesky factor. Per application, :meth:`apply` smooths each
-    level with two damped block-Jacobi sweeps (``OMEGA``) on the way down and two on the way up, restricts residuals
-    by summing each aggregate's members, and solves the coarsest level densely on one thread. A level larger than
-    ``BLOCK_NODES`` costs two launches each way (the sweeps fused with what they follow); the levels from the first
-    smaller one down, the coarsest solve and the way back up run as one launch of one thread block, and the
-    particles' last sweep writes the output: 5 launches a V-cycle where a launch a stage and level took 20 (64x64,
-    four levels). The results are bitwise those of a launch a stage.
-    """
+    """The warp backend's ``"multigrid"``: one symmetric V-cycle of damped block-Jacobi sweeps over one world's
+    :class:`WorldHierarchies`, a thread per node or block. Why: docs/decisions.md, "Parallel multigrid smoothing"."""
 
     OMEGA = 0.5
-    """The damping of the block-Jacobi sweeps (two a level each way). A sweep damps every mode only while OMEGA times
-    the largest eigenvalue of D^-1 A stays under 2: that eigenvalue was 1.7 to 3.1 over the hanging sheets of three
-    fabrics at 8x8 to 64x64 and dt 0.02 and 0.005 (largest: 64x64 white-swim-solid at dt 0.02) and 3.09 on
-    tests/test_multigrid.py's 0.5 m 32x32 sheet, where OMEGA 0.7 made the CG take 52 iterations (0.6: 20, 0.5:
-    22, against the sequential multigrid's 22). Cold solves to 1e-5, CG iterations with 2 sweeps at 0.5 / 0.6 /
-    0.7 / 0.8: 20 / 18 / 17 / 16 on the 16x16 hanging sheet, 34 / 32 / 30 / 28 at 64x64 (sequential multigrid 17
-    and 28, block Jacobi 83 and 324); 4 sweeps at 0.6: 14 and 23. l1-Jacobi (Baker et al. 2011: each row's
-    off-diagonal Frobenius norms added to its diagonal, convergent without damping) was tried and over-damps: 39
-    and 94 iterations."""
+    """The damping of the block-Jacobi sweeps; it must keep OMEGA times the largest eigenvalue of D^-1 A under 2."""
 
     BLOCK_NODES = 1024
     BLOCK_DIM = 256
-    """The levels from the first with at most BLOCK_NODES nodes down run in one thread block of BLOCK_DIM threads
-    (on the CPU a block is one thread): at most four nodes a thread, where a launch a stage would cost more than
-    the work. Both are guesses not yet timed on a GPU (64x64: 484 nodes on level 1)."""
+    """The levels from the first of at most BLOCK_NODES nodes down run in one thread block of BLOCK_DIM threads."""
 
     def __init__(self, hierarchy: Hierarchy, mg, kernels, model, device):
         self.kernels, self.mg, self.model, self.device = kernels, mg, model, device
@@ -299,12 +256,10 @@ class ParallelMultigrid:
         first_block = [int(hierarchy.offsets[s - n0]) for s in start[1:]]
         self.galerkin = [(first_block[level - 1], first_block[level] - first_block[level - 1])
                          for level in range(1, levels)]  # per coarse level: (first block, block count)
-        self.block_level = next(level for level in range(1, levels)
+        self.block_level = next(level for level in range(1, levels)  # the first level of the one-block launch
                                 if start[level + 1] - start[level] <= self.BLOCK_NODES or level == levels - 1)
-        """The first level of the one-block launch (the coarsest at most)."""
         self.scratch = wp.zeros(start[-1], dtype=mg.x.dtype, device=device)
-        self.smoother = wp.zeros(start[-1], dtype=mg.values.dtype, device=device)
-        """Each node's inverse diagonal block (all levels but the coarsest)."""
+        self.smoother = wp.zeros(start[-1], dtype=mg.values.dtype, device=device)  # each node's inverse diagonal
         self._diag0 = model.particle_diag_slot
 
     def setup(self, A) -> None:

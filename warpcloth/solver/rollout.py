@@ -20,7 +20,6 @@ def check_schedule(control: ControlSchedule, steps: int) -> None:
 
 
 def control_at(control: ControlSchedule, i: int) -> Control | None:
-    """The Control of step ``i`` of a schedule."""
     if callable(control):
         return control(i)
     if isinstance(control, Sequence):
@@ -36,17 +35,16 @@ def rollout(
     steps: int,
     progress: bool = False,
 ) -> list[State]:
-    """Simulate ``steps`` steps from ``state`` and return the trajectory ``[state, s1, ..., s_steps]``.
-
-    Every step writes a fresh State, so a surrounding ``wp.Tape`` can differentiate the whole trajectory.
+    """Simulate ``steps`` steps from ``state`` and return the trajectory ``[state, s1, ..., s_steps]``, each a fresh
+    State, so a surrounding ``wp.Tape`` can differentiate it all.
 
     Args:
-        sim: the Simulator.
-        state: the initial State (kept as the trajectory's first entry).
         control: one Control for every step, a sequence with one per step, or a function of the step index.
-        steps: number of steps (>= 0).
         progress: show a tqdm progress bar.
-    """
+
+    Raises:
+        ValueError: ``steps`` negative or not an integer, or a control sequence shorter than ``steps``.
+        SimulationError: a step diverged or (``on_cg_failure="raise"``) a solve failed (checked at the end)."""
     if int(steps) != steps or steps < 0:
         raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
     check_schedule(control, steps)

@@ -1,14 +1,4 @@
-"""The implicit Euler simulator: one linearised backward-Euler step per time step, differentiable on a wp.Tape.
-
-Per step (SPEC.md §2): assemble the 3x3 block-sparse system A dv = b from per-element kernels, solve it with
-preconditioned conjugate gradients, then x <- x + dt (v + dv). The CG iterations are not taped: the solve records a
-custom adjoint (one adjoint CG solve with the same matrix, SPEC §4.1), and Warp's autodiff of the assembly kernels
-carries the gradient on to positions, velocities, materials, gravity, wind, forces and handle targets.
-Scenes with obstacles or self-collision then run the collision stage (warpcloth/collision, SPEC §3).
-
-A step is a list of stages, built for the model (a scene without contact runs no contact stage); each reads and
-writes one ``_Step`` record. The failure messages live in warpcloth/solver/diagnostics.py.
-"""
+"""The implicit Euler simulator (docs/concepts/step.md): a step is the model's list of stages over one ``_Step``."""
 
 from __future__ import annotations
 
@@ -21,7 +11,6 @@ import numpy as np
 import warp as wp
 
 from warpcloth.collision import CollisionStage
-from warpcloth.collision.proximity import ProximityForces, ProximityPairs
 from warpcloth.collision.stage import CollisionReport
 from warpcloth.kernels import status as ks
 from warpcloth.kernels.implicit import implicit_kernels
@@ -31,6 +20,7 @@ from warpcloth.solver.assembly import SystemAssembler
 from warpcloth.solver.diagnostics import StepDiagnostics
 from warpcloth.solver.linear import LinearSolver, SolveInfo
 from warpcloth.solver.options import SolverOptions
+from warpcloth.solver.proximity import ProximityForces, ProximityPairs
 from warpcloth.solver.status import StepStatus
 from warpcloth.tape import StepArrays, active_tape, capturing
 
@@ -38,17 +28,15 @@ from warpcloth.tape import StepArrays, active_tape, capturing
 class Simulator:
     """Implicit Euler cloth solver with the contract ``step(state_in, state_out, control)``.
 
-    Args:
-        model: the Model to simulate.
-        dt: time step [s], > 0.
-        options: SolverOptions (tolerances, preconditioner, CG backend, divergence guard).
+    The model's arrays are read at every step (in-place changes and rebound arrays apply from the next); pins,
+    handles, collision settings or contact materials edited in place need :meth:`notify_model_changed`.
 
-    The Simulator reads the model's arrays at every step, so values changed in place (``assign``, ``copy``) are
-    used from the next step on, and so are arrays rebound to new ones (``model.material_density = ...``: the next
-    step notices and rebuilds what depends on the model). What it derives once from the model (the pins' effect on
-    the preconditioner and the contact stages, whether the scene needs proximity forces, the collision settings) is
-    rebuilt by :meth:`notify_model_changed`: call it after editing those in place.
-    """
+    Args:
+        dt: time step [s], > 0.
+        options: None: the defaults.
+
+    Raises:
+        ValueError: ``dt`` not finite and > 0, or an option out of range."""
 
     def __init__(self, model: Model, dt: float, *, options: SolverOptions | None = None):
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
@@ -64,26 +52,20 @@ class Simulator:
         self._steps = 0
         self._no_flag = wp.zeros(1, dtype=wp.int32, device=self.device)  # never raised: _note_plan_miss's stand-in
         self.phase_seconds = dict.fromkeys(("assembly", "proximity", "solve", "integrate", "collision"), 0.0)
-        """Host wall time [s] of each phase of the forward steps over this simulator's life (diagnostics; on CUDA it
-        measures launch, not execution, unless the device synchronises)."""
+        """Host wall time [s] of each phase of the forward steps so far (on CUDA: launch time unless synchronised)."""
         self.notify_model_changed()
 
     # -- public ------------------------------------------------------------------------------------------------------
     def notify_model_changed(self) -> None:
-        """Rebuild everything this Simulator derived from the model (assembly arguments, the linear solver and its
-        preconditioner, the proximity forces, the collision stage and its detector), after a change to the model:
-        a rebound array (noticed by the next step anyway), pins, handles or collision settings edited in place, a
-        material that gains or loses contact repulsion. Counters and timings carry on."""
+        """Rebuild what derives from the model after in-place edits of pins, handles or collision settings."""
         model = self.model
         self.diagnostics = StepDiagnostics(model, self.dt)
-        """The failure messages of the steps (warpcloth/solver/diagnostics.py)."""
         self.assembler = SystemAssembler(model, self.dt)
-        """Launches the step's force and Hessian kernels into the system."""
         self._assembler_bdf2: SystemAssembler | None = None  # made at the first BDF2 step
         self.linear_solver = LinearSolver(model, self.options, hint=self.diagnostics.mesh_hint, status=self.status)
-        """The CG solver of the implicit system (and of its adjoint)."""
+        """The CG solver of the implicit system and its adjoint."""
         self.collision = CollisionStage(model, self.dt, self.options) if model.collision is not None else None
-        """The collision stage (detection buffers, BVHs), or None for a scene without collisions."""
+        """The collision stage, or None for a scene without collisions."""
         if self.collision is not None:  # its divergence guard latches here; its detection stops at an error
             self.collision.record = self.status.record
             self.collision.detector.skip = self.status.record[ks.ERROR:ks.ERROR + 1]
@@ -116,8 +98,7 @@ class Simulator:
 
     @property
     def options(self) -> SolverOptions:
-        """The SolverOptions in force; assigning new ones applies them from the next solve on (the backend and the
-        preconditioner are chosen once, at construction)."""
+        """The SolverOptions in force; new ones apply from the next solve (the backend and preconditioner stay)."""
         return self._options
 
     @options.setter
@@ -130,8 +111,7 @@ class Simulator:
 
     @property
     def stats(self) -> dict:
-        """Counters over this simulator's life: steps, and forward and adjoint CG iterations (the most of any
-        world, summed over solves). Diagnostics only: reading them reads the device."""
+        """Steps, and forward and adjoint CG iterations so far (the most of any world per solve); reads the device."""
         forward, adjoint = self.status.iterations()
         return {"steps": self._steps, "cg_iterations": forward, "adjoint_cg_iterations": adjoint}
 
@@ -141,24 +121,21 @@ class Simulator:
         return self.linear_solver.info() if self._steps else SolveInfo(0, 0.0, True)
 
     def check(self, states=()) -> None:
-        """Read the failure record the steps latched on the device since the last check, and raise
-        SimulationError for an error (a diverged particle, a non-finite or, with ``on_cg_failure="raise"``, an
-        unconverged CG solve) or warn for solves that missed their tolerance. The message names the step, the
-        particle or world, and, where ``states`` (e.g. the trajectory) holds the failing step's result, its
-        position and velocity.
+        """Read the failure record latched since the last check; RuntimeWarning for solves that missed their
+        tolerance. ``states`` (the trajectory) may hold the failing step's result, for the message to quote.
 
-        A step checks by itself every ``SolverOptions.sync_every`` steps (every step by default) and never while a
-        graph is being captured; ``wc.rollout`` and captured replays check at their end.
-        """
+        Raises:
+            SimulationError: a diverged particle, a non-finite or (``on_cg_failure="raise"``) unconverged solve,
+                naming the step and the particle or world."""
         self._check(states)
 
     def step(self, state_in: State, state_out: State, control: Control | None = None) -> None:
-        """Advance ``state_in`` by one time step into ``state_out`` (records on the active tape, if any).
+        """Advance ``state_in`` by one step into ``state_out`` (recorded on the active tape); bitwise a function of
+        the arguments and the model. ``state_out`` receives what the next step reads.
 
-        The result depends only on the arguments and the model: ``state_in`` carries what the previous step hands
-        on (the solve's first guess, the lagged wind normals' positions, the step number), and ``state_out``
-        receives the same for the next step. Stepping the same ``state_in`` twice gives bitwise the same result.
-        """
+        Raises:
+            ValueError: ``state_out is state_in``, or a State of another model's size, precision or device.
+            SimulationError: as :meth:`check`, at the steps that check."""
         if state_out is state_in:
             raise ValueError("step() needs distinct state_in and state_out (a tape cannot record in-place updates)")
         self._check_state("state_in", state_in)
@@ -192,16 +169,13 @@ class Simulator:
             s.obstacles = self._obstacle_points(s.control, s.state_in.time, s.recording)
 
     def _proximity_forces(self, s: _Step) -> None:
-        """Proximity repulsion: the pairs within the thickness add their forces and Jacobians to the system."""
         obstacles = s.obstacles if s.obstacles is not None else \
             self._obstacle_points(s.control, s.state_in.time, s.recording)
         s.pairs = self.proximity.assemble(s.start, *obstacles, s.pin_dv, s.dv, s.values, s.rhs, s.recording,
                                           implicit_dt=s.assembler.dt)
 
     def _solve(self, s: _Step) -> None:
-        """Solve A dv = b from ``state_in.particle_dv``; on a tape, the implicit adjoint is recorded. Adjoint solves
-        run from the last step to the first, each handing its solution to the one before through the State between
-        them (``State.solve_adjoint``)."""
+        """Solve A dv = b from ``state_in.particle_dv``; on a tape, record the adjoint (``State.solve_adjoint``)."""
         state_in, state_out, dv = s.start, s.state_out, s.dv
         guess = state_in.particle_dv
         warm = self.options.warm_start and guess is not None and guess.shape == dv.shape and guess.dtype == dv.dtype
@@ -225,7 +199,6 @@ class Simulator:
         s.velocity_change = dv
 
     def _friction(self, s: _Step) -> None:
-        """Coulomb friction impulses on the solved velocity change (ProximityForces.apply_friction)."""
         if s.pairs is not None and s.pairs.count and self.proximity.friction:
             s.mass = self._lumped_mass(s.recording)
             s.velocity_change = self.proximity.apply_friction(s.pairs, s.dv, s.mass, s.recording)
@@ -254,8 +227,7 @@ class Simulator:
             s.x_hat, s.v_hat = out.particle_x, out.particle_v
 
     def _collide(self, s: _Step) -> None:
-        """The collision stage from x̂, v̂ into ``state_out`` (detection from the true start positions: BDF2's blend
-        is no configuration)."""
+        """The collision stage from x̂, v̂ into ``state_out`` (detection from state_in, not BDF2's blend)."""
         # the lumped masses (friction's, or made where the stage finds contacts: one taped launch fewer a step)
         mass = s.mass if s.mass is not None else (lambda: self._lumped_mass(s.recording))
         # its last launch runs the divergence guard on the result (the projection's velocity change too)
@@ -263,8 +235,7 @@ class Simulator:
                                           implicit_dt=s.assembler.dt)
 
     def _hand_on(self, s: _Step) -> None:
-        """What the next step reads from ``state_out`` (time, step number, BDF2's history, the wind's lagged
-        normals); then the divergence guard."""
+        """What the next step reads from ``state_out``: time, step number, BDF2's history, the lagged normals."""
         model, state_in, state_out = self.model, s.state_in, s.state_out
         bdf2 = self.options.integrator == "bdf2"
         moved = s.report is not None and s.report.contacts > 0
@@ -286,9 +257,7 @@ class Simulator:
             state_out.particle_x_previous = state_out.particle_x if moved else state_in.particle_x
 
     def _lumped_mass(self, recording: bool) -> wp.array:
-        """The particles' lumped masses from the model's densities (one taped launch a step: the contact stages'
-        adjoints add to its gradient, which Warp carries to the densities). Read at every step, so densities
-        changed between rollouts are the ones used."""
+        """The particles' lumped masses from the model's densities (taped: contact adjoints reach the densities)."""
         model = self.model
         if recording or self._mass is None:
             mass = wp.zeros(model.particle_count, dtype=model.scalar, device=self.device, requires_grad=recording)
@@ -302,17 +271,14 @@ class Simulator:
                           model.material_thicken], outputs=[mass])
         return mass
 
-    def _bdf2_assembler(self) -> SystemAssembler:
-        """The assembler of BDF2's steps: a backward Euler step of 2/3 dt (SolverOptions.integrator)."""
+    def _bdf2_assembler(self) -> SystemAssembler:  # BDF2's step: backward Euler over 2/3 dt
         if self._assembler_bdf2 is None:
             self._assembler_bdf2 = SystemAssembler(self.model, 2.0 * self.dt / 3.0)
         return self._assembler_bdf2
 
     def _bdf2_start(self, state_in: State, recording: bool) -> tuple[State, tuple[wp.array, wp.array] | None]:
-        """BDF2's start point (4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3 as a State, and, for a model with wind,
-        the extrapolation (2 x_n - x_{n-1}, 2 v_n - v_{n-1}) the explicit force is taken at (None without wind).
-        One taped kernel: gradients reach both states. The State hands on state_in's first guess, lagged normals and
-        adjoint first guess, so the step reads it as it would read state_in."""
+        """BDF2's start point as a State that hands on state_in's first guesses and lagged normals, and, with wind,
+        the extrapolation (2 x_n - x_{n-1}, 2 v_n - v_{n-1}) the explicit force is taken at (else None)."""
         model = self.model
         ahead = model.particle_count if model.wind_velocity is not None else 0
         if recording or self._bdf2_buffers is None:  # a taped step keeps its own; otherwise scratch, as _buffers
@@ -333,11 +299,8 @@ class Simulator:
         return start, ((x_ahead, v_ahead) if ahead else None)
 
     def energy(self, state: State, control: Control | None = None) -> dict[str, float]:
-        """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state`` (host values).
-
-        Stretching and bending use the stiffness looked up at the current strain, which is the exact elastic energy
-        when the material's tables are constant (e.g. ``Material.isotropic``).
-        """
+        """Kinetic, stretching, bending, gravitational and handle energies [J] of ``state``, and their ``"total"``.
+        Elastic terms use the stiffness at the current strain (exact for ``Material.isotropic``)."""
         model = self.model
         e = self.assembler.element_energy(state)
         handle = 0.0
@@ -351,11 +314,9 @@ class Simulator:
         return e
 
     def assemble(self, state: State, control: Control | None = None):
-        """The system ``A dv = b`` of the step from ``state``, in new arrays (not taped): A's blocks on the model's
-        block pattern (``bsr_offsets``/``bsr_columns``, mat33), b (vec3), and the proximity pairs whose cross blocks
-        A also has (a ``ProximityPairs``, or None; its arrays are the Simulator's, valid until its next step).
-        Solve it with ``linear_solver.solve(values, b, x, pairs=pairs)``.
-        """
+        """The step's ``A dv = b`` from ``state`` in new, untaped arrays: A's mat33 blocks on ``bsr_offsets`` /
+        ``bsr_columns``, b (vec3), and the proximity pairs of A's cross blocks (or None; valid until the next step),
+        for ``linear_solver.solve(values, b, x, pairs=pairs)``."""
         control = control if control is not None else self._default_control()
         values, rhs, pin_dv = (wp.clone(a) for a in self._buffers(recording=False))
         pairs = None
@@ -388,8 +349,7 @@ class Simulator:
     # -- internals -----------------------------------------------------------------------------------------------
 
     def _obstacle_points(self, control: Control, t_start: float, recording: bool) -> tuple[wp.array, wp.array]:
-        """The obstacle vertices at the step's start and end [m], for the proximity forces and the collision stage
-        alike (empty arrays where the model has no obstacle collisions)."""
+        """The obstacle vertices at the step's start and end [m] (empty without obstacle collisions)."""
         model = self.model
         if not model.collision.obstacles or model.obstacle_count == 0:
             empty = self._arrays.empty("no_obstacle", 0, model.types.vec3, False)
@@ -404,8 +364,6 @@ class Simulator:
         return points[0], points[-1]
 
     def _obstacle_motion(self, t: float) -> wp.array:
-        """The obstacles' scripted motions at time ``t``: one array for all times where none moves; else a new one,
-        or, inside :meth:`_keeping_motions`, one kept per time in its store."""
         model = self.model
         if not any(m is not None for m in model.obstacle_motion):
             if self._static_motion is None:
@@ -420,10 +378,7 @@ class Simulator:
 
     @contextmanager
     def _keeping_motions(self, store: dict):
-        """Steps inside take the obstacles' motions from ``store``, made there at a time's first use: a step recorded
-        in a graph reads them from arrays made before its capture (made inside it from host values, an array would
-        be filled from host memory at every replay, long after that memory is gone), kept by whoever keeps the
-        graph (as the handles' and pins' offsets: SystemAssembler.offsets)."""
+        """Steps inside take the obstacles' motions from ``store``, so captured steps read arrays made before."""
         self._motion_store = store
         try:
             yield
@@ -431,8 +386,7 @@ class Simulator:
             self._motion_store = None
 
     def _default_control(self) -> Control:
-        """``model.control()``, made again when the model's default targets or placements changed (host arrays a
-        user may edit in place; comparing them costs microseconds)."""
+        """``model.control()``, made again when the model's default targets or placements changed."""
         model = self.model
         defaults = [np.asarray(a) for a in (model.handle_rest_target, model.pin_rest_target,
                                             model.obstacle_rest_transform) if a is not None]
@@ -442,8 +396,7 @@ class Simulator:
         return self._control_default[1]
 
     def _buffers(self, recording: bool):
-        """System buffers of one step (A's blocks, b, the pins' velocity change). While a tape records, each step
-        gets its own (the backward pass reads them); otherwise they are scratch reused by every step."""
+        """A's blocks, b and the pins' dv of one step: new ones while a tape records, else shared scratch."""
         model = self.model
         vec3, mat33 = model.types.vec3, model.types.mat33
         if not recording and self._step_buffers is not None:
@@ -459,8 +412,6 @@ class Simulator:
         return bufs
 
     def _check_state(self, name: str, state: State) -> None:
-        """Raise ValueError if ``state`` is not one of this model's (another particle count, precision or device):
-        stepping it would read and write past its arrays."""
         model = self.model
         for field in ("particle_x", "particle_v"):
             array = getattr(state, field)
@@ -473,8 +424,7 @@ class Simulator:
                     "model.empty_state() of the Simulator's model")
 
     def _output_dv(self, state_out: State, recording: bool) -> wp.array:
-        """The array the solve writes: ``state_out.particle_dv`` (allocated here when the State has none, or a
-        fresh one with a gradient when a tape records), so the next step finds its first guess in its input."""
+        """``state_out.particle_dv``, made anew where it does not fit or lacks the gradient a recording needs."""
         dv = state_out.particle_dv
         fits = (dv is not None and dv.shape[0] == self.model.particle_count and dv.dtype == self.model.types.vec3
                 and dv.device == self.device)
@@ -486,17 +436,14 @@ class Simulator:
         return dv
 
     def _sync_due(self, step: int) -> bool:
-        """Whether step number ``step`` reads the failure record itself (SolverOptions.sync_every; never while a
-        graph is captured: its launches have not run)."""
+        """Whether step ``step`` reads the failure record (SolverOptions.sync_every; never inside a capture)."""
         every = self.options.sync_every
         return bool(every) and step % every == 0 and not capturing(self.device)
 
     @contextmanager
     def _speculating(self, pair_budget: int = 0, contact_plan: list[int] | None = None):
-        """Steps inside follow a plan without reading the device (what wc.CapturedRollout captures): the collision
-        stage's detection rounds find ``contact_plan``'s counts (none: no contact; CollisionStage.plan) and the
-        proximity pairs are at most ``pair_budget``, their kernels launched at the budget.
-        :meth:`_note_plan_miss` checks on the device whether the step kept to it."""
+        """Steps inside follow a plan without reading the device: detection rounds find ``contact_plan``'s counts
+        and at most ``pair_budget`` proximity pairs (what wc.CapturedRollout captures)."""
         if self.collision is not None:
             self.collision.speculative, self.collision.plan = True, list(contact_plan or [])
         if self.proximity is not None:
@@ -510,22 +457,17 @@ class Simulator:
                 self.proximity.budget = None
 
     def _note_plan_miss(self, index: int, first: wp.array) -> None:
-        """Launch, after a step captured by :meth:`_speculating`, the check of whether it left its plan (other
-        contacts, a failed projection, more proximity pairs than its budget): where it did, ``first[0]`` becomes
-        ``index`` if that is smaller (no read: wc.CapturedRollout reads ``first`` after any number of steps)."""
+        """Launch the check of a speculating step: ``first[0] = min(first[0], index)`` where it left its plan."""
         collision = self.collision.mismatch if self.collision is not None else self._no_flag
         pairs = self.proximity.spill if self.proximity is not None else self._no_flag
         wp.launch(ks.note_plan_miss, 1, device=self.device, inputs=[collision, pairs, int(index)], outputs=[first],
                   record_tape=False)
 
     def _pairs_needed(self) -> int:
-        """The proximity pairs the last step, run uncaptured, found (0 without proximity forces)."""
         return 0 if self.proximity is None else self.proximity.last_count
 
     def _contact_plan(self) -> list[int] | None:
-        """The contact plan (CollisionStage.plan) of the last step, run uncaptured: each round's count ([]: no
-        contact), or None where its contacts cannot be planned (the NumPy projection, a second try, the
-        fail-safe)."""
+        """The last uncaptured step's contacts per round ([]: none), or None where they cannot be planned."""
         report = None if self.collision is None else self.collision.last
         if report is None or not (report.contacts or report.rounds):
             return []
@@ -539,24 +481,20 @@ class Simulator:
             self.collision.check_adjoints()
 
     def _count_replayed(self, steps: int) -> None:
-        """Count ``steps`` steps a graph replayed (CapturedRollout.run) in ``stats``."""
         self._steps += steps
 
     def _check(self, states=(), s: _Step | None = None) -> None:
-        """Read the failure record (Simulator.check); ``s``: the step being taken, whose inputs can still tell
-        why a solve went non-finite."""
+        """Simulator.check; ``s``: the step being taken, whose inputs can still tell why a solve went non-finite."""
         self._report(*self.status.take(), states, s)
 
     def _discard_failures_from(self, number: int, states=()) -> None:
-        """Forget the failures that steps numbered ``number`` and after latched (a replay ran them from a state that
-        was not theirs, and they run again); raise or warn for those of earlier steps, as :meth:`check` does."""
+        """Forget the failures of steps ``number`` and after (they run again); report earlier ones as :meth:`check`."""
         error, warning, skipped = self.status.take()
         self._report(error if error is not None and error.step < number else None,
                      warning if warning is not None and warning.step < number else None,
                      skipped if skipped < number else 0, states)
 
     def _report(self, error, warning, skipped: int, states=(), s: _Step | None = None) -> None:
-        """Raise or warn for what was taken from the failure record (StepStatus.take)."""
         if skipped and not self._atol_checked:
             self._atol_checked = True  # once per Simulator, at its first skipped solve
             self.diagnostics.warn_if_below_atol(skipped, self.options.cg_atol)
@@ -585,21 +523,17 @@ class _Step:
     state_out: State
     control: Control
     recording: bool
-    number: int
-    """The step being taken, counted from the start of the trajectory."""
+    number: int  # the step being taken, counted from the start of the trajectory
     t_next: float
-    start: State | None = None
-    """What the implicit step starts from: state_in, or BDF2's blend."""
+    start: State | None = None  # state_in, or BDF2's blend
     assembler: SystemAssembler | None = None
     values: wp.array | None = None
     rhs: wp.array | None = None
     pin_dv: wp.array | None = None
     dv: wp.array | None = None
-    obstacles: tuple[wp.array, wp.array] | None = None
-    """Obstacle vertices at the step's start and end (with a collision stage)."""
+    obstacles: tuple[wp.array, wp.array] | None = None  # obstacle vertices at the step's start and end
     pairs: ProximityPairs | None = None
-    mass: wp.array | None = None
-    """The taped lumped masses (friction and the collision stage)."""
+    mass: wp.array | None = None  # the taped lumped masses (friction and the collision stage)
     velocity_change: wp.array | None = None
     x_hat: wp.array | None = None
     v_hat: wp.array | None = None
@@ -612,7 +546,6 @@ def model_arrays(model: Model) -> tuple:
 
 
 class _PhaseClock:
-    """Adds the wall time since the last lap to a phase's total."""
 
     def __init__(self, totals: dict):
         self.totals = totals

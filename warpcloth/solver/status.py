@@ -1,10 +1,4 @@
-"""The step's failure record: what the kernels latched on the device (kernels/status.py), read only when asked.
-
-A step never waits for the host to notice a failure: the divergence guard and the CG solves latch the first failure
-(its step, kind, and particle or world) in a small device array, and the Simulator reads it at its sync points
-(every ``SolverOptions.sync_every`` steps, at the end of ``wc.rollout``, after a captured replay, or when
-``Simulator.check`` is called). On the CPU the host view shares the array's memory, so a read costs nothing.
-"""
+"""The step's failure record: what the divergence guard and the CG solves latched on the device, read at syncs."""
 
 from __future__ import annotations
 
@@ -19,7 +13,6 @@ class Failure(NamedTuple):
     """One latched failure."""
 
     step: int
-    """The step number it happened in."""
     kind: int
     """kernels/status.py: DIVERGED, CG_NON_FINITE or CG_UNCONVERGED (+ ADJOINT for the adjoint solve)."""
     index: int
@@ -45,7 +38,6 @@ class Failure(NamedTuple):
 
 
 class StepStatus:
-    """The device record the step's kernels latch failures in, and the running CG iteration totals."""
 
     def __init__(self, device):
         self.device = device
@@ -60,8 +52,8 @@ class StepStatus:
         self._views = (self.record.numpy(), self.detail.numpy(), self.totals.numpy()) if cpu else None
 
     def take(self) -> tuple[Failure | None, Failure | None, int]:
-        """(error, warning, skipped) latched since the last take: each a Failure or None, and the step of the first
-        forward solve that took no iteration (0 if none). Clears what it returns."""
+        """Clear and return (error, warning, skipped): Failures or None, and the step of the first forward solve
+        that took no iteration (0: none)."""
         record = self._views[0] if self._views is not None else self.record.numpy()
         skipped = int(record[ks.SKIPPED])
         if record[ks.ERROR] or record[ks.WARNING]:

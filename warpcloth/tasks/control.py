@@ -1,17 +1,5 @@
-"""Motion control: find the pushes that move a cloth where a loss says (the seed's throw into a basket, SPEC §5(c),
-or any scene's ``[control]`` table).
-
-The control is a schedule of pushes: for each of the first ``intervals`` intervals of ``interval_steps`` steps, one
-push per controlled particle, applied every step of the interval as a force ``F = (M / k) p`` on each of the k
-particles, with M the cloth's mass. So ``p`` [m/s^2] is the acceleration k equal pushes give the whole cloth: on the
-seed's throw ``p = (0, 0, 9.8)`` on every corner holds the cloth up. (The seed adds a velocity increment to each
-corner every step, a corner acceleration; this is a fixed linear rescaling of it that puts the parameters on the
-scale of gravity.) The loss is taken at the horizon: ``1/2 |com_T - target|^2`` on the centre of mass (mass-weighted:
-see :class:`ControlTask`), or ``1/2 mean_i |x_i,T - target_i|^2`` on every particle, plus an optional
-``regularizer * 1/2 |p|^2``.
-Gradients come from ``wc.checkpointed_backward``: one taped pass where the tape stays small, else a checkpointed
-rollout, so long horizons and large batches back-propagate with O(sqrt(T)) stored states.
-"""
+"""Motion control (the seed's throw into a basket, SPEC §5(c), or any scene's ``[control]`` table): a cloth's loss at
+the horizon and its gradient as functions of pushes on some of its particles (:class:`ControlTask`)."""
 
 from __future__ import annotations
 
@@ -20,81 +8,43 @@ import dataclasses
 import math
 import os
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 import warpcloth as wc
 from warpcloth.kernels.losses import loss_kernels
-from warpcloth.scene import (
-    CONTROLLERS,
-    Scene,
-    SearchSpec,
-    check_control_optimizer,
-    default_control_optimizer,
-    load_scene,
-)
-from warpcloth.tasks.controllers import ControlResult, optimize_open_loop, train_mlp
-
-WHOLE_TAPE_PARTICLE_STEPS = 200_000
-"""A control task tapes a rollout whole, without checkpoints, up to this many particle-steps (particles of all
-worlds times steps): the throw's full tape takes 164 MB for 81 particles and 700 steps, 2.9 kB a particle-step
-(README, checkpointing), so this is about 0.6 GB. Beyond it a rollout is checkpointed (``wc.checkpointed_backward``)."""
-CAPTURED_SEGMENTS_PARTICLE_STEPS = 2_000_000
-"""A checkpointed rollout is replayed from graphs in segments (``wc.CapturedRollout(segment_steps=...)``) up to this
-many particle-steps: the replay keeps every State (168 B a particle-step in float64: about 0.34 GB here) besides
-Warp's record of the graphs (0.3-1 MB a step), where ``wc.checkpointed_backward`` keeps a segment's. 16 throw worlds
-(0.9 million) replay; 64 (3.6 million) run uncaptured."""
-
-
-@dataclass
-class Evaluation:
-    """One forward + backward simulation of a control task."""
-
-    loss: float
-    """The loss (the regulariser included), or the chosen centre-of-mass coordinate with ``component``."""
-    grad: np.ndarray | None
-    """d loss / d params, flat (None where a request's threshold let :meth:`ControlTask.jacobian_worlds` skip the
-    reverse passes)."""
-    com: np.ndarray
-    """The centre of mass (mass-weighted, as the loss takes it) at the horizon (3,)."""
-    positions: np.ndarray
-    """Every particle's position at the horizon (n, 3)."""
+from warpcloth.scene import Scene, load_scene
+from warpcloth.solver.gradients import GraphCache, default_segment_steps, plan_gradient
+from warpcloth.tasks.controllers import ControlResult, Evaluation, optimize_open_loop, train_mlp
+from warpcloth.tasks.specs import CONTROLLERS, SearchSpec, check_control_optimizer, default_control_optimizer
 
 
 class ControlTask:
-    """Loss, gradient and trajectory of a cloth as functions of its pushes ``p[interval, particle, xyz]`` [m/s^2].
+    """Loss, gradient and trajectory of a cloth as functions of its pushes ``p[interval, particle, xyz]`` [m/s^2], each
+    a force ``push_mass * p`` on its particle for ``interval_steps`` steps (why accelerations: docs/decisions.md,
+    "Control pushes are accelerations"). The loss at the horizon is ``1/2 |com_T - target|^2`` on the mass-weighted
+    centre of mass, or ``1/2 mean_i |x_i,T - target_i|^2``, plus ``regularizer * 1/2 |p|^2``.
 
     Args:
-        model: The scene's model (with gradients: ``requires_grad=True``): one world, or several equal worlds
-            (``ModelBuilder.replicate``), each simulated with its own pushes (:meth:`evaluate_worlds`).
+        model: The scene's model, with gradients: one world, or several equal worlds each with its own pushes.
         dt: Time step [s].
         particles: The pushed particles (indices within a world), in the order of the pushes.
-        interval_steps: Steps per push.
-        intervals: Pushes per particle: the first ``intervals * interval_steps`` steps are controlled (pushes that
-            begin at or after the horizon do nothing).
+        intervals: Pushes per particle (pushes that begin at or after the horizon do nothing).
         steps: The horizon [steps].
-        target_com: The centre of mass's target [m]; exactly one of it and ``target_positions``. The loss takes the
-            mass-weighted centre, sum_i m_i x_i / M, not the vertex mean the seed's loss takes: internal forces cancel
-            in the first, so in free flight it moves exactly affinely with the pushes, and so does its tape
-            derivative. The vertex mean's derivative there is the tangent of an unstressed sheet, which has no
-            membrane stiffness across its plane: on the seed's throw with no pushes, d com_z / d push is 1.57x the
-            slope over any push of 1e-2 m/s^2 or more (README, Why the throw's optimisers failed). ``error_pct``
-            keeps the seed's vertex mean.
+        target_com: The centre of mass's target [m]; exactly one of it and ``target_positions``. Why mass-weighted:
+            docs/decisions.md, "The control loss takes the mass-weighted centre".
         target_positions: Every particle's target [m], shape (particles of a world, 3).
-        regularizer: Weight of ``1/2 |p|^2`` in the loss.
-        options: Solver options (default: SolverOptions()). An ``"auto"`` preconditioner is block SSOR here: a
-            batch of worlds solves each world as one world alone does with it (on CUDA too), and on the throw it is
-            the faster one (64 worlds 5.5k world-steps/s against 4.7k with a multigrid per world, one world 1709
-            against 1648: benchmarks/worlds.py, 2026-11-27).
-        segment_steps: Checkpoint segment length. By default the whole horizon (one taped forward pass, no
-            re-simulation) where the tape stays small, ``particle_count * steps <= WHOLE_TAPE_PARTICLE_STEPS``,
-            else ceil(sqrt(steps)) (O(sqrt(T)) stored states; each segment but the last simulated twice).
-        controller, optimizer, iters, search, warm_start: What :meth:`run` does when not told otherwise (a scene's
-            choices).
-        template: The one-world builder ``model`` was finalised from (copies of ``model``); with it
-            :meth:`evaluate_many` runs several simulations as one batch of worlds (``ModelBuilder.replicate``).
+        options: Default SolverOptions(); ``"auto"`` preconditioning is block SSOR here. Why: docs/decisions.md,
+            "Block SSOR for control tasks".
+        segment_steps: Checkpoint segment length [steps]; default
+            :func:`warpcloth.solver.gradients.default_segment_steps` (the whole horizon where the tape stays small).
+        controller, optimizer, iters, search, warm_start: What :meth:`run` does unless told otherwise.
+        template: The one-world builder ``model`` was finalised from: with it :meth:`evaluate_many` batches worlds.
+
+    Raises:
+        ValueError: For worlds of different sizes, bad particles or step counts, not exactly one target, a negative
+            regulariser, or an unknown controller or optimiser.
     """
 
     def __init__(self, model: wc.Model, dt: float, *, particles, interval_steps: int, intervals: int, steps: int,
@@ -138,14 +88,11 @@ class ControlTask:
         self.model, self.dt, self.steps = model, float(dt), int(steps)
         self.world_count = model.world_count
         self.world_particles = n
-        """Particles of one world."""
         self.interval_steps, self.intervals = int(interval_steps), int(intervals)
         self.target_com = None if target_com is None else np.asarray(target_com, dtype=np.float64).reshape(3)
         self.target_positions = target_positions
         self.regularizer = float(regularizer)
-        whole = model.particle_count * self.steps <= WHOLE_TAPE_PARTICLE_STEPS
-        self.segment_steps = segment_steps or (self.steps if whole else math.ceil(math.sqrt(self.steps)))
-        """Checkpoint segment length of :meth:`evaluate_worlds`' rollouts."""
+        self.segment_steps = segment_steps or default_segment_steps(model.particle_count, self.steps)
         self.controller = controller
         self.optimizer = optimizer or default_control_optimizer(controller, self.target_com, self.regularizer)
         problem = check_control_optimizer(self.optimizer, controller, self.target_com, self.regularizer)
@@ -153,9 +100,7 @@ class ControlTask:
             raise ValueError(f"optimizer: {problem}")
         self.iters = iters
         self.search = search or SearchSpec()
-        """The global search's settings (``optimizer="cmaes"``)."""
         self.warm_start = int(warm_start)
-        """The MLP's warm start (:func:`train_mlp`)."""
         self.template = template
         self.sim = wc.Simulator(model, dt, options=options)
         self._kernels = loss_kernels(model.scalar)
@@ -178,10 +123,9 @@ class ControlTask:
         self.x_initial = model.particle_x0.numpy()[first_world].astype(np.float64)
         self.com_initial = self.x_initial.mean(axis=0)
         self.simulations = 0
-        """World simulations run (forward + backward), each world of a batch counted (:meth:`jacobian_worlds`: one
-        for a world's three rows)."""
+        """World simulations run, each world of a batch counted (one for a world's three Jacobian rows)."""
         self.reverse_passes = 0
-        """Extra reverse passes through recorded rollouts (:meth:`jacobian_worlds`: three a world)."""
+        """Extra reverse passes through recorded rollouts (:meth:`jacobian_worlds`)."""
         self.batches = 0
         """Simulations of several worlds at once."""
         self.batch_retries = 0
@@ -190,25 +134,14 @@ class ControlTask:
         self.name = ""
         """The scene's name, where the task comes from one (:meth:`from_scene`)."""
         self._batched: dict[int, ControlTask] = {self.world_count: self}
-        self._captures: dict = {}  # _captured's, by kind
-        self._uncaptured: dict[str, int] = {}  # calls that could have been captured, by kind (_captured)
+        self._graphs: GraphCache = GraphCache(after=2)  # _captured's, by kind
 
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None,
                    options: wc.SolverOptions | None = None, steps: int | None = None,
                    segment_steps: int | None = None) -> ControlTask:
-        """The task of a scene's ``[control]`` table (a scene name, a path or a loaded Scene).
-
-        Args:
-            scene: An embedded scene name (``warpcloth scenes``), a .toml path, or a Scene.
-            device, dtype: Of the model (Warp's default device, float32).
-            options: Solver options instead of the scene's.
-            steps: A horizon instead of the scene's.
-            segment_steps: Checkpoint segment length.
-
-        Raises:
-            ValueError: for a scene without a ``[control]`` table (and as load_scene does).
-        """
+        """The task of a scene's ``[control]`` table (a scene name, .toml path or Scene); ``options``, ``steps`` and
+        ``segment_steps`` replace the scene's. ValueError for a scene without the table."""
         scene = scene if isinstance(scene, Scene) else load_scene(scene)
         spec = scene.control
         if spec is None:
@@ -228,12 +161,8 @@ class ControlTask:
         return self.intervals, len(self.particles), 3
 
     def error_pct(self, positions: np.ndarray) -> float:
-        """How far the cloth ends from its target, against how far it started, in %: ``|com_T - target| /
-        |com_0 - target|`` for a centre-of-mass target, with com the vertex mean as the seed measures it (the loss
-        takes the mass-weighted centre: they differ with the cloth's shape, by 6-12 mm on the throw's cloth at rest
-        in the basket); the same ratio of RMS distances for target positions.
-        100 % ends as far as it started (on the seed's throw not "no better than doing nothing": with no pushes
-        the cloth drops outside the wall, with no floor to stop it, to z = -238 m after the 7 s: 5508 %)."""
+        """How far the cloth ends from its target against how far it started [%]: ``|com_T - target| / |com_0 -
+        target|`` with com the vertex mean (as the seed measures it), or the same ratio of RMS distances."""
         positions = np.asarray(positions, dtype=np.float64)
         if self.target_com is not None:
             return 100.0 * float(np.linalg.norm(positions.mean(axis=0) - self.target_com)
@@ -241,9 +170,8 @@ class ControlTask:
         return 100.0 * float(np.linalg.norm(positions - self.target_positions)
                              / np.linalg.norm(self.x_initial - self.target_positions))
 
+    # each interval's forces from the pushes, into new arrays or into an earlier call's
     def _forces(self, push: wp.array, forces: list[wp.array] | None = None) -> list[wp.array]:
-        """Each interval's forces from the pushes: into new arrays, or into ``forces`` (made by an earlier call: it
-        writes the pushed particles' entries, the others stay zero)."""
         m = len(self.particles)
         if forces is None:
             forces = [wp.zeros(self.model.particle_count, dtype=self.model.types.vec3, device=self.model.device,
@@ -265,9 +193,8 @@ class ControlTask:
 
         return control
 
+    # every world's pushes as (world_count n_params / 3, 3) numbers, checked
     def _push_values(self, params) -> np.ndarray:
-        """The pushes of every world as (world_count n_params / 3, 3) numbers: ``params`` holds world_count sets of
-        n_params numbers."""
         flat = [np.asarray(p, dtype=np.float64).reshape(-1) for p in params]
         for w, p in enumerate(flat):
             if p.shape != (self.n_params,) or not np.all(np.isfinite(p)):
@@ -277,13 +204,11 @@ class ControlTask:
         return np.concatenate(flat).reshape(-1, 3)
 
     def _push_array(self, params) -> wp.array:
-        """The pushes of every world (:meth:`_push_values`) as a new array."""
         return wp.array(self._push_values(params), dtype=self.model.types.vec3, device=self.model.device,
                         requires_grad=True)
 
+    # launch every world's loss on the final state (no read): the losses and, for a com target, the centres of mass
     def _loss_values(self, state: wc.State, components: list[int | None]) -> tuple[wp.array, wp.array | None]:
-        """Launch the loss of every world on the final ``state`` into a new array of world_count values (no read);
-        returns it and, for a centre-of-mass target, the centres of mass it is made from."""
         model, kernels = self.model, self._kernels
         W = self.world_count
         com = None
@@ -318,18 +243,16 @@ class ControlTask:
         return loss
 
     def evaluate(self, params: np.ndarray, *, component: int | None = None) -> Evaluation:
-        """One forward + backward simulation: the loss and its gradient at ``params`` (any shape of n_params
-        numbers). With ``component`` (0, 1, 2; a centre-of-mass target only) the "loss" is that coordinate of the
-        final centre of mass instead, without the regulariser. On a task of one world."""
+        """The loss and its gradient at ``params`` (n_params numbers, any shape) of a task of one world. With
+        ``component`` (0, 1, 2; a centre-of-mass target) the "loss" is that coordinate of the final centre of mass,
+        without the regulariser."""
         if self.world_count != 1:
             raise ValueError(f"evaluate runs one world; this task has {self.world_count}: use evaluate_worlds")
         return self.evaluate_worlds([params], [component])[0]
 
     def evaluate_worlds(self, params: list, components: list | None = None) -> list[Evaluation]:
-        """One forward + backward simulation of every world, world w with ``params[w]`` (n_params numbers) and the
-        loss ``components[w]`` (as :meth:`evaluate`'s ``component``; all None or all coordinates). The worlds
-        are independent, so each gets what a model of that world alone gives (bitwise: tests/test_worlds.py; the
-        collision stage's second try and fail-safe act on the worlds that need them alone)."""
+        """:meth:`evaluate` of every world in one simulation, world w with ``params[w]`` and ``components[w]`` (all None
+        or all coordinates), each bitwise what a model of it alone gives."""
         W = self.world_count
         components = [None] * W if components is None else list(components)
         if len(params) != W or len(components) != W:
@@ -371,41 +294,24 @@ class ControlTask:
             out.append(Evaluation(loss=value, grad=grad, com=self.com_weights @ positions, positions=positions))
         return out
 
+    # The rollout of evaluate_worlds (kind "evaluate") or losses_worlds ("losses") as graphs where the plan says it
+    # can be (plan_gradient), made at the second call that can use it and again where it went stale.
     def _captured(self, kind: str = "evaluate") -> _CapturedEvaluation | _CapturedLosses | None:
-        """The rollout of :meth:`evaluate_worlds` (``kind="evaluate"``: forward and backward) or of
-        :meth:`losses_worlds` (``"losses"``: forward) recorded as graphs (``wc.CapturedRollout``: one graph a
-        step, following the contacts it met before, in a scene with contact) where that can be: the forward pass on
-        any device, the backward pass on the CPU (on CUDA its graph does not replay yet: capture.py) for a rollout
-        taped whole, or checkpointed up to CAPTURED_SEGMENTS_PARTICLE_STEPS (replayed in segments). Made at the
-        second call that can use it (and again where the solver's options or an array of
-        the model were replaced since): the evaluation that captures costs about five uncaptured ones (the throw:
-        1.0-1.1 s uncaptured, 4.6-5.0 s capturing, 0.23-0.29 s replayed; benchmarks/graph_step.py), so a task
-        evaluated once is not made to capture."""
-        segmented = kind == "evaluate" and self.segment_steps < self.steps
-        if wc.CapturedRollout.unsupported(self.sim) is not None or kind == "evaluate" and (
-                not self.model.device.is_cpu or segmented and (
-                    wc.CapturedRollout.segments_unsupported(self.sim) is not None
-                    or self.model.particle_count * self.steps > CAPTURED_SEGMENTS_PARTICLE_STEPS)):
+        backward = kind == "evaluate"
+        if not plan_gradient(self.sim, self.steps, segment_steps=self.segment_steps if backward else self.steps,
+                             backward=backward).captured:
             return None
-        captured = self._captures.get(kind)
-        if captured is None or not captured.current():
-            self._captures[kind] = None
-            self._uncaptured[kind] = self._uncaptured.get(kind, 0) + 1
-            if self._uncaptured[kind] < 2:
-                return None
-            captured = self._captures[kind] = (_CapturedEvaluation if kind == "evaluate" else _CapturedLosses)(self)
-        return captured
+        make = _CapturedEvaluation if backward else _CapturedLosses
+        return self._graphs.get(kind, lambda: make(self), lambda captured: captured.current())
 
     @property
     def rerun_steps(self) -> list[int]:
-        """The steps of the last captured evaluation that ran uncaptured, their contacts not those their graphs
-        expected (``wc.CapturedRollout``'s ``rerun_steps``); empty where no evaluation was captured yet."""
-        captured = self._captures.get("evaluate")
+        """The steps of the last captured evaluation that ran uncaptured (``wc.CapturedRollout.rerun_steps``)."""
+        captured = self._graphs.peek("evaluate")
         return [] if captured is None else list(captured.rollout.rerun_steps)
 
     def losses_worlds(self, params: list) -> list[Evaluation]:
-        """Forward simulations alone (no tape): every world's loss with ``params[w]`` (``grad`` None), the same
-        values :meth:`evaluate_worlds` gives at a third of its cost: what a population method needs."""
+        """:meth:`evaluate_worlds`'s losses, forward only (``grad`` None)."""
         W = self.world_count
         if len(params) != W:
             raise ValueError(f"losses_worlds takes one parameter set per world ({W}), got {len(params)}")
@@ -440,16 +346,9 @@ class ControlTask:
         return out_list
 
     def jacobian_worlds(self, params: list, worse_than: list | None = None) -> list[list[Evaluation]]:
-        """The three centre-of-mass rows of every world, world w with ``params[w]``: ``out[w][c]`` is what
-        :meth:`evaluate_worlds` gives with component c, bitwise, from one forward pass and three reverse passes
-        through its recording (each adjoint solve's first guess is zeroed once read, so every pass repeats a lone
-        one: ``LinearSolver.solve_recorded``). Needs a centre-of-mass target; a rollout that is not taped whole
-        (``segment_steps < steps``) runs :meth:`evaluate_worlds` once per row instead. Counts one simulation per
-        world (``simulations``) and three reverse passes (``reverse_passes``).
-
-        ``worse_than`` (a loss per world): where every world's loss (1/2 |com_T - target|^2 plus the regulariser's
-        term, as an optimiser computes it from ``Evaluation.com``) is at least its threshold, the reverse passes are
-        skipped and the rows come back with ``grad=None``: a Gauss-Newton point that is rejected needs no Jacobian."""
+        """The three centre-of-mass rows of every world, ``out[w][c]`` bitwise :meth:`evaluate_worlds` with component
+        c, from one forward and three reverse passes, skipped (``grad=None``) where every world's :meth:`loss_of_com`
+        is no better than its ``worse_than``. ValueError without a centre-of-mass target."""
         if self.target_com is None:
             raise ValueError("jacobian_worlds needs a centre-of-mass target")
         W = self.world_count
@@ -470,7 +369,7 @@ class ControlTask:
             coms = captured.com.numpy().astype(np.float64)
             centres = [self.com_weights @ positions[model.world_slice(w)] for w in range(W)]
             skip = worse_than is not None and all(
-                self._loss_of_com(centres[w], params[w]) >= worse_than[w] for w in range(W))
+                self.loss_of_com(centres[w], params[w]) >= worse_than[w] for w in range(W))
             grads = [[None] * W] * 3 if skip else captured.com_rows()
             self.reverse_passes += 0 if skip else 3 * W
             self.simulations += W
@@ -500,7 +399,7 @@ class ControlTask:
         coms = com.numpy().astype(np.float64)
         centres = [self.com_weights @ positions[model.world_slice(w)] for w in range(W)]
         if worse_than is not None and all(
-                self._loss_of_com(centres[w], params[w]) >= worse_than[w] for w in range(W)):
+                self.loss_of_com(centres[w], params[w]) >= worse_than[w] for w in range(W)):
             grads = [[None] * W] * 3
         else:
             grads = self._reverse_rows(tape, outer, com, forces, push)
@@ -510,14 +409,13 @@ class ControlTask:
         return [[Evaluation(loss=float(coms[w, c]), grad=grads[c][w], com=centres[w],
                             positions=positions[model.world_slice(w)]) for c in range(3)] for w in range(W)]
 
-    def _loss_of_com(self, com: np.ndarray, params) -> float:
-        """The loss of a centre-of-mass target, as an optimiser computes it on the host."""
+    def loss_of_com(self, com: np.ndarray, params) -> float:
+        """The loss of a centre-of-mass target at final centre ``com`` and pushes ``params``, computed on the host."""
         r = com - self.target_com
         p = np.asarray(params, dtype=np.float64).reshape(-1)
         return 0.5 * float(r @ r) + 0.5 * self.regularizer * float(p @ p)
 
     def _reverse_rows(self, tape: wp.Tape, outer: wp.Tape, com: wp.array, forces: list, push: wp.array) -> list:
-        """The three reverse passes of :meth:`jacobian_worlds`: d com_c / d params of every world, c = 0, 1, 2."""
         W = self.world_count
         grads = []
         for c in range(3):
@@ -544,23 +442,16 @@ class ControlTask:
         return self._batched[count]
 
     def evaluate_many(self, requests: list[tuple]) -> list[Evaluation | Exception]:
-        """Forward + backward simulations of several ``(params, component)`` requests (as :meth:`evaluate`'s), run
-        as one batch of worlds (:meth:`worlds`, :meth:`evaluate_worlds`) where the task has a ``template``, one
-        after another otherwise. Requests that are whole Jacobians, ``(p, 0), (p, 1), (p, 2)`` for each of several
-        points p (or of one point without a template, or carrying a threshold), run as :meth:`jacobian_worlds`. A
-        request may carry a third entry, a loss threshold (``(p, c, worse_than)``, the same for a point's three
-        rows): where every point of such a batch is at least as bad, its rows come back without gradients
-        (``grad=None``). A request whose simulation raises (CollisionError, SimulationError) gets the exception in
-        its place. Each result is the one :meth:`evaluate` gives; a batch that raised is run again request by
-        request, so that the others' results are kept."""
+        """:meth:`evaluate` of several ``(params, component)`` requests of a task of one world, one batch of worlds with
+        a ``template``; whole Jacobians (``(p, 0), (p, 1), (p, 2)``, thresholds ``(p, c, worse_than)``) run as
+        :meth:`jacobian_worlds`. A request whose simulation raises (CollisionError, SimulationError) gets the exception
+        in its place; a batch that raised runs again request by request."""
         if self.world_count != 1:
             raise ValueError(f"evaluate_many runs on a task of one world; this one has {self.world_count}")
         if not requests:
             return []
-        # Whole Jacobians (a point's three rows): one forward and three reverse passes a point, its worlds batched.
-        # The throw's rows of three points took 5.3 s so against 7.7 s as nine worlds, one point's 3.3 s against
-        # 2.9 s as three worlds (2026-11-25): a lone point goes this way only with a threshold, whose rejected
-        # points then cost the forward pass alone.
+        # Whole Jacobians: one forward and three reverse passes a point, its points batched; a lone point only with a
+        # threshold. Why: docs/decisions.md, "Jacobian rows share a forward pass".
         triples = self._row_triples(requests)
         if triples is not None and (len(triples[0]) > 1 or self.template is None or triples[1][0] is not None):
             points, thresholds = triples
@@ -601,10 +492,7 @@ class ControlTask:
         return out
 
     def losses_many(self, points: list) -> list[Evaluation | Exception]:
-        """Forward simulations alone of several points (``grad`` None): one batch of worlds (:meth:`worlds`,
-        :meth:`losses_worlds`) where the task has a ``template``, one after another otherwise. A point whose
-        simulation raises (CollisionError, SimulationError) gets the exception in its place; a batch that raised is
-        run again point by point, so that the others' losses are kept. Each loss is the one :meth:`evaluate` gives."""
+        """As :meth:`evaluate_many`, forward only (``grad`` None), of several points of a task of one world."""
         if self.world_count != 1:
             raise ValueError(f"losses_many runs on a task of one world; this one has {self.world_count}")
         batch = self.worlds(len(points)) if len(points) > 1 else None
@@ -626,10 +514,8 @@ class ControlTask:
                 out.append(exc)
         return out
 
+    # (points, thresholds) where the requests are whole Jacobians on a rollout taped whole, else None
     def _row_triples(self, requests: list) -> tuple[list, list] | None:
-        """(points, thresholds) of ``requests`` where they are whole Jacobians, (p, 0), (p, 1), (p, 2) for each point
-        p in turn (each with the same optional threshold), on a rollout taped whole (:meth:`jacobian_worlds`); else
-        None."""
         if self.target_com is None or self.segment_steps < self.steps or len(requests) % 3:
             return None
         points, thresholds = [], []
@@ -644,7 +530,6 @@ class ControlTask:
         return points, thresholds
 
     def _count(self, batch: ControlTask) -> None:
-        """Take a batch task's counters over into this task's."""
         self.simulations += batch.simulations
         self.reverse_passes += batch.reverse_passes
         self.batches += batch.batches
@@ -654,12 +539,12 @@ class ControlTask:
 
     def loss_and_grad(self, params: np.ndarray, *, component: int | None = None
                       ) -> tuple[float, np.ndarray, np.ndarray]:
-        """(loss [m^2], d loss / d params (n_params,), final centre of mass (3,)): :meth:`evaluate`, unpacked."""
+        """(loss [m^2], gradient (n_params,), final centre of mass (3,)): :meth:`evaluate`, unpacked."""
         e = self.evaluate(params, component=component)
         return e.loss, e.grad, e.com
 
     def trajectory(self, params: np.ndarray) -> list[np.ndarray]:
-        """Positions (n, 3) of every step, from a forward pass only."""
+        """Positions (n, 3) of every step of a task of one world, from a forward pass."""
         if self.world_count != 1:
             raise ValueError(f"trajectory replays one world; this task has {self.world_count}")
         control = self._control_fn(self._forces(self._push_array([params])))
@@ -674,8 +559,8 @@ class ControlTask:
 
     def run(self, *, controller: str | None = None, iters: int | None = None, progress: bool = False,
             **kwargs) -> ControlResult:
-        """Optimise with the task's controller (or ``controller``): :func:`optimize_open_loop` or :func:`train_mlp`
-        (keyword arguments go to them); ``iters`` simulations (default: :meth:`default_iters`)."""
+        """Optimise with the task's controller, or ``controller``: :func:`optimize_open_loop` or :func:`train_mlp`
+        (keyword arguments go to them), ``iters`` simulations (default :meth:`default_iters`)."""
         controller = controller or self.controller
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
@@ -687,23 +572,20 @@ class ControlTask:
         return train_mlp(self, iters=iters, progress=progress, **kwargs)
 
     def optimizer_for(self, controller: str) -> str:
-        """The optimiser of ``controller``: the task's own where it is the task's controller, else that controller's
-        default for this loss."""
+        """The task's optimiser where ``controller`` is its own, else that controller's default for this loss."""
         if controller == self.controller:
             return self.optimizer
         return default_control_optimizer(controller, self.target_com, self.regularizer)
 
     def default_iters(self, controller: str) -> int:
-        """Simulations a run of ``controller`` spends unless told: the task's ``iters`` where it is the task's own
-        controller, else 50 for the open loop and 100 for the MLP."""
+        """Simulations ``controller``'s run spends unless told: the task's ``iters`` for its own, else 50 (MLP: 100)."""
         own = self.iters if controller == self.controller else None
         return own or (50 if controller == "open-loop" else 100)
 
 
+# What both captured forms share: fixed arrays of pushes and forces, which the graphs read, and the model's default
+# targets and placements at capture (a user may edit them between evaluations: current() compares them).
 class _Captured:
-    """What both captured forms share: fixed arrays for the pushes and forces, which the graphs read, and the model's
-    default targets and placements the controls were made from (host arrays a user may edit between evaluations;
-    the graphs hold the values they had)."""
 
     def __init__(self, task: ControlTask, *, requires_grad: bool):
         model = task.model
@@ -711,20 +593,16 @@ class _Captured:
         self.defaults = _control_defaults(model)
         self.push = wp.zeros(task.world_count * task.n_params // 3, dtype=model.types.vec3, device=model.device,
                              requires_grad=requires_grad)
-        """The pushes the forces are made from (assigned at each run)."""
-        self.tape = wp.Tape() if requires_grad else None
-        """The forces' launches, recorded once: they carry the forces' gradients back to the pushes."""
+        self.tape = wp.Tape() if requires_grad else None  # the forces' launches: their gradients back to the pushes
         with self.tape or contextlib.nullcontext():
             self.forces = task._forces(self.push)
         self.rollout: wc.CapturedRollout | None = None
 
     def set_pushes(self, push: np.ndarray) -> None:
-        """Write ``push`` into the pushes and their forces into the forces the graphs read."""
         self.push.assign(push)
         self.task._forces(self.push, self.forces)
 
     def current(self) -> bool:
-        """Whether the graphs still hold what an uncaptured evaluation would read now."""
         return self.rollout.current() and all(
             np.array_equal(a, b) for a, b in zip(self.defaults, _control_defaults(self.task.model)))
 
@@ -734,9 +612,9 @@ def _control_defaults(model: wc.Model) -> list[np.ndarray]:
             if a is not None]
 
 
+# An evaluation as graphs: the rollout and loss as a wc.CapturedRollout, the backward pass carried on to the pushes
+# by the forces' tape; com_rows() gives the three centre-of-mass rows by three reverse passes of the last run.
 class _CapturedEvaluation(_Captured):
-    """A task's evaluation as graphs: the rollout with its loss as a ``wc.CapturedRollout``, its backward pass
-    carried on to the pushes by the forces' tape."""
 
     def __init__(self, task: ControlTask):
         super().__init__(task, requires_grad=True)
@@ -751,8 +629,6 @@ class _CapturedEvaluation(_Captured):
                                           steps=task.steps, loss=loss, segment_steps=task.segment_steps)
 
     def run(self, push: np.ndarray, *, backward: bool = True) -> dict:
-        """The loss of every world, the final positions and (with ``backward``) the gradients with respect to the
-        pushes."""
         self.set_pushes(push)
         self.rollout.run(backward=backward)
         out = {"values": self.rollout.loss.numpy().astype(np.float64),
@@ -762,13 +638,11 @@ class _CapturedEvaluation(_Captured):
         return out
 
     def push_gradients(self) -> np.ndarray:
-        """The pushes' gradients from the forces' (what the rollout's backward pass left), one row a world."""
         self.push.grad.zero_()
         self.tape.backward(grads={f: f.grad for f in self.forces})
         return self.push.grad.numpy().astype(np.float64).reshape(self.task.world_count, -1)
 
     def com_rows(self) -> list[np.ndarray]:
-        """d com_c / d pushes of every world, c = 0, 1, 2: three reverse passes of the last run."""
         W = self.task.world_count
         rows = []
         for c in range(3):
@@ -779,9 +653,8 @@ class _CapturedEvaluation(_Captured):
         return rows
 
 
+# Forward simulations as graphs: the rollout without a loss, the loss launched after each replay.
 class _CapturedLosses(_Captured):
-    """A task's forward simulations as graphs (:meth:`ControlTask.losses_worlds`): fixed arrays for the pushes and
-    forces, the rollout as a ``wc.CapturedRollout`` without a loss, the loss launched after each replay."""
 
     def __init__(self, task: ControlTask):
         super().__init__(task, requires_grad=False)
@@ -790,7 +663,6 @@ class _CapturedLosses(_Captured):
                                           steps=task.steps)
 
     def run(self, push: np.ndarray) -> dict:
-        """The loss of every world and the final positions."""
         task = self.task
         self.set_pushes(push)
         final = self.rollout.run()[-1]

@@ -1,9 +1,4 @@
-"""The optimisers of a control task (:class:`warpcloth.tasks.control.ControlTask`): the open loop's (damped
-Gauss-Newton on the centre of mass, L-BFGS, and the global searches over worlds: a multistart in lockstep and CMA-ES)
-and the MLP controller's training through the simulator. The generic algorithms they share with material estimation
-live in :mod:`warpcloth.tasks.optim` (L-BFGS, Adam, CMA-ES, the smoothed gradient), the lockstep scheduler in
-:mod:`warpcloth.tasks.lockstep`.
-"""
+"""The optimisers of a control task: the open loop's (:func:`optimize_open_loop`) and the MLP's (:func:`train_mlp`)."""
 
 from __future__ import annotations
 
@@ -11,97 +6,125 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 import warpcloth as wc
 from warpcloth.progress import progress_bar
-from warpcloth.scene import SearchSpec, check_control_optimizer, default_control_optimizer
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
-from warpcloth.tasks.optim import MULTISTART_POPULATION, SMOOTHED_COPIES, cmaes, lbfgs, smoothed_descent, smoothed_steps
-
-if TYPE_CHECKING:
-    from warpcloth.tasks.control import ControlTask, Evaluation
+from warpcloth.tasks.optim import (
+    MULTISTART_POPULATION,
+    SMOOTHED_COPIES,
+    FitSummary,
+    cmaes,
+    lbfgs,
+    smoothed_descent,
+    smoothed_steps,
+)
+from warpcloth.tasks.specs import SearchSpec, check_control_optimizer, default_control_optimizer
 
 SEARCH_SIGMA = 5.0
-"""The global search's default spread of the pushes [m/s^2] (``SearchSpec.sigma``): CMA-ES's initial one, the
-multistart's random starts' (half the push that holds the seed's cloth up)."""
+"""The global searches' default spread of the pushes [m/s^2] (``SearchSpec.sigma``)."""
 SMOOTHED_SIGMA = 5.0
-"""The smoothed optimiser's default spread [m/s^2] (``SearchSpec.sigma``), and its Adam step
-(:data:`SMOOTHED_STEP_FRACTION`)."""
+"""The smoothed optimiser's default spread [m/s^2] (``SearchSpec.sigma``)."""
 SMOOTHED_STEP_FRACTION = 1.0
-"""The smoothed optimiser's Adam step is its spread divided by this. Measured on ``tall-wall-throw``, 240
-simulations, the error at the end of the smoothed stage (its best copy) and after Gauss-Newton (2026-11-27, from zero
-pushes unless said): spread 5, step 5: 703 % then 1.9 %, and from random starts (seeds 1, 2) 398 and 366 % then 2.0
-and 0.9 %; spread 2.5, step 5: 9.3e3 % then 4.7 %; spread 10, step 5: 3.0e3 % then 11 %; spread 2.5, step 2.5:
-7.2e3 % then 95 %; spread 2.5, step 0.625: 9.3e3, 9.2e3 and 8.6e3 % then 0.75, 1.5 and 8.6e3 % (zero pushes:
-1.1e4 %). With the small step the smoothed stage never left where it started; the spread and the step both
-matter."""
+"""The smoothed optimiser's Adam step is its spread divided by this. Why: docs/decisions.md, "The smoothed control
+step equals its spread"."""
 
 
 @dataclass
-class ControlResult:
+class Evaluation:
+    """One forward + backward simulation of a control task."""
+
+    loss: float
+    """The loss (the regulariser included), or the chosen centre-of-mass coordinate with ``component``."""
+    grad: np.ndarray | None
+    """d loss / d params, flat (None where a threshold skipped the reverse passes)."""
+    com: np.ndarray
+    """The centre of mass (mass-weighted, as the loss takes it) at the horizon (3,)."""
+    positions: np.ndarray
+    """Every particle's position at the horizon (n, 3)."""
+
+
+class ControlProblem(Protocol):
+    """What the optimisers use of a control task: :class:`warpcloth.tasks.control.ControlTask` is one."""
+
+    model: wc.Model
+    sim: wc.Simulator
+    dt: float
+    steps: int
+    particles: tuple[int, ...]
+    interval_steps: int
+    intervals: int
+    target_com: np.ndarray | None
+    target_positions: np.ndarray | None
+    regularizer: float
+    push_mass: float
+    com_weights: np.ndarray
+    search: SearchSpec
+    template: wc.ModelBuilder | None
+    simulations: int
+
+    @property
+    def n_params(self) -> int: ...
+    @property
+    def params_shape(self) -> tuple[int, int, int]: ...
+    def optimizer_for(self, controller: str) -> str: ...
+    def error_pct(self, positions: np.ndarray) -> float: ...
+    def loss_of_com(self, com: np.ndarray, params) -> float: ...
+    def evaluate(self, params: np.ndarray, *, component: int | None = None) -> Evaluation: ...
+    def evaluate_many(self, requests: list[tuple]) -> list[Evaluation | Exception]: ...
+    def losses_many(self, points: list) -> list[Evaluation | Exception]: ...
+    def trajectory(self, params: np.ndarray) -> list[np.ndarray]: ...
+
+
+@dataclass
+class ControlResult(FitSummary):
+    """A control optimisation's result: the pushes of least ``error_pct`` (``ControlTask.error_pct``), found at
+    simulation ``simulations``, and every simulation's loss and error (:class:`~warpcloth.tasks.optim.FitSummary`)."""
+
     params: np.ndarray
-    """Pushes [m/s^2], shape (intervals, particles, 3) (:mod:`warpcloth.tasks.control` defines them)."""
+    """Pushes [m/s^2], shape (intervals, particles, 3)."""
     losses: list[float] = field(default_factory=list)
+    """Loss [m^2] of every simulation (a Gauss-Newton point's rows repeat it; infinite for a failed trial)."""
     errors_pct: list[float] = field(default_factory=list)
     simulations: int = 0
-    """Simulations until the best result (forward + backward, or forward only in a global search's populations)."""
     error_pct: float = math.nan
     seconds: float = 0.0
+    """Wall time [s]."""
     failed_trials: list[str] = field(default_factory=list)
-    """Messages of trial steps whose simulation raised (a CollisionError or a SimulationError): each is rejected as a
-    bad step, counted as a simulation, and the run goes on."""
+    """Messages of trials whose simulation raised (rejected steps, each counted as a simulation)."""
 
-    def trajectory(self, task: ControlTask) -> list[np.ndarray]:
+    def trajectory(self, task: ControlProblem) -> list[np.ndarray]:
         """Positions of every step with the best pushes (forward only; the MLP's pushes replayed open-loop)."""
         return task.trajectory(self.params.reshape(-1))
 
 
-def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
+def optimize_open_loop(task: ControlProblem, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
                        start: np.ndarray | None = None, optimizer: str | None = None, search: SearchSpec | None = None,
                        batch: bool = True, progress: bool = False, callback=None, _evaluate=None) -> ControlResult:
-    """Optimise the pushes directly, from zero (the seed's start) or ``start`` (n_params pushes [m/s^2]).
-    ``iters`` bounds the simulations spent; returns the best iterate and the simulations spent to reach it. A start
-    whose simulation raises is halved towards zero until one runs.
+    """Optimise the pushes directly; returns the pushes of least ``error_pct`` and the history.
 
-    ``optimizer`` (default: the task's):
+    Args:
+        iters: Simulations to spend.
+        max_step: How far one step may move any push [m/s^2].
+        damping: Gauss-Newton's damping, mu = damping * tr(J J^T) / 3.
+        start: The first pushes (n_params numbers [m/s^2]; default zero), halved while their simulation raises.
+        optimizer: Default ``task.optimizer_for("open-loop")``. ``"gauss-newton"`` (a centre-of-mass target): steps
+            ``(J^T J + (w + mu) I) d = -(J^T r + w p)``, r = com_T - target, w the regulariser, halved until the loss
+            drops; three simulations a point (why: docs/decisions.md, "Gauss-Newton for centre-of-mass targets").
+            ``"lbfgs"``: one a point. ``"multistart"``: ``search.population`` runs of the local default in lockstep
+            (:func:`optimize_open_loop_starts`) from ``start`` and normal random points around it (spread
+            ``search.sigma``, default :data:`SEARCH_SIGMA`). ``"cmaes"`` (that spread) and ``"smoothed"`` (Adam on the
+            smoothed loss, ``search.population`` copies a step, default 8, spread default :data:`SMOOTHED_SIGMA`) end
+            with the local default from their best point for ``search.refine`` simulations (default a fifth).
+        search: The global search's settings (default ``task.search``).
+        batch: Run a point's three Gauss-Newton simulations as one batch of worlds: the same result, bitwise.
+        callback: ``callback(k, loss, error_pct, params)`` after the k-th simulation.
 
-    * ``"gauss-newton"`` (a centre-of-mass target): damped Gauss-Newton on r = com_T - target (3 numbers). Without
-      contact the centre of mass moves affinely with the pushes (they are external forces; the internal ones
-      cancel, in the tape's tangent dynamics too), so a Gauss-Newton step lands where its model says and makes most
-      of the way where first-order methods crawl; contacts make it nonlinear, and a step is halved until the loss
-      drops. Each point costs three simulations (one reverse pass per coordinate of com_T: the 3 x n_params
-      Jacobian), cut short when its loss is worse. The step solves ``(J^T J + (w + mu) I) d = -(J^T r + w p)``
-      (w the regulariser, mu = damping * tr(J J^T) / 3).
-    * ``"lbfgs"``: L-BFGS (``warpcloth.tasks.optim.lbfgs``) on the loss; one simulation per point.
-    * ``"multistart"``: ``search.population`` runs of the local default (Gauss-Newton with a centre-of-mass
-      target, else L-BFGS) in lockstep (:func:`optimize_open_loop_starts`: their simulations as batches of worlds),
-      from ``start`` and from random points around it (normal, ``search.sigma`` [m/s^2], default
-      :data:`SEARCH_SIGMA`), each with an equal share of ``iters``; the best of them. Their histories are
-      interleaved in the order the lockstep ran them, and ``simulations`` counts every run's up to the best.
-    * ``"cmaes"``: a global search, then the local default (Gauss-Newton with a centre-of-mass target, else
-      L-BFGS) from the best point it found, for ``search.refine`` simulations (default a fifth of ``iters``). The
-      search is CMA-ES (``warpcloth.tasks.optim.cmaes``) around ``start`` with ``search.sigma`` [m/s^2] (default
-      :data:`SEARCH_SIGMA`); each generation of ``search.population`` points runs forward only as one batch of
-      worlds (:meth:`ControlTask.losses_many`), a simulation per point. Where Gauss-Newton settles in the first basin
-      it meets (holding the cloth above a wall rather than throwing it over), the population sees the others.
-    * ``"smoothed"``: Adam on the Gaussian-smoothed loss L_s(p) = E[L(p + sigma eps)], then the local default from
-      the best point it met, for ``search.refine`` simulations (default a fifth of ``iters``). Each Adam step's
-      gradient is the mean of the tape gradients of ``search.population`` (default 8) perturbed copies of the
-      pushes, antithetic pairs of spread ``search.sigma`` [m/s^2] (default :data:`SMOOTHED_SIGMA`), run as one batch
-      of worlds (``warpcloth.tasks.optim.smoothed_descent``); a copy counts a simulation, and each is a point the
-      result may be. Adam's step is ``sigma`` / :data:`SMOOTHED_STEP_FRACTION`: the smoothing is the scale on
-      which the gradient is worth following.
-
-    ``max_step`` [m/s^2] bounds how far one step moves any push. ``search``: the global search's settings (default:
-    the task's, ``task.search``).
-
-    ``batch``: run a point's three Gauss-Newton simulations as one batch of three worlds
-    (:meth:`ControlTask.evaluate_many`; the task needs a ``template``). The result is the same as one at a time,
-    bitwise, and so is the history (a point whose loss is worse counts one simulation, as when cut short); the two
-    simulations such a point did not need are counted in ``task.simulations`` only.
+    Raises:
+        ValueError: For an optimiser that does not fit the loss, or a search budget that makes no generation or step.
     """
     optimizer = optimizer or task.optimizer_for("open-loop")
     problem = check_control_optimizer(optimizer, "open-loop", task.target_com, task.regularizer)
@@ -215,10 +238,7 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
 
     w = task.regularizer
 
-    def evaluate(params: np.ndarray, best_loss: float):
-        """Loss, com_T and the Jacobian at params: three simulations (one reverse pass per coordinate); stops early
-        at a worse loss. A simulation that raises (CollisionError, SimulationError) counts as an infinite loss: the
-        step is rejected and halved."""
+    def evaluate(params: np.ndarray, best_loss: float):  # loss, com_T, Jacobian; None's where worse or raised
         jac = np.zeros((3, task.n_params))
         com = None
         if len(result.losses) >= iters:
@@ -234,7 +254,7 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
                 return math.inf, None, None
             if k == 0:
                 com = e.com
-                trial_loss = task._loss_of_com(com, params)
+                trial_loss = task.loss_of_com(com, params)
                 record(params, trial_loss, task.error_pct(e.positions))
                 if trial_loss >= best_loss:
                     return trial_loss, None, None
@@ -266,11 +286,10 @@ def optimize_open_loop(task: ControlTask, *, iters: int = 50, max_step: float = 
     return _finish(result, bar, t0)
 
 
-def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: SearchSpec, batch: bool, callback,
+# optimizer="multistart": the local runs in lockstep, their histories interleaved (every run's k-th simulation, run
+# by run, then the k+1-th)
+def _multistart(task: ControlProblem, params: np.ndarray, *, iters: int, search: SearchSpec, batch: bool, callback,
                 bar, local: dict) -> ControlResult:
-    """``optimizer="multistart"`` (:func:`optimize_open_loop`): ``search.population`` local runs in lockstep, from
-    ``params`` and from random points around it, each with an equal share of ``iters``; their histories interleaved
-    in the order the lockstep ran them (every run's k-th simulation, run by run, then the k+1-th)."""
     starts = search.population or MULTISTART_POPULATION
     if iters < starts:
         raise ValueError(f"multistart: {iters} simulations for {starts} starts; give each start one at least")
@@ -310,20 +329,17 @@ def _multistart(task: ControlTask, params: np.ndarray, *, iters: int, search: Se
     return _finish(result, bar, t0)
 
 
-def _evaluate_one(task: ControlTask, params: np.ndarray, component: int | None) -> Evaluation | Exception:
+def _evaluate_one(task: ControlProblem, params: np.ndarray, component: int | None) -> Evaluation | Exception:
     try:
         return task.evaluate(params, component=component)
     except (wc.CollisionError, wc.SimulationError) as exc:
         return exc
 
 
-def optimize_open_loop_starts(task: ControlTask, starts: list, *, batch: bool = True, iters: int = 50,
+def optimize_open_loop_starts(task: ControlProblem, starts: list, *, batch: bool = True, iters: int = 50,
                               progress: bool = False, callback_of=None, **kwargs) -> list[ControlResult]:
-    """:func:`optimize_open_loop` from each of ``starts`` (None: zero pushes), with ``batch`` in lockstep: every
-    round the simulations that all the runs ask for next go as one batch of worlds (:meth:`ControlTask.evaluate_many`),
-    so random restarts cost little more wall time than one run on a CPU whose launches, not its arithmetic, bound a
-    small cloth's step (benchmarks/worlds.py). Each run's result equals its run alone, bitwise. Without ``batch``
-    the runs go one after another. ``callback_of(i)``: run i's callback (:func:`optimize_open_loop`), or None."""
+    """One :func:`optimize_open_loop` from each of ``starts``; with ``batch`` in lockstep, the runs' next simulations
+    as one batch of worlds, each result bitwise its run alone. ``callback_of(i)``: run i's callback, or None."""
     callback_of = callback_of or (lambda i: None)
     if not batch:
         return [optimize_open_loop(task, start=s, iters=iters, batch=False, progress=progress, callback=callback_of(i),
@@ -352,62 +368,28 @@ def _finish(result: ControlResult, bar, t0: float) -> ControlResult:
     return result
 
 
-def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = None, lr: float = 1e-3, hidden: int = 200,
-              seed: int = 0, zero_start: bool = True, damping: float = 1e-3, max_step: float = 20.0,
+def train_mlp(task: ControlProblem, *, iters: int = 100, optimizer: str | None = None, lr: float = 1e-3,
+              hidden: int = 200, seed: int = 0, zero_start: bool = True, damping: float = 1e-3, max_step: float = 20.0,
               warm_start: int = 0, capture: bool = True, progress: bool = False) -> ControlResult:
-    """Train a PyTorch MLP controller through the simulator (warpcloth.torch): at the start of every controlled
-    interval the MLP maps the cloth's state (positions relative to the target and velocities of all particles) to
-    the interval's pushes (the seed's "Ours + FC": Linear -> ReLU -> Linear).
-
-    ``optimizer``:
-
-    * ``"adam"``: Adam on the weights; each iteration is one forward + backward simulation of the whole horizon.
-    * ``"gauss-newton"`` (a centre-of-mass target, no regulariser): damped Gauss-Newton on the weights, as the open
-      loop's on the pushes (:func:`optimize_open_loop`). A point costs one forward pass and three reverse passes
-      through its recorded rollout (``retain_graph``: the 3 x n_weights Jacobian of com_T), counted as three
-      simulations, or one when its loss is worse (the step then halves). With more weights than residuals the step
-      is the smallest change of the weights that the damped linear model asks for,
-      ``d = -J^T (J J^T + mu I)^-1 r`` (mu = damping * tr(J J^T) / 3), scaled so that no push at the current
-      trajectory's states changes by more than ``max_step`` [m/s^2].
-
-    ``warm_start`` (simulations, 0: none): first optimise the pushes themselves (:func:`optimize_open_loop` from zero,
-    the open loop's default optimiser) with that many simulations, then set the output layer so that the network
-    gives those pushes at the states their rollout passes through (one forward simulation: the least-norm solution
-    for the output layer's weights and bias, the hidden layer kept as initialised), and train from there. The
-    network's first simulation then repeats the open loop's best one (to rounding), whatever its initial weights:
-    training starts in the open loop's basin instead of where a random network throws the cloth. Every simulation
-    counts towards ``iters``.
-
-    A simulation that raises (CollisionError, SimulationError) is a rejected step (``ControlResult.failed_trials``)
-    and the run goes on: Adam goes back to the last weights that simulated and halves its learning rate;
-    Gauss-Newton halves its step (and a start that raises, its output layer: its pushes, towards zero).
-
-    The network and every tensor take the model's torch device and dtype (``warpcloth.torch.torch_device`` and
-    ``torch_dtype``); the initial weights are drawn on the CPU in float32 whatever they are, so a seed gives the same
-    start on every device and precision.
+    """Train a PyTorch MLP controller (Linear -> ReLU -> Linear, ``hidden`` wide, the seed's "Ours + FC") through the
+    simulator, mapping the cloth's positions (relative to the target) and velocities at each controlled interval's
+    start to its pushes; returns the best simulation's pushes and the history. A simulation that raises is rejected:
+    Adam returns to the last weights that simulated and halves its learning rate, Gauss-Newton halves its step.
 
     Args:
-        task: The control task (its model, simulator, schedule, horizon and loss).
-        iters: Simulations to spend (each Adam iteration is one).
-        optimizer: ``"adam"`` or ``"gauss-newton"`` (default: the task's, ``task.optimizer_for("mlp")``).
-        lr: Adam's learning rate.
-        hidden: Width of the hidden layer.
-        seed: Seed of torch's generator for the initial weights.
-        zero_start: Zero the output layer, so training starts from no pushes (as the open loop does); else it keeps
-            PyTorch's random initialisation (a random start). A warm start sets the output layer either way.
-        damping, max_step: Gauss-Newton's damping and step bound.
-        warm_start: Simulations of the open-loop optimisation the network is first fitted to (0: none).
-        capture: Replay the simulator's intervals from graphs (``warpcloth.torch.simulate(capture=True)``) where
-            the task's steps can be captured (``wc.CapturedRollout.unsupported``): the same results (bitwise on the
-            CPU) for a fraction of the launch overhead.
-        progress: Show a progress bar (tqdm).
-
-    Returns:
-        The pushes of the best iteration (replayed open-loop by ``ControlResult.trajectory``) and the history.
+        iters: Simulations to spend, a warm start's included.
+        optimizer: ``"adam"`` or ``"gauss-newton"`` (a centre-of-mass target, no regulariser: the least weight change
+            ``d = -J^T (J J^T + mu I)^-1 r``); default ``task.optimizer_for("mlp")``.
+        seed: Seed of the initial weights (drawn on the CPU in float32: the same start on every device and precision).
+        zero_start: Zero the output layer (start from no pushes); else PyTorch's random initialisation.
+        damping: As :func:`optimize_open_loop`'s.
+        max_step: How far a Gauss-Newton step may change any push [m/s^2].
+        warm_start: Simulations of :func:`optimize_open_loop` first, the output layer fit to its best pushes (0: none).
+        capture: Replay the simulator's intervals from graphs where it can: the same results.
 
     Raises:
-        ImportError: When PyTorch is not installed.
-        ValueError: For an unknown optimizer, or Gauss-Newton without a centre-of-mass target or with a regulariser.
+        ImportError: Without PyTorch.
+        ValueError: For an optimiser that does not fit the loss, or a warm start outside [0, iters).
     """
     import torch
 
@@ -445,9 +427,7 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
     def features(x, v):
         return torch.cat([(x - target).reshape(-1), 0.1 * v.reshape(-1)])
 
-    def rollout(fixed=None):
-        """The final positions, the pushes and the network's inputs of one closed-loop simulation (or of the
-        open-loop pushes ``fixed``, (controlled, k, 3), where given)."""
+    def rollout(fixed=None):  # final positions, pushes and inputs of a closed loop, or of the pushes ``fixed``
         x, v = x0, v0
         pushes, inputs = [], []
         for s in range(controlled):
@@ -547,9 +527,7 @@ def train_mlp(task: ControlTask, *, iters: int = 100, optimizer: str | None = No
 
     weights = list(net.parameters())
 
-    def point(theta: torch.Tensor, best_loss: float):
-        """Loss, residual, Jacobian and the network's inputs at the weights theta; (loss, None, None, None) when
-        the loss is worse or the simulation raised (a rejected step) or the budget ran out."""
+    def point(theta: torch.Tensor, best_loss: float):  # loss, residual, Jacobian, inputs; None's where rejected
         torch.nn.utils.vector_to_parameters(theta, weights)
         try:
             x, pushes, inputs = rollout()

@@ -1,12 +1,5 @@
-"""Material estimation: recover a fabric's density, stretching and bending tables from how it moves (SPEC §5(b)).
-
-The scene is the seed's hanging cloth in the wind (``warpcloth.tasks.scenes.hanging_cloth``, also importable from
-here); the unknowns are the 40 numbers of a Material (1 density, 6x4 stretching, 3x5 bending). The optimiser works
-on an unconstrained vector ``theta`` (MaterialParameterization): density, warp/weft stretch and bending in log space
-(so they stay positive whatever the step; the stretch of rows 1-5 relative to row 0), coupling and shear linearly
-(the model applies relu to the interpolated stiffness, so any value gives a valid, PSD-projected stretching force),
-every entry scaled to order one. Gradients come from Warp's tape through the whole rollout.
-"""
+"""Material estimation (SPEC §5(b)): fit a fabric's 40 material numbers (density, 6x4 stretching, 3x5 bending) to a
+trajectory (:class:`TrajectoryFit`) through an unconstrained vector (:class:`MaterialParameterization`)."""
 
 from __future__ import annotations
 
@@ -30,11 +23,13 @@ from warpcloth.materials import (
     STRETCHING_SHAPE,
 )
 from warpcloth.progress import progress_bar
-from warpcloth.scene import ESTIMATION_OPTIMIZERS, GLOBAL_OPTIMIZERS, MATERIAL_PARTS, Scene, SearchSpec, load_scene
+from warpcloth.scene import Scene, load_scene
+from warpcloth.solver.gradients import GraphCache, plan_gradient
 from warpcloth.tasks.lockstep import Lockstep, run_in_lockstep
 from warpcloth.tasks.optim import (
     MULTISTART_POPULATION,
     SMOOTHED_COPIES,
+    FitSummary,
     adam,
     cmaes,
     lbfgs,
@@ -42,8 +37,9 @@ from warpcloth.tasks.optim import (
     smoothed_steps,
 )
 from warpcloth.tasks.scenes import THICKEN
+from warpcloth.tasks.specs import ESTIMATION_OPTIMIZERS, GLOBAL_OPTIMIZERS, MATERIAL_PARTS, SearchSpec
 
-# -- the scene (SPEC §5(b)): warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------
+# -- the seed's scene: warpcloth.tasks.scenes.hanging_cloth -----------------------------------------------------------
 DT = 0.02
 """Time step [s]."""
 STEPS = 50
@@ -51,9 +47,8 @@ STEPS = 50
 FRAME_STRIDE = 2
 """Steps per compared frame: the seed's targets are saved every 0.04 s."""
 CAPTURE_AFTER = 3
-"""A fit captures a horizon's rollout at its third evaluation: making the graph costs an ordinary evaluation and
-a recording (about two evaluations on the CPU), and a replay saves about a third of one (50 steps of the 16x16
-hanging cloth: loss and gradient 129.9 -> 94.1 ms)."""
+"""The evaluation of a horizon that captures its rollout. Why: docs/decisions.md, "Material fits capture at the third
+evaluation"."""
 
 
 def initial_guess() -> wc.Material:
@@ -67,17 +62,11 @@ N_PARAMS = 1 + STRETCHING_SHAPE[0] * STRETCHING_SHAPE[1] + BENDING_SHAPE[0] * BE
 
 
 class MaterialParameterization:
-    """Maps a Material to an unconstrained vector ``theta`` (N_PARAMS = 40) and back, with the chain rule.
-
-    theta = [log(density/ref), stretching entries, log(bending/ref)]; theta = 0 is the reference material. The
-    stretching table's warp and weft columns are in log space, rows 1-5 relative to row 0: row 0's entry is
-    log(k_0/ref_0) and row r's log((k_r/k_0) / (ref_r/ref_0)), so a step on row 0 scales the whole column and rows
-    1-5 keep the reference's ratios to it until the motion says otherwise (rows 1-5 are the same stiffness at 1/6
-    strain: a motion that barely strains the sheet determines row 0 and leaves them, README, Material estimation).
-    Coupling and shear are linear, (k - ref)/scale with scale the rms of the reference row (any value is a valid
-    material: the model applies relu to the interpolated stiffness). ``log_mask`` (6, 4) marks the stretching
-    entries estimated in log space (the warp and weft columns).
-    """
+    """Maps a Material to an unconstrained vector ``theta`` (N_PARAMS = 40) and back, with the chain rule;
+    theta = 0 is the reference. theta = [log(density/ref), stretching, log(bending/ref)], each entry of order one: the
+    stretching table's warp and weft columns (``log_mask``) in log space, rows 1-5 relative to row 0; coupling and shear
+    linear, (k - ref) / the rms of the reference row. ValueError where the reference's warp/weft stretch or bending is
+    not positive. Why: docs/decisions.md, "The material parameterisation"."""
 
     def __init__(self, reference: wc.Material):
         self.reference = reference
@@ -152,16 +141,12 @@ def parameter_errors(estimate: wc.Material, truth: wc.Material) -> dict[str, flo
 
 # -- the fit ---------------------------------------------------------------------------------------------------------
 class TrajectoryFit:
-    """Loss and gradient of a material against an observed trajectory.
-
-    loss = mean over compared frames of mean over vertices of |x_sim - x_target|^2 [m^2] (the seed's loss); frames
-    are every ``frame_stride`` steps up to ``steps``.
-
-    A model of several equal worlds (``ModelBuilder.add_world``/``replicate``: the same particle count, each world's
-    cloth its own material) fits a material per world in one batch: each frame of ``targets`` holds every world's
-    particles (``simulate_targets`` with a material per world makes them), and :meth:`losses` /
-    :meth:`losses_and_grads` evaluate one material per world with one simulation (:func:`estimate_materials`).
-    """
+    """Loss and gradient of a material against frames of positions ``targets`` (particle_count, 3), frame 0 the start:
+    the mean over compared frames (every ``frame_stride`` steps up to ``steps``) of the mean over vertices of
+    ``|x_sim - x_target|^2`` [m^2], the seed's loss. A model of equal worlds, each with its own material, fits one
+    per world (:meth:`losses`, :meth:`losses_and_grads`). ``options`` default to a CG tolerance of 1e-6; ``template``
+    (the one-world builder ``model`` was finalised from) enables :meth:`worlds`. ValueError for worlds of different
+    sizes or sharing a material, or targets short of ``steps``."""
 
     def __init__(self, model: wc.Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
                  frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None,
@@ -201,12 +186,9 @@ class TrajectoryFit:
                         for x in targets[: frames + 1]]
         self._first = wp.zeros(worlds, dtype=wp.int32, device=model.device)  # each world's targets are its own
         self.capture = capture
-        """Replay each evaluation's rollout from a graph (wc.CapturedRollout, one per horizon and kind, made at the
-        horizon's CAPTURE_AFTER-th evaluation; a scene with contact one graph a step), bitwise the
-        uncaptured results on the CPU; not where the scene cannot be captured (``CapturedRollout.unsupported``), and
-        on CUDA only the forward losses (a graph with the backward pass did not instantiate there with Warp 1.19)."""
-        self._captured: dict = {}
-        self._requests: dict = {}  # evaluations asked for, per horizon and kind
+        """Replay rollouts from graphs (``wc.CapturedRollout``, per horizon and kind, from its CAPTURE_AFTER-th
+        evaluation), bitwise the uncaptured results on the CPU; on CUDA the forward losses only."""
+        self._graphs: GraphCache[wc.CapturedRollout] = GraphCache(after=CAPTURE_AFTER)  # by horizon and kind
         self.evaluations = 0
         self.seconds = 0.0
         if template is not None and (template.world_count != 1 or template.particle_count != model.particle_count):
@@ -214,8 +196,6 @@ class TrajectoryFit:
                              f"{template.particle_count} particles in all; it must be the one-world builder the "
                              f"model ({worlds} world(s), {model.particle_count} particles) was finalised from")
         self.template = template
-        """The one-world builder ``model`` was finalised from, or None: with it :meth:`worlds` makes copies of the
-        fit, whose worlds a global search evaluates as one batch."""
         self._init = {"steps": steps, "frame_stride": frame_stride, "dt": dt, "options": self.sim.options,
                       "capture": capture}
         self._batched: dict[int, TrajectoryFit] = {}
@@ -225,12 +205,8 @@ class TrajectoryFit:
         return self.model.world_count
 
     def worlds(self, count: int) -> TrajectoryFit | None:
-        """This fit over ``count`` copies of its scene, each world with its own material and this fit's targets
-        (made once, then kept); None without a ``template`` or for a fit of several worlds. Its solver is this
-        one's options on a model of ``count`` worlds: on the CPU each world has its own multigrid hierarchy, so each
-        world's loss is bitwise this fit's; on CUDA ``"auto"`` is block Jacobi for several worlds (and an explicit
-        ``"multigrid"``, which the parallel form runs for one world only, becomes ``"auto"``), so they agree to the
-        CG tolerance."""
+        """This fit over ``count`` copies of its scene, each with its own material (made once, then kept); None without
+        a ``template`` or for several worlds. Each world's loss is bitwise this fit's on the CPU."""
         if self.template is None or self.world_count != 1:
             return None
         if int(count) != count or count < 1:
@@ -250,9 +226,7 @@ class TrajectoryFit:
     def simulate_targets(model: wc.Model, truth: wc.Material | Sequence[wc.Material], *, steps: int = STEPS,
                          frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None
                          ) -> list[np.ndarray]:
-        """Ground truth made by warpcloth: the frames (every ``frame_stride`` steps) of ``truth``'s rollout (one
-        material, or one per world), with ``options`` (the fit's: default SolverOptions()) but a CG tolerance of
-        1e-8, so that the targets are the motion the fit's model makes, without its solve's error."""
+        """Every ``frame_stride``-th frame of ``truth``'s rollout (a material or one per world), CG tolerance 1e-8."""
         dummy = [np.zeros((model.particle_count, 3))] * (steps // frame_stride + 1)
         fit = TrajectoryFit(model, dummy, steps=steps, frame_stride=frame_stride, dt=dt,
                             options=replace(options or wc.SolverOptions(), cg_tol=1e-8))
@@ -269,9 +243,6 @@ class TrajectoryFit:
         model.material_bending.assign(np.stack([x.bending for x in ms]))
 
     def _rollout_loss(self, steps: int, grad: bool) -> tuple[wp.array, wp.Tape | None]:
-        """Each world's loss (an array), from the captured rollout of this horizon where there is one; with
-        ``grad``, the materials' gradients too (of the losses' sum: each world's own), and the tape to zero after
-        reading them (None where the captured replay zeroes them itself)."""
         model = self.model
         captured = self._capture(steps, grad)
         if captured is not None:
@@ -287,16 +258,12 @@ class TrajectoryFit:
         return loss, tape
 
     def _capture(self, steps: int, grad: bool) -> wc.CapturedRollout | None:
-        if not self.capture or (grad and self.model.device.is_cuda) or wc.CapturedRollout.unsupported(self.sim):
+        if not plan_gradient(self.sim, steps, segment_steps=steps, backward=grad, capture=self.capture).captured:
             return None
-        key = (steps, grad, id(self.sim.options))  # options are kernel arguments baked into the graph
-        self._requests[key] = self._requests.get(key, 0) + 1
-        if self._requests[key] < CAPTURE_AFTER:
-            return None  # a horizon evaluated once or twice (seed-sgd's growing curriculum) is not worth a capture
-        if key not in self._captured:
-            loss = (lambda trajectory: self._loss_of(trajectory, steps)) if grad else None
-            self._captured[key] = wc.CapturedRollout(self.sim, self.model.state(), steps=steps, loss=loss)
-        return self._captured[key]
+        loss = (lambda trajectory: self._loss_of(trajectory, steps)) if grad else None
+        # options are kernel arguments baked into the graph: a fit with other options asks for other graphs
+        return self._graphs.get((steps, grad, id(self.sim.options)),
+                                lambda: wc.CapturedRollout(self.sim, self.model.state(), steps=steps, loss=loss))
 
     def _loss_of(self, trajectory, steps: int) -> wp.array:
         model = self.model
@@ -333,8 +300,7 @@ class TrajectoryFit:
 
     def losses_and_grads(self, materials: Sequence[wc.Material], steps: int | None = None
                          ) -> list[tuple[float, float, np.ndarray, np.ndarray]]:
-        """Each world's :meth:`loss_and_grad` with its material ``materials[w]``: one forward and one backward pass
-        (the worlds never interact, so the gradient of the losses' sum holds each world's own)."""
+        """Each world's :meth:`loss_and_grad` with its material ``materials[w]``: one forward and one backward pass."""
         model = self.model
         self.set_material(materials)
         t0 = time.perf_counter()
@@ -361,16 +327,14 @@ class TrajectoryFit:
 
 
 class MultiMotionFit:
-    """Several recorded motions fitted at once, each with its own scene and targets (a list of TrajectoryFit): one
-    material for all, the loss the mean of the motions' losses. Takes a TrajectoryFit's place in
-    :func:`estimate_material` (not with the ``seed-sgd`` optimiser, whose curriculum grows one horizon)."""
+    """One material fitted to several motions (a TrajectoryFit each), the loss the mean of theirs. Takes a
+    TrajectoryFit's place in :func:`estimate_material`, except with ``seed-sgd``."""
 
     def __init__(self, fits: Sequence[TrajectoryFit]):
         if not fits:
             raise ValueError("MultiMotionFit needs at least one TrajectoryFit")
         self.fits = list(fits)
         self.steps = sum(f.steps for f in self.fits)
-        """Steps of all the motions together (one evaluation simulates each motion once)."""
 
     @property
     def seconds(self) -> float:
@@ -406,48 +370,41 @@ def free_mask(free: Sequence[str]) -> np.ndarray:
 OPTIMIZERS = ESTIMATION_OPTIMIZERS
 
 START_SCAN = {"density": (0.5, 2.0**-0.5, 1.0, 2.0**0.5, 2.0), "stretch": tuple(2.0**k for k in range(-2, 6))}
-"""Factors tried on the start before a fit, every pair of them: on its density (1/2 to 2; the measured fabrics span
-0.49x to 1.41x the seed's mean start) and on its warp and weft stretch (1/4 to 32; the fabrics span 0.18x to 29x).
-A fit does not cross these ranges by gradient steps, and the two act together (README, Material estimation)."""
+"""Factors tried on the start before a fit, every pair of them: on its density and on its warp and weft stretch.
+Why: docs/decisions.md, "A fit scans its start"."""
 
 CURRICULUM = ((0.4, 2.0), (0.7, 2.0), (1.0, 3.0))
-"""L-BFGS's horizon curriculum (``estimate_material``'s default): stages of (fraction of the fit's steps, share of
-the evaluations), each fitting the loss over the first frames only, from where the stage before ended. The seed grew
-its horizon too (SPEC §5(b)). The hanging cloth in the wind buckles one way or the other after about 20 steps, and the
-loss over the whole horizon jumps between materials 3e-4 apart (README, known gaps): fitted first, the early frames
-bring the fit near the truth before the buckling's frames count. Table 2 (ten fabrics, the means, 2026-11-27,
-benchmarks/material_estimation.py --iters 180): the scan's 40 + 140 evaluations in these stages (20, 36 and 50
-steps), density 1.6 %, linear 45 %, non-linear 46 %, simulation error 0.60 %; 40 + 60 in one stage (no curriculum):
-3.2, 57, 60 and 0.74 %; 40 + 320 in these stages (--iters 360, 2026-11-28): 0.29, 34, 43 and 0.50 %. Other
-schedules: docs/results/seed.md."""
+"""L-BFGS's stages of (fraction of the fit's steps, share of the evaluations), each from where the last ended. Why:
+docs/decisions.md, "Material fits grow their horizon"."""
 
 SEARCH_SIGMA = 0.5
-"""The global search's default initial spread (``SearchSpec.sigma``) in the parameterization's units (log-scale for
-density, warp/weft stretch and bending: a factor of e^0.5 = 1.65): CMA-ES's, and the multistart's random starts'."""
+"""The global searches' default spread (``SearchSpec.sigma``) in the parameterization's units."""
 SMOOTHED_SIGMA = 0.05
-"""The smoothed optimiser's default spread (``SearchSpec.sigma``) in the parameterization's units (5 % on the
-log-scale parameters)."""
+"""The smoothed optimiser's default spread (``SearchSpec.sigma``) in the parameterization's units."""
 SMOOTHED_STEP_FRACTION = 4.0
 """The smoothed optimiser's Adam step is its spread divided by this."""
 
 
 @dataclass
-class EstimationResult:
+class EstimationResult(FitSummary):
+    """A material fit's result: the estimate (``material``), where it started, and every evaluation's loss, summed up
+    by :class:`~warpcloth.tasks.optim.FitSummary`."""
+
     material: wc.Material
     initial: wc.Material
+    """The material the fit started from (before the start scan)."""
     losses: list[float] = field(default_factory=list)
-    """Loss [m^2] of every forward + backward evaluation, in order."""
+    """Loss [m^2] of every evaluation, in order, over its ``horizons`` entry (infinite for a diverged trial)."""
     horizons: list[int] = field(default_factory=list)
     """Steps simulated by each evaluation (the seed's curriculum grows them)."""
     seconds: float = 0.0
-    """Wall time of the evaluations (the scan's forward ones included); in a batch (:func:`estimate_materials`),
-    this fit's share of each batch's."""
+    """Wall time of the evaluations [s]; in a batch, this fit's share of each batch's."""
     simulation_error_pct: float = math.nan
     initial_simulation_error_pct: float = math.nan
     diverged: list[str] = field(default_factory=list)
-    """Messages of trial materials whose simulation diverged (rejected steps, counted as evaluations)."""
+    """Messages of trial materials whose simulation diverged (rejected, each counted as an evaluation)."""
     scan: list[tuple[float, float, float]] = field(default_factory=list)
-    """(density factor, stretch factor, loss) of each forward evaluation of the start scan (``START_SCAN``)."""
+    """(density factor, stretch factor, loss) of each material of the start scan."""
     scan_factors: dict[str, float] = field(default_factory=dict)
     """The factors of the scan's best material, where the fit started (empty without a scan)."""
 
@@ -461,47 +418,29 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
                       curriculum: Sequence[tuple[float, float]] | None = CURRICULUM, batch: bool = False,
                       progress: bool = False) -> EstimationResult:
-    """Fit the model's material to ``fit``'s target trajectory, starting from ``initial`` (default: the seed's mean).
+    """Fit the model's material to ``fit``'s targets; returns the estimate and the history.
 
-    Optimisers: ``lbfgs`` (default; log-space parameters), ``adam`` (log-space) and ``seed-sgd`` (the seed's protocol:
-    SGD with momentum 0.9 on the seed's scaled units, lr 0.1 for density and stretching and 10 for bending, with the
-    growing-horizon curriculum: 2 steps more each time the loss drops under 1e-4 m^2). ``iters`` counts evaluations.
-    ``free`` names the parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``); the others keep
-    ``initial``'s values. ``cmaes``: a global search, CMA-ES (``warpcloth.tasks.optim.cmaes``) over the free
-    parameters around the start with ``search.sigma`` (default :data:`SEARCH_SIGMA`), each point one forward
-    evaluation, then L-BFGS from its best point with ``search.refine`` evaluations (default a fifth of ``iters``).
-    ``multistart``: L-BFGS from the start and from ``search.population - 1`` random points around it (normal,
-    ``search.sigma``, default :data:`SEARCH_SIGMA`, on the free parameters), one after another, each with an equal
-    share of the evaluations; the result is the point of least loss any of them met. ``smoothed``: Adam on the
-    Gaussian-smoothed loss (``warpcloth.tasks.optim.smoothed_descent``: each step the mean gradient of
-    ``search.population`` copies, default 8, in antithetic pairs of spread ``search.sigma``, default
-    :data:`SMOOTHED_SIGMA`; Adam's step a quarter of it), then L-BFGS from the point of least loss it met, for
-    ``search.refine`` evaluations (default a fifth of ``iters``). Each copy, start and CMA-ES point counts as an
-    evaluation.
+    Args:
+        initial: The start (default :func:`initial_guess`).
+        optimizer: ``"lbfgs"`` (stages of growing horizon, ``curriculum``), ``"adam"``, ``"seed-sgd"`` (the seed's
+            SGD, momentum 0.9 in its scaled units, the horizon growing by 2 steps whenever the loss drops under 1e-4
+            m^2), or a global search then L-BFGS from its best point for ``search.refine`` evaluations (default a
+            fifth): ``"cmaes"`` (spread ``search.sigma``, default :data:`SEARCH_SIGMA`), ``"multistart"`` (L-BFGS from
+            the start and ``search.population - 1`` normal random points around it, equal shares) or ``"smoothed"``
+            (Adam on the Gaussian-smoothed loss, ``search.population`` copies a step, default :data:`SMOOTHED_SIGMA`).
+        iters: Evaluations to spend; each scanned material, search point, copy and line-search trial counts.
+        free: The parts fitted, of ``"density"``, ``"stretching"``, ``"bending"``; the others keep ``initial``'s.
+        scan: ``{"density": factors, "stretch": factors}`` (default :data:`START_SCAN`): before ``lbfgs`` or ``adam``,
+            start from the best of ``initial`` with its density and warp and weft stretch scaled by every pair of
+            factors (of the free parts); skipped with None, ``seed-sgd`` or an ``iters`` under twice the pairs.
+        curriculum: L-BFGS's stages (default :data:`CURRICULUM`); None, or a MultiMotionFit: one stage.
+        batch: Simulate a global search's trials as worlds of one batch (a TrajectoryFit with a ``template``), bitwise
+            the same search on the CPU. Why off: docs/decisions.md, "Material searches run unbatched by default".
 
-    ``batch`` (the global searches, on a TrajectoryFit with a ``template``: :meth:`TrajectoryFit.worlds`): CMA-ES's
-    generations, the smoothed search's copies and the multistart's L-BFGS runs (in lockstep: each evaluation waits
-    for the other runs' and all are one simulation) are simulated as worlds of one batch, not one after another.
-    The same search either way, bitwise on the CPU: the batch's solver treats each world on its own (each with its
-    own multigrid hierarchy; :meth:`TrajectoryFit.worlds`). Off by default: on this 2-core CPU, where the hanging
-    cloth's steps are bound by arithmetic on one thread, the batch took 8 to 15 % longer (benchmarks/
-    estimation_batch.py: two fabrics, each search with 150 evaluations, 0.85x to 0.92x, 2026-11-27). Replayed, 8
-    evaluations cost the same either way (0.95 against 0.97 s; uncaptured the batch saves 16 %, 1.07 against
-    1.27 s): the extra time is the batch's own graph captures (about 1.3 s for 8 worlds with the backward pass),
-    made on top of the one-world fit's. On CUDA, where worlds share each launch, it is meant to pay; not measured
-    there yet.
-
-    ``curriculum`` (``lbfgs`` on a TrajectoryFit; default :data:`CURRICULUM`): L-BFGS in stages of growing horizon,
-    each ``(fraction of the fit's steps, share of the evaluations)``, the horizon rounded to whole frames; None or a
-    MultiMotionFit: one stage over the whole horizon. :attr:`EstimationResult.horizons` lists each evaluation's.
-
-    ``scan`` (``{"density": factors, "stretch": factors}``, default ``START_SCAN``): before ``lbfgs`` or ``adam``, the
-    loss (forward only) of ``initial`` with its density and its warp and weft stretch times every pair of factors
-    (of the free parts; a part not free keeps factor 1), and the fit starts from the best. Each scanned material
-    counts as an evaluation, so the optimiser gets the rest of ``iters``; no scan where that would leave it fewer
-    than the scan's, with ``seed-sgd``, or with ``None``. A fit started 30x too soft stays where the soft cloth
-    buckles: the loss jumps under 1e-4 relative changes of a parameter and the gradient steps stall (README,
-    Material estimation).
+    Raises:
+        ValueError: For an unknown optimiser or part, a batch without a global search or template, or a budget that
+            makes no generation, step or start.
+        SimulationError: When the first evaluation fails; a later trial that fails is rejected (an infinite loss).
     """
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
@@ -561,13 +500,10 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
 
     batched_seconds = [0.0]
 
-    def points_batch(count: int):
-        """The global search's batch of ``count`` worlds (a :class:`_BatchFit`), or None: one after another."""
+    def points_batch(count: int):  # a global search's batch of count worlds, or None: one after another
         return _BatchFit(fit.worlds(count), None) if batch else None
 
-    def evaluate_points(points: list[np.ndarray], grad: bool, batch_fit: _BatchFit) -> list:
-        """Each point's (free parameters) loss, with ``grad`` an _Evaluated (loss and free gradient), or the
-        SimulationError that rejected it: one simulation of ``batch_fit``'s worlds, recorded in the points' order."""
+    def evaluate_points(points: list[np.ndarray], grad: bool, batch_fit: _BatchFit) -> list:  # one simulation
         t0 = time.perf_counter()
         answers = batch_fit._evaluate({k: (param.decode(full(q)), grad, fit.steps) for k, q in enumerate(points)})
         batched_seconds[0] += time.perf_counter() - t0
@@ -588,9 +524,7 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
             out.append(_Evaluated(loss, param.chain(full(q), *answer[1:])[mask]) if grad else loss)
         return out
 
-    def copies(requests: list) -> list:
-        """The smoothed gradient's copies, as one batch where there is one, else one after another: (loss,
-        gradient), or the divergence (left out)."""
+    def copies(requests: list) -> list:  # the smoothed gradient's copies: (loss, gradient) or the divergence
         points = [point for point, _ in requests]
         copies_batch = points_batch(len(points))
         if copies_batch is not None:
@@ -602,16 +536,13 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         return out
 
     def population_losses(points: list) -> list[float]:
-        """CMA-ES's generation: forward losses (infinite for a divergence), as one batch where there is one."""
         population_batch = points_batch(len(points))
         if population_batch is None:
             return [loss_free(q) for q in points]
         return [math.inf if isinstance(a, BaseException) else a
                 for a in evaluate_points(points, False, population_batch)]
 
-    def multistart(starts: list[np.ndarray], shares: list[int]) -> None:
-        """L-BFGS from each start with its share of the evaluations: in lockstep as one batch of worlds where there
-        is one, else one after another."""
+    def multistart(starts: list[np.ndarray], shares: list[int]) -> None:  # L-BFGS runs, in lockstep where batched
         if points_batch(len(starts)) is None:
             for start, share in zip(starts, shares):
                 lbfgs(objective_free, start, iters=share)
@@ -630,7 +561,6 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
             raise failed[0]
 
     def loss_free(theta_free: np.ndarray) -> float:
-        """The loss alone (a forward evaluation): the global search's."""
         try:
             loss = fit.loss(param.decode(full(theta_free)))
         except wc.SimulationError as exc:  # a diverging trial: an infinite loss
@@ -712,10 +642,9 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     return result
 
 
+# (horizon, evaluations) of each curriculum stage: horizons in whole frames, the last the fit's; evaluations by
+# share, the remainder to the last stage
 def _stages(fit, curriculum: Sequence[tuple[float, float]] | None, iters: int) -> list[tuple[int, int]]:
-    """(horizon, evaluations) of each stage of ``curriculum`` for ``iters`` evaluations: horizons in whole frames
-    (at least one), the last the fit's; evaluations by share, the remainder to the last stage; stages that would
-    get none, or repeat the horizon before, are left out. One stage without a curriculum or frames (MultiMotionFit)."""
     stride = getattr(fit, "frame_stride", None)
     if not curriculum or stride is None:
         return [(fit.steps, iters)]
@@ -743,10 +672,9 @@ class _Evaluated:
     grad: np.ndarray
 
 
+# start with the pair of factors of least loss, forward only (a divergence: an infinite loss)
 def _scan_start(fit: TrajectoryFit | MultiMotionFit, start: wc.Material, densities: Sequence[float],
                 stretches: Sequence[float], result: EstimationResult, record) -> wc.Material:
-    """``start`` with the pair of factors (density, warp and weft stretch) of least loss, forward only; a material
-    whose simulation diverges has an infinite loss."""
     best = (math.inf, start)
     for d in densities:
         for f in stretches:
@@ -772,21 +700,13 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
                        scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
                        curriculum: Sequence[tuple[float, float]] | None = CURRICULUM,
                        progress: bool = False) -> list[EstimationResult]:
-    """:func:`estimate_material` for every world of a batched ``fit`` at once (a fabric library, or several starts
-    of one fabric: a world per fit), each world from ``initial`` (one material, or one per world; default: the
-    seed's mean). The fits run in lockstep: each evaluation waits until every unfinished fit has asked for one, and
-    then all of them are one simulation of the batch (forward and backward where one of them needs a gradient).
-    Each world's result is the one its fit gives alone on a model of that world (the worlds never interact), where
-    the solver treats one world as several: on the CPU (the sequential CG backend) always, each world with its own
-    multigrid hierarchy; on CUDA with ``preconditioner="block_jacobi"``.
-
-    A trial whose simulation raises a SimulationError naming its worlds (``SimulationError.worlds``) is rejected
-    for those worlds alone, the batch simulated again without it; an error that names no world rejects every
-    trial of its batch. Not with ``seed-sgd``, whose curriculum gives each fit its own horizon.
+    """:func:`estimate_material` for every world of a batched ``fit``, from ``initial`` (one material or one per world),
+    in lockstep: each round of evaluations is one simulation, and each world's result is bitwise its fit's alone where
+    the solver treats worlds apart (the CPU; on CUDA ``preconditioner="block_jacobi"``).
 
     Raises:
-        ValueError: for ``seed-sgd``, or a list of ``initial`` materials of another length than the worlds.
-        SimulationError: when a world's first evaluation fails (as :func:`estimate_material`), naming the world.
+        ValueError: For ``seed-sgd``, or ``initial`` materials of another count than the worlds.
+        SimulationError: When a world's first evaluation fails, naming the world.
     """
     if optimizer == "seed-sgd":
         raise ValueError("estimate_materials runs lbfgs, adam or cmaes in lockstep; seed-sgd grows each fit's "
@@ -812,11 +732,10 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
     return results
 
 
+# The batch of estimate_materials: every unfinished fit's request (a material, with or without the gradient, and a
+# horizon), once all have asked, as one simulation of the worlds; a world without a request simulates its last
+# material that did. Answers: a loss, (loss, gradients), or the SimulationError that rejected the request.
 class _BatchFit:
-    """The batch of :func:`estimate_materials`: every unfinished fit's request (a material, forward only or with
-    the gradient, and a horizon: the fits' curriculum is one schedule), once all have asked, evaluated as one
-    simulation of ``fit``'s worlds (a :class:`Lockstep`); a world without a request (its fit is done, or its trial
-    failed) simulates its last material that did."""
 
     def __init__(self, fit: TrajectoryFit, bar):
         self.fit = fit
@@ -825,7 +744,6 @@ class _BatchFit:
         self.simulated: list[wc.Material | None] = [None] * fit.world_count
 
     def _evaluate(self, requests: dict[int, tuple[wc.Material, bool, int]]) -> dict[int, object]:
-        """Each request's answer: a loss, a (loss, gradients) tuple, or the SimulationError that rejected it."""
         failed: dict[int, BaseException] = {}
         answers: dict[int, object] = {}
         while True:
@@ -863,8 +781,8 @@ class _BatchFit:
         return answers
 
 
+# one world of a _BatchFit, in a TrajectoryFit's place for estimate_material
 class _WorldFit:
-    """One world of a :class:`_BatchFit`, in a TrajectoryFit's place for :func:`estimate_material`."""
 
     def __init__(self, batch: _BatchFit, world: int):
         self.batch, self.world = batch, world
@@ -886,20 +804,9 @@ class _WorldFit:
 
 @dataclass
 class EstimationTask:
-    """A material estimation: the fit (a scene and its target trajectory), the material it starts from, the parts it
-    frees and how it optimises. ``run`` fits; ``from_scene`` reads a scene's ``[estimate]`` table.
-
-    Attributes:
-        fit: The loss (a TrajectoryFit, or a MultiMotionFit of several).
-        start: The material the fit starts from (default: the seed's mean of 8 fabrics).
-        free: The parts fitted (of ``"density"``, ``"stretching"``, ``"bending"``).
-        optimizer: ``"lbfgs"`` (in stages of growing horizon, :data:`CURRICULUM`), ``"adam"``, ``"seed-sgd"``, or a
-            global search: ``"cmaes"``, ``"multistart"`` or ``"smoothed"``.
-        iters: Evaluations (forward + backward; the global search's forward ones count one each).
-        search: The global search's settings.
-        truth: The true material when the targets were simulated with one (for parameter errors), else None.
-        source: Where the targets came from, in words.
-    """
+    """A material estimation: what :meth:`run` fits, from where and how. The fields are :func:`estimate_material`'s
+    arguments (``start`` its ``initial``, default :func:`initial_guess`), with ``truth``, the material that simulated
+    the targets (else None), and ``source``, where the targets came from, in words."""
 
     fit: TrajectoryFit | MultiMotionFit
     start: wc.Material = field(default_factory=initial_guess)
@@ -913,19 +820,9 @@ class EstimationTask:
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None, truth: wc.Material | None = None,
                    steps: int | None = None) -> EstimationTask:
-        """The task of a scene's ``[estimate]`` table (a scene name, a path or a loaded Scene).
-
-        Args:
-            scene: An embedded scene name (``warpcloth scenes``), a .toml path, or a Scene.
-            device, dtype: Of the model (Warp's default device, float32).
-            truth: The material that makes the targets, instead of the scene's cloth material (only for a scene
-                without recorded targets).
-            steps: Steps compared instead of the table's (a whole number of frames).
-
-        Raises:
-            ValueError: for a scene without an ``[estimate]`` table, a ``truth`` with recorded targets, or steps that
-                the targets do not cover.
-        """
+        """The task of a scene's ``[estimate]`` table (a scene name, .toml path or Scene). ``truth`` simulates the
+        targets in the cloth's place (a scene without recorded ones); ``steps`` replaces the table's. ValueError for a
+        scene without the table, a ``truth`` with recorded targets, or steps the targets do not cover."""
         scene = scene if isinstance(scene, Scene) else load_scene(scene)
         spec = scene.estimate
         if spec is None:
@@ -951,8 +848,7 @@ class EstimationTask:
 
     def run(self, *, optimizer: str | None = None, iters: int | None = None, batch: bool = False,
             progress: bool = False) -> EstimationResult:
-        """:func:`estimate_material` with the task's settings (``optimizer``, ``iters`` override them; ``batch``:
-        a global search's trials as worlds of one batch)."""
+        """Fit: :func:`estimate_material` with the task's settings (``optimizer`` and ``iters`` override them)."""
         return estimate_material(self.fit, initial=self.start, optimizer=optimizer or self.optimizer,
                                  iters=iters or self.iters, free=self.free, search=self.search, batch=batch,
                                  progress=progress)

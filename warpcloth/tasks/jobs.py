@@ -1,23 +1,4 @@
-"""Many independent jobs (fits, control runs, rollouts) at once: in this process, or on Ray's workers.
-
-A job is plain settings (names, paths, numbers: it pickles without Warp arrays or kernels) with a ``run()`` that
-builds its task, runs it and returns a record of plain values (the dict the CLI's ``--json`` writes for one run).
-:func:`run_jobs` runs a list of them and returns one :class:`JobResult` per job, in submission order, each with its
-wall time and either its record or its error:
-
-* ``workers=1`` (and no cluster address): one after another in this process; Ray is not needed.
-* ``workers=N``: a pool of N Ray actors on this machine, one CPU each (Warp's CPU kernels run on one thread; each
-  worker also gets one BLAS thread). The kernels are compiled here first, so the workers load them from the kernel
-  cache they share; each worker keeps its Warp modules loaded from one job to the next.
-* ``address=`` (or ``RAY_ADDRESS`` set): a Ray cluster; ``workers`` defaults to its CPU count. Each machine compiles
-  the kernels once into its own cache, at its workers' first job.
-
-Ray is an optional extra (``pip install 'warpcloth[ray]'``) imported only by a run with workers or an address.
-
-A job that raises (a bad target directory, a diverging fit, a worker that died) gets its error, and the others go
-on. Ctrl-C stops the workers: :func:`run_jobs` then raises :class:`JobsInterrupted`, which carries the results of
-the jobs that finished.
-"""
+"""Many independent jobs at once, here or on Ray's workers (:func:`run_jobs`); guide: docs/concepts/jobs.md."""
 
 from __future__ import annotations
 
@@ -47,10 +28,9 @@ ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 
 @dataclass
 class EstimateJob:
-    """A material estimation, as ``warpcloth estimate`` runs it: a scene's ``[estimate]`` task (``scene``, by
-    default the seed's hanging cloth; with ``material`` the targets are simulated with that fabric instead), or the
-    seed's hanging cloth fitted to an OBJ sequence (``target``, handles ``handles``), or the seed's hanging cloth on
-    an OBJ ``mesh`` fitted to targets simulated with ``material`` (the seed's Table 2)."""
+    """A material estimation, as ``warpcloth estimate`` runs it: a scene's ``[estimate]`` task (``scene``, default
+    :data:`ESTIMATE_SCENE`; ``material`` simulates the targets), the seed's hanging cloth fitted to an OBJ sequence
+    (``target``, held by ``handles``), or that cloth on an OBJ ``mesh`` fitted to targets of ``material``."""
 
     scene: str | None = None
     target: str | None = None
@@ -99,6 +79,26 @@ class EstimateJob:
         """(optimizer, iters) of the run: the job's, else the task's."""
         return self.optimizer or task.optimizer, self.iters or task.iters
 
+    def simulations(self) -> int:
+        """The run's evaluations (its ``iters``, else its scene's or the task's default), without building it."""
+        if self.iters:
+            return self.iters
+        if self.target is None and self.mesh is None:
+            from warpcloth.scene import load_scene
+
+            return load_scene(self.scene or ESTIMATE_SCENE).estimate.iters
+        from warpcloth.tasks.estimation import EstimationTask
+
+        return EstimationTask.iters
+
+    def seed_published(self) -> dict | None:
+        """``estimation.SEED_PUBLISHED`` where this is the seed's own task (:data:`ESTIMATE_SCENE`), else None."""
+        if self.target is None and self.mesh is None and (self.scene or ESTIMATE_SCENE) == ESTIMATE_SCENE:
+            from warpcloth.tasks.estimation import SEED_PUBLISHED
+
+            return SEED_PUBLISHED
+        return None
+
     def record(self, task, result) -> dict:
         """The run's figures (what ``warpcloth estimate --json`` writes)."""
         from warpcloth.tasks import estimation as E
@@ -129,13 +129,9 @@ class EstimateJob:
 
 @dataclass
 class ControlJob:
-    """A motion control run, as ``warpcloth control`` runs it: a scene's ``[control]`` task (by default the seed's
-    throw). ``seed``: the start; for the open loop None is zero pushes (the seed's start) and a number random pushes
-    (normal, :data:`START_SIGMA`, from ``numpy.random.default_rng(seed)``); for the MLP the seed of its initial
-    weights (None: 0). With a global search (``optimizer="multistart"``, ``"cmaes"`` or ``"smoothed"``) the seed
-    also seeds the search.
-    ``optimizer``: the controller's optimiser (default: the task's, ``ControlTask.optimizer_for``);
-    ``warm_start``: the MLP's (``train_mlp``; default: the task's)."""
+    """A motion control run, as ``warpcloth control`` runs it: a scene's ``[control]`` task (default
+    :data:`CONTROL_SCENE`), None taking the task's setting. ``seed`` seeds the open loop's normal start pushes
+    (:data:`START_SIGMA`; None: zero pushes), the MLP's initial weights (None: 0) and a global search."""
 
     scene: str | None = None
     controller: str | None = None
@@ -156,6 +152,25 @@ class ControlJob:
         controller = self.controller or task.controller
         return controller, self.iters or task.default_iters(controller)
 
+    def simulations(self) -> int:
+        """The run's simulations (its ``iters``, else its scene's for its controller), without building it."""
+        from warpcloth.scene import load_scene
+        from warpcloth.tasks.specs import DEFAULT_CONTROL_ITERS
+
+        if self.iters:
+            return self.iters
+        spec = load_scene(self.scene or CONTROL_SCENE).control
+        controller = self.controller or spec.controller
+        return spec.iters if controller == spec.controller else DEFAULT_CONTROL_ITERS[controller]
+
+    def seed_published(self, controller: str) -> dict | None:
+        """``throw.SEED_PUBLISHED[controller]`` where this is the seed's own task (:data:`CONTROL_SCENE`), else None."""
+        if (self.scene or CONTROL_SCENE) != CONTROL_SCENE:
+            return None
+        from warpcloth.tasks.throw import SEED_PUBLISHED
+
+        return SEED_PUBLISHED.get(controller)
+
     def optimizer_of(self, task) -> str:
         """The run's optimiser: the job's, else the task's for the run's controller."""
         return self.optimizer or task.optimizer_for(self.settings(task)[0])
@@ -169,7 +184,7 @@ class ControlJob:
             return {**chosen, "seed": self.seed or 0}
         if self.seed is None:
             return chosen
-        from warpcloth.scene import GLOBAL_OPTIMIZERS
+        from warpcloth.tasks.specs import GLOBAL_OPTIMIZERS
 
         if self.optimizer_of(task) in GLOBAL_OPTIMIZERS:
             chosen["search"] = replace(task.search, seed=self.seed)
@@ -196,8 +211,7 @@ class ControlJob:
 
 @dataclass
 class RolloutJob:
-    """A forward simulation of a scene (``steps``: the scene's by default); its record holds the final positions
-    (an (n, 3) NumPy array) and the CG iterations."""
+    """A forward simulation of a scene; its record holds the final positions (n, 3) and the CG iterations."""
 
     scene: str | None = None
     steps: int | None = None
@@ -222,15 +236,13 @@ class RolloutJob:
 
 @dataclass
 class JobResult:
-    """One job's outcome."""
+    """One job's outcome: its ``result`` record, or its ``error`` ("TypeName: message", or "interrupted"), and its
+    wall time on its worker, ``seconds``."""
 
     job: Any
     result: dict | None = None
-    """The job's record; None where it failed or did not run."""
     error: str | None = None
-    """Why it failed ("TypeName: message"), or that it did not run; None where it finished."""
     seconds: float = math.nan
-    """Its wall time on its worker."""
 
     @property
     def ok(self) -> bool:
@@ -248,8 +260,7 @@ class JobResult:
 
 
 class JobsInterrupted(KeyboardInterrupt):
-    """Ctrl-C during :func:`run_jobs`; ``results`` holds every job's result, those that did not finish with the
-    error "interrupted"."""
+    """Ctrl-C during :func:`run_jobs`; ``results`` holds every job's result ("interrupted" where unfinished)."""
 
     def __init__(self, results: list[JobResult]):
         super().__init__("interrupted")
@@ -270,32 +281,40 @@ def compile_kernels(device: str | None = None) -> None:
     wp.load_module("warpcloth.kernels", device=device, recursive=True)
 
 
-def run_one(job) -> JobResult:
-    """Run ``job`` here; its exception (any) becomes its error."""
+def run_one(job, sink=None) -> JobResult:
+    """Run ``job`` here, its exception its error; with ``sink``, a job with ``simulations()`` reports to ``sink(n)``."""
     t0 = time.perf_counter()
     try:
-        return JobResult(job, result=job.run(), seconds=time.perf_counter() - t0)
+        if sink is not None and hasattr(job, "simulations"):
+            from warpcloth.progress import forward_progress
+
+            with forward_progress(sink):
+                result = job.run(progress=True)
+        else:
+            result = job.run()
+        return JobResult(job, result=result, seconds=time.perf_counter() - t0)
     except Exception as exc:  # a job's failure is its result; the others go on
         return JobResult(job, error=f"{type(exc).__name__}: {exc}", seconds=time.perf_counter() - t0)
 
 
 def run_jobs(jobs: list, *, workers: int | None = 1, address: str | None = None, progress: bool = False,
              device: str | None = None) -> list[JobResult]:
-    """Run independent ``jobs`` (objects with ``run() -> dict``, picklable) and return their results in submission
-    order (module docstring).
+    """Run independent ``jobs`` and return one :class:`JobResult` each, in submission order.
+
+    A job is plain settings (it pickles) with ``label()`` and a ``run()`` returning a record of plain values (what the
+    CLI's ``--json`` writes); with ``simulations()`` (its budget) it reports progress through ``warpcloth.progress``. A
+    job that raises, or whose worker dies, gets its error; the others go on.
 
     Args:
-        jobs: The jobs.
-        workers: Processes working at once: 1 runs them here, one after another; N > 1 starts N Ray workers on this
-            machine (or on the cluster at ``address``). None: 1 here, the cluster's CPU count on a cluster.
-        address: A Ray cluster's address (``ray.init(address=...)``); None: ``RAY_ADDRESS`` where set, else this
-            machine.
-        progress: Show one progress bar over the jobs.
+        workers: 1 runs the jobs here, one after another, without Ray; N > 1 on N Ray actors of one CPU and one BLAS
+            thread each, on this machine or the cluster at ``address``; None: 1 here, a cluster's CPU count there.
+        address: A Ray cluster's address; None: ``RAY_ADDRESS`` where set, else this machine.
+        progress: One bar over all jobs' simulations; a job without ``simulations()`` counts one, at its end.
         device: The Warp device the kernels are compiled for before the fan-out (Warp's default).
 
     Raises:
-        ImportError: workers > 1 or a cluster without Ray installed (it names the extra to install).
-        JobsInterrupted: Ctrl-C; it carries the finished results.
+        ImportError: Workers or a cluster without Ray (the optional extra ``warpcloth[ray]``).
+        JobsInterrupted: Ctrl-C; it stops the workers and carries the finished results.
     """
     jobs = list(jobs)
     if workers is not None and (not isinstance(workers, int) or workers < 1):
@@ -304,17 +323,13 @@ def run_jobs(jobs: list, *, workers: int | None = 1, address: str | None = None,
         return []
     address = address or os.environ.get("RAY_ADDRESS") or None
     results: list[JobResult | None] = [None] * len(jobs)
-    bar = None
-    if progress:
-        from warpcloth.progress import progress_bar
-
-        bar = progress_bar(len(jobs), "jobs", "job")
+    bar = _JobsBar(jobs) if progress else None
     try:
         if address is None and (workers or 1) == 1:
             for i, job in enumerate(jobs):
-                results[i] = run_one(job)
+                results[i] = run_one(job, sink=None if bar is None else lambda n, i=i: bar.advance(i, n))
                 if bar is not None:
-                    bar.update()
+                    bar.finish(i)
         else:
             _run_on_ray(jobs, results, workers, address, device, bar)
     except KeyboardInterrupt:
@@ -323,6 +338,44 @@ def run_jobs(jobs: list, *, workers: int | None = 1, address: str | None = None,
         if bar is not None:
             bar.close()
     return _finish(jobs, results)
+
+
+class _JobsBar:
+    """One bar over all jobs' simulations; a job's count is clipped to its budget, and filled up to it at its end."""
+
+    def __init__(self, jobs: list):
+        from warpcloth.progress import progress_bar
+
+        self.budgets = [_budget(job) for job in jobs]
+        self.counts = [0] * len(jobs)
+        self.finished = 0
+        self.bar = progress_bar(sum(self.budgets), f"{len(jobs)} jobs", "sim")
+        self.bar.set_postfix(jobs=f"0/{len(jobs)}")
+
+    def advance(self, i: int, n: int) -> None:
+        self.set(i, self.counts[i] + n)
+
+    def set(self, i: int, count: int) -> None:
+        count = min(count, self.budgets[i])
+        if count > self.counts[i]:
+            self.bar.update(count - self.counts[i])
+            self.counts[i] = count
+
+    def finish(self, i: int) -> None:
+        self.set(i, self.budgets[i])
+        self.finished += 1
+        self.bar.set_postfix(jobs=f"{self.finished}/{len(self.budgets)}")
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _budget(job) -> int:
+    """The simulations ``job`` will run (``job.simulations()``), or 1 for a job that cannot say."""
+    try:
+        return max(1, int(job.simulations()))
+    except Exception:  # no such method, or settings that fail: the job's run reports the failure
+        return 1
 
 
 def _finish(jobs: list, results: list) -> list[JobResult]:
@@ -338,8 +391,12 @@ def _import_ray(workers):
     return ray
 
 
+POLL_SECONDS = 0.5
+"""How often the driver asks the Ray workers how many simulations their jobs have run (with progress)."""
+
+
 class _Worker:
-    """A Ray actor: one process that runs jobs one at a time, its Warp modules loaded once."""
+    """A Ray actor that runs jobs one at a time, its Warp modules loaded once; a second thread answers :meth:`count`."""
 
     def __init__(self, device):
         import warp as wp
@@ -347,13 +404,21 @@ class _Worker:
         wp.config.quiet = True
         wp.config.log_level = wp.LOG_WARNING
         compile_kernels(device)
+        self._job, self._count = None, 0
 
-    def run(self, job) -> JobResult:
-        return run_one(job)
+    def run(self, job, index: int, progress: bool) -> JobResult:
+        self._job, self._count = index, 0
+        return run_one(job, sink=self._add if progress else None)
+
+    def _add(self, n: int) -> None:
+        self._count += n
+
+    def count(self) -> tuple[int | None, int]:
+        """(the index of the job it runs or last ran, the simulations that job has run)."""
+        return self._job, self._count
 
 
 def _run_on_ray(jobs, results, workers, address, device, bar) -> None:
-    """Run ``jobs`` on a pool of Ray actors, filling ``results`` as they finish."""
     ray = _import_ray(workers)
     started = not ray.is_initialized()
     if started:
@@ -362,15 +427,17 @@ def _run_on_ray(jobs, results, workers, address, device, bar) -> None:
     if workers is None:
         workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
     compile_kernels(device)  # here, before the fan-out: workers on this machine load them from the cache
-    actor = ray.remote(num_cpus=1, runtime_env={"env_vars": ONE_THREAD})(_Worker)
+    actor = ray.remote(num_cpus=1, max_concurrency=2, runtime_env={"env_vars": ONE_THREAD})(_Worker)
     pool = [actor.remote(device) for _ in range(min(workers, len(jobs)))]
     queue, running = deque(range(len(jobs))), {}
     try:
         while queue or running:
             while queue and pool:
                 worker, i = pool.pop(), queue.popleft()
-                running[worker.run.remote(jobs[i])] = (i, worker)
-            done, _ = ray.wait(list(running), num_returns=1)
+                running[worker.run.remote(jobs[i], i, bar is not None)] = (i, worker)
+            done, _ = ray.wait(list(running), num_returns=1, timeout=None if bar is None else POLL_SECONDS)
+            if bar is not None and not done:
+                _poll(ray, running, bar)
             for ref in done:
                 i, worker = running.pop(ref)
                 try:
@@ -381,7 +448,7 @@ def _run_on_ray(jobs, results, workers, address, device, bar) -> None:
                     worker = actor.remote(device)
                 pool.append(worker)
                 if bar is not None:
-                    bar.update()
+                    bar.finish(i)
     finally:
         for worker in pool + [w for _, w in running.values()]:
             ray.kill(worker)
@@ -389,8 +456,18 @@ def _run_on_ray(jobs, results, workers, address, device, bar) -> None:
             ray.shutdown()
 
 
+def _poll(ray, running: dict, bar: _JobsBar) -> None:
+    """Advance ``bar`` by the counts the busy workers report (a worker that does not answer is skipped)."""
+    for ref in [worker.count.remote() for _, worker in running.values()]:
+        try:
+            index, count = ray.get(ref, timeout=POLL_SECONDS)
+        except ray.exceptions.RayError:  # a dead or busy worker: its job's end settles its count
+            continue
+        if index is not None and any(i == index for i, _ in running.values()):
+            bar.set(index, count)
+
+
 def _plain(value):
-    """``value`` with NumPy arrays and scalars as lists and numbers (for JSON)."""
     if isinstance(value, dict):
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

@@ -1,11 +1,5 @@
-"""Several optimisations run in lockstep: each in its own thread, their requests answered as one batch (one
-simulation of several worlds) once every optimisation still running waits for its own answer.
-
-The batch is handed the requests keyed and ordered by run, so what it simulates, and so every result, does not
-depend on the threads' timing: each run's result is the one it gets alone wherever a batch of worlds gives each
-world what it gives alone (tests/test_worlds.py). Control's restarts (``optimize_open_loop_starts``) and material
-fits of many worlds (``estimate_materials``) use it.
-"""
+"""Several optimisations in lockstep, each in its own thread, their requests answered as one batch (one simulation
+of several worlds) once every unfinished one has asked, in the order of the runs: no result depends on timing."""
 
 from __future__ import annotations
 
@@ -14,9 +8,8 @@ from collections.abc import Callable
 
 
 class Lockstep:
-    """Requests of ``runs`` optimisations, answered by ``evaluate(requests) -> answers`` (dicts keyed by run, the
-    requests in the runs' order) once every run still going has asked; ``on_batch()`` after each batch (a progress
-    bar). An exception that ``evaluate`` raises is every waiting run's answer, so none waits forever."""
+    """Requests of ``runs`` optimisations, answered by ``evaluate(requests) -> answers`` (dicts keyed by run, in run
+    order) once every run still going has asked, then ``on_batch()``; an exception of ``evaluate`` answers them all."""
 
     def __init__(self, runs: int, evaluate: Callable[[dict], dict], on_batch: Callable[[], None] | None = None):
         self.running = runs
@@ -27,8 +20,7 @@ class Lockstep:
         self.lock = threading.Condition()
 
     def ask(self, run: int, request):
-        """Run ``run``'s ``request`` with the others' (blocks until the batch ran); its answer, or raises the
-        exception that is its answer."""
+        """``run``'s answer to ``request``, from the next batch (blocking until it ran); an exception answer raises."""
         with self.lock:
             self.pending[run] = request
             self._dispatch()
@@ -40,13 +32,13 @@ class Lockstep:
         return answer
 
     def leave(self) -> None:
-        """Run ``run`` is done: the others no longer wait for it."""
+        """A run is done: the others no longer wait for it."""
         with self.lock:
             self.running -= 1
             self._dispatch()
 
     def _dispatch(self) -> None:
-        """(Holding the lock.) Evaluate the requests once every unfinished run has made one."""
+        # (holding the lock) evaluate the requests once every unfinished run has made one
         if not self.pending or len(self.pending) < self.running:
             return
         requests = dict(sorted(self.pending.items()))
@@ -61,8 +53,8 @@ class Lockstep:
 
 
 def run_in_lockstep(lockstep: Lockstep, runs: int, body: Callable[[int], object]) -> list:
-    """``body(run)`` for every run, each in its own thread (leaving ``lockstep`` when it returns or raises);
-    returns their results in order, or the exceptions they raised in their place."""
+    """``body(run)`` of every run, each in its own thread that leaves ``lockstep`` at its end: the results in order,
+    an exception in its run's place."""
     results: list = [None] * runs
 
     def one(run: int) -> None:

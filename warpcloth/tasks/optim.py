@@ -1,7 +1,4 @@
-"""Small optimisers on a NumPy parameter vector, for losses whose gradient comes from a simulation.
-
-``f(theta) -> (loss, gradient)``; each call is one forward + backward simulation, so they count calls, not steps.
-"""
+"""Optimisers of a NumPy vector for losses from simulations, ``f(theta) -> (loss, gradient)``, counting calls."""
 
 from __future__ import annotations
 
@@ -12,6 +9,48 @@ from dataclasses import dataclass
 import numpy as np
 
 Objective = Callable[[np.ndarray], tuple[float, np.ndarray]]
+
+
+class FitSummary:
+    """What a fit's ``losses`` say (every evaluation's, in order; infinite for a rejected trial). Where ``horizons``
+    lists each evaluation's, only the longest horizon's losses compare (shorter ones take fewer frames)."""
+
+    def _compared(self) -> list[int]:
+        horizons = getattr(self, "horizons", None)
+        if horizons and len(horizons) == len(self.losses):
+            return [k for k, h in enumerate(horizons) if h == max(horizons)]
+        return list(range(len(self.losses)))
+
+    @property
+    def evaluations(self) -> int:
+        return len(self.losses)
+
+    @property
+    def first_loss(self) -> float:
+        """The first evaluation's loss (NaN before any)."""
+        return self.losses[0] if self.losses else math.nan
+
+    @property
+    def best_evaluation(self) -> int:
+        """The 1-based number of the evaluation of :attr:`best_loss` (the first of equals; 0 before any)."""
+        compared = self._compared()
+        return 1 + min(compared, key=lambda k: self.losses[k]) if compared else 0
+
+    @property
+    def best_loss(self) -> float:
+        """The least loss (of the longest horizon's evaluations; NaN before any)."""
+        return self.losses[self.best_evaluation - 1] if self.losses else math.nan
+
+    def summary(self) -> str:
+        """One line, such as ``"best loss 3.12e-05 at evaluation 37 of 60 (first 7.24e-04)"``."""
+        if not self.losses:
+            return "no evaluations"
+        k = self.best_evaluation
+        horizons = getattr(self, "horizons", None)
+        shorter = (f", over {horizons[0]} of {horizons[k - 1]} steps"
+                   if horizons and len(horizons) == len(self.losses) and horizons[0] != horizons[k - 1] else "")
+        return (f"best loss {self.best_loss:.2e} at evaluation {k} of {self.evaluations} "
+                f"(first {self.first_loss:.2e}{shorter})")
 
 
 def adam(f: Objective, theta: np.ndarray, *, iters: int, lr: float = 0.05, betas=(0.9, 0.99),
@@ -34,10 +73,9 @@ def adam(f: Objective, theta: np.ndarray, *, iters: int, lr: float = 0.05, betas
 
 def lbfgs(f: Objective, theta: np.ndarray, *, iters: int, memory: int = 10, max_step: float = 0.5,
           callback=None, first: tuple[float, np.ndarray] | None = None) -> np.ndarray:
-    """L-BFGS (Nocedal and Wright, alg. 7.4) with a backtracking line search that accepts any decrease; ``iters``
-    counts evaluations of f (one forward + backward each), ``first`` (the loss and gradient at theta, if already
-    known) among them. ``max_step`` bounds a step's largest change of any entry of theta. Assumes the loss's minimum is
-    near 0 (true of fitting losses) to scale the first step."""
+    """L-BFGS (Nocedal and Wright, alg. 7.4), its line search accepting any decrease, its first step sized for a loss
+    whose minimum is near 0; ``iters`` counts evaluations, ``first`` (loss and gradient at theta, if known) among them;
+    ``max_step`` bounds a step's change of any entry."""
     loss, g = f(theta) if first is None else first
     evals = 1
     if callback:
@@ -84,32 +122,22 @@ def lbfgs(f: Objective, theta: np.ndarray, *, iters: int, memory: int = 10, max_
 
 @dataclass
 class Smoothed:
-    """A Gaussian-smoothed loss and its gradient at a point, estimated from perturbed copies (smoothed_gradient)."""
+    """:func:`smoothed_gradient`'s estimates at a point: ``loss``, the copies' mean, and ``grad``, flat, from the
+    ``samples`` copies whose simulation ran (``failed`` raised and are left out)."""
 
     loss: float
-    """The mean loss of the copies: an estimate of the smoothed loss E[L(p + scale * eps)]."""
     grad: np.ndarray
-    """The estimate of the smoothed loss's gradient, flat."""
     samples: int
-    """Copies whose simulation ran (the others raised and are left out)."""
     failed: int
-    """Copies whose simulation raised."""
 
 
 def smoothed_gradient(evaluate_many, params, *, scale: float, samples: int, rng: np.random.Generator,
                       zeroth_order: bool = False) -> Smoothed:
-    """The gradient of the loss smoothed by a Gaussian of standard deviation ``scale`` (in the parameters' units),
-    L_s(p) = E[L(p + scale * eps)], eps ~ N(0, I), estimated from ``samples`` perturbed copies of ``params`` in
-    antithetic pairs (eps and -eps), all evaluated as one batch: ``evaluate_many`` takes ``(params, None)``
-    requests and returns results with ``loss`` and ``grad`` (or exceptions), as ``ControlTask.evaluate_many``,
-    which runs them as worlds of one model.
-
-    First order (default): the mean of the copies' tape gradients, the gradient of L_s wherever L is
-    differentiable at the copies; it misses what L's jumps contribute (a trajectory whose contacts change within
-    the scale). Zeroth order: mean over the pairs of (L(p + s eps) - L(p - s eps)) eps / (2 s), an unbiased
-    estimate of the gradient of L_s even where L jumps (Nesterov and Spokoiny 2017), with the variance of a
-    random direction in every parameter.
-    """
+    """The gradient of L_s(p) = E[L(p + scale * eps)], eps ~ N(0, I), from ``samples`` copies of ``params`` in
+    antithetic pairs, one batch of ``evaluate_many`` (as ``ControlTask.evaluate_many``). First order (default): the
+    mean of the copies' gradients, blind to L's jumps. Zeroth order: the mean over pairs of (L(p + s eps) -
+    L(p - s eps)) eps / (2 s), unbiased where L jumps too (Nesterov and Spokoiny 2017). ValueError for an odd
+    ``samples`` or a ``scale`` not finite and positive."""
     if not (isinstance(samples, int) and samples >= 2 and samples % 2 == 0):
         raise ValueError(f"samples must be an even integer >= 2 (antithetic pairs), got {samples!r}")
     if not (np.isfinite(scale) and scale > 0.0):
@@ -141,9 +169,8 @@ MULTISTART_POPULATION = 8
 
 
 def smoothed_steps(budget: int, refine: int, copies: int, *, unit: str, local: str) -> int:
-    """The Adam steps of :func:`smoothed_descent` that ``budget`` simulations make with ``refine`` of them left to the
-    ``local`` optimiser, ``copies`` a step; ValueError (naming the setting, the budget counted in ``unit``) where the
-    copies are not antithetic pairs or the budget makes no step: checked before any simulation."""
+    """The Adam steps of :func:`smoothed_descent` that ``budget`` simulations make, ``refine`` of them left to the
+    ``local`` optimiser, ``copies`` a step; ValueError for odd ``copies`` or a budget that makes no step."""
     if copies % 2:
         raise ValueError(f"smoothed: search.population must be even (antithetic pairs), got {copies}")
     steps = (budget - refine) // copies
@@ -155,11 +182,9 @@ def smoothed_steps(budget: int, refine: int, copies: int, *, unit: str, local: s
 
 def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, step: float, copies: int, steps: int,
                      rng: np.random.Generator, failures: tuple[type[Exception], ...] = ()) -> np.ndarray:
-    """Adam on the Gaussian-smoothed loss L_s(p) = E[L(p + sigma eps)] from ``x0``, ``steps`` steps of Adam's
-    ``step`` (its learning rate: how far a step moves each parameter), each step's gradient from ``copies`` perturbed
-    copies (:func:`smoothed_gradient`, ``evaluate_many`` as there: its batch sees every copy, so the caller records
-    them and keeps the best point it met). A step whose every copy raised one of ``failures`` has an infinite loss
-    and no gradient: Adam's momentum carries on. Returns Adam's best iterate (the smoothed loss's, an estimate)."""
+    """Adam's best iterate on the Gaussian-smoothed loss from ``x0``: ``steps`` steps of length ``step``, each gradient
+    from ``copies`` copies of spread ``sigma`` (:func:`smoothed_gradient`). A step whose every copy raised one of
+    ``failures`` has an infinite loss, and Adam's momentum carries on."""
 
     def smoothed(theta: np.ndarray) -> tuple[float, np.ndarray]:
         try:
@@ -173,12 +198,9 @@ def smoothed_descent(evaluate_many, x0: np.ndarray, *, sigma: float, step: float
 
 def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int, rng: np.random.Generator,
           popsize: int | None = None, callback=None) -> np.ndarray:
-    """CMA-ES (Hansen 2016, "The CMA Evolution Strategy: A Tutorial": (mu/mu_w, lambda) with cumulative step-size
-    adaptation and rank-one and rank-mu covariance updates), a population method for losses whose gradient
-    misleads (a trajectory that changes piece often). ``evaluate_population(points) -> losses`` evaluates a
-    generation at once (as worlds of one batch: ``ControlTask.losses_worlds``; an infinite loss for a failed
-    simulation); ``popsize`` defaults to 4 + floor(3 ln n). Returns the best point evaluated; ``callback(k, loss,
-    point)`` sees every evaluation in order (k counts them)."""
+    """The best point CMA-ES (Hansen 2016, "The CMA Evolution Strategy: A Tutorial") evaluates from ``x0``, spread
+    ``sigma``: ``evaluate_population(points) -> losses`` a generation at once (infinite for a failed simulation),
+    ``popsize`` default 4 + floor(3 ln n). ValueError for a ``popsize`` under 2 or a ``sigma`` not finite and > 0."""
     x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
     n = x0.size
     lam = popsize or 4 + int(3 * math.log(n))

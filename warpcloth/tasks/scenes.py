@@ -1,14 +1,5 @@
-"""The seed's scenes (Liang, Lin and Koltun 2019), built once for the tasks, examples, benchmarks and command line.
-
-* ``hanging_cloth``: material estimation (SPEC §5(b)), a 1 m cloth held at its two top corners by soft handles in a
-  5 m/s wind, either a flat grid made in code or the seed's demo_wind.obj (or any OBJ with material coordinates).
-* ``shaken_cloth``, ``cloth_dropped_on_sphere``, ``stretched_cloth``: other motions of a fabric, for fits to several
-  motions at once and for predictions (a shake by the handles, a drop onto a sphere, a tensile test).
-* ``basket_scene``: motion control (SPEC §5(c)), a 0.7 m cloth flat above the ground, the seed's basket and the wall
-  in front of it (the embedded scene ``basket-throw``, whose ``[control]`` table is the task).
-
-Time steps and horizons belong to the tasks (``warpcloth.tasks.estimation``, ``warpcloth.tasks.throw``).
-"""
+"""The seed's scenes (Liang, Lin and Koltun 2019) as models built in code, the tasks owning their time steps: the
+hanging cloth in the wind, other motions of a fabric (a shake, a drop, a tensile test) and the throw's basket."""
 
 from __future__ import annotations
 
@@ -57,33 +48,11 @@ SEED_HANDLES = (2, 3)
 def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str | Path | None = None,
                   handles: Sequence[int] | None = None, lagged_normals: bool = False, self_collision: bool = False,
                   device=None, dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
-    """The seed's material-estimation scene: a 1 m cloth held at its two top corners by soft handles
-    (``DEFAULT_HANDLE_STIFFNESS``, ARCSim's), gravity, a 5 m/s wind along +x, starting at rest.
-
-    Without ``mesh_path`` the cloth is a flat ``res`` x ``res``-cell square made in code, hanging in the x = 0 plane
-    (the seed's demo_wind.obj is the 16x16 grid already draped, top corners 0.8 m apart). With ``mesh_path`` (an OBJ
-    with ``vt`` material coordinates, such as demo_wind.obj or frame 0 of a target sequence) the cloth starts in that
-    shape, at rest: the seed's targets match a start from rest to 1e-6 m after one frame, not the ``nv`` velocities
-    stored in demo_wind.obj (0.1 mm off).
-
-    Self-collision is off by default: a cloth hanging in a steady wind barely touches itself (the seed's targets were
-    made with it on, and with ARCSim's proximity repulsion and friction, which ``self_collision`` turns on).
-
-    Args:
-        material: The cloth's material (the seed's fabrics: ``wc.preset(name, thicken=THICKEN)``).
-        res: Cells per side of the grid made in code; ignored with ``mesh_path``.
-        mesh_path: An OBJ to start from instead of the flat grid.
-        handles: The handled particles; default: the top corners of the grid, or ``SEED_HANDLES`` with
-            ``mesh_path``.
-        lagged_normals: Reproduce ARCSim's one-step lag of the wind's face normals.
-        self_collision: Cloth-cloth collisions with ARCSim's repulsion and friction (``set_collision`` defaults).
-        device: Warp device (default: Warp's default device).
-        dtype: ``wp.float32`` or ``wp.float64``.
-        requires_grad: Build the model's arrays with gradients.
-
-    Returns:
-        The finalized model (:func:`hanging_cloth_builder` gives its builder, to batch worlds).
-    """
+    """The seed's material-estimation scene: a 1 m cloth at rest held at its top corners by soft handles, under gravity
+    and a 5 m/s wind along +x; a flat ``res`` x ``res``-cell square in the x = 0 plane, or the shape of ``mesh_path``
+    (an OBJ with ``vt`` material coordinates, default handles ``SEED_HANDLES``, velocities ignored). ``lagged_normals``:
+    ARCSim's one-step lag of the wind's face normals; ``self_collision``: cloth-cloth collisions. Why at rest:
+    docs/decisions.md, "The hanging cloth starts at rest"."""
     return hanging_cloth_builder(material, res=res, mesh_path=mesh_path, handles=handles,
                                  lagged_normals=lagged_normals, self_collision=self_collision).finalize(
         device, requires_grad=requires_grad, dtype=dtype)
@@ -92,8 +61,7 @@ def hanging_cloth(material: wc.Material, *, res: int = GRID_RES, mesh_path: str 
 def hanging_cloth_builder(material: wc.Material, *, res: int = GRID_RES, mesh_path: str | Path | None = None,
                           handles: Sequence[int] | None = None, lagged_normals: bool = False,
                           self_collision: bool = False) -> wc.ModelBuilder:
-    """The ModelBuilder of :func:`hanging_cloth` (same arguments), for a model of several worlds
-    (``ModelBuilder.add_world``): a fabric library fitted in one batch (``estimation.estimate_materials``)."""
+    """The ModelBuilder of :func:`hanging_cloth` (same arguments), to batch worlds."""
     b = wc.ModelBuilder(gravity=GRAVITY)
     if mesh_path is None:
         b.add_cloth_grid((res, res), (1.0, 1.0), material=material, rot=GRID_TO_YZ, pos=(0.0, -0.5, -0.5))
@@ -112,13 +80,11 @@ def hanging_cloth_builder(material: wc.Material, *, res: int = GRID_RES, mesh_pa
 
 # -- other motions of a fabric (material estimation: what one motion leaves undetermined) ---------------------------
 DROP_OFFSET = (0.07, 0.04)
-"""Where :func:`cloth_dropped_on_sphere`'s cloth centre lands off the sphere's top [m]. Dropped centred, the centre
-particle lands on the top, where rounding decides which way it slides off: materials 1e-4 apart (relative) ended
-2.5 cm apart after 100 steps and the loss jumped, so a fit to the drop stalled (README, Material estimation)."""
+"""Where :func:`cloth_dropped_on_sphere`'s cloth centre lands off the sphere's top [m]. Why: docs/decisions.md,
+"The drop lands off the sphere's top"."""
 def cloth_dropped_on_sphere(material: wc.Material, *, res: int = GRID_RES, device=None, dtype=wp.float32,
                             requires_grad: bool = True) -> wc.Model:
-    """A flat 1 m square of ``material`` dropped from 10 cm onto a 0.3 m sphere (repulsion and friction on), its
-    centre ``DROP_OFFSET`` off the sphere's top."""
+    """A flat 1 m square dropped from 10 cm onto a 0.3 m sphere (repulsion, friction), ``DROP_OFFSET`` off its top."""
     b = wc.ModelBuilder(gravity=GRAVITY)
     b.add_cloth_grid((res, res), (1.0, 1.0), material=material,
                      pos=(-0.5 + DROP_OFFSET[0], -0.5 + DROP_OFFSET[1], 0.4))
@@ -144,29 +110,19 @@ def shaken_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, dty
 
 
 STRETCH = 1.2
-"""Peak stretch of :func:`stretched_cloth`'s border along each direction: principal stretch 1.2 is past the 7/6 at
-which the stretching table's rows 1-5 are sampled (SPEC §1.2), so the motion reaches them."""
+"""Peak stretch of :func:`stretched_cloth`, past the 7/6 at which the stretching table's rows 1-5 are sampled."""
 STRETCH_ANGLES = (0.0, 22.5, 45.0, 67.5, 90.0)
 """Directions [degrees from the warp] of :func:`stretched_cloth`'s pulls: the five angles of the table's rows 1-5."""
 STRETCH_PERIOD = 0.2
 """Seconds per pull of :func:`stretched_cloth` (out to ``STRETCH`` in half of it, back to rest in the other half)."""
 STRETCH_HANDLE_STIFFNESS = 50.0
-"""Stiffness [N/m] of each of :func:`stretched_cloth`'s border handles. Soft on purpose: the handles are the test's
-force gauge. As stiff as the default handles (1e3 N/m each, 64 of them) they would hold the border to the prescribed
-stretch whatever the fabric, and a homogeneous sheet whose border is stretched affinely rests in the same shape for
-any stiffness, so the motion would say little about the material."""
+"""Stiffness [N/m] of :func:`stretched_cloth`'s border handles: soft, so the sheet's shape depends on the fabric."""
 
 
 def stretched_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, dtype=wp.float32,
                     requires_grad: bool = True) -> wc.Model:
-    """A tensile test: a flat, horizontal 1 m square held by soft handles (``STRETCH_HANDLE_STIFFNESS``) on every
-    border vertex, whose targets stretch the sheet uniaxially to ``STRETCH`` and back along each of
-    ``STRETCH_ANGLES`` in turn (``STRETCH_PERIOD`` each: 1 s in all), under gravity.
-
-    The seed's hanging cloth strains its sheet by about 1 %, so its motion barely depends on the stretching table's
-    rows 1-5 (sampled at 1/6 strain) and a fit leaves them where it started (README, Material estimation); this
-    motion reaches them in every direction the table samples.
-    """
+    """A tensile test under gravity: a flat, horizontal 1 m square whose border handles stretch it uniaxially to
+    ``STRETCH`` and back along each of ``STRETCH_ANGLES`` in turn, ``STRETCH_PERIOD`` each."""
     b = wc.ModelBuilder(gravity=GRAVITY)
     b.add_cloth_grid((res, res), (1.0, 1.0), material=material, pos=(-0.5, -0.5, 0.0))
     n = res + 1
@@ -186,17 +142,6 @@ def stretched_cloth(material: wc.Material, *, res: int = GRID_RES, device=None, 
 
 # -- the throw into a basket (motion control) ------------------------------------------------------------------------
 def basket_scene(device=None, *, dtype=wp.float32, requires_grad: bool = True) -> wc.Model:
-    """The seed's throw scene, the embedded scene ``basket-throw``: a 0.7 m gray-interlock cloth (8x8 cells,
-    thicken 2) flat at z = 2 over x in [-3.7, -3], y in [0, 0.7]; the seed's basket (an open-top box 0.98 x 0.98 m
-    centred at the origin, z in [-0.7, 0.7]) and the wall in front of it (a plate at x = -0.562); gravity; no wind,
-    no handles.
-
-    Args:
-        device: Warp device (default: Warp's default device).
-        dtype: ``wp.float32`` or ``wp.float64``.
-        requires_grad: Build the model's arrays with gradients.
-
-    Returns:
-        The finalized model (obstacles ``basket`` and ``wall``).
-    """
+    """The embedded scene ``basket-throw``'s model: a 0.7 m gray-interlock cloth flat at z = 2 under gravity, the
+    seed's basket (an open-top box 0.98 m wide centred at the origin) and the wall before it (``basket``, ``wall``)."""
     return wc.load_scene("basket-throw").finalize(device, requires_grad=requires_grad, dtype=dtype)

@@ -1,10 +1,5 @@
-"""The seed's motion control (SPEC §5(c)): throw a cloth over a wall into a basket by pushing its corners.
-
-The task is the embedded scene ``basket-throw`` (``warpcloth/scenes/basket-throw.toml``: its ``[control]`` table);
-this module names its figures and the seed's published results. The machinery is ``warpcloth.tasks.control``, whose
-optimisers are importable from here too. For each of the first 3 seconds one push per corner (36 numbers); the loss
-is ``1/2 |com_T - (0, 0, -0.7)|^2`` after 700 steps of 0.01 s, with the cloth colliding with the basket and the wall.
-"""
+"""The seed's motion control (SPEC §5(c)), the embedded scene ``basket-throw``'s ``[control]`` task: throw a cloth over
+a wall into a basket by pushing its corners; the optimisers of :mod:`warpcloth.tasks.controllers` import from here."""
 
 from __future__ import annotations
 
@@ -40,21 +35,12 @@ SEED_PUBLISHED = {
     "open-loop": {"error_pct": 17.0, "simulations": 53, "target_error_pct": 10.0, "target_simulations": 50},
     "mlp": {"error_pct": 39.0, "simulations": 108, "target_error_pct": 20.0, "target_simulations": 100},
 }
-"""The seed's Table 3 ("Ours" and "Ours + FC"; talk slides) and this project's targets."""
+"""The seed's Table 3 ("Ours" and "Ours + FC") and this project's targets."""
 
 
 class ThrowTask(ControlTask):
-    """The throw (``ControlTask.from_scene("basket-throw")``) on a given model, horizon or solver options.
-
-    Args:
-        model: The scene's model (default: the scene's, float32, Warp's default device; ``basket_scene``). Batches of
-            worlds (``evaluate_many``) copy the embedded scene, so they are used only where ``model`` is that scene
-            (same particles, start positions and obstacles, any device or precision); another model runs its
-            simulations one after another.
-        steps: The horizon (default 700).
-        options: Solver options (default: the scene's: CG tolerance 1e-6, 50 projection rounds).
-        segment_steps: Checkpoint segment length (default: ControlTask's, the whole horizon for one world).
-    """
+    """``ControlTask.from_scene("basket-throw")`` on another ``model`` (default the scene's, float32, on Warp's default
+    device), ``steps`` or ``options``. Only the embedded scene's model batches worlds in ``evaluate_many``."""
 
     def __init__(self, model: wc.Model | None = None, *, steps: int = STEPS, options: wc.SolverOptions | None = None,
                  segment_steps: int | None = None):
@@ -65,7 +51,7 @@ class ThrowTask(ControlTask):
 
 
 def _is_the_scene(model: wc.Model) -> bool:
-    """Whether ``model`` is the embedded throw scene (one world of it), whatever its device and precision."""
+    # whether model is one world of the embedded scene, whatever its device and precision
     x0, names = _scene_start()
     return (model.world_count == 1 and model.particle_count == len(x0) and list(model.obstacle_names) == names
             and np.allclose(model.particle_x0.numpy(), x0, rtol=0.0, atol=1e-6))
@@ -73,6 +59,6 @@ def _is_the_scene(model: wc.Model) -> bool:
 
 @functools.cache
 def _scene_start() -> tuple[np.ndarray, list[str]]:
-    """The embedded scene's start positions and obstacle names (a model finalised once on the CPU)."""
+    # the embedded scene's start positions and obstacle names (a model finalised once on the CPU)
     model = _SCENE.finalize("cpu", requires_grad=False)
     return model.particle_x0.numpy(), list(model.obstacle_names)

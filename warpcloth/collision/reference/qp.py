@@ -1,49 +1,7 @@
-"""The projection QP: collision response over impact zones (SPEC.md §3), solved zone by zone.
-
-Pure NumPy (float64) on the host; one call of :func:`project` per collision round. The adjoint is in
-:mod:`warpcloth.collision.adjoint`, the zones in :mod:`warpcloth.collision.zones`, the dual solvers in
-:mod:`warpcloth.collision.dual`.
-
-Formulation (SPEC §3; Liang, Lin and Koltun 2019, §3)
-------------------------------------------------------
-Contact j couples four nodes a = 0..3 through frozen weights w_ja and a frozen unit normal n_j::
-
-    c_j(z) = δ − Σ_a w_ja n_j·p(node_ja) ≤ 0,
-
-where p is the unknown position z for a free cloth particle and a constant otherwise (x̂ for a hard-pinned
-particle, ``obstacle_x`` for an obstacle vertex). A node may appear twice in one contact; its weights add up.
-Free particles linked by contacts form impact zones (connected components). Each zone solves::
-
-    min_z ½ (z − x̂)ᵀ W (z − x̂)   s.t.   G z + h ≤ 0,
-
-with W = diag(m̃_i) (each coordinate of particle i), m̃_i = m_i · mean_k(1/m_k) over the zone's particles,
-G_j,i = −w_ji n_jᵀ and h_j = δ − Σ_{constant nodes} w_ja n_j·x_a. Particles in no zone keep z = x̂. A contact with no
-free node cannot move: if it is violated by more than ``tol`` the call raises :class:`ProjectionError`.
-
-Solver
-------
-The zone is solved in its dual. Writing z(λ) = x̂ − W⁻¹Gᵀλ (stationarity holds exactly by construction), the
-multipliers minimise ½λᵀHλ − bᵀλ over λ ≥ 0, with H = G W⁻¹ Gᵀ (dense, assembled from the contacts that share a
-particle) and b = G x̂ + h = c(x̂); the constraint values are c(λ) = b − Hλ.
-
-0. Zones of a single contact (the common cloth–obstacle case) are solved all at once in closed form,
-   λ = max(0, b/H).
-1. Warm start (zones with 8 or more contacts): projected Gauss–Seidel on the dual (Hildreth's method), vectorised
-   over colour classes of contacts that share no particle, at most ``warm_sweeps`` sweeps.
-2. Primal–dual active set (semismooth Newton on min(λ, −c) = 0): with P the working set, solve H_PP λ_P = b_P
-   (Cholesky with a 1e-12-relative diagonal shift plus iterative refinement, so dependent but consistent
-   constraints, e.g. duplicates, share their multiplier), then drop j ∈ P with λ_j < 0 and add j ∉ P with
-   c_j > tol/2, until the set no longer changes. Usually 1–7 solves from the warm start.
-3. If that cycles or takes more than 20 solves, a monotone Lawson–Hanson style active-set method (step back to the
-   boundary λ ≥ 0 and drop, add the violated contacts — all at once while the dual objective decreases, else only
-   the most violated) finishes from the best non-negative iterate.
-
-Termination: the solution is accepted when λ ≥ 0, max_j c_j(z) ≤ tol and |c_j(z)| ≤ tol for every j with λ_j > 0
-(so |λ_j c_j| ≤ tol·λ_j), all measured on z itself. A working set whose λ_P ≥ 0 cannot satisfy its own equations to
-``tol`` is inconsistent: the zone is infeasible (e.g. a particle squeezed between two constant planes closer than
-2δ) and a :class:`ProjectionError` names the zone, its sizes and the residual; so does running out of
-``max_iterations`` (active-set solves per zone).
-"""
+"""The reference projection QP (float64 NumPy; method: docs/concepts/contact.md). Contact j couples nodes a = 0..3 by
+frozen weights w_ja and unit normal n_j: c_j(z) = δ_j − Σ_a w_ja n_j·p_a ≤ 0, p_a a free particle's unknown z, else a
+constant. Each impact zone (free particles linked by contacts) solves min_z ½ (z − x̂)ᵀ W (z − x̂) s.t. G z + h ≤ 0,
+W = diag(m_i mean_k(1/m_k)), in its dual (:mod:`warpcloth.collision.reference.dual`; one contact: closed form)."""
 
 from __future__ import annotations
 
@@ -51,19 +9,16 @@ import time
 
 import numpy as np
 
-from warpcloth.collision import adjoint
-from warpcloth.collision.checks import check_inputs, check_options, float_array
-from warpcloth.collision.dual import ZoneInfeasible, ZoneNotConverged, ZoneSolver, warm_start
-from warpcloth.collision.zones import ProjectionResult, Zone, colour_classes, gram, group, impact_zones
+from warpcloth.collision.reference import adjoint
+from warpcloth.collision.reference.checks import check_inputs, check_options, float_array
+from warpcloth.collision.reference.dual import ZoneInfeasible, ZoneNotConverged, ZoneSolver, warm_start
+from warpcloth.collision.reference.zones import ProjectionResult, Zone, colour_classes, gram, group, impact_zones
 
 __all__ = ["ProjectionError", "ProjectionResult", "project"]
 
 
 class ProjectionError(RuntimeError):
-    """A zone is infeasible or its solve did not converge, or a contact with only constant nodes is violated.
-
-    ``contact``: the violated contact, or one of the failing zone's (so a caller can name its world); ``zone``: the
-    failing impact zone, where a zone failed."""
+    """An infeasible or unconverged ``zone`` (None: a violated constant-only contact); ``contact``, ``residual`` [m]."""
 
     def __init__(self, message: str, *, zone: int | None = None, contact: int | None = None,
                  residual: float | None = None):
@@ -82,32 +37,25 @@ _PDAS_LIMIT = 20
 def project(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness, *, tol: float = 1.0e-10,
             max_iterations: int = 500, active_tol: float = 1.0e-9, warm_sweeps: int = 30,
             precompute_qr: bool = False, lam_init=None) -> ProjectionResult:
-    """Project x̂ onto the non-penetrating set of the contacts, zone by zone (see the module docstring).
+    """Project x̂ onto the non-penetrating set of the contacts, zone by zone.
 
     Args:
-        x_hat: (n, 3) positions after the implicit step.
+        x_hat: (n, 3) positions after the implicit step [m].
         mass: (n,) lumped masses (> 0 for every free particle).
         fixed: (n,) bool, particles held constant (hard pins); None for none.
         obstacle_x: (V, 3) obstacle vertex positions (constants); None or (0, 3) for none.
-        nodes: (m, 4) integer node ids: k < n is particle k, k ≥ n is obstacle vertex k − n.
-        weights: (m, 4) contact weights w_ja.
-        normals: (m, 3) contact normals n_j (unit).
-        thickness: δ > 0 [m], or the target gap of each contact (m,) (any finite values: the collision stage's
-            are δ, or less for a pair that started closer than δ).
+        nodes, weights, normals: (m, 4) int node ids (k ≥ n: obstacle vertex k − n), (m, 4) w_ja, (m, 3) unit n_j.
+        thickness: δ > 0 [m], or each contact's target gap (m,) [m] (any finite values).
         tol: KKT tolerance [m] on constraint violation and on |c_j| of contacts with λ_j > 0.
-        max_iterations: most active-set solves per zone.
         active_tol: |c_j(z*)| ≤ active_tol [m] makes contact j active in the adjoint (as does λ_j > 0).
-        warm_sweeps: most Gauss–Seidel sweeps of the warm start.
-        precompute_qr: factorise the adjoint's QR here (True) or in the first
-            :func:`~warpcloth.collision.adjoint.backward` (False).
-        lam_init: (m,) multipliers to start the active-set method from (e.g. the previous collision round's, with
-            zeros for the new contacts); a zone with a positive entry skips the Gauss–Seidel warm start.
+        max_iterations, warm_sweeps: most active-set solves per zone, most Gauss–Seidel sweeps of the warm start.
+        precompute_qr: factorise the adjoint's QR here, not in the first ``adjoint.backward``.
+        lam_init: (m,) multipliers to start from (a zone with a positive entry skips the warm start).
 
     Returns:
-        A :class:`ProjectionResult`; ``result.stats`` has one record per zone with ``nodes`` (free particles),
-        ``nvar``, ``ncon``, ``active``, ``independent`` (QR size; None until factorised), ``kkt_size``,
-        ``qr_size``, ``kkt_residual`` [m], ``stationarity``, ``complementarity``, ``iterations`` (active-set
-        solves), ``sweeps`` (warm-start sweeps), ``solve_s``, ``qr_s`` and ``forward_s``.
+        A :class:`ProjectionResult`; ``result.stats``: per zone ``nodes``, ``nvar``, ``ncon``, ``active``,
+        ``independent`` (None until factorised), ``kkt_size``, ``qr_size``, ``kkt_residual`` [m], ``stationarity``,
+        ``complementarity``, ``iterations``, ``sweeps``, ``solve_s``, ``qr_s``, ``forward_s``.
 
     Raises:
         ValueError: a malformed argument (named).
@@ -242,11 +190,7 @@ def _check_solution(zi, nodes, c, positive, tol, contact) -> float:
 
 def _solve_singles(ss, slot_j, slot_n, slot_w, zone_of_contact, x_hat, mass, normals, h_all, tol, active_tol,
                    z, lam_all, zones) -> dict:
-    """All zones with a single contact at once, in closed form: λ = max(0, b/H), z = x̂ + λ W⁻¹ dir.
-
-    ``ss`` are their merged slots (sorted by contact). Fills z, lam_all and zones; returns the arrays the
-    backward pass needs (its closed form is the QR formula with the 1×1 R = ‖Ã‖, in both modes).
-    """
+    """Solve every one-contact zone (slots ``ss``): λ = max(0, b/H), z = x̂ + λ W⁻¹ dir; returns the adjoint's data."""
     t0 = time.perf_counter()
     sj, sn = slot_j[ss], slot_n[ss]
     J, pos = np.unique(sj, return_inverse=True)

@@ -1,18 +1,4 @@
-"""Proximity repulsion and friction as forces of the implicit step (kernels/proximity.py has the model).
-
-At the start of a step :class:`ProximityForces` finds the vertex-face and edge-edge pairs closer than twice the
-repulsion thickness (cloth-obstacle always, cloth-cloth with self-collision) into a fixed-capacity device buffer,
-adds each pair's penalty and friction terms to the system, and hands the solver the pairs' cross-node blocks, which
-it applies matrix-free. On a tape the terms' adjoint is the gradient of the pairs' share of the solve's adjoint
-potential (as for the elements, warpcloth/solver/assembly.py), so gradients reach positions, velocities, pin
-targets, obstacle placements, the repulsion stiffness and the friction coefficients. The pair set is held fixed
-(detection is not differentiated).
-
-Why matrix-free for the cross blocks: two cloth nodes of a cloth-cloth pair usually share no element, so their
-block is not in the model's fixed block pattern. Rebuilding a pattern each step (warp.sparse's BsrTripletMap) costs
-a sort of all blocks per step; the matrix-free product costs one pass over the pairs per CG iteration, which is
-small next to the block product (pairs are a fraction of the particles).
-"""
+"""Proximity repulsion and friction as forces of the implicit step (the model: kernels/proximity.py)."""
 
 from __future__ import annotations
 
@@ -34,33 +20,28 @@ class ProximityPairs:
     """The pairs of one step, as the linear solver applies them: A_ij += weight_i weight_j stiffness."""
 
     count: int
-    """The size of the pair kernels' launches [-] (host): the number of pairs, or a captured step's budget of pairs
-    (:attr:`held` says how many it holds)."""
+    """The pair kernels' launch size (host): the number of pairs, or a captured step's budget."""
     nodes: wp.array
-    """Node ids of each pair [-], (>= count, 4) int32 (cloth particles, then obstacle vertices)."""
+    """Node ids of each pair, (>= count, 4) int32 (cloth particles, then obstacle vertices)."""
     weights: wp.array
-    """Weight of each node, 0 where it is not a free cloth particle [-], (>= count,) vec4."""
+    """Weight of each node, 0 where it is not a free cloth particle, (>= count,) vec4."""
     stiffness: wp.array
     """The pair's 3x3 block K (dt^2 h n n^T) [kg], (>= count,) mat33."""
     world_start: wp.array
-    """First pair of each world, and the count [-], (world_count + 1,) int32: the pairs are sorted by world."""
+    """First pair of each world, and the count, (world_count + 1,) int32 (pairs sorted by world)."""
     held: wp.array
-    """The number of pairs [-], (1,) int32 on the device."""
+    """The number of pairs, (1,) int32 on the device."""
     inputs: object = None
-    """What the pair kernels read (kernels/proximity.py PairInputs): the friction impulses read it after the
-    solve; None without pairs."""
+    """What the pair kernels read (kernels/proximity.py PairInputs); None without pairs."""
 
 
 class ProximityForces:
-    """Finds proximity pairs and adds their repulsion and friction to a step's system.
+    """Adds the repulsion and friction of the pairs within twice the repulsion thickness at a step's start (taped:
+    a fixed pair set) to its system. Why matrix-free: docs/decisions.md, "Proximity cross blocks matrix-free".
 
     Args:
-        model: a model with collisions (``model.collision``).
-        dt: time step [s].
-        capacity: most pairs one step may have (0: 8 per cloth particle and obstacle vertex; a crumpled cloth has
-            about 5).
-        rebuild_bvh: rebuild the BVHs at each detection, else refit them (CollisionOptions.bvh).
-    """
+        capacity: most pairs one step may have (0: 8 per cloth particle and obstacle vertex).
+        rebuild_bvh: rebuild the BVHs at each detection, else refit them (CollisionOptions.bvh)."""
 
     def __init__(self, model: Model, dt: float, *, capacity: int = 0, rebuild_bvh: bool = True):
         settings = model.collision
@@ -83,9 +64,8 @@ class ProximityForces:
         cloth_edges = PrimitiveSet(model.edge_indices.numpy(), dev, worlds, rebuild=rebuild_bvh)
         cloth_vertices = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=dev)
         # the primitives' areas, for the pairs' stiffness (kernels/proximity.py): the cloth's rest areas; obstacles
-        # count as infinite, so a pair takes its cloth primitive's area and an obstacle's tessellation cannot change
-        # the contact's stiffness (ARCSim takes the smaller of the two: a 0.25 m icosphere's faces made repulsion
-        # 6x weaker under an 8x8 cloth, and a 20 m/s impact on it then overstretched the cloth in the projection)
+        # count as infinite, so a pair takes its cloth primitive's area (docs/decisions.md, "Repulsion stiffness
+        # from the cloth's area")
         tri_area = model.tri_area.numpy().astype(np.float64)
         node_area = wp.array(np.concatenate([model.particle_area.numpy(), np.full(V, np.inf)]), dtype=scalar,
                                    device=dev)
@@ -125,7 +105,7 @@ class ProximityForces:
         self._held = wp.zeros(1, dtype=wp.int32, device=dev)  # pairs held (hold_pairs)
         self._arrays = StepArrays(dev)  # the positions, velocities and friction terms of a step
         self.spill = wp.zeros(1, dtype=wp.int32, device=dev)
-        """Raised (1) by a step captured with a budget of pairs that found more (wc.CapturedRollout reads it)."""
+        """Raised (1) by a captured step that found more pairs than its budget."""
         # the pairs as found, and sorted by their keys (world, query row, target: RowSort), or a taped step's own
         # copies: each world's pairs in one order on both devices, those a model of that world alone finds
         self._nodes = wp.zeros((self.capacity, 4), dtype=wp.int32, device=dev)
@@ -145,18 +125,15 @@ class ProximityForces:
         free[:n] = model.particle_pin.numpy() < 0
         self._free = wp.array(free, dtype=wp.int32, device=dev)
         self.last_count = 0
-        """Pairs found in the last step (diagnostics only; a captured step does not set it)."""
+        """Pairs found in the last uncaptured step."""
         self.budget: int | None = None
-        """None: a step reads the number of pairs it found and launches its pair kernels at that size. An int (set
-        while ``wc.CapturedRollout`` captures a step): the step reads nothing and launches at this size, holding
-        up to this many pairs (0: none, no pair kernel runs); :attr:`spill` then tells whether it found more."""
+        """None: a step reads its pair count; an int (while captured): it holds up to this many pairs (0: no pair
+        kernel runs), and :attr:`spill` tells whether it found more."""
         self._per_node = wp.zeros(n + V, dtype=wp.int32, device=dev)
 
     @property
     def friction(self) -> bool:
-        """Whether steps apply friction impulses: on any differentiable model (its gradient on a coefficient of 0 is
-        not 0), else where a coefficient is > 0 now (read at every step: a coefficient set after the Simulator was
-        built is seen)."""
+        """Whether steps apply friction: on a differentiable model always, else where a coefficient is > 0 now."""
         return self.model.requires_grad or bool(np.any(self.model.contact_friction.numpy() > 0.0))
 
     @staticmethod
@@ -167,8 +144,11 @@ class ProximityForces:
         return bool(np.any(model.contact_repulsion_stiffness.numpy() > 0.0))
 
     def detect(self, x: wp.array) -> int:
-        """Find the pairs among node positions ``x`` (cloth particles, then obstacle vertices), ordered by world;
-        returns the size of the pair kernels' launches: the number of pairs, or, in a captured step, the budget."""
+        """Find the pairs among node positions ``x`` (cloth particles, then obstacle vertices), sorted by world;
+        returns the pair kernels' launch size (:attr:`ProximityPairs.count`).
+
+        Raises:
+            ContactCapacityError: more pairs than the capacity."""
         k = self.kernels
         m = self.model
         radius = 2.0 * self.thickness
@@ -226,11 +206,9 @@ class ProximityForces:
     def assemble(self, state_in: State, obstacle_start: wp.array, obstacle_end: wp.array, pin_dv: wp.array,
                  dv: wp.array, values: wp.array, rhs: wp.array, recording: bool,
                  implicit_dt: float | None = None) -> ProximityPairs:
-        """Find the step's pairs and add their terms to ``values`` (block diagonal) and ``rhs``; returns the pairs
-        for the solver's matrix-free cross blocks. On a tape, records the terms' adjoint. ``obstacle_start`` and
-        ``obstacle_end``: the obstacle vertices at the step's start and end (empty without obstacles).
-        ``implicit_dt``: the implicit step's length where it is not the time step (BDF2's 2/3 dt); the obstacles'
-        velocity is still their motion over the time step."""
+        """Find the step's pairs, add their terms to ``values`` (diagonal blocks) and ``rhs`` (taped: with their
+        adjoint) and return them for the cross blocks. ``obstacle_start``, ``obstacle_end``: the obstacle vertices at
+        the step's start and end; ``implicit_dt``: the implicit step where it is not ``dt`` (BDF2: 2/3 dt)."""
         model = self.model
         k = self.kernels
         dev = self.device
@@ -281,10 +259,8 @@ class ProximityForces:
         return pairs
 
     def apply_friction(self, pairs: ProximityPairs, dv: wp.array, mass: wp.array, recording: bool) -> wp.array:
-        """The solve's velocity change ``dv`` plus the pairs' friction (kernels/proximity.py), as a new array
-        (``dv`` itself is the next step's first guess); ``mass``: the particles' lumped masses. Taped: gradients
-        reach dv, the pairs' positions and velocities, the masses, the friction coefficients and the repulsion
-        stiffness."""
+        """The solve's velocity change ``dv`` plus the pairs' friction, as a new array; ``mass``: the lumped masses.
+        Taped: gradients reach dv, the pairs' positions and velocities, the masses, μ and the repulsion stiffness."""
         model = self.model
         k = self.kernels
         dev = self.device
@@ -321,8 +297,7 @@ class ProximityForces:
 
     def pair_inputs(self, x: wp.array, velocity: wp.array, nodes: wp.array, kind: wp.array, area: wp.array,
                     held: wp.array, implicit_dt: float | None = None):
-        """What the pair kernels read (kernels/proximity.py PairInputs); ``held``: the number of pairs, (1,) int32 on
-        the device; ``implicit_dt`` as in :meth:`assemble`."""
+        """The pair kernels' inputs; ``held``: the pair count, (1,) int32; ``implicit_dt`` as in :meth:`assemble`."""
         model = self.model
         p = self.kernels.PairInputs()
         p.nodes, p.kind, p.x, p.velocity, p.free, p.area = nodes, kind, x, velocity, self._free, area

@@ -1,5 +1,4 @@
-"""Argument checks of :func:`~warpcloth.collision.qp.project` and :func:`~warpcloth.collision.adjoint.backward`:
-shapes, dtypes and finiteness, each failure a ValueError that names the argument."""
+"""Argument checks of the reference projection and its adjoint: each failure a ValueError naming the argument."""
 
 from __future__ import annotations
 
@@ -9,11 +8,7 @@ import numpy as np
 
 
 def float_array(name: str, value, shape: tuple) -> np.ndarray:
-    """``value`` as a finite float64 array of ``shape`` (None: any length).
-
-    Raises:
-        ValueError: naming ``name``, if the value is not numeric, has another shape, or has a non-finite entry.
-    """
+    """``value`` as a finite float64 array of ``shape`` (None: any length), else ValueError naming ``name``."""
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -29,8 +24,7 @@ def float_array(name: str, value, shape: tuple) -> np.ndarray:
 
 
 def check_inputs(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickness):
-    """The problem data of :func:`~warpcloth.collision.qp.project`, checked and converted (float64, int64 nodes,
-    bool ``fixed``, (0, 3) for no obstacle vertices); returns them in the same order."""
+    """``project``'s problem data checked and converted (float64, int64 nodes, bool ``fixed``, obstacle_x (V, 3))."""
     x_hat = float_array("x_hat", x_hat, (None, 3))
     n = x_hat.shape[0]
     mass = float_array("mass", mass, (n,))
@@ -79,7 +73,7 @@ def check_inputs(x_hat, mass, fixed, obstacle_x, nodes, weights, normals, thickn
 
 
 def check_options(tol, active_tol, max_iterations, warm_sweeps) -> tuple[float, float]:
-    """Check the solver options of :func:`~warpcloth.collision.qp.project`; returns (tol, active_tol) as floats."""
+    """Check the solver options of ``project``; returns (tol, active_tol) as floats."""
     for name, val in (("tol", tol), ("active_tol", active_tol)):
         try:
             ok = math.isfinite(float(val)) and float(val) > 0.0

@@ -1,6 +1,4 @@
-"""Dense linear algebra for the projection (float64 NumPy): blocked triangular solves, a semidefinite solve with
-iterative refinement, and the Cholesky factor of a Gram matrix that drops dependent columns (the adjoint's R without
-Q). NumPy has no triangular solve. Small problems run on one BLAS thread (:func:`small_blas`)."""
+"""Dense float64 linear algebra of the reference projection."""
 
 from __future__ import annotations
 
@@ -12,23 +10,18 @@ from threadpoolctl import ThreadpoolController
 BLOCK = 128
 """Block size of the blocked triangular solves."""
 DEPENDENT_PIVOT = 1.0e-10
-"""A Cholesky pivot below this times its column's diagonal entry (the squared norm left after projecting the column
-onto the ones kept before it, relative to its squared norm: an angle under 1e-5 rad) marks a dependent column in
-:func:`gram_cholesky`; cancellation leaves about k·1e-16 there for a column that is exactly dependent."""
+"""A Cholesky pivot below this times its column's squared norm (an angle under 1e-5 rad to the columns kept before
+it) marks a dependent column in :func:`gram_cholesky`."""
 SHIFT = 1.0e-12
 """Relative diagonal shift of the Cholesky factorisations of :func:`spd_solve`."""
 SINGLE_THREAD_UNKNOWNS = 1500
-"""Dense problems of at most this many unknowns run on one BLAS thread (:func:`small_blas`). A multi-threaded BLAS
-spin-waits for its threads on every small call, which on a busy machine costs more than the work: the float64
-multigrid strip of tests/test_collision.py (NumPy zones) took 45.8 s with OpenBLAS's 2 threads against 16.1 s with
-one, beside the test suite on this 2-core machine (once over 600 s), the issue #37 report 127 s against 47 s."""
+"""Problems up to this size use one BLAS thread. Why: docs/decisions.md, "One BLAS thread for small zones"."""
 
 _controller: ThreadpoolController | None = None
 
 
 def small_blas(unknowns: int):
-    """A context in which BLAS runs on one thread, where ``unknowns`` is at most SINGLE_THREAD_UNKNOWNS (else it
-    changes nothing)."""
+    """A context with BLAS on one thread where ``unknowns`` <= SINGLE_THREAD_UNKNOWNS (else a no-op)."""
     global _controller
     if unknowns > SINGLE_THREAD_UNKNOWNS:
         return contextlib.nullcontext()
@@ -38,16 +31,7 @@ def small_blas(unknowns: int):
 
 
 def tri_solve(T: np.ndarray, B: np.ndarray, *, lower: bool) -> np.ndarray:
-    """Solve T X = B for a triangular T by blocked substitution (O(k²) work per right-hand side).
-
-    Args:
-        T: (k, k) lower or upper triangular matrix.
-        B: (k,) or (k, r) right-hand side(s).
-        lower: whether T is lower (True) or upper (False) triangular.
-
-    Returns:
-        X with the shape of B.
-    """
+    """X with T X = B for a (k, k) lower (``lower``) or upper triangular T and B (k,) or (k, r)."""
     k = T.shape[0]
     if k == 0:
         return np.array(B, dtype=np.float64, copy=True)
@@ -70,21 +54,9 @@ def tri_solve(T: np.ndarray, B: np.ndarray, *, lower: bool) -> np.ndarray:
 
 
 def spd_solve(M: np.ndarray, rhs: np.ndarray, *, atol: float, refinements: int = 6) -> np.ndarray:
-    """Solve M x = rhs for a symmetric positive semidefinite M.
-
-    Cholesky of M + εI (ε = 1e-12·max diag, raised while the factorisation fails) with iterative refinement against
-    M itself: consistent singular systems converge to a solution (near the minimum-norm one), inconsistent ones
-    leave a residual the caller detects.
-
-    Args:
-        M: (k, k) symmetric positive semidefinite matrix.
-        rhs: (k,) right-hand side.
-        atol: stop refining once every residual entry is at most this.
-        refinements: most refinement steps.
-
-    Returns:
-        x, shape (k,).
-    """
+    """x (k,) with M x = rhs for a (k, k) symmetric positive semidefinite M: Cholesky of M + εI (ε = SHIFT·max diag,
+    raised while it fails), refined against M at most ``refinements`` times until every residual is <= ``atol``; an
+    inconsistent system leaves a residual for the caller to detect."""
     k = M.shape[0]
     if k == 0:
         return np.zeros(0)
@@ -116,15 +88,8 @@ def spd_solve(M: np.ndarray, rhs: np.ndarray, *, atol: float, refinements: int =
 
 
 def gram_cholesky(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lower Cholesky factor of a Gram matrix M = AᵀA over the columns of A that are independent of the columns
-    before them: L Lᵀ = M[keep][:, keep], so Lᵀ is the R of A[:, keep] = Q R (up to the signs of its rows).
-
-    LAPACK's factorisation when every pivot passes :data:`DEPENDENT_PIVOT`; otherwise a right-looking one that skips
-    each column whose pivot does not (the dependent columns: exact duplicates and other linear combinations).
-
-    Returns:
-        (keep, drop, L): the column indices kept (in order) and dropped, and L (len(keep), len(keep)).
-    """
+    """(keep, drop, L) of a Gram matrix M = AᵀA: the columns independent of those before them (by
+    :data:`DEPENDENT_PIVOT`), the others, and the lower L with L Lᵀ = M[keep][:, keep] (Lᵀ is the R of A[:, keep])."""
     k = M.shape[0]
     diag = np.diag(M).copy()
     if k:

@@ -1,149 +1,22 @@
-"""Conjugate-gradient kernels for the 3x3-block system, and the scatter of the solve's adjoint onto A.
-
-Why a whole CG in one launch: on the CPU Warp runs each kernel on one thread and a launch costs ~20 us, while
-``warp.optim.linear.cg`` spends most of its time in tile-based dot products that are slow there (measured in
-``benchmarks/cg_solvers.py``). One sequential launch that loops over rows and iterations avoids both costs.
-On CUDA the same idea takes a thread block per world (cg_tiled: one launch a solve, tile reductions), and for
-worlds too large for one block the library solver (every operation across the GPU, convergence tested on the device
-inside a graph) with the diagonal or the parallel multigrid preconditioner kernels below (mg_*).
-Block SSOR's Gauss-Seidel sweeps are natural on one thread (~3.5x fewer iterations than block Jacobi at 64x64).
-Eisenstat's trick (one product per iteration instead of three passes) was tried and measured 1.3x faster, but lost
-an order of magnitude of accuracy in float32 (error vs a float64 solve 7e-5 against 3e-6 at 64x64), so it is not used.
-"""
+"""The multigrid preconditioner over an aggregation hierarchy (``Multigrid``): the sequential V-cycle on a world's
+thread (cg_sequential's) and the parallel one, a launch a stage (``mg_*``) or on a world's block (cg_tiled's)."""
 
 from types import SimpleNamespace
 
 import warp as wp
 
-from warpcloth.kernels.blocks import block_barrier, block_sum
+from warpcloth.kernels.block_matrix import block_matrix_kernels
+from warpcloth.kernels.blocks import block_barrier
 from warpcloth.kernels.types import per_precision, types
 
 wp.set_module_options({"enable_backward": False})
 
 
 @per_precision
-def linear_kernels(scalar):
+def multigrid_kernels(scalar):
     t = types(scalar)
-    vec3, vec4, mat33 = t.vec3, t.vec4, t.mat33
-
-    @wp.struct
-    class BlockMatrix:
-        # A symmetric 3x3-block matrix: blocks on the model's fixed pattern (row i's are values[offsets[i]:
-        # offsets[i + 1]] in columns columns[...], its diagonal block at diag_slot[i]) plus, matrix-free, the cross
-        # blocks w_a w_b K (a != b) of pair_count proximity pairs (their own blocks w_a^2 K are in the pattern's
-        # diagonal; warpcloth/collision/proximity.py).
-        offsets: wp.array(dtype=wp.int32)
-        columns: wp.array(dtype=wp.int32)
-        diag_slot: wp.array(dtype=wp.int32)
-        values: wp.array(dtype=mat33)
-        pair_count: int
-        pair_world_start: wp.array(dtype=wp.int32)  # world w's pairs are [start[w], start[w + 1])
-        pair_nodes: wp.array2d(dtype=wp.int32)
-        pair_w: wp.array(dtype=vec4)
-        pair_k: wp.array(dtype=mat33)
-
-    # Under Warp's deterministic mode (wp.config.deterministic set before warpcloth is imported) no kernel may both
-    # write an array directly and add to it atomically: the CG kernels then add the pairs' products on one thread
-    # per world, in pair order (a fixed order; the tiled backend gives up its parallel pair loop for it).
-    ordered_pairs = wp.get_module_options(__name__)["deterministic"] != wp.DeterministicMode.NOT_GUARANTEED
-
-    @wp.func
-    def pair_cross(A: BlockMatrix, k: int, p: wp.array(dtype=vec3), a: int, Ks: vec3):
-        """Pair k's cross blocks times p on its node a: w_a (K s - K w_a p_a), with Ks = K s; and
-        w_a p_a . K w_a p_a (float64), what p . (that product) takes off p_a's share of s . K s."""
-        w = A.pair_w[k][a]
-        node = A.pair_nodes[k, a]
-        own = A.pair_k[k] * (w * p[node])
-        return w * (Ks - own), wp.float64(w * wp.dot(p[node], own))
-
-    @wp.func
-    def pair_start(A: BlockMatrix, k: int, p: wp.array(dtype=vec3)):
-        """K s with s = sum_a w_a p_a (pair k's weighted positions), and s . K s (float64)."""
-        w = A.pair_w[k]
-        s = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        for a in range(4):
-            if w[a] != scalar(0.0):
-                s += w[a] * p[A.pair_nodes[k, a]]
-        Ks = A.pair_k[k] * s
-        return Ks, wp.float64(wp.dot(s, Ks))
-
-    @wp.func
-    def add_pair_product(A: BlockMatrix, k: int, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar):
-        """q += sign * (pair k's cross blocks) p, by atomic adds (threads share nodes); returns p . (that product),
-        in float64."""
-        Ks, pq = pair_start(A, k, p)
-        for a in range(4):
-            if A.pair_w[k][a] != scalar(0.0):
-                cross, own = pair_cross(A, k, p, a, Ks)
-                wp.atomic_add(q, A.pair_nodes[k, a], sign * cross)
-                pq -= own
-        return pq
-
-    @wp.func
-    def add_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar,
-                          world: int):
-        """q += sign * (the cross blocks of ``world``'s pairs) p on one thread, in pair order (plain writes: no
-        other thread touches the world's nodes); returns p . (that product), in float64."""
-        pq = wp.float64(0.0)
-        for k in range(A.pair_world_start[world], A.pair_world_start[world + 1]):
-            Ks, pk = pair_start(A, k, p)
-            for a in range(4):
-                if A.pair_w[k][a] != scalar(0.0):
-                    node = A.pair_nodes[k, a]
-                    cross, own = pair_cross(A, k, p, a, Ks)
-                    q[node] = q[node] + sign * cross
-                    pk -= own
-            pq += pk
-        return pq
-
-    @wp.func
-    def jacobi_inverse(block: mat33, use_block: int):
-        if use_block != 0:
-            return wp.inverse(block)
-        zero = scalar(0.0)
-        return mat33(
-            scalar(1.0) / block[0, 0], zero, zero,
-            zero, scalar(1.0) / block[1, 1], zero,
-            zero, zero, scalar(1.0) / block[2, 2],
-        )
-
-    @wp.func
-    def ssor_apply(
-        A: BlockMatrix,
-        dinv: wp.array(dtype=mat33),
-        omega: scalar,
-        r: wp.array(dtype=vec3),
-        lower: wp.array(dtype=vec3),
-        z: wp.array(dtype=vec3),
-        lo: int,
-        hi: int,
-    ):
-        """z = M^-1 r for block SSOR, M = w/(2-w) (D/w + L) D^-1 (D/w + U), reading only the upper blocks.
-
-        Forward sweep w_i = omega D_i^-1 (r_i - sum_{j<i} A_ij w_j), the lower sums gathered by scattering
-        A_ij^T w_i to later rows; backward sweep z_i = (2 - omega) w_i - omega D_i^-1 sum_{j>i} A_ij z_j.
-        Rows [lo, hi) only (one world's). Returns r.z (float64).
-        """
-        offsets, columns, diag_slot, values = A.offsets, A.columns, A.diag_slot, A.values
-        zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        for i in range(lo, hi):
-            lower[i] = zero
-        for i in range(lo, hi):
-            w = omega * (dinv[i] * (r[i] - lower[i]))
-            z[i] = w
-            for k in range(diag_slot[i] + 1, offsets[i + 1]):
-                j = columns[k]
-                lower[j] = lower[j] + wp.transpose(values[k]) * w
-        rz = wp.float64(0.0)
-        for ii in range(lo, hi):
-            i = hi - 1 - ii + lo
-            upper = zero
-            for k in range(diag_slot[i] + 1, offsets[i + 1]):
-                upper += values[k] * z[columns[k]]
-            zi = (scalar(2.0) - omega) * z[i] - omega * (dinv[i] * upper)
-            z[i] = zi
-            rz += wp.float64(wp.dot(r[i], zi))
-        return rz
+    vec3, mat33 = t.vec3, t.mat33
+    BlockMatrix = block_matrix_kernels(scalar).BlockMatrix
 
     @wp.struct
     class Multigrid:
@@ -182,6 +55,7 @@ def linear_kernels(scalar):
         x: wp.array(dtype=vec3)
         work: wp.array2d(dtype=wp.float64)
 
+    # -- the sequential V-cycle (cg_sequential's, on a world's one thread): block Gauss-Seidel smoothing
     @wp.func
     def smooth_down(
         offsets: wp.array(dtype=wp.int32),
@@ -354,301 +228,10 @@ def linear_kernels(scalar):
         for i in range(lo, hi):
             rz += wp.float64(wp.dot(r[i], z[i]))
         return rz
-
-    @wp.kernel
-    def cg_sequential(
-        A: BlockMatrix,
-        b: wp.array(dtype=vec3),
-        rtol: wp.float64,
-        atol: wp.float64,
-        max_iters: int,
-        preconditioner: int,
-        omega: scalar,
-        mg: Multigrid,
-        warm_start: int,
-        guess: wp.array(dtype=vec3),
-        # scratch:
-        r: wp.array(dtype=vec3),
-        z: wp.array(dtype=vec3),
-        p: wp.array(dtype=vec3),
-        q: wp.array(dtype=vec3),
-        precond: wp.array(dtype=mat33),
-        world_start: wp.array(dtype=wp.int32),
-        # out: per world [iterations, relative (recursive) residual, converged (0/1)]
-        x: wp.array(dtype=vec3),
-        info: wp.array2d(dtype=wp.float64),
-    ):
-        # Launched with one thread per world: each runs the whole preconditioned CG loop on its world's rows
-        # [world_start[w], world_start[w + 1]) (worlds never share a block), so a world stops iterating when it
-        # converges and its result is the one a model of that world alone gets. Dot products accumulate in
-        # float64 so float32 systems still reach tight relative tolerances. preconditioner: 0 Jacobi,
-        # 1 block Jacobi, 2 block SSOR (its sequential sweeps suit the one-thread loop; ~3x fewer iterations),
-        # 3 multigrid (``mg``: a symmetric V-cycle over an aggregation hierarchy).
-        # With warm_start, the solve starts from ``guess`` (which may be x itself), else from zero.
-        w = wp.tid()
-        lo = world_start[w]
-        hi = world_start[w + 1]
-        offsets, columns, diag_slot, values = A.offsets, A.columns, A.diag_slot, A.values
-        if warm_start != 0:
-            for i in range(lo, hi):
-                x[i] = guess[i]
-        ssor = preconditioner == 2
-        multigrid = preconditioner == 3
-        bb = wp.float64(0.0)
-        rr = wp.float64(0.0)
-        rz = wp.float64(0.0)
-        for i in range(lo, hi):
-            precond[i] = jacobi_inverse(values[diag_slot[i]], wp.where(preconditioner == 0, 0, 1))
-            ri = b[i]
-            if warm_start != 0:
-                for k in range(offsets[i], offsets[i + 1]):
-                    ri -= values[k] * x[columns[k]]
-            else:
-                x[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            r[i] = ri
-            bb += wp.float64(wp.dot(b[i], b[i]))
-        if warm_start != 0:
-            add_pair_products(A, x, r, scalar(-1.0), w)
-        for i in range(lo, hi):
-            rr += wp.float64(wp.dot(r[i], r[i]))
-        if multigrid:
-            if not multigrid_setup(A, mg, precond, w):
-                # a coarse pivot <= 0: A is not positive definite; report it as a non-finite residual
-                info[w, 0] = wp.float64(0.0)
-                info[w, 1] = wp.float64(wp.nan)
-                info[w, 2] = wp.float64(0.0)
-                return
-            rz = multigrid_apply(A, mg, precond, r, z, w)
-        elif ssor:
-            rz = ssor_apply(A, precond, omega, r, q, z, lo, hi)
-        else:
-            for i in range(lo, hi):
-                z[i] = precond[i] * r[i]
-                rz += wp.float64(wp.dot(r[i], z[i]))
-        for i in range(lo, hi):
-            p[i] = z[i]
-            q[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        threshold = wp.max(rtol * wp.sqrt(bb), atol)
-        rnorm = wp.sqrt(rr)
-        it = int(0)
-        while it < max_iters and rnorm > threshold:
-            # q = A p reading only the diagonal and upper blocks (A is symmetric, A_ji = A_ij^T): half the memory
-            # traffic of a full product. Row i's q is complete once row i is done, so p.q accumulates on the way.
-            pq = wp.float64(0.0)
-            for i in range(lo, hi):
-                pi = p[i]
-                s = diag_slot[i]
-                acc = q[i] + values[s] * pi
-                for k in range(s + 1, offsets[i + 1]):
-                    j = columns[k]
-                    a = values[k]
-                    acc += a * p[j]
-                    q[j] = q[j] + wp.transpose(a) * pi
-                q[i] = acc
-                pq += wp.float64(wp.dot(pi, acc))
-            pq += add_pair_products(A, p, q, scalar(1.0), w)
-            alpha = scalar(rz / pq)
-            rr = wp.float64(0.0)
-            rz_new = wp.float64(0.0)
-            for i in range(lo, hi):
-                x[i] = x[i] + alpha * p[i]
-                r[i] = r[i] - alpha * q[i]
-                rr += wp.float64(wp.dot(r[i], r[i]))
-                if preconditioner < 2:
-                    z[i] = precond[i] * r[i]
-                    rz_new += wp.float64(wp.dot(r[i], z[i]))
-            if multigrid:
-                rz_new = multigrid_apply(A, mg, precond, r, z, w)
-            elif ssor:
-                rz_new = ssor_apply(A, precond, omega, r, q, z, lo, hi)
-            beta = scalar(rz_new / rz)
-            rz = rz_new
-            for i in range(lo, hi):
-                p[i] = z[i] + beta * p[i]
-                q[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            rnorm = wp.sqrt(rr)
-            it += 1
-        info[w, 0] = wp.float64(it)
-        info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
-        info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
-
-    @wp.func
-    def add_row_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), lo: int, hi: int,
-                         lane: int, stride: int):
-        """q = (A p) on rows [lo, hi) from full rows (no scatter, so no two threads write one row), the rows
-        ``lane, lane + stride, ...``; returns this thread's share of p . q (float64)."""
-        pq = wp.float64(0.0)
-        i = lo + lane
-        while i < hi:
-            acc = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            for k in range(A.offsets[i], A.offsets[i + 1]):
-                acc += A.values[k] * p[A.columns[k]]
-            q[i] = acc
-            pq += wp.float64(wp.dot(p[i], acc))
-            i += stride
-        return pq
-
-    @wp.func
-    def add_world_pair_products(A: BlockMatrix, p: wp.array(dtype=vec3), q: wp.array(dtype=vec3), sign: scalar,
-                                world: int, lane: int, stride: int):
-        """q += sign (the cross blocks of ``world``'s pairs) p, a pair per thread (atomic adds); returns this
-        thread's share of p . (that product)."""
-        pq = wp.float64(0.0)
-        k = A.pair_world_start[world] + lane
-        while k < A.pair_world_start[world + 1]:
-            pq += add_pair_product(A, k, p, q, sign)
-            k += stride
-        return pq
-
-    def tiled_cg(with_multigrid: bool):
-        # named for its preconditioner: a CPU graph finds a kernel by name (element_kernel_pair says why)
-        @wp.kernel(name="cg_tiled_multigrid" if with_multigrid else "cg_tiled")
-        def cg_tiled(
-            A: BlockMatrix,
-            b: wp.array(dtype=vec3),
-            rtol: wp.float64,
-            atol: wp.float64,
-            max_iters: int,
-            preconditioner: int,
-            mg: Multigrid,
-            omega: scalar,
-            warm_start: int,
-            guess: wp.array(dtype=vec3),
-            # scratch:
-            r: wp.array(dtype=vec3),
-            z: wp.array(dtype=vec3),
-            p: wp.array(dtype=vec3),
-            q: wp.array(dtype=vec3),
-            other: wp.array(dtype=vec3),
-            precond: wp.array(dtype=mat33),
-            world_start: wp.array(dtype=wp.int32),
-            # out: per world [iterations, relative (recursive) residual, converged (0/1)]
-            x: wp.array(dtype=vec3),
-            info: wp.array2d(dtype=wp.float64),
-        ):
-            # The whole preconditioned CG of one world in one thread block (launch_tiled, one block per world): its
-            # threads share the rows, and the dot products are tile reductions, which double as the barriers between
-            # the phases of an iteration. One launch a solve and no host round trip: the parallel form of
-            # cg_sequential, for CUDA. Each world stops when it converges, as with cg_sequential, and the reductions
-            # run in a fixed order, so a world's result does not depend on the other worlds. ``preconditioner``: 0
-            # Jacobi, 1 block Jacobi; with_multigrid: the multigrid instead (``mg``: the parallel V-cycle, damped
-            # block-Jacobi sweeps with ``omega``, on the block's threads; ``precond`` then holds every level's diagonal
-            # inverses, ``other`` is the V-cycle's scratch). A kernel of its own, so that the block-Jacobi form's
-            # registers do not grow by the V-cycle's.
-            w, lane = wp.tid()
-            stride = wp.block_dim()
-            lo = world_start[w]
-            hi = world_start[w + 1]
-            zero = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            pairs = A.pair_count > 0
-            use_block = wp.where(preconditioner == 0, 0, 1)
-            bb = wp.float64(0.0)
-            i = lo + lane
-            while i < hi:
-                precond[i] = jacobi_inverse(A.values[A.diag_slot[i]], use_block)
-                if warm_start != 0:
-                    x[i] = guess[i]
-                else:
-                    x[i] = zero
-                bb += wp.float64(wp.dot(b[i], b[i]))
-                i += stride
-            bb = block_sum(bb)
-            if wp.static(with_multigrid):
-                tiled_multigrid_setup(A, mg, precond, w, lane, stride)
-            if warm_start != 0:
-                add_row_products(A, x, r, lo, hi, lane, stride)  # r = A x0 for now
-                if pairs:
-                    block_barrier()
-                    if wp.static(ordered_pairs):
-                        if lane == 0:
-                            add_pair_products(A, x, r, scalar(1.0), w)
-                    else:
-                        add_world_pair_products(A, x, r, scalar(1.0), w, lane, stride)
-                block_barrier()
-            rr = wp.float64(0.0)
-            rz = wp.float64(0.0)
-            i = lo + lane
-            while i < hi:
-                ri = b[i]
-                if warm_start != 0:
-                    ri = ri - r[i]
-                r[i] = ri
-                rr += wp.float64(wp.dot(ri, ri))
-                if not wp.static(with_multigrid):
-                    zi = precond[i] * ri
-                    p[i] = zi
-                    rz += wp.float64(wp.dot(ri, zi))
-                i += stride
-            if wp.static(with_multigrid):
-                block_barrier()  # every r written before the V-cycle reads it
-                tiled_v_cycle(A, mg, precond, r, z, other, omega, w, lane, stride)
-                i = lo + lane
-                while i < hi:
-                    p[i] = z[i]
-                    rz += wp.float64(wp.dot(r[i], z[i]))
-                    i += stride
-            rr = block_sum(rr)
-            rz = block_sum(rz)
-            threshold = wp.max(rtol * wp.sqrt(bb), atol)
-            rnorm = wp.sqrt(rr)
-            it = int(0)
-            while it < max_iters and rnorm > threshold:  # the same on every thread: reduced values only
-                pq = add_row_products(A, p, q, lo, hi, lane, stride)
-                if pairs:
-                    block_barrier()
-                    if wp.static(ordered_pairs):
-                        if lane == 0:
-                            pq += add_pair_products(A, p, q, scalar(1.0), w)
-                    else:
-                        pq += add_world_pair_products(A, p, q, scalar(1.0), w, lane, stride)
-                pq = block_sum(pq)
-                alpha = scalar(rz / pq)
-                rr = wp.float64(0.0)
-                rz_new = wp.float64(0.0)
-                i = lo + lane
-                while i < hi:
-                    xi = x[i] + alpha * p[i]
-                    ri = r[i] - alpha * q[i]
-                    x[i] = xi
-                    r[i] = ri
-                    rr += wp.float64(wp.dot(ri, ri))
-                    if not wp.static(with_multigrid):
-                        zi = precond[i] * ri
-                        z[i] = zi
-                        rz_new += wp.float64(wp.dot(ri, zi))
-                    i += stride
-                if wp.static(with_multigrid):
-                    block_barrier()
-                    tiled_v_cycle(A, mg, precond, r, z, other, omega, w, lane, stride)
-                    i = lo + lane
-                    while i < hi:
-                        rz_new += wp.float64(wp.dot(r[i], z[i]))
-                        i += stride
-                rr = block_sum(rr)
-                rz_new = block_sum(rz_new)
-                beta = scalar(rz_new / rz)
-                rz = rz_new
-                i = lo + lane
-                while i < hi:
-                    p[i] = z[i] + beta * p[i]
-                    i += stride
-                block_barrier()  # every p written before the next product reads it
-                rnorm = wp.sqrt(rr)
-                it += 1
-            if lane == 0:
-                info[w, 0] = wp.float64(it)
-                info[w, 1] = rnorm / wp.max(wp.sqrt(bb), wp.float64(1.0e-300))
-                info[w, 2] = wp.where(rnorm <= threshold, wp.float64(1.0), wp.float64(0.0))
-
-        return cg_tiled
-
-    cg_tiled = tiled_cg(False)
-    cg_tiled_multigrid = tiled_cg(True)
-
     # -- the parallel multigrid (the warp backend's "multigrid", a launch a stage; the tiled CG's, on each world's
     # thread block): the same hierarchy, a thread per node or block. Galerkin sums gather their sources (no atomics:
     # the same sums in the same order on every device), damped block-Jacobi smoothing replaces the Gauss-Seidel
-    # sweeps (warpcloth/solver/multigrid.py ParallelMultigrid has the measurements), and the coarsest level keeps
+    # sweeps (why: warpcloth/solver/multigrid.py, ParallelMultigrid), and the coarsest level keeps
     # its dense Cholesky solve on one thread.
     @wp.func
     def row_residual(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
@@ -755,9 +338,8 @@ def linear_kernels(scalar):
                    dinv: wp.array(dtype=mat33), b: wp.array(dtype=vec3), mg: Multigrid, other: wp.array(dtype=vec3),
                    omega: scalar, lane: int, stride: int):
         """A level's way down on the threads of one block: its nodes [lo, hi) of mg.x after two damped Jacobi sweeps
-        from zero, then the next level's right-hand side (its nodes [coarse_lo, coarse_hi) of mg.b). A barrier is
-        cheaper here than forming the first sweep where it is read (sweep_from_zero: a launch's fusion), and the
-        arithmetic is the same."""
+        from zero, then the next level's right-hand side (its nodes [coarse_lo, coarse_hi) of mg.b): mg_down's and
+        mg_restrict's arithmetic, the first sweep stored behind a barrier instead of formed where it is read."""
         i = lo + lane
         while i < hi:
             other[i] = first_sweep(dinv, b, omega, i)
@@ -822,8 +404,7 @@ def linear_kernels(scalar):
     def tiled_v_cycle(A: BlockMatrix, mg: Multigrid, dinv: wp.array(dtype=mat33), r: wp.array(dtype=vec3),
                       z: wp.array(dtype=vec3), other: wp.array(dtype=vec3), omega: scalar, w: int, lane: int,
                       stride: int):
-        """z = one V-cycle of world w on r, on the threads of its block (the tiled CG's multigrid): the stages of
-        ParallelMultigrid.apply, the same arithmetic."""
+        """z = one V-cycle of world w on r on the threads of its block: ParallelMultigrid.apply's arithmetic."""
         lo, hi = mg.world_level_lo[w, 0], mg.world_level_hi[w, 0]
         block_down(A.offsets, A.columns, A.values, 0, lo, hi, mg.world_level_lo[w, 1], mg.world_level_hi[w, 1], dinv,
                    r, mg, other, omega, lane, stride)
@@ -906,71 +487,12 @@ def linear_kernels(scalar):
         # the small levels' stages in one thread block (launch_tiled, one block, one world)
         _w, lane = wp.tid()
         coarse_cycle(mg, dinv, other, first, omega, 0, lane, wp.block_dim())
-
-    @wp.kernel
-    def diagonal_inverse(A: BlockMatrix, use_block: int, precond: wp.array(dtype=mat33)):
-        # the (block) Jacobi preconditioner of the warp backend, rebuilt from each system's diagonal blocks
-        i = wp.tid()
-        precond[i] = jacobi_inverse(A.values[A.diag_slot[i]], use_block)
-
-    @wp.kernel
-    def apply_diagonal(precond: wp.array(dtype=mat33), x: wp.array(dtype=vec3), y: wp.array(dtype=vec3),
-                       alpha: scalar, beta: scalar, z: wp.array(dtype=vec3)):
-        # z = alpha M^-1 x + beta y (warp.optim.linear's matvec contract)
-        i = wp.tid()
-        zi = alpha * (precond[i] * x[i])
-        if beta != scalar(0.0):
-            zi += beta * y[i]
-        z[i] = zi
-
-    @wp.kernel
-    def warp_cg_info(
-        iterations: wp.array(dtype=int),
-        r_norm_sq: wp.array(dtype=scalar),
-        atol_sq: wp.array(dtype=scalar),
-        rtol: wp.float64,
-        # out: per world [iterations, relative residual, converged (0/1)], as cg_sequential writes it
-        info: wp.array2d(dtype=wp.float64),
-    ):
-        # warp.optim.linear.cg leaves |r|^2 and its threshold max(rtol |b|, atol)^2 per world on the device; the
-        # relative residual |r| / |b| is |r| rtol / threshold where the relative tolerance sets the threshold
-        w = wp.tid()
-        r = wp.sqrt(wp.float64(r_norm_sq[w]))
-        threshold = wp.sqrt(wp.float64(atol_sq[w]))
-        info[w, 0] = wp.float64(iterations[0])
-        info[w, 1] = r * rtol / wp.max(threshold, wp.float64(1.0e-300))
-        info[w, 2] = wp.where(r <= threshold, wp.float64(1.0), wp.float64(0.0))
-
-    @wp.kernel
-    def pair_product(A: BlockMatrix, x: wp.array(dtype=vec3), alpha: scalar, z: wp.array(dtype=vec3)):
-        # z += alpha * (pair k's cross blocks) x, one thread per pair (the warp backend's matrix-free term); a
-        # captured step launches at its budget of pairs, more threads than pairs
-        k = wp.tid()
-        if k < A.pair_world_start[A.pair_world_start.shape[0] - 1]:
-            add_pair_product(A, k, x, z, alpha)
-
-    @wp.kernel
-    def solve_adjoint_scatter(
-        A: BlockMatrix,
-        lam: wp.array(dtype=vec3),
-        solution: wp.array(dtype=vec3),
-        # out:
-        values_grad: wp.array(dtype=mat33),
-        b_grad: wp.array(dtype=vec3),
-    ):
-        # dL/db = lam and dL/dA_ij = -lam_i dv_j^T on stored blocks (SPEC §4.1)
-        i = wp.tid()
-        b_grad[i] = b_grad[i] + lam[i]
-        for k in range(A.offsets[i], A.offsets[i + 1]):
-            values_grad[k] = values_grad[k] - wp.outer(lam[i], solution[A.columns[k]])
-
     return SimpleNamespace(
-        BlockMatrix=BlockMatrix,
         Multigrid=Multigrid,
-        cg_sequential=cg_sequential,
-        cg_tiled=cg_tiled,
-        cg_tiled_multigrid=cg_tiled_multigrid,
-        diagonal_inverse=diagonal_inverse,
+        multigrid_setup=multigrid_setup,
+        multigrid_apply=multigrid_apply,
+        tiled_multigrid_setup=tiled_multigrid_setup,
+        tiled_v_cycle=tiled_v_cycle,
         mg_galerkin=mg_galerkin,
         mg_diag_inverse=mg_diag_inverse,
         mg_factor=mg_factor,
@@ -980,9 +502,4 @@ def linear_kernels(scalar):
         mg_smooth=mg_smooth,
         mg_smooth_output=mg_smooth_output,
         mg_coarse_cycle=mg_coarse_cycle,
-        apply_diagonal=apply_diagonal,
-        warp_cg_info=warp_cg_info,
-        pair_product=pair_product,
-        solve_adjoint_scatter=solve_adjoint_scatter,
     )
-

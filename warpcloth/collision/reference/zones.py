@@ -1,7 +1,4 @@
-"""Impact zones of the projection: the merged (contact, particle) couplings, the connected components of free
-particles linked by contacts, the :class:`Zone` and :class:`ProjectionResult` records, and the per-zone dual matrix
-H = G W⁻¹ Gᵀ and contact colouring that the zone solver uses (see :mod:`warpcloth.collision.qp`). Data only: the
-solver (qp) and the adjoint (adjoint) both import from here, never from each other's records."""
+"""Impact zones of the reference projection and its records: data and helpers shared by the solver and the adjoint."""
 
 from __future__ import annotations
 
@@ -12,8 +9,7 @@ import numpy as np
 
 @dataclass
 class Zone:
-    """One impact zone: its particles and contacts and the solution (the adjoint's factorisation of it is kept by the
-    :class:`ProjectionResult`, not here)."""
+    """One impact zone: its particles, contacts and solution."""
 
     index: int
     nodes: np.ndarray
@@ -23,11 +19,9 @@ class Zone:
     mass: np.ndarray
     """Normalised masses m̃ of ``nodes``."""
     slot_con: np.ndarray
-    """Merged (contact, particle) couplings: local contact index ..."""
+    """Merged (contact, particle) couplings (S,): local contact, ``slot_node`` and ``slot_dir`` = Σ w_ja n_j (S, 3)."""
     slot_node: np.ndarray
-    """... local particle index ..."""
     slot_dir: np.ndarray
-    """... and (Σ of the weights of that particle in that contact)·n_j, shape (S, 3); G's block is −slot_dir."""
     h: np.ndarray
     """Constant part h of each contact's constraint."""
     lam: np.ndarray
@@ -39,13 +33,12 @@ class Zone:
     single: bool = False
     """A zone of one contact, solved (and differentiated) in closed form together with all such zones."""
     stats: dict = field(default_factory=dict)
-    """Diagnostics (sizes, iterations, timings; see :func:`~warpcloth.collision.qp.project`)."""
+    """Diagnostics (see :func:`~warpcloth.collision.reference.qp.project`)."""
 
 
 @dataclass
 class ProjectionResult:
-    """What :func:`~warpcloth.collision.qp.project` returns: positions, multipliers, zones and the inputs the adjoint
-    (:func:`~warpcloth.collision.adjoint.backward`) needs."""
+    """What :func:`~warpcloth.collision.reference.qp.project` returns: the solution and what the adjoint needs."""
 
     z: np.ndarray
     """Projected positions (n, 3); x̂ for particles in no zone and for pinned particles."""
@@ -68,11 +61,11 @@ class ProjectionResult:
     factorisations: dict = field(default_factory=dict)
     """The adjoint's factorisation of each zone, by zone index, once computed (``adjoint.ZoneQR``)."""
     backward_stats: list[dict] = field(default_factory=list)
-    """Per-zone records of the last :func:`~warpcloth.collision.adjoint.backward` call."""
+    """Per-zone records of the last :func:`~warpcloth.collision.reference.adjoint.backward` call."""
 
     @property
     def stats(self) -> list[dict]:
-        """Per-zone forward records (see :func:`~warpcloth.collision.qp.project`)."""
+        """Per-zone forward records (see :func:`~warpcloth.collision.reference.qp.project`)."""
         return [zone.stats for zone in self.zones]
 
     def zones_stats(self) -> list[dict]:
@@ -85,34 +78,19 @@ class ProjectionResult:
 
 @dataclass
 class ZonePartition:
-    """The contacts' couplings to free particles, merged per (contact, particle), and the impact zone of each."""
+    """Couplings merged per (contact, free particle) (S,): ``slot_contact`` (sorted), ``slot_node``, ``slot_weight``
+    (summed); each particle's (n,) and contact's (m,) zone (−1: none) of ``count``, numbered by smallest particle."""
 
     slot_contact: np.ndarray
-    """Contact of each merged coupling (sorted by contact, then particle), shape (S,)."""
     slot_node: np.ndarray
-    """Free particle of each merged coupling, shape (S,)."""
     slot_weight: np.ndarray
-    """Sum of that particle's weights in that contact, shape (S,)."""
     zone_of_node: np.ndarray
-    """Zone of each particle, −1 for particles in no zone, shape (n,)."""
     zone_of_contact: np.ndarray
-    """Zone of each contact, −1 for contacts with no free node, shape (m,)."""
     count: int
-    """Number of zones."""
 
 
 def impact_zones(nodes: np.ndarray, free: np.ndarray, weights: np.ndarray, n: int) -> ZonePartition:
-    """Merge each contact's couplings per free particle and label the impact zones.
-
-    Args:
-        nodes: (m, 4) node ids of the contacts.
-        free: (m, 4) bool, whether each node is a free particle.
-        weights: (m, 4) contact weights.
-        n: particle count.
-
-    Returns:
-        The :class:`ZonePartition`; zones are numbered by their smallest particle.
-    """
+    """The :class:`ZonePartition` of contacts ``nodes``, ``free``, ``weights`` (m, 4) among ``n`` particles."""
     m = nodes.shape[0]
     # Merged (contact, free particle) slots: a particle listed twice in one contact gets its weights summed.
     sj, sa = np.nonzero(free)

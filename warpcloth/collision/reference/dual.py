@@ -1,15 +1,10 @@
-"""The dual of one impact zone's QP and its solvers (steps 1–3 of the solver in :mod:`warpcloth.collision.qp`).
-
-The multipliers minimise ½λᵀHλ − bᵀλ over λ ≥ 0 (H = G W⁻¹ Gᵀ, b = c(x̂)); the constraint values are c = b − Hλ.
-:func:`warm_start` is projected Gauss–Seidel over colour classes of contacts; :class:`ZoneSolver` runs the
-primal–dual active-set method and, when that cycles or runs long, a monotone Lawson–Hanson style method.
-"""
+"""Solvers of one impact zone's dual QP, min ½λᵀHλ − bᵀλ over λ ≥ 0 (H = G W⁻¹ Gᵀ, b = c(x̂), c = b − Hλ)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from warpcloth.collision.linalg import spd_solve
+from warpcloth.collision.reference.linalg import spd_solve
 
 
 class ZoneNotConverged(Exception):
@@ -17,11 +12,7 @@ class ZoneNotConverged(Exception):
 
 
 class ZoneInfeasible(Exception):
-    """No working set with λ ≥ 0 satisfies its own equations: the zone is infeasible.
-
-    Attributes:
-        residual: the best working set's constraint residual [m].
-    """
+    """No working set with λ ≥ 0 satisfies its own equations; ``residual``: the best one's [m]."""
 
     def __init__(self, residual):
         super().__init__(residual)
@@ -34,14 +25,9 @@ def dual_value(H, b, lam) -> float:
 
 
 class ZoneSolver:
-    """Dual active-set solve of one zone: min ½λᵀHλ − bᵀλ over λ ≥ 0.
-
-    Args:
-        H: (k, k) symmetric positive semidefinite dual matrix.
-        b: (k,) constraint values at λ = 0.
-        tol: KKT tolerance [m] on max c and on |c_j| where λ_j > 0.
-        max_iterations: most active-set solves; :meth:`solve_on` raises :class:`ZoneNotConverged` beyond.
-    """
+    """Dual active-set solve of one zone: ``H`` (k, k) symmetric positive semidefinite, ``b`` (k,) c at λ = 0, ``tol``
+    the KKT tolerance [m] on max c and on |c_j| where λ_j > 0; :meth:`solve_on` raises :class:`ZoneNotConverged`
+    beyond ``max_iterations`` active-set solves."""
 
     def __init__(self, H, b, tol, max_iterations):
         self.H, self.b, self.tol = H, b, tol
@@ -101,8 +87,7 @@ class ZoneSolver:
         return None, best
 
     def lawson_hanson(self, lam0: np.ndarray) -> np.ndarray:
-        """Monotone active-set method from lam0 ≥ 0; raises :class:`ZoneInfeasible` when a consistent set cannot be
-        found."""
+        """Monotone active-set method from lam0 ≥ 0; raises :class:`ZoneInfeasible` where no set is consistent."""
         H, b = self.H, self.b
         lam = np.maximum(lam0, 0.0)
         P = lam > 0.0
@@ -145,11 +130,8 @@ class ZoneSolver:
 
 
 def warm_start(b, s_con, s_node, s_dir, invm, colours, sweeps: int) -> tuple[np.ndarray, int]:
-    """Projected Gauss–Seidel on the dual (Hildreth), vectorised over colour classes (contacts sharing no particle).
-
-    Works on the sparse couplings: the displacement y = z − x̂ = −W⁻¹Gᵀλ is kept per particle, so a sweep costs
-    O(couplings), not O(k²). Returns (λ ≥ 0, sweeps done).
-    """
+    """(λ ≥ 0, sweeps done) of projected Gauss–Seidel on the dual (Hildreth), vectorised over colour classes
+    (contacts that share no particle), O(couplings) a sweep."""
     k = b.size
     lam = np.zeros(k)
     y = np.zeros((invm.size, 3))  # z − x̂ = Σ_j λ_j dir_j / m̃

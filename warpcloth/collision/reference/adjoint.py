@@ -1,36 +1,10 @@
-"""Adjoint of the projection (SPEC.md §4.2; the paper's §3): :func:`backward` by the QR formula or the dense KKT
-system, and the per-zone QR factorisation it uses (:func:`factorise`, kept per result by :func:`factorisation`).
+"""The adjoint of :func:`~warpcloth.collision.reference.qp.project`.
 
-On the active set A = {j : |c_j(z*)| ≤ active_tol} ∪ {j : λ_j > 0} the KKT conditions W(z − x̂) + G_Aᵀλ = 0,
-G_A z + h_A = 0 define z*(x̂, G, h). With ḡ = ∂L/∂z, solve K [d_z; d_λ] = [ḡ; 0], K = [[W, G_Aᵀ], [G_A, 0]]; then,
-as dL = ḡᵀdz = d_zᵀ(W dx̂ − dG_Aᵀλ) + d_λᵀ(−dG_A z − dh_A)::
-
-    ∂L/∂x̂ = W d_z,   ∂L/∂G_A = −λ d_zᵀ − d_λ zᵀ,   ∂L/∂h_A = −d_λ,
-
-which on the contacts reads, with p and d the position and d_z of each node (d = 0 for a constant node):
-∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a), and for a constant node
-∂L/∂x_a += d_λj w_ja n_j (obstacle vertices and pinned particles get this gradient here, unlike the seed).
-
-The masses in W: as W(z − x̂) = G_Aᵀλ, dL = d_zᵀ dW (x̂ − z) + ..., so ∂L/∂m_i = −(W d_z)_i·(z_i − x̂_i)/m_i
-= −(∂L/∂x̂)_i·(z_i − x̂_i)/m_i (:func:`mass_gradient`; 0 outside the zones, where z = x̂).
-
-* ``mode="qr"`` (the paper's method): Ã = W^{-1/2} G_Aᵀ (rows of particles touched by active contacts only;
-  block diagonal over groups of active contacts linked by shared particles, each group factorised on its own).
-  The paper's QR Ã = QR enters only through R and Qᵀ applied to vectors, so Q is never formed: R is the Cholesky
-  factor of ÃᵀÃ = G_A W⁻¹ G_Aᵀ (sparse to build, k×k to factorise, against Householder's 3n×k work and an
-  explicit 3n×k Q; measured on the seed's crumpled cloths, the adjoint of one step went from 22 to 11 ms at 16×16
-  and from 16 to 13 ms at 32×32). A column whose Cholesky pivot falls below 1e-10 of its squared norm is dependent
-  on earlier ones (:func:`~warpcloth.collision.linalg.gram_cholesky`): it is dropped and its multiplier folded
-  into the kept ones (λ_keep += Cλ_drop with Ã_drop = Ã_keep C) so that G_Aᵀλ is unchanged. Then
-  d_λ = R⁻¹R⁻ᵀ Ã_keepᵀ W^{-1/2}ḡ and d_z = W^{-1/2}(W^{-1/2}ḡ − Ã_keep d_λ). By default the factorisation is computed
-  lazily by the first :func:`backward` and its time is included in that call's ``backward_s`` (an honest comparison
-  with the KKT mode); ``precompute_qr=True`` computes it in :func:`~warpcloth.collision.qp.project` instead, as
-  the seed does (its time is then ``qr_s`` of the forward stats). Single-contact zones use the closed form of the
-  same formulas (R = ‖Ã‖) in both modes.
-* ``mode="kkt"`` (the seed's baseline and the oracle of the QR mode): the dense symmetric system of size
-  nvar + ncon over all zone contacts, K = [[W, GᵀS], [SG, I − S]] with S the active indicator, by
-  ``np.linalg.solve`` (``np.linalg.lstsq`` when the active rows are dependent or the solve fails).
-"""
+On the active set A = {j : |c_j(z*)| ≤ active_tol} ∪ {j : λ_j > 0}, with ḡ = ∂L/∂z, K [d_z; d_λ] = [ḡ; 0] for
+K = [[W, G_Aᵀ], [G_A, 0]]; then ∂L/∂x̂ = W d_z, ∂L/∂G_A = −λ d_zᵀ − d_λ zᵀ, ∂L/∂h_A = −d_λ. ``mode="qr"`` factorises
+Ã = W^{-1/2} G_Aᵀ per group of active contacts sharing particles by the Cholesky factor R of ÃᵀÃ, dropping dependent
+columns; ``mode="kkt"``, its oracle, solves K = [[W, GᵀS], [SG, I − S]] over all zone contacts, S the active
+indicator. Why no Q: docs/decisions.md, "QR adjoint without Q"."""
 
 from __future__ import annotations
 
@@ -39,38 +13,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from warpcloth.collision.checks import float_array
-from warpcloth.collision.linalg import gram_cholesky, tri_solve
-from warpcloth.collision.zones import ProjectionResult, Zone, components, gram
+from warpcloth.collision.reference.checks import float_array
+from warpcloth.collision.reference.linalg import gram_cholesky, tri_solve
+from warpcloth.collision.reference.zones import ProjectionResult, Zone, components, gram
 
 ONE_BLOCK = 64
-"""Zones with at most this many active constraints are factorised whole, not split into groups linked by shared
-particles (the split's bookkeeping costs more than the smaller factorisations save there)."""
+"""Zones with at most this many active constraints are factorised whole, not split into groups (cheaper there)."""
 
 
 @dataclass
 class QRBlock:
-    """The adjoint's factorisation of one connected group of active constraints (see the module docstring): Ã of
-    the group in sparse form and the Cholesky factor L of ÃᵀÃ over its independent columns (Lᵀ is QR's R; Q is
-    never formed)."""
+    """One group's Ã, sparse, and Cholesky factor L of ÃᵀÃ over its independent columns. ``rows``, ``cols``: local
+    particles and (sorted) active contacts; ``keep``, ``drop``: positions in ``cols`` of the independent and dependent
+    columns; ``entry_*``: Ã's nonzero 3-vectors (−slot_dir/√m̃); ``lam``: the kept multipliers, the dropped folded in."""
 
     rows: np.ndarray
-    """Local particle indices whose coordinates are the rows of Ã (the particles these constraints touch)."""
     cols: np.ndarray
-    """Local contact indices of these active constraints (the columns of Ã, sorted)."""
     keep: np.ndarray
-    """Positions in ``cols`` of the independent columns kept in the factorisation, in order."""
     drop: np.ndarray
-    """Positions in ``cols`` of the dependent columns dropped."""
     entry_row: np.ndarray
-    """Ã's nonzero 3-vectors: position in ``rows`` of each ..."""
     entry_col: np.ndarray
-    """... position in ``cols`` ..."""
     entry_vec: np.ndarray
-    """... and the entry, −slot_dir/√m̃ (E, 3)."""
     L: np.ndarray
     lam: np.ndarray
-    """Multipliers of the kept columns with the dropped ones folded in."""
 
     def at_vectors(self, v: np.ndarray) -> np.ndarray:
         """Ãᵀ v for v (len(rows), 3): one value per column."""
@@ -90,8 +55,7 @@ class QRBlock:
 
 @dataclass
 class ZoneQR:
-    """The adjoint's factorisation of a zone: Ã is block diagonal over groups of active constraints that share no
-    particle, so each group is factorised on its own (same Q and R up to a permutation, far less work)."""
+    """A zone's factorisation: one block per group of active constraints that share particles."""
 
     blocks: list[QRBlock]
     seconds: float
@@ -108,8 +72,7 @@ class ZoneQR:
 
 
 def factorisation(result: ProjectionResult, zone: Zone) -> ZoneQR:
-    """The zone's factorisation, computed on first use and kept in ``result.factorisations``; records
-    ``independent``, ``qr_size`` and ``qr_s`` in ``zone.stats``."""
+    """:func:`factorise` on first use, kept in ``result.factorisations``; its figures go to ``zone.stats``."""
     qr = result.factorisations.get(zone.index)
     if qr is None:
         qr = result.factorisations[zone.index] = factorise(zone)
@@ -118,10 +81,7 @@ def factorisation(result: ProjectionResult, zone: Zone) -> ZoneQR:
 
 
 def factorise(zone: Zone) -> ZoneQR:
-    """The adjoint's factorisation on the active set, per group of active constraints linked by shared particles:
-    the Cholesky factor of ÃᵀÃ = G_A W⁻¹ G_Aᵀ (its Lᵀ is the R of Ã = QR), the dependent columns dropped and their
-    multipliers folded into the kept ones (λ_keep += Cλ_drop, C = (Ã_keepᵀÃ_keep)⁻¹ Ã_keepᵀ Ã_drop).
-    """
+    """The zone's :class:`ZoneQR`, dependent columns dropped: λ_keep += Cλ_drop, C = (Ã_keepᵀÃ_keep)⁻¹Ã_keepᵀÃ_drop."""
     t0 = time.perf_counter()
     act = zone.active
     blocks = []
@@ -176,7 +136,6 @@ def _zone_adjoint_qr(zone: Zone, qr: ZoneQR, g: np.ndarray) -> tuple[np.ndarray,
 
 
 def _zone_adjoint_kkt(zone: Zone, qr: ZoneQR, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Same as _zone_adjoint_qr by the dense (nvar + ncon) KKT system over all zone contacts."""
     nz, k = zone.mass.size, zone.lam.size
     nvar = 3 * nz
     G = np.zeros((k, nvar))
@@ -206,21 +165,12 @@ def _zone_adjoint_kkt(zone: Zone, qr: ZoneQR, g: np.ndarray) -> tuple[np.ndarray
 
 
 def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
-    """Gradients of a loss L(z*) given ∂L/∂z (n, 3); see the module docstring (SPEC §4.2).
-
-    Args:
-        result: what :func:`~warpcloth.collision.qp.project` returned.
-        grad_z: ∂L/∂z, shape (n, 3).
-        mode: ``"qr"`` (the paper's formula) or ``"kkt"`` (the dense KKT system).
+    """Gradients of a loss L(z*) given ∂L/∂z (n, 3), by ``mode`` ``"qr"`` or ``"kkt"``.
 
     Returns:
-        (∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3), ∂L/∂thickness (m,), the
-        target gap of each contact: ∂L/∂h = −d_λ). ∂L/∂x̂ passes ∂L/∂z through for particles in no zone, and for
-        pinned particles adds their contributions as constant nodes.
-        ``result.backward_stats`` gets one record per zone: ``mode``, ``backward_s`` (the zone's solve, the QR when
-        it was not precomputed (``qr_in_backward``), and its share of pushing the result onto the contacts),
-        ``kkt_size``, ``qr_size``. Single-contact zones use the closed form (1×1 R) in both modes, all at once;
-        each gets an equal share of that time.
+        (∂L/∂x̂ (n, 3), ∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂obstacle_x (V, 3), ∂L/∂thickness (m,) = −d_λ);
+        ∂L/∂x̂ is ∂L/∂z for particles in no zone, pinned ones' counted as constant nodes'. One record per zone
+        (``mode``, ``backward_s``, ``kkt_size``, ``qr_size``) goes to ``result.backward_stats``.
 
     Raises:
         ValueError: an unknown ``mode`` or a malformed ``grad_z``.
@@ -282,8 +232,7 @@ def backward(result: ProjectionResult, grad_z, *, mode: str = "qr"):
 
 
 def mass_gradient(result: ProjectionResult, grad_x: np.ndarray) -> np.ndarray:
-    """∂L/∂m (n,) of the free particles' masses in W, from ∂L/∂x̂ as :func:`backward` returned it (module
-    docstring); 0 for pinned particles and particles in no zone."""
+    """∂L/∂m_i = −(∂L/∂x̂)_i·(z_i − x̂_i)/m_i (n,) from :func:`backward`'s ∂L/∂x̂; 0 where pinned or in no zone."""
     n = result.x_hat.shape[0]
     grad_x = float_array("grad_x", grad_x, (n, 3))
     return mass_gradient_of(grad_x, result.z, result.x_hat, result.mass, result.fixed)
@@ -297,10 +246,9 @@ def mass_gradient_of(grad_x: np.ndarray, z: np.ndarray, x_hat: np.ndarray, mass:
 
 
 def push_onto_contacts(nodes, weights, normals, fixed, z, obstacle_x, d_ext, d_lam, lam):
-    """(∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂x of the constant nodes (n + V, 3)) from the multipliers λ and
-    d_λ of every contact and d_z of every node (``d_ext``; 0 for constant nodes):
-    ∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j, ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a), and ∂L/∂x_a += d_λj w_ja n_j for
-    the constant nodes (pinned particles at z = x̂, obstacle vertices)."""
+    """(∂L/∂weights (m, 4), ∂L/∂normals (m, 3), ∂L/∂x of the constant nodes (n + V, 3)) from every contact's λ and
+    d_λ and every node's d_z (``d_ext``, 0 for constant nodes): ∂L/∂w_ja = (d_λj p_a + λ_j d_a)·n_j,
+    ∂L/∂n_j = Σ_a w_ja (d_λj p_a + λ_j d_a), and ∂L/∂x_a += d_λj w_ja n_j for a constant node."""
     n, V, m = z.shape[0], obstacle_x.shape[0], nodes.shape[0]
     cons = np.flatnonzero((d_lam != 0.0) | (lam != 0.0))
     nd = nodes[cons]

@@ -1,0 +1,284 @@
+"""A scene's ``[control]`` and ``[estimate]`` tables, checked, and the optimisers and rules the task modules, the CLI
+and the parser share. Keys, units and defaults: docs/concepts/scenes-and-tasks.md, "The schema"."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from warpcloth import materials as _materials
+from warpcloth import mesh_io
+from warpcloth._toml_fields import (
+    _check_keys,
+    _choice,
+    _Context,
+    _err,
+    _existing_file,
+    _float,
+    _grid_vertex,
+    _int,
+    _parse_material,
+    _str,
+    _table,
+    _type_name,
+    _vector,
+)
+
+__all__ = ["CONTROLLERS", "CONTROL_OPTIMIZERS", "DEFAULT_CONTROL_ITERS", "ESTIMATION_OPTIMIZERS", "GLOBAL_OPTIMIZERS",
+           "MATERIAL_PARTS", "ControlSpec", "EstimateSpec", "SearchSpec", "check_control_optimizer",
+           "default_control_optimizer", "parse_control", "parse_estimate"]
+
+
+@dataclass(frozen=True)
+class SearchSpec:
+    """A global search's settings, the ``search`` table of a task whose optimiser is in :data:`GLOBAL_OPTIMIZERS`;
+    None takes the task's default.
+
+    Attributes:
+        population: CMA-ES's points per generation (default 4 + floor(3 ln n), n parameters); the multistart's starts
+            or the smoothed search's copies a step (default 8, even).
+        sigma: The initial spread, in the parameters' units (default the task's ``SEARCH_SIGMA`` or ``SMOOTHED_SIGMA``).
+        refine: CMA-ES and the smoothed search: simulations left to the local optimiser (default a fifth).
+        seed: Seed of the search's random numbers.
+    """
+
+    population: int | None = None
+    sigma: float | None = None
+    refine: int | None = None
+    seed: int = 0
+
+
+@dataclass
+class ControlSpec:
+    """A scene's ``[control]`` table, checked: the arguments of the same names of
+    :class:`~warpcloth.tasks.control.ControlTask` (``ControlTask.from_scene``), ``particles`` as model indices and
+    ``interval_steps`` the table's ``interval`` [s] in steps."""
+
+    particles: tuple[int, ...]
+    interval_steps: int
+    intervals: int
+    steps: int
+    target_com: tuple[float, float, float] | None
+    target_positions: np.ndarray | None
+    regularizer: float
+    controller: str
+    optimizer: str
+    iters: int
+    search: SearchSpec = SearchSpec()
+    warm_start: int = 0
+
+
+@dataclass
+class EstimateSpec:
+    """A scene's ``[estimate]`` table, checked (``EstimationTask.from_scene``; ``start``, ``free``, ``optimizer``,
+    ``iters`` and ``search`` as :class:`~warpcloth.tasks.estimation.EstimationTask`'s).
+
+    Attributes:
+        targets: Target frames (particle_count, 3) [m], frame 0 the start; None: simulated with the scene's cloth.
+        targets_source: The targets' directory, or None.
+        frame_stride: Steps per target frame.
+        steps: Steps compared.
+    """
+
+    targets: list[np.ndarray] | None
+    targets_source: str | None
+    frame_stride: int
+    steps: int
+    start: _materials.Material
+    free: tuple[str, ...]
+    optimizer: str
+    iters: int
+    search: SearchSpec = SearchSpec()
+
+
+CONTROLLERS = ("open-loop", "mlp")
+"""Controllers of a ``[control]`` task."""
+CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes", "smoothed"),
+                      "mlp": ("gauss-newton", "adam")}
+"""Optimisers of each controller (Gauss-Newton needs a centre-of-mass target, and for the MLP no regulariser)."""
+GLOBAL_OPTIMIZERS = ("multistart", "cmaes", "smoothed")
+"""The optimisers that take a ``search`` table."""
+DEFAULT_CONTROL_ITERS = {"open-loop": 50, "mlp": 100}
+"""Simulations a controller spends where its task names none."""
+
+
+def default_control_optimizer(controller: str, target_com, regularizer: float) -> str:
+    """A controller's default optimiser: Gauss-Newton where it applies, else L-BFGS (open loop) or Adam (MLP)."""
+    if target_com is not None and (controller == "open-loop" or not regularizer):
+        return "gauss-newton"
+    return "lbfgs" if controller == "open-loop" else "adam"
+
+
+def check_control_optimizer(optimizer: str, controller: str, target_com, regularizer: float) -> str | None:
+    """Why ``optimizer`` cannot run ``controller`` on this loss, or None where it can."""
+    if optimizer not in CONTROL_OPTIMIZERS[controller]:
+        return f"unknown value {optimizer!r}; one of: {', '.join(CONTROL_OPTIMIZERS[controller])}"
+    if optimizer == "gauss-newton" and target_com is None:
+        return ("gauss-newton fits a centre-of-mass target (control.loss.com); use "
+                f"{default_control_optimizer(controller, None, regularizer)} with target positions")
+    if optimizer == "gauss-newton" and controller == "mlp" and regularizer:
+        return "gauss-newton trains the MLP without a regulariser; use adam with control.regularizer"
+    return None
+
+
+ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd", "cmaes", "multistart", "smoothed")
+"""Optimisers of an ``[estimate]`` task."""
+MATERIAL_PARTS = ("density", "stretching", "bending")
+"""The parts of a material an ``[estimate]`` task may free."""
+
+
+def _steps_within(table: dict, path: str, sim_steps: int) -> int:
+    return _int(table.get("steps", sim_steps), f"{path}.steps", min_value=1)
+
+
+def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int, grid_res, attached: dict[int, str],
+                  base_dir: Path) -> ControlSpec:
+    """The ``[control]`` table of a scene of ``sim_steps`` steps of ``dt`` [s] whose cloth has ``count`` particles from
+    ``first`` (``grid_res``: its grid cells, None for a mesh; ``attached``: particle -> the entry that holds it; paths
+    relative to ``base_dir``). ValueError names the key path of the first bad value."""
+    keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "controller",
+            "optimizer", "iters", "search", "warm_start")
+    _check_keys(table, "control", keys, required=("interval", "intervals", "loss"))
+    if ("particles" in table) == ("grid_vertices" in table):
+        raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
+    key = "particles" if "particles" in table else "grid_vertices"
+    values = table[key]
+    if not isinstance(values, list) or not values:
+        raise _err(f"control.{key}", f"expected a non-empty array, got {_type_name(values)}")
+    particles = []
+    for k, value in enumerate(values):
+        item = f"control.{key}[{k}]"
+        if key == "particles":
+            p = _int(value, item, min_value=0)
+            if p >= count:
+                raise _err(item, f"particle {p} out of range: the cloth has {count} particles")
+        else:
+            if grid_res is None:
+                raise _err(f"control.{key}", "needs a grid cloth (cloth.grid)")
+            p = _grid_vertex(value, item, grid_res)
+        if p in particles:
+            raise _err(item, f"particle {p} is pushed twice")
+        if attached.get(p, "").startswith("pins"):
+            raise _err(item, f"particle {p} is pinned by {attached[p]}: a push on it would do nothing")
+        particles.append(p)
+
+    interval = _float(table["interval"], "control.interval", min_value=0.0, strict=True)
+    interval_steps = round(interval / dt)
+    if interval_steps < 1 or abs(interval_steps * dt - interval) > 1e-9 * interval:
+        raise _err("control.interval", f"{interval:g} s is not a whole number of sim.dt = {dt:g} s steps")
+    intervals = _int(table["intervals"], "control.intervals", min_value=1)
+    steps = _steps_within(table, "control", sim_steps)
+    if intervals * interval_steps > steps:
+        raise _err("control.intervals", f"{intervals} pushes of {interval_steps} steps outlast the horizon of "
+                                        f"{steps} steps")
+
+    loss = _table(table["loss"], "control.loss")
+    _check_keys(loss, "control.loss", ("com", "positions"))
+    if len(loss) != 1:
+        raise _err("control.loss", "give exactly one of 'com' (a centre-of-mass target [m]) and 'positions' (an OBJ "
+                                   "file of every particle's target)")
+    target_com = target_positions = None
+    if "com" in loss:
+        target_com = _vector(loss["com"], "control.loss.com")
+    else:
+        file = _existing_file(base_dir, loss["positions"], "control.loss.positions", "control.loss.positions")
+        with _Context("control.loss.positions"):
+            target_positions = mesh_io.load_obj(file, validate=False).positions
+        if len(target_positions) != count:
+            raise _err("control.loss.positions", f"{file.name} has {len(target_positions)} vertices, the cloth has "
+                                                 f"{count}")
+        if not np.all(np.isfinite(target_positions)):
+            raise _err("control.loss.positions", f"{file.name} has non-finite positions")
+    regularizer = _float(table.get("regularizer", 0.0), "control.regularizer", min_value=0.0)
+    controller = _choice(table.get("controller", "open-loop"), "control.controller", CONTROLLERS)
+    optimizer = _str(table.get("optimizer", default_control_optimizer(controller, target_com, regularizer)),
+                     "control.optimizer")
+    problem = check_control_optimizer(optimizer, controller, target_com, regularizer)
+    if problem:
+        raise _err("control.optimizer", problem)
+    iters = _int(table.get("iters", DEFAULT_CONTROL_ITERS[controller]), "control.iters", min_value=1)
+    search = _parse_search(table, "control", optimizer, iters)
+    warm_start = 0
+    if "warm_start" in table:
+        if controller != "mlp":
+            raise _err("control.warm_start", f"warm-starts the MLP controller, not {controller!r}")
+        warm_start = _int(table["warm_start"], "control.warm_start", min_value=0)
+        if warm_start >= iters:
+            raise _err("control.warm_start", f"{warm_start} simulations leave nothing of control.iters = {iters} to "
+                                             "the MLP")
+    return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
+                       intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,
+                       regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters, search=search,
+                       warm_start=warm_start)
+
+
+def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchSpec:
+    if "search" not in table:
+        return SearchSpec()
+    if optimizer not in GLOBAL_OPTIMIZERS:
+        raise _err(f"{path}.search", f"configures a global search ({' or '.join(GLOBAL_OPTIMIZERS)}), not optimizer = "
+                                     f"{optimizer!r}")
+    search = _table(table["search"], f"{path}.search")
+    refine_key = ("refine",) if optimizer != "multistart" else ()  # the multistart has no local stage of its own
+    _check_keys(search, f"{path}.search", ("population", "sigma", "seed") + refine_key)
+    population = sigma = refine = None
+    if "population" in search:
+        population = _int(search["population"], f"{path}.search.population", min_value=2)
+        if optimizer == "multistart" and population > iters:
+            raise _err(f"{path}.search.population", f"{population} starts for {path}.iters = {iters} simulations: "
+                                                    "each start needs one at least")
+    if "sigma" in search:
+        sigma = _float(search["sigma"], f"{path}.search.sigma", min_value=0.0, strict=True)
+    if "refine" in search:
+        refine = _int(search["refine"], f"{path}.search.refine", min_value=0)
+        if refine >= iters:
+            raise _err(f"{path}.search.refine", f"{refine} simulations leave nothing of {path}.iters = {iters} to "
+                                                "the global search")
+    seed = _int(search.get("seed", 0), f"{path}.search.seed", min_value=0)
+    return SearchSpec(population=population, sigma=sigma, refine=refine, seed=seed)
+
+
+def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _materials.Material,
+                   base_dir: Path) -> EstimateSpec:
+    """The ``[estimate]`` table of a scene of ``sim_steps`` steps whose cloth has ``count`` particles and
+    ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
+    keys = ("targets", "frame_stride", "steps", "start", "free", "optimizer", "iters", "search")
+    _check_keys(table, "estimate", keys)
+    frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
+    steps = _steps_within(table, "estimate", sim_steps)
+    if steps % frame_stride:
+        raise _err("estimate.frame_stride", f"the {steps} steps compared are not a whole number of frames of "
+                                            f"{frame_stride} steps")
+    targets = source = None
+    if "targets" in table:
+        directory = base_dir / _str(table["targets"], "estimate.targets")
+        with _Context("estimate.targets"):
+            targets = mesh_io.load_obj_sequence(mesh_io.obj_sequence_files(directory))
+        source = str(directory)
+        if targets[0].shape[0] != count:
+            raise _err("estimate.targets", f"its frames have {targets[0].shape[0]} vertices, the cloth has {count}")
+        need = steps // frame_stride + 1
+        if len(targets) < need:
+            raise _err("estimate.targets", f"{steps} steps compare {need} frames (frame 0 included) every "
+                                           f"{frame_stride} steps, but {directory} holds {len(targets)}")
+    thicken = cloth_material.thicken
+    if "start" in table:
+        start = _parse_material(table["start"], "estimate.start", thicken, base_dir)
+    else:  # the seed's start: the mean of 8 measured fabrics
+        start = _materials.mean_material(_materials.SEED_INITIAL_GUESS_NAMES, thicken=thicken)
+    free = table.get("free", list(MATERIAL_PARTS))
+    if not isinstance(free, list) or not free:
+        raise _err("estimate.free", f"expected a non-empty array of {', '.join(MATERIAL_PARTS)}")
+    free = tuple(_choice(v, f"estimate.free[{k}]", MATERIAL_PARTS) for k, v in enumerate(free))
+    if len(set(free)) != len(free):
+        k = next(k for k in range(len(free)) if free[k] in free[:k])
+        raise _err(f"estimate.free[{k}]", f"names {free[k]!r} a second time")
+    optimizer = _choice(table.get("optimizer", "lbfgs"), "estimate.optimizer", ESTIMATION_OPTIMIZERS)
+    if optimizer == "seed-sgd" and set(free) != set(MATERIAL_PARTS):
+        raise _err("estimate.optimizer", "seed-sgd fits the whole material; use lbfgs or adam to free only some of it")
+    iters = _int(table.get("iters", 100), "estimate.iters", min_value=1)
+    search = _parse_search(table, "estimate", optimizer, iters)
+    return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
+                        free=free, optimizer=optimizer, iters=iters, search=search)
