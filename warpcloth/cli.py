@@ -304,6 +304,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from warpcloth.errors import SimulationError
+    from warpcloth.observations import VertexFrames
     from warpcloth.preview import write_preview
     from warpcloth.tasks import estimation as E
     from warpcloth.usd import write_usd
@@ -343,13 +344,16 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if truth is not None:
         before = E.parameter_errors(task.start, truth)
         rows.update({key: [label, before[key], record[key]] for key, label in E.ERROR_LABELS.items()})
-    rows["sim_err_pct"] = ["simulation error [%]", result.initial_simulation_error_pct, result.simulation_error_pct]
+    if fit.has_reference:
+        rows["sim_err_pct"] = ["simulation error [%]", result.initial_simulation_error_pct,
+                               result.simulation_error_pct]
+    rows["best_loss"] = ["best loss", result.first_loss, result.best_loss]
     header = ["", "start", "warpcloth"]
     seed = job.seed_published()  # None unless this is the seed's own task
     if seed is not None:
         header.append("seed (published, its hanging cloth, mean of 10)")
         for key, row in rows.items():
-            row.append(seed[key])
+            row.append(seed.get(key, "-"))
     print()
     _print_table(header, list(rows.values()))
     if truth is not None:
@@ -363,17 +367,20 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         print(f"wrote {os.path.abspath(args.plot)}")
     if args.usd or args.preview:
         sim_frames = fit.trajectory(result.material)[:: fit.frame_stride]
-        target = np.stack([t.numpy().astype(np.float64) for t in fit.targets[: len(sim_frames)]])
         tris = fit.model.tri_indices.numpy()
-        drawing = dict(triangles=tris, frames=sim_frames, fps=1.0 / (dt * fit.frame_stride),
-                       obstacles=[("Target", target, tris)])
+        reference = fit.reference  # the true vertices: a vertex recording's own frames, or a point cloud's given ones
+        if reference is None and isinstance(fit.observation, VertexFrames):
+            reference = fit.observation.frames
+        target = [] if reference is None else [("Target", np.stack(reference[: len(sim_frames)]), tris)]
+        drawing = dict(triangles=tris, frames=sim_frames, fps=1.0 / (dt * fit.frame_stride), obstacles=target)
         if args.usd:
             write_usd(args.usd, **drawing)
-            print(f"wrote {os.path.abspath(args.usd)} "
-                  "(the estimate as /World/Cloth, the target as /World/Obstacles/Target)")
+            target = ", the target as /World/Obstacles/Target" if drawing["obstacles"] else ""
+            print(f"wrote {os.path.abspath(args.usd)} (the estimate as /World/Cloth{target})")
         if args.preview:
             write_preview(args.preview, **drawing, title=f"estimate of {task.source}")
-            print(f"wrote {os.path.abspath(args.preview)} (the estimate; the target translucent grey)")
+            target = "; the target translucent" if drawing["obstacles"] else ""
+            print(f"wrote {os.path.abspath(args.preview)} (the estimate{target})")
     return 0
 
 

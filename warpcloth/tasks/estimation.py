@@ -14,7 +14,6 @@ import numpy as np
 import warp as wp
 
 import warpcloth as wc
-from warpcloth.kernels.losses import loss_kernels
 from warpcloth.materials import (
     BENDING_SHAPE,
     DIFFCLOTH_BENDING_SCALE,
@@ -22,6 +21,7 @@ from warpcloth.materials import (
     SEED_INITIAL_GUESS_NAMES,
     STRETCHING_SHAPE,
 )
+from warpcloth.observations import MarkerFrames, PointCloudFrames, VertexFrames
 from warpcloth.progress import progress_bar
 from warpcloth.scene import Scene, load_scene
 from warpcloth.solver.gradients import GraphCache, plan_gradient
@@ -140,17 +140,34 @@ def parameter_errors(estimate: wc.Material, truth: wc.Material) -> dict[str, flo
 
 
 # -- the fit ---------------------------------------------------------------------------------------------------------
-class TrajectoryFit:
-    """Loss and gradient of a material against frames of positions ``targets`` (particle_count, 3), frame 0 the start:
-    the mean over compared frames (every ``frame_stride`` steps up to ``steps``) of the mean over vertices of
-    ``|x_sim - x_target|^2`` [m^2], the seed's loss. A model of equal worlds, each with its own material, fits one
-    per world (:meth:`losses`, :meth:`losses_and_grads`). ``options`` default to a CG tolerance of 1e-6; ``template``
-    (the one-world builder ``model`` was finalised from) enables :meth:`worlds`. ValueError for worlds of different
-    sizes or sharing a material, or targets short of ``steps``."""
 
-    def __init__(self, model: wc.Model, targets: Sequence[np.ndarray], *, steps: int = STEPS,
+Observation = VertexFrames | MarkerFrames | PointCloudFrames
+OBSERVATIONS = (VertexFrames, MarkerFrames, PointCloudFrames)
+
+
+def _check_vertex_frames(frames_in, steps: int, frames: int, particles: int, what: str) -> None:
+    if len(frames_in) < frames + 1:
+        raise ValueError(f"{steps} steps compare {frames} frames after frame 0, but the {what} has only "
+                         f"{len(frames_in) - 1}")
+    for k, x in enumerate(frames_in[: frames + 1]):
+        if np.shape(x) != (particles, 3):
+            raise ValueError(f"{what} frame {k} has shape {np.shape(x)}, the cloth has {particles} particles")
+
+
+class TrajectoryFit:
+    """Loss and gradient of a material against a recording ``targets``, frame 0 the start, compared every
+    ``frame_stride`` steps up to ``steps``: vertex frames (particle_count, 3) [m] (the seed's loss, the mean over
+    frames of the mean over vertices of ``|x_sim - x_target|^2`` [m^2]) or an observation of
+    :mod:`warpcloth.observations` (markers, point clouds). ``reference``: the true vertex frames, where known, that
+    :meth:`simulation_error` measures against. A model of equal worlds, each with its own material, fits one per
+    world (:meth:`losses`, :meth:`losses_and_grads`). ``options`` default to a CG tolerance of 1e-6; ``template``
+    (the one-world builder ``model`` was finalised from) enables :meth:`worlds`. ValueError for worlds of different
+    sizes or sharing a material, or a recording short of ``steps``."""
+
+    def __init__(self, model: wc.Model, targets: Sequence[np.ndarray] | Observation, *, steps: int = STEPS,
                  frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None,
-                 capture: bool = True, template: wc.ModelBuilder | None = None):
+                 capture: bool = True, template: wc.ModelBuilder | None = None,
+                 reference: Sequence[np.ndarray] | None = None):
         worlds = model.world_count
         if model.material_count != worlds:
             raise ValueError(f"TrajectoryFit estimates one material per world; the model has {model.material_count} "
@@ -170,21 +187,26 @@ class TrajectoryFit:
         if steps % frame_stride:
             raise ValueError(f"steps ({steps}) must be a multiple of frame_stride ({frame_stride})")
         frames = steps // frame_stride
-        if len(targets) < frames + 1:
-            raise ValueError(f"{steps} steps compare {frames} frames after frame 0, but the target has only "
-                             f"{len(targets) - 1}")
-        for k, x in enumerate(targets[: frames + 1]):
-            if np.shape(x) != (model.particle_count, 3):
-                raise ValueError(f"target frame {k} has shape {np.shape(x)}, the cloth has {model.particle_count} "
-                                 "particles")
+        observation = targets if isinstance(targets, OBSERVATIONS) else None
+        if observation is None:
+            _check_vertex_frames(targets, steps, frames, model.particle_count, "target")
+            observation = VertexFrames(np.stack([np.asarray(x, dtype=np.float64) for x in targets[: frames + 1]]))
+        elif observation.frame_count < frames + 1:
+            raise ValueError(f"{steps} steps compare {frames} frames after frame 0, but the recording has only "
+                             f"{observation.frame_count - 1}")
+        if reference is not None:
+            _check_vertex_frames(reference, steps, frames, model.particle_count, "reference")
+            reference = [np.asarray(x, dtype=np.float64) for x in reference[: frames + 1]]
         self.model, self.steps, self.frame_stride = model, steps, frame_stride
-        self._kernels = loss_kernels(model.scalar)
+        self.observation = observation
+        """What the fit compares the simulation with (vertices, markers or point clouds: warpcloth.observations)."""
+        self.reference = reference
+        """Every vertex's true position in each compared frame, where known: :meth:`simulation_error` measures
+        against it (a vertex recording is its own reference)."""
+        self._loss = observation.bind(model)
         # sync_every=0: a rollout reads the failure record once, at its end (and the backward pass after it), not
         # at every step: free on the CPU, a device round trip a step on CUDA; errors still name their step
         self.sim = wc.Simulator(model, dt, options=options or wc.SolverOptions(cg_tol=1e-6, sync_every=0))
-        self.targets = [wp.array(np.asarray(x, dtype=np.float64), dtype=model.types.vec3, device=model.device)
-                        for x in targets[: frames + 1]]
-        self._first = wp.zeros(worlds, dtype=wp.int32, device=model.device)  # each world's targets are its own
         self.capture = capture
         """Replay rollouts from graphs (``wc.CapturedRollout``, per horizon and kind, from its CAPTURE_AFTER-th
         evaluation), bitwise the uncaptured results on the CPU; on CUDA the forward losses only."""
@@ -197,7 +219,7 @@ class TrajectoryFit:
                              f"model ({worlds} world(s), {model.particle_count} particles) was finalised from")
         self.template = template
         self._init = {"steps": steps, "frame_stride": frame_stride, "dt": dt, "options": self.sim.options,
-                      "capture": capture}
+                      "capture": capture, "reference": reference}
         self._batched: dict[int, TrajectoryFit] = {}
 
     @property
@@ -215,11 +237,12 @@ class TrajectoryFit:
             builder = wc.ModelBuilder()
             builder.replicate(self.template, count, own_materials=True)
             model = builder.finalize(self.model.device, requires_grad=True, dtype=self.model.scalar)
-            targets = [np.tile(x.numpy(), (count, 1)) for x in self.targets]
             init = dict(self._init)
+            if init["reference"] is not None:
+                init["reference"] = [np.tile(x, (count, 1)) for x in init["reference"]]
             if init["options"].preconditioner == "multigrid" and self.sim.linear_solver.backend != "sequential":
                 init["options"] = replace(init["options"], preconditioner="auto")  # its parallel form: one world
-            self._batched[count] = TrajectoryFit(model, targets, **init)
+            self._batched[count] = TrajectoryFit(model, self.observation, **init)  # one recording, every world
         return self._batched[count]
 
     @staticmethod
@@ -258,7 +281,8 @@ class TrajectoryFit:
         return loss, tape
 
     def _capture(self, steps: int, grad: bool) -> wc.CapturedRollout | None:
-        if not plan_gradient(self.sim, steps, segment_steps=steps, backward=grad, capture=self.capture).captured:
+        capture = self.capture and self._loss.capturable
+        if not plan_gradient(self.sim, steps, segment_steps=steps, backward=grad, capture=capture).captured:
             return None
         loss = (lambda trajectory: self._loss_of(trajectory, steps)) if grad else None
         # options are kernel arguments baked into the graph: a fit with other options asks for other graphs
@@ -266,15 +290,8 @@ class TrajectoryFit:
                                 lambda: wc.CapturedRollout(self.sim, self.model.state(), steps=steps, loss=loss))
 
     def _loss_of(self, trajectory, steps: int) -> wp.array:
-        model = self.model
-        frames = steps // self.frame_stride
-        loss = wp.zeros(model.world_count, dtype=model.types.scalar, device=model.device, requires_grad=True)
-        scale = model.scalar(1.0 / (frames * (model.particle_count // model.world_count)))  # a world's particles
-        for k in range(1, frames + 1):
-            wp.launch(self._kernels.world_squared_distance, model.particle_count,
-                      inputs=[trajectory[k * self.frame_stride].particle_x, self.targets[k], model.particle_world,
-                              self._first, scale], outputs=[loss])
-        return loss
+        frames = range(1, steps // self.frame_stride + 1)
+        return self._loss([trajectory[k * self.frame_stride].particle_x for k in frames], frames)
 
     def _one_world(self, what: str) -> None:
         if self.model.world_count != 1:
@@ -316,9 +333,26 @@ class TrajectoryFit:
         values = loss.numpy()
         return [(float(values[w]), float(density[w]), stretching[w], bending[w]) for w in range(model.world_count)]
 
+    @property
+    def has_reference(self) -> bool:
+        """Whether :meth:`simulation_error` can be measured: a vertex recording, or a ``reference`` given."""
+        return self.reference is not None or isinstance(self.observation, VertexFrames)
+
     def simulation_error(self, m: wc.Material) -> float:
-        """RMS vertex distance to the target over the compared frames, per metre of cloth side, in %."""
-        return 100.0 * math.sqrt(self.loss(m))
+        """RMS vertex distance to the reference over the compared frames, per metre of cloth side, in %. ValueError
+        without a reference (:attr:`has_reference`)."""
+        if self.reference is None:
+            if not isinstance(self.observation, VertexFrames):
+                raise ValueError(f"TrajectoryFit.simulation_error: a {type(self.observation).__name__} recording "
+                                 "holds no vertex positions; give the fit a reference trajectory")
+            return 100.0 * math.sqrt(self.loss(m))
+        self._one_world("simulation_error")
+        steps = self.steps
+        trajectory = self.trajectory(m, steps)
+        frames = range(1, steps // self.frame_stride + 1)
+        squared = [np.mean(np.sum((trajectory[k * self.frame_stride] - self.reference[k]) ** 2, axis=1))
+                   for k in frames]
+        return 100.0 * math.sqrt(float(np.mean(squared)))
 
     def trajectory(self, m: wc.Material | Sequence[wc.Material], steps: int | None = None) -> list[np.ndarray]:
         """Positions of every step with ``m`` (one material, or one per world)."""
@@ -351,9 +385,15 @@ class MultiMotionFit:
         return (sum(p[0] for p in parts) / k, sum(p[1] for p in parts) / k, sum(p[2] for p in parts) / k,
                 sum(p[3] for p in parts) / k)
 
+    @property
+    def has_reference(self) -> bool:
+        return all(f.has_reference for f in self.fits)
+
     def simulation_error(self, m: wc.Material) -> float:
         """RMS vertex distance over every motion's compared frames (each motion weighted equally), in %."""
-        return 100.0 * math.sqrt(self.loss(m))
+        if all(f.reference is None and isinstance(f.observation, VertexFrames) for f in self.fits):
+            return 100.0 * math.sqrt(self.loss(m))
+        return math.sqrt(sum(f.simulation_error(m) ** 2 for f in self.fits) / len(self.fits))
 
 
 def free_mask(free: Sequence[str]) -> np.ndarray:
@@ -637,8 +677,9 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     if bar is not None:
         bar.close()
     result.material = param.decode(theta, name=f"estimate ({optimizer})")
-    result.simulation_error_pct = fit.simulation_error(result.material)
-    result.initial_simulation_error_pct = fit.simulation_error(result.initial)
+    if fit.has_reference:
+        result.simulation_error_pct = fit.simulation_error(result.material)
+        result.initial_simulation_error_pct = fit.simulation_error(result.initial)
     return result
 
 
@@ -797,6 +838,11 @@ class _WorldFit:
 
     def loss_and_grad(self, m: wc.Material, steps: int | None = None) -> tuple[float, float, np.ndarray, np.ndarray]:
         return self.batch.lockstep.ask(self.world, (m, True, steps or self.steps))
+
+    @property
+    def has_reference(self) -> bool:
+        # a world's simulation error comes from its loss: a vertex recording's only
+        return self.batch.fit.reference is None and isinstance(self.batch.fit.observation, VertexFrames)
 
     def simulation_error(self, m: wc.Material) -> float:
         return 100.0 * math.sqrt(self.loss(m))

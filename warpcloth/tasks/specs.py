@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from warpcloth import materials as _materials
-from warpcloth import mesh_io
+from warpcloth import mesh_io, recordings
 from warpcloth._toml_fields import (
     _check_keys,
     _choice,
@@ -25,6 +25,7 @@ from warpcloth._toml_fields import (
     _type_name,
     _vector,
 )
+from warpcloth.observations import MarkerFrames, PointCloudFrames
 
 __all__ = ["CONTROLLERS", "CONTROL_OPTIMIZERS", "DEFAULT_CONTROL_ITERS", "ESTIMATION_OPTIMIZERS", "GLOBAL_OPTIMIZERS",
            "MATERIAL_PARTS", "ControlSpec", "EstimateSpec", "SearchSpec", "check_control_optimizer",
@@ -76,13 +77,16 @@ class EstimateSpec:
     ``iters`` and ``search`` as :class:`~warpcloth.tasks.estimation.EstimationTask`'s).
 
     Attributes:
-        targets: Target frames (particle_count, 3) [m], frame 0 the start; None: simulated with the scene's cloth.
-        targets_source: The targets' directory, or None.
+        targets: The recording: vertex frames (particle_count, 3) [m] (OBJ files), or a
+            :class:`~warpcloth.observations.PointCloudFrames` (``.ply``/``.npy`` files) or
+            :class:`~warpcloth.observations.MarkerFrames` (``markers``); frame 0 at the start. None: simulated with
+            the scene's cloth.
+        targets_source: Where the recording came from, or None.
         frame_stride: Steps per target frame.
         steps: Steps compared.
     """
 
-    targets: list[np.ndarray] | None
+    targets: list[np.ndarray] | PointCloudFrames | MarkerFrames | None
     targets_source: str | None
     frame_stride: int
     steps: int
@@ -240,29 +244,67 @@ def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchS
     return SearchSpec(population=population, sigma=sigma, refine=refine, seed=seed)
 
 
+def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_stride: int, steps: int):
+    """The recording of ``[estimate]``: (observation or vertex frames, its path), or (None, None) without one."""
+    if "targets" in table and "markers" in table:
+        raise _err("estimate.markers", "a scene fits one recording: give targets or markers, not both")
+    for key in ("huber", "both_ways"):
+        if key in table and "targets" not in table:
+            raise _err(f"estimate.{key}", "applies to a point-cloud recording (estimate.targets)")
+    if "markers" in table:
+        path = base_dir / _str(table["markers"], "estimate.markers")
+        with _Context("estimate.markers"):
+            markers = recordings.read_markers(path)
+            recording = MarkerFrames(markers.triangles, markers.barycentric, markers.positions)
+        frames, source = recording.frame_count, str(path)
+    elif "targets" in table:
+        directory = base_dir / _str(table["targets"], "estimate.targets")
+        source = str(directory)
+        if recordings.holds_point_clouds(directory):
+            huber = table.get("huber")
+            robust = None if huber is None else ("huber", _float(huber, "estimate.huber", min_value=0.0, strict=True))
+            both_ways = table.get("both_ways", False)
+            if not isinstance(both_ways, bool):
+                raise _err("estimate.both_ways", f"expected true or false, got {both_ways!r}")
+            with _Context("estimate.targets"):
+                indices, clouds = recordings.read_point_clouds(directory)
+                points = [None] * (int(indices[-1]) + 1)
+                for k, cloud in zip(indices, clouds):
+                    points[int(k)] = cloud
+                recording = PointCloudFrames(points, robust=robust, both_ways=both_ways)
+            frames = recording.frame_count
+        else:
+            for key in ("huber", "both_ways"):
+                if key in table:
+                    raise _err(f"estimate.{key}", f"applies to a point-cloud recording; {directory} holds OBJ frames")
+            with _Context("estimate.targets"):
+                recording = mesh_io.load_obj_sequence(mesh_io.obj_sequence_files(directory))
+            if recording[0].shape[0] != count:
+                raise _err("estimate.targets", f"its frames have {recording[0].shape[0]} vertices, the cloth has "
+                                               f"{count}")
+            frames = len(recording)
+    else:
+        return None, None
+    if frames < need:
+        key = "estimate.markers" if "markers" in table else "estimate.targets"
+        raise _err(key, f"{steps} steps compare {need} frames (frame 0 included) every {frame_stride} steps, but "
+                        f"{source} holds {frames}")
+    return recording, source
+
+
 def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _materials.Material,
                    base_dir: Path) -> EstimateSpec:
     """The ``[estimate]`` table of a scene of ``sim_steps`` steps whose cloth has ``count`` particles and
     ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
-    keys = ("targets", "frame_stride", "steps", "start", "free", "optimizer", "iters", "search")
+    keys = ("targets", "markers", "huber", "both_ways", "frame_stride", "steps", "start", "free", "optimizer",
+            "iters", "search")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
     steps = _steps_within(table, "estimate", sim_steps)
     if steps % frame_stride:
         raise _err("estimate.frame_stride", f"the {steps} steps compared are not a whole number of frames of "
                                             f"{frame_stride} steps")
-    targets = source = None
-    if "targets" in table:
-        directory = base_dir / _str(table["targets"], "estimate.targets")
-        with _Context("estimate.targets"):
-            targets = mesh_io.load_obj_sequence(mesh_io.obj_sequence_files(directory))
-        source = str(directory)
-        if targets[0].shape[0] != count:
-            raise _err("estimate.targets", f"its frames have {targets[0].shape[0]} vertices, the cloth has {count}")
-        need = steps // frame_stride + 1
-        if len(targets) < need:
-            raise _err("estimate.targets", f"{steps} steps compare {need} frames (frame 0 included) every "
-                                           f"{frame_stride} steps, but {directory} holds {len(targets)}")
+    targets, source = _parse_recording(table, base_dir, count, steps // frame_stride + 1, frame_stride, steps)
     thicken = cloth_material.thicken
     if "start" in table:
         start = _parse_material(table["start"], "estimate.start", thicken, base_dir)

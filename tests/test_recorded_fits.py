@@ -1,0 +1,134 @@
+"""Material fits of what people record: point clouds and markers instead of every vertex, from code (TrajectoryFit)
+and from a scene's [estimate] table."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import warpcloth as wc
+from warpcloth import recordings
+from warpcloth.observations import MarkerFrames, PointCloudFrames, VertexFrames
+from warpcloth.tasks import estimation as E
+
+SCENE = """
+name = "small"
+[sim]
+dt = 0.02
+steps = 12
+[solver]
+cg_tol = 1e-12
+[cloth]
+grid = {{ res = [4, 4], size = [0.5, 0.5] }}
+rot_deg = [90.0, 0.0, 90.0]
+material = "gray-interlock"
+thicken = 2.0
+[[handles]]
+grid_vertex = [0, -1]
+[[handles]]
+grid_vertex = [-1, -1]
+{extra}
+"""
+STRIDE = 3
+
+
+def _truth() -> wc.Material:
+    start = E.initial_guess()
+    return wc.Material(density=1.5 * start.density, stretching=start.stretching, bending=start.bending, thicken=2)
+
+
+def _recorded(tmp_path):
+    """The small scene's model and its true vertex frames (every STRIDE steps, frame 0 the start)."""
+    path = tmp_path / "base.toml"
+    path.write_text(SCENE.format(extra=""))
+    model = wc.load_scene(path).finalize("cpu", requires_grad=True)
+    frames = E.TrajectoryFit.simulate_targets(model, _truth(), steps=12, frame_stride=STRIDE, dt=0.02)
+    return model, np.stack(frames)
+
+
+def test_a_vertex_recording_given_as_an_observation_fits_bitwise_as_plain_frames(tmp_path):
+    model, frames = _recorded(tmp_path)
+    plain = E.TrajectoryFit(model, list(frames), steps=12, frame_stride=STRIDE)
+    observed = E.TrajectoryFit(model, VertexFrames(frames), steps=12, frame_stride=STRIDE)
+    start = E.initial_guess()
+    a, b = plain.loss_and_grad(start), observed.loss_and_grad(start)
+    assert a[0] == b[0] and a[1] == b[1] and np.array_equal(a[2], b[2])
+    assert plain.simulation_error(start) == observed.simulation_error(start)
+
+
+@pytest.mark.parametrize("kind", ["points", "markers"])
+def test_a_fit_from_point_clouds_or_markers_moves_the_density_towards_the_truth(tmp_path, kind):
+    model, frames = _recorded(tmp_path)
+    rng = np.random.default_rng(0)
+    triangles = model.triangles_np
+    if kind == "points":
+        clouds = recordings.point_cloud_recording(frames, triangles, points=200, noise=0.0, drop=0.0, rng=rng)
+        observation = PointCloudFrames(clouds)
+    else:
+        markers = recordings.marker_recording(frames, triangles, markers=6, hidden=0.2, rng=rng)
+        observation = MarkerFrames(markers.triangles, markers.barycentric, markers.positions)
+    fit = E.TrajectoryFit(model, observation, steps=12, frame_stride=STRIDE, reference=list(frames))
+    assert fit.has_reference
+    start, truth = E.initial_guess(), _truth()
+    result = E.estimate_material(fit, initial=start, iters=6, free=["density"])
+    before = abs(start.density - truth.density) / truth.density
+    after = abs(result.material.density - truth.density) / truth.density
+    assert after < 0.5 * before, (before, after)
+    assert result.simulation_error_pct < result.initial_simulation_error_pct
+
+
+def test_a_point_cloud_fit_without_a_reference_says_it_cannot_measure_the_simulation_error(tmp_path):
+    model, frames = _recorded(tmp_path)
+    clouds = recordings.point_cloud_recording(frames, model.triangles_np, points=100, noise=0.0, drop=0.0,
+                                              rng=np.random.default_rng(1))
+    fit = E.TrajectoryFit(model, PointCloudFrames(clouds), steps=12, frame_stride=STRIDE)
+    assert not fit.has_reference
+    with pytest.raises(ValueError, match="PointCloudFrames recording holds no vertex positions"):
+        fit.simulation_error(E.initial_guess())
+    result = E.estimate_material(fit, iters=2, free=["density"])
+    assert math.isnan(result.simulation_error_pct) and result.evaluations >= 2
+
+
+def test_a_scene_reads_a_point_cloud_directory_and_a_marker_file(tmp_path):
+    model, frames = _recorded(tmp_path)
+    rng = np.random.default_rng(2)
+    clouds = recordings.point_cloud_recording(frames, model.triangles_np, points=150, noise=0.001, drop=0.0, rng=rng)
+    clouds[2] = None  # a dropped frame: no file
+    recordings.write_point_clouds(tmp_path / "clouds", clouds, kind=".npy")
+    markers = recordings.marker_recording(frames, model.triangles_np, markers=5, hidden=0.2, rng=rng)
+    recordings.write_markers(tmp_path / "markers.json", *markers)
+    cases = (('targets = "clouds"\nhuber = 0.01', PointCloudFrames), ('markers = "markers.json"', MarkerFrames))
+    for extra, kind in cases:
+        path = tmp_path / "fit.toml"
+        path.write_text(SCENE.format(extra=f'[estimate]\n{extra}\nframe_stride = {STRIDE}\nfree = ["density"]\n'
+                                           'iters = 2\n'))
+        task = E.EstimationTask.from_scene(path, device="cpu")
+        assert isinstance(task.fit.observation, kind) and task.truth is None
+        assert task.fit.observation.frame_count == len(frames)
+        assert task.run().evaluations >= 2
+
+
+@pytest.mark.parametrize("extra, message", [
+    ('targets = "clouds"\nmarkers = "m.json"', "estimate.markers: a scene fits one recording"),
+    ('huber = 0.01', "estimate.huber: applies to a point-cloud recording"),
+    ('targets = "clouds"\nhuber = -1.0', "estimate.huber"),
+    ('targets = "clouds"\nboth_ways = 1', "estimate.both_ways: expected true or false"),
+])
+def test_a_scene_refuses_a_recording_it_cannot_use(tmp_path, extra, message):
+    model, frames = _recorded(tmp_path)
+    recordings.write_point_clouds(tmp_path / "clouds", [f + 0.0 for f in frames], kind=".npy")
+    path = tmp_path / "bad.toml"
+    path.write_text(SCENE.format(extra=f"[estimate]\n{extra}\nframe_stride = {STRIDE}\n"))
+    with pytest.raises(ValueError, match=message):
+        wc.load_scene(path)
+
+
+def test_a_recording_short_of_the_compared_frames_is_refused_naming_what_it_holds(tmp_path):
+    model, frames = _recorded(tmp_path)
+    recordings.write_point_clouds(tmp_path / "clouds", list(frames[:3]), kind=".ply")
+    path = tmp_path / "short.toml"
+    path.write_text(SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'))
+    with pytest.raises(ValueError, match="compare 5 frames .* holds 3"):
+        wc.load_scene(path)
