@@ -919,6 +919,55 @@ def integrators(d: dict) -> str:
     return "\n".join(out)
 
 
+def recordings(d: dict) -> str:
+    """Fits to the seed's target sequences from vertices, point clouds and markers (benchmarks/recordings.py)."""
+    kinds = {"vertices": "vertices", "point_clouds": "point clouds", "markers": "markers"}
+
+    def spread(entry, key, n=2):  # the median, and the range over the recording seeds
+        values = [r[key] for r in entry["runs"]]
+        text = g(entry["median"][key], n)
+        return text if len(values) == 1 else f"{text} ({g(min(values), n)}–{g(max(values), n)})"
+
+    rows = []
+    for s in d["sequences"]:
+        for kind, label in kinds.items():
+            e = s[kind]
+            rows.append([s["target"], label, str(len(e["runs"])), spread(e, "sim_err_pct"),
+                         spread(e, "density_err_pct"), spread(e, "stretch_linear_err_pct"),
+                         g(e["median"]["s_per_eval"], 2), g(e["median"]["s_per_step_iter"], 2)])
+    st = d["settings"]
+    out = [table(["sequence", "observation", "runs", "simulation error %", "density %", "linear str. %", "s/eval",
+                  "s/step/iter"], rows), ""]
+    names = {"point_clouds.sim_err_pct": "point clouds' simulation error", "point_clouds.density_err_pct":
+             "point clouds' density error", "markers.sim_err_pct": "markers' simulation error",
+             "markers.density_err_pct": "markers' density error",
+             "point_clouds.s_per_step_iter": "point-cloud fit's time per step"}
+    for key, label in names.items():
+        each = [(s["target"], s["targets"][key]) for s in d["sequences"]]
+        out.append(f"- {label} ≤ {g(each[0][1]['limit'], 2)}× the vertex fit's: {met(d['targets'][key])} ("
+                   + ", ".join(f"{t} {g(v['ratio'], 3)}×" for t, v in each) + ")")
+    def seconds(x):
+        return f"{g(x * 1e3, 2)} ms" if x >= 1e-3 else f"{g(x * 1e6, 2)} µs"
+
+    cost = [(s["target"], {k: seconds(c["forward_backward_s_per_frame"]) for k, c in s["loss_cost"].items()})
+            for s in d["sequences"]]
+    first = d["sequences"][0]
+    dropped = len(first["point_clouds"]["runs"][0]["dropped_frames"])
+    out += ["", "The losses' cost per frame holding data, forward plus backward: "
+            + "; ".join(f"{t}: vertices {c['vertices']}, point clouds {c['point_clouds']}, markers {c['markers']}"
+                        for t, c in cost) + ".",
+            "", f"{st['optimizer']}, {st['iters']} evaluations of {st['steps']} steps each fit, frames compared every "
+            f"{st['frame_stride']} steps; point clouds of {st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm "
+            f"noise, {dropped} of the {first['frames']} frames dropped, seen by one depth camera "
+            f"(the share of the surface it sees: "
+            + ", ".join(f"{s['target']} {g(s['seen_fraction'] * 100, 2)} %" for s in d["sequences"])
+            + f"); {st['markers']} markers, {g(st['hidden'] * 100, 2)} % of the (frame, marker) pairs hidden, drawn "
+            f"at random; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: medians, the range in "
+            "parentheses (the vertex fit is one run).",
+            "", provenance(d)]
+    return "\n".join(out)
+
+
 def headline(est: dict, control: dict, ablation: dict) -> str:
     """The README's short table: warpcloth against the seed's published figures on its three experiments."""
     single, multi = est["means"][0], est["means"][-1]
@@ -974,6 +1023,7 @@ BLOCKS = {
     "contact_gradients": contact_gradients,
     "bvh_update": bvh_update,
     "projection_qp": projection_qp,
+    "recordings": recordings,
 }
 
 

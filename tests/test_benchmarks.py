@@ -48,6 +48,7 @@ BENCHMARKS = {
     "estimation_batch": (("records", "iters", "reps"), True, False),
     "bvh_update": (("cases",), False, False),
     "projection_qp": (("records",), False, False),
+    "recordings": (("settings", "sequences", "targets"), True, False),
 }
 
 
