@@ -270,7 +270,7 @@ BAD_CONTROL = [
      r"control.particles\[0\]: particle 5 is pinned by pins\[0\]"),
 ]
 BAD_ESTIMATE = [
-    ("free = ['density', 'wind']", r"estimate.free\[1\]: unknown value 'wind'; one of: density, stretching, bending"),
+    ("free = ['density', 'windy']", r"estimate.free\[1\]: unknown value 'windy'; one of: density, stretching, bending"),
     ("free = ['density', 'density']", r"estimate.free\[1\]: names 'density' a second time"),
     ("free = ['density']\noptimizer = 'seed-sgd'", r"estimate.optimizer: seed-sgd fits the whole material"),
     ("free = []", r"estimate.free: expected a non-empty array"),

@@ -62,6 +62,14 @@ def _parser() -> argparse.ArgumentParser:
                      help="a global search (cmaes, multistart, smoothed) simulates its trials as worlds of one batch: "
                      "the same search, slower on a CPU (docs/results/worlds-and-jobs.md), meant for a GPU")
     est.add_argument("--iters", type=int, default=None, help="forward+backward evaluations (default: the scene's)")
+    est.add_argument("--free", default=None, metavar="NAMES",
+                     help="comma-separated parameters to fit instead of the scene's: the material's density, "
+                     "stretching, bending and scene parameters (wind, obstacle_friction, handle_stiffness, "
+                     "start_placement, start_velocity, ...: warpcloth.tasks.parameters.SCENE_PARAMETERS)")
+    est.add_argument("--bound", action="append", default=None, metavar="NAME=LOW,HIGH",
+                     help="keep a free scene parameter inside (LOW, HIGH) (inf for none); repeat it per parameter")
+    est.add_argument("--scale", action="append", default=None, metavar="NAME=SCALE",
+                     help="a free scene parameter's scale (the change per unit step); repeat it per parameter")
     est.add_argument("--steps", type=int, default=None, help="steps compared (default: the scene's)")
     est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
     _add_workers(est)
@@ -286,11 +294,35 @@ def _parse_handles(text: str) -> list[int]:
     return handles
 
 
+def _parameter_options(values: list[str] | None, flag: str, count: int) -> dict[str, list[float] | float]:
+    """``NAME=X[,Y]`` options (--bound: two numbers, --scale: one) by name; ValueError naming the bad one."""
+    out: dict[str, list[float] | float] = {}
+    for text in values or []:
+        name, _, numbers = text.partition("=")
+        try:
+            parsed = [float(x) for x in numbers.split(",")]
+        except ValueError:
+            parsed = []
+        if not name or len(parsed) != count or any(x != x for x in parsed):
+            raise ValueError(f"{flag} {text!r}: expected NAME={','.join(['NUMBER'] * count)}")
+        if name in out:
+            raise ValueError(f"{flag} {text!r}: {name} given twice")
+        out[name] = parsed if count > 1 else parsed[0]
+    return out
+
+
 def _estimate_jobs(args: argparse.Namespace) -> list:
     """One EstimateJob per --target, else per scene and --material."""
     from warpcloth.tasks.jobs import EstimateJob
 
-    common = dict(optimizer=args.optimizer, iters=args.iters, steps=args.steps, device=args.device, batch=args.batch)
+    free = None if args.free is None else tuple(n.strip() for n in args.free.split(",") if n.strip())
+    if free is not None and not free:
+        raise ValueError("--free names no parameter")
+    bounds, scales = _parameter_options(args.bound, "--bound", 2), _parameter_options(args.scale, "--scale", 1)
+    if (bounds or scales) and free is None:
+        raise ValueError("--bound and --scale apply to the parameters of --free")
+    common = dict(optimizer=args.optimizer, iters=args.iters, steps=args.steps, device=args.device, batch=args.batch,
+                  free=free, bounds=bounds or None, scales=scales or None)
     if args.target:
         if args.scene or args.material:
             raise ValueError("give scenes (and --material) or --target, not both")
@@ -348,6 +380,10 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         rows["sim_err_pct"] = ["simulation error [%]", result.initial_simulation_error_pct,
                                result.simulation_error_pct]
     rows["best_loss"] = ["best loss", result.first_loss, result.best_loss]
+    for name, value in result.parameters.items():
+        if name not in E.MATERIAL_PARTS:
+            start = np.asarray(record["start_parameters"][name])
+            rows[name] = [name, np.array2string(start, precision=4), np.array2string(value, precision=4)]
     header = ["", "start", "warpcloth"]
     seed = job.seed_published()  # None unless this is the seed's own task
     if seed is not None:

@@ -7,7 +7,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -218,6 +218,16 @@ class TrajectoryFit:
                              f"{template.particle_count} particles in all; it must be the one-world builder the "
                              f"model ({worlds} world(s), {model.particle_count} particles) was finalised from")
         self.template = template
+        self.control: wc.Control | None = None
+        """The control every rollout takes (None: the model's defaults); made where the obstacles' placement is
+        free (:meth:`bind_scene`)."""
+        self.start_state: wc.State | None = None
+        """The start State of the last rollout (its gradient: the start's)."""
+        self.scene_parameters: tuple = ()
+        """The free scene parameters (:meth:`bind_scene`) whose gradients :meth:`losses_and_grads` reads."""
+        self.scene_grads: dict[str, np.ndarray] = {}
+        """d loss / d values of each bound scene parameter, of the last :meth:`losses_and_grads`."""
+        self._start_free = False
         self._init = {"steps": steps, "frame_stride": frame_stride, "dt": dt, "options": self.sim.options,
                       "capture": capture, "reference": reference}
         self._batched: dict[int, TrajectoryFit] = {}
@@ -225,6 +235,24 @@ class TrajectoryFit:
     @property
     def world_count(self) -> int:
         return self.model.world_count
+
+    def bind_scene(self, names: Sequence[str]) -> list:
+        """Free the scene parameters ``names`` (:data:`~warpcloth.tasks.parameters.SCENE_PARAMETERS`): returns them
+        (:class:`~warpcloth.tasks.parameters.SceneParameter`), and :meth:`losses_and_grads` reads their gradients
+        into :attr:`scene_grads`. ValueError for a fit of several worlds or a parameter the scene lacks."""
+        from warpcloth.tasks.parameters import bind_parameters
+
+        if self.world_count != 1:
+            raise ValueError(f"free scene parameters need a fit of one world; this one has {self.world_count}")
+        params = bind_parameters(self, names)
+        if "obstacle_placement" in names and self.control is None:
+            self.control = self.model.control()
+            self._graphs = GraphCache(after=CAPTURE_AFTER)  # the rollouts take the control from now on
+        self._start_free = self._start_free or any(n.startswith("start_") for n in names)
+        self.scene_parameters = tuple(params)
+        for p in params:
+            p.zero_grad()
+        return params
 
     def worlds(self, count: int) -> TrajectoryFit | None:
         """This fit over ``count`` copies of its scene, each with its own material (made once, then kept); None without
@@ -269,13 +297,18 @@ class TrajectoryFit:
         model = self.model
         captured = self._capture(steps, grad)
         if captured is not None:
+            if self._start_free:  # the graph reads its start state's arrays: the start parameters' values
+                wp.copy(captured.state.particle_x, model.particle_x0)
+                wp.copy(captured.state.particle_v, model.particle_v0)
+            self.start_state = captured.state
             trajectory = captured.run()
             return (captured.loss if grad else self._loss_of(trajectory, steps)), None
+        self.start_state = start = model.state()
         if not grad:
-            return self._loss_of(wc.rollout(self.sim, model.state(), steps=steps), steps), None
+            return self._loss_of(wc.rollout(self.sim, start, self.control, steps=steps), steps), None
         tape = wp.Tape()
         with tape:
-            loss = self._loss_of(wc.rollout(self.sim, model.state(), steps=steps), steps)
+            loss = self._loss_of(wc.rollout(self.sim, start, self.control, steps=steps), steps)
         tape.backward(grads={loss: wp.ones(model.world_count, dtype=model.types.scalar, device=model.device)})
         self.sim.check()  # the adjoint solves' failures (a rollout checks its forward steps itself)
         return loss, tape
@@ -287,7 +320,8 @@ class TrajectoryFit:
         loss = (lambda trajectory: self._loss_of(trajectory, steps)) if grad else None
         # options are kernel arguments baked into the graph: a fit with other options asks for other graphs
         return self._graphs.get((steps, grad, id(self.sim.options)),
-                                lambda: wc.CapturedRollout(self.sim, self.model.state(), steps=steps, loss=loss))
+                                lambda: wc.CapturedRollout(self.sim, self.model.state(), self.control, steps=steps,
+                                                                  loss=loss))
 
     def _loss_of(self, trajectory, steps: int) -> wp.array:
         frames = range(1, steps // self.frame_stride + 1)
@@ -324,6 +358,10 @@ class TrajectoryFit:
         loss, tape = self._rollout_loss(steps or self.steps, grad=True)
         density, stretching, bending = (a.grad.numpy().astype(float) for a in
                                         (model.material_density, model.material_stretching, model.material_bending))
+        if self.scene_parameters:
+            self.scene_grads = {p.name: p.grad() for p in self.scene_parameters}
+            for p in self.scene_parameters:
+                p.zero_grad()
         if tape is not None:
             tape.zero()
         for arr in (model.material_density, model.material_stretching, model.material_bending):
@@ -357,7 +395,8 @@ class TrajectoryFit:
     def trajectory(self, m: wc.Material | Sequence[wc.Material], steps: int | None = None) -> list[np.ndarray]:
         """Positions of every step with ``m`` (one material, or one per world)."""
         self.set_material(m)
-        return [s.particle_x.numpy() for s in wc.rollout(self.sim, self.model.state(), steps=steps or self.steps)]
+        return [s.particle_x.numpy() for s in wc.rollout(self.sim, self.model.state(), self.control,
+                                                         steps=steps or self.steps)]
 
 
 class MultiMotionFit:
@@ -406,6 +445,81 @@ def free_mask(free: Sequence[str]) -> np.ndarray:
     return mask
 
 
+@dataclass
+class _Point:  # a material and the values of the free scene parameters
+    material: wc.Material
+    values: dict[str, np.ndarray]
+
+
+# theta = the material's (N_PARAMS, MaterialParameterization) then each free scene parameter's (ParameterTransform)
+class _FreeParameterization:
+
+    def __init__(self, material: MaterialParameterization, transforms: list):
+        self.material, self.transforms = material, transforms
+        self.size = N_PARAMS + sum(t.size for t in transforms)
+
+    @property
+    def reference(self) -> wc.Material:
+        return self.material.reference
+
+    def with_material(self, m: wc.Material) -> _FreeParameterization:
+        return _FreeParameterization(MaterialParameterization(m), self.transforms)
+
+    def mask(self, free: Sequence[str]) -> np.ndarray:
+        return np.concatenate([free_mask([p for p in free if p in MATERIAL_PARTS]),
+                               np.ones(self.size - N_PARAMS, dtype=bool)])
+
+    def _parts(self, theta):
+        k = N_PARAMS
+        for t in self.transforms:
+            yield t, theta[k:k + t.size]
+            k += t.size
+
+    def decode(self, theta: np.ndarray, name: str = "estimate") -> _Point:
+        theta = np.asarray(theta, dtype=np.float64)
+        return _Point(self.material.decode(theta[:N_PARAMS], name),
+                      {t.name: t.decode(part) for t, part in self._parts(theta)})
+
+    def chain(self, theta, g_density, g_stretching, g_bending, g_scene: dict) -> np.ndarray:
+        theta = np.asarray(theta, dtype=np.float64)
+        return np.concatenate([self.material.chain(theta[:N_PARAMS], g_density, g_stretching, g_bending)]
+                              + [t.chain(part, g_scene[t.name]) for t, part in self._parts(theta)])
+
+
+# a one-world TrajectoryFit whose free scene parameters each evaluation writes first (their start values for a bare
+# material), in its place for estimate_material; gradients (loss, material's..., {name: d loss / d values})
+class _SceneFit:
+
+    def __init__(self, fit: TrajectoryFit, params: list):
+        self.fit, self.params = fit, params
+        self.steps, self.frame_stride = fit.steps, fit.frame_stride
+        self.start = {p.name: p.read() for p in params}
+
+    @property
+    def seconds(self) -> float:
+        return self.fit.seconds
+
+    @property
+    def has_reference(self) -> bool:
+        return self.fit.has_reference
+
+    def apply(self, point: _Point | wc.Material) -> wc.Material:
+        values = point.values if isinstance(point, _Point) else self.start
+        for p in self.params:
+            p.write(values[p.name])
+        return point.material if isinstance(point, _Point) else point
+
+    def loss(self, point, steps: int | None = None) -> float:
+        return self.fit.loss(self.apply(point), steps)
+
+    def loss_and_grad(self, point, steps: int | None = None):
+        out = self.fit.loss_and_grad(self.apply(point), steps)
+        return (*out, dict(self.fit.scene_grads))
+
+    def simulation_error(self, point) -> float:
+        return self.fit.simulation_error(self.apply(point))
+
+
 # -- one estimation --------------------------------------------------------------------------------------------------
 OPTIMIZERS = ESTIMATION_OPTIMIZERS
 
@@ -447,6 +561,11 @@ class EstimationResult(FitSummary):
     """(density factor, stretch factor, loss) of each material of the start scan."""
     scan_factors: dict[str, float] = field(default_factory=dict)
     """The factors of the scan's best material, where the fit started (empty without a scan)."""
+    parameters: dict[str, np.ndarray] = field(default_factory=dict)
+    """The fitted values of every free parameter by name: the material's parts (``density`` (1,) [kg/m^2],
+    ``stretching`` (6, 4) [N/m], ``bending`` (3, 5) [N*m]) and the scene's (``SCENE_PARAMETERS``' shapes, flat)."""
+    initial_parameters: dict[str, np.ndarray] = field(default_factory=dict)
+    """The free parameters' values at the start (``initial``'s, before the start scan), by name, as ``parameters``."""
 
     @property
     def seconds_per_step_iter(self) -> float:
@@ -457,7 +576,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
                       optimizer: str = "lbfgs", iters: int = 60, free: Sequence[str] = MATERIAL_PARTS,
                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
                       curriculum: Sequence[tuple[float, float]] | None = CURRICULUM, batch: bool = False,
-                      progress: bool = False) -> EstimationResult:
+                      progress: bool = False, bounds: Mapping[str, Sequence] | None = None,
+                      scales: Mapping[str, float | Sequence[float]] | None = None) -> EstimationResult:
     """Fit the model's material to ``fit``'s targets; returns the estimate and the history.
 
     Args:
@@ -469,17 +589,23 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
             the start and ``search.population - 1`` normal random points around it, equal shares) or ``"smoothed"``
             (Adam on the Gaussian-smoothed loss, ``search.population`` copies a step, default :data:`SMOOTHED_SIGMA`).
         iters: Evaluations to spend; each scanned material, search point, copy and line-search trial counts.
-        free: The parts fitted, of ``"density"``, ``"stretching"``, ``"bending"``; the others keep ``initial``'s.
+        free: The parameters fitted: the material's parts (``"density"``, ``"stretching"``, ``"bending"``; the
+            others keep ``initial``'s) and scene parameters (:data:`~warpcloth.tasks.parameters.SCENE_PARAMETERS`,
+            from the model's current values, for a one-world TrajectoryFit; the model keeps the fitted ones).
         scan: ``{"density": factors, "stretch": factors}`` (default :data:`START_SCAN`): before ``lbfgs`` or ``adam``,
             start from the best of ``initial`` with its density and warp and weft stretch scaled by every pair of
             factors (of the free parts); skipped with None, ``seed-sgd`` or an ``iters`` under twice the pairs.
         curriculum: L-BFGS's stages (default :data:`CURRICULUM`); None, or a MultiMotionFit: one stage.
         batch: Simulate a global search's trials as worlds of one batch (a TrajectoryFit with a ``template``), bitwise
             the same search on the CPU. Why off: docs/decisions.md, "Material searches run unbatched by default".
+        bounds: ``{name: [low, high]}`` for free scene parameters (each a number or one per entry, None for none):
+            the fit stays inside (:class:`~warpcloth.tasks.parameters.ParameterTransform`).
+        scales: ``{name: scale}`` replacing a free scene parameter's default scale (``SCENE_PARAMETERS``).
 
     Raises:
         ValueError: For an unknown optimiser or part, a batch without a global search or template, or a budget that
-            makes no generation, step or start.
+            makes no generation, step or start; a scene parameter the scene lacks, or bounds or scales that do not
+            fit it, named.
         SimulationError: When the first evaluation fails; a later trial that fails is rejected (an infinite loss).
     """
     if optimizer not in OPTIMIZERS:
@@ -492,16 +618,31 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     if batch and (not isinstance(fit, TrajectoryFit) or fit.template is None or fit.world_count != 1):
         raise ValueError("batch=True needs a TrajectoryFit of one world made with its scene's builder "
                          "(TrajectoryFit(..., template=builder)), whose copies the trials run on")
-    unknown = [p for p in free if p not in MATERIAL_PARTS]
-    if unknown or not free:
-        raise ValueError(f"free must name some of {', '.join(MATERIAL_PARTS)}, got {list(free)}")
+    from warpcloth.tasks.parameters import check_names, check_options
+
+    free = tuple(free)
+    if not free:
+        raise ValueError(f"free must name some of {', '.join(MATERIAL_PARTS)} or of the scene parameters, got []")
+    check_names(free, MATERIAL_PARTS)
+    scene_free = [p for p in free if p not in MATERIAL_PARTS]
+    bounds, scales = check_options(free, bounds, "bounds"), check_options(free, scales, "scales")
+    if scene_free and (not isinstance(fit, TrajectoryFit) or fit.world_count != 1 or batch):
+        raise ValueError(f"free scene parameters ({', '.join(scene_free)}) need a TrajectoryFit of one world, "
+                         "unbatched")
     if optimizer == "seed-sgd" and set(free) != set(MATERIAL_PARTS):
         raise ValueError("the seed-sgd optimiser fits the whole material; use lbfgs or adam to free only some of it")
-    mask = free_mask(free)
     if int(iters) != iters or iters < 1:
         raise ValueError(f"iters must be a positive integer, got {iters!r}")
     initial = initial or initial_guess()
     param = MaterialParameterization(initial)
+    if scene_free:
+        transforms = scene_transforms(fit, scene_free, bounds, scales)  # checked before the fit is changed
+        fit = _SceneFit(fit, fit.bind_scene(scene_free))
+        param = _FreeParameterization(param, transforms)
+        mask = param.mask(free)
+    else:
+        mask = free_mask(free)
+    size = mask.size
     result = EstimationResult(material=initial, initial=initial)
     bar = progress_bar(iters, f"estimate ({optimizer})", "iter") if progress else None
 
@@ -517,20 +658,20 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     def objective(theta: np.ndarray, steps: int | None = None) -> tuple[float, np.ndarray]:
         steps = steps or fit.steps
         try:
-            loss, gd, gs, gb = fit.loss_and_grad(param.decode(theta), steps)
+            loss, *grads = fit.loss_and_grad(param.decode(theta), steps)
         except wc.SimulationError as exc:  # a trial material that diverges: an infinite loss, so the step is rejected
             if not result.losses:
                 raise
             result.diverged.append(str(exc))
             record(math.inf, steps)
-            return math.inf, np.zeros(N_PARAMS)
+            return math.inf, np.zeros(size)
         record(loss, steps)
         if loss < best[0] and steps == fit.steps:
             best[:] = [loss, theta[mask].copy()]
-        return loss, param.chain(theta, gd, gs, gb)
+        return loss, param.chain(theta, *grads)
 
     def full(theta_free: np.ndarray) -> np.ndarray:
-        theta = np.zeros(N_PARAMS)  # theta = 0 (the start) where fixed
+        theta = np.zeros(size)  # theta = 0 (the start) where fixed
         theta[mask] = theta_free
         return theta
 
@@ -639,23 +780,23 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     stages = _stages(fit, curriculum, budget) if optimizer == "lbfgs" else None  # checked before any simulation
     if scanning:
         initial = _scan_start(fit, initial, densities, stretches, result, record)
-        param = MaterialParameterization(initial)
+        param = param.with_material(initial) if scene_free else MaterialParameterization(initial)
         iters -= cost
     if optimizer == "lbfgs":
         theta_free = theta0
         for steps, evaluations in stages:  # L-BFGS starts afresh at each horizon
             theta_free = lbfgs(lambda t, steps=steps: objective_free(t, steps), theta_free, iters=evaluations)
-        theta = np.zeros(N_PARAMS)
+        theta = np.zeros(size)
         theta[mask] = theta_free
     elif optimizer == "adam":
-        theta = np.zeros(N_PARAMS)
+        theta = np.zeros(size)
         theta[mask] = adam(objective_free, theta0, iters=iters)
     elif optimizer == "multistart":
         rng = np.random.default_rng(search.seed)
         sigma = search.sigma or SEARCH_SIGMA
         starts = [theta0] + [rng.normal(0.0, sigma, theta0.size) for _ in range(population - 1)]
         multistart(starts, [iters // population + (k == 0) * (iters % population) for k in range(population)])
-        theta = np.zeros(N_PARAMS)
+        theta = np.zeros(size)
         theta[mask] = theta0 if best[1] is None else best[1]  # None: every evaluation diverged
     elif optimizer == "smoothed":
         sigma = search.sigma or SMOOTHED_SIGMA
@@ -663,24 +804,46 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
                          steps=adam_steps, rng=np.random.default_rng(search.seed))
         remaining = iters - adam_steps * population
         start = theta0 if best[1] is None else best[1]  # None: every copy diverged
-        theta = np.zeros(N_PARAMS)
+        theta = np.zeros(size)
         theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     elif optimizer == "cmaes":
         start = cmaes(population_losses, theta0, sigma=search.sigma or SEARCH_SIGMA,
                       generations=generations, rng=np.random.default_rng(search.seed), popsize=population)
         remaining = iters - generations * population
-        theta = np.zeros(N_PARAMS)
+        theta = np.zeros(size)
         theta[mask] = lbfgs(objective_free, start, iters=remaining) if remaining else start
     else:
         theta = _seed_sgd(fit, param, objective, iters)
     result.seconds += fit.seconds - seconds0 + batched_seconds[0]
     if bar is not None:
         bar.close()
-    result.material = param.decode(theta, name=f"estimate ({optimizer})")
+    fitted = param.decode(theta, name=f"estimate ({optimizer})")
+    result.material = fitted.material if scene_free else fitted
+    result.parameters = _values(free, result.material, fitted.values if scene_free else {})
+    result.initial_parameters = _values(free, result.initial, fit.start if scene_free else {})
     if fit.has_reference:
-        result.simulation_error_pct = fit.simulation_error(result.material)
+        result.simulation_error_pct = fit.simulation_error(fitted)
         result.initial_simulation_error_pct = fit.simulation_error(result.initial)
+    if scene_free:
+        fit.apply(fitted)  # the model keeps the fitted scene parameters
     return result
+
+
+def _values(free: Sequence[str], m: wc.Material, scene: dict) -> dict[str, np.ndarray]:
+    material = {"density": np.array([m.density]), "stretching": m.stretching, "bending": m.bending}
+    return {p: np.array(material[p] if p in MATERIAL_PARTS else scene[p], dtype=np.float64) for p in free}
+
+
+def scene_transforms(fit: TrajectoryFit, names: Sequence[str], bounds: Mapping | None = None,
+                     scales: Mapping | None = None) -> list:
+    """The :class:`~warpcloth.tasks.parameters.ParameterTransform` of each scene parameter ``names`` of ``fit``, at
+    the model's current values, with ``bounds`` and ``scales`` by name (defaults: none, the parameter's); ``fit`` is
+    left as it was. ValueError naming a parameter the scene lacks or whose bounds or scale do not fit it."""
+    from warpcloth.tasks.parameters import ParameterTransform, bind_parameters
+
+    bounds, scales = dict(bounds or {}), dict(scales or {})
+    return [ParameterTransform(p.name, p.read(), positive=p.positive, scale=scales.get(p.name, p.scale),
+                               bounds=bounds.get(p.name)) for p in bind_parameters(fit, names)]
 
 
 # (horizon, evaluations) of each curriculum stage: horizons in whole frames, the last the fit's; evaluations by
@@ -851,8 +1014,9 @@ class _WorldFit:
 @dataclass
 class EstimationTask:
     """A material estimation: what :meth:`run` fits, from where and how. The fields are :func:`estimate_material`'s
-    arguments (``start`` its ``initial``, default :func:`initial_guess`), with ``truth``, the material that simulated
-    the targets (else None), and ``source``, where the targets came from, in words."""
+    arguments (``start`` its ``initial``, default :func:`initial_guess`; ``free`` material parts and scene parameters,
+    ``bounds`` and ``scales`` the scene parameters'), with ``truth``, the material that simulated the targets (else
+    None), and ``source``, where the targets came from, in words."""
 
     fit: TrajectoryFit | MultiMotionFit
     start: wc.Material = field(default_factory=initial_guess)
@@ -862,6 +1026,8 @@ class EstimationTask:
     search: SearchSpec = field(default_factory=SearchSpec)
     truth: wc.Material | None = None
     source: str = ""
+    bounds: dict = field(default_factory=dict)
+    scales: dict = field(default_factory=dict)
 
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None, truth: wc.Material | None = None,
@@ -889,15 +1055,38 @@ class EstimationTask:
             source = f"{truth.name} simulated by warpcloth"
         fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
                             options=scene.solver_options, template=scene.model_builder)
-        return cls(fit, start=spec.start, free=spec.free, optimizer=spec.optimizer, iters=spec.iters,
-                   search=spec.search, truth=truth, source=source)
+        task = cls(fit, start=spec.start, optimizer=spec.optimizer, iters=spec.iters, search=spec.search, truth=truth,
+                   source=source)
+        try:
+            return task.with_free(spec.free, bounds=spec.bounds, scales=spec.scales)
+        except ValueError as exc:
+            raise ValueError(f"scene {scene.name!r} ({scene.source}) [estimate]: {exc}") from None
+
+    def with_free(self, free: Sequence[str], *, bounds: Mapping | None = None,
+                  scales: Mapping | None = None) -> EstimationTask:
+        """This task fitting ``free`` (material parts and scene parameters) with the scene parameters' ``bounds`` and
+        ``scales`` by name, checked against the fit's scene before any fit: ValueError naming an unknown parameter,
+        one the scene lacks, or bounds or scales that do not fit it."""
+        from warpcloth.tasks.parameters import check_names, check_options
+
+        free = tuple(free)
+        if not free:
+            raise ValueError("free must name at least one parameter")
+        check_names(free, MATERIAL_PARTS)
+        bounds, scales = check_options(free, bounds, "bounds"), check_options(free, scales, "scales")
+        scene_free = [p for p in free if p not in MATERIAL_PARTS]
+        if scene_free:
+            if not isinstance(self.fit, TrajectoryFit) or self.fit.world_count != 1:
+                raise ValueError(f"free scene parameters ({', '.join(scene_free)}) need a TrajectoryFit of one world")
+            scene_transforms(self.fit, scene_free, bounds, scales)
+        return replace(self, free=free, bounds=bounds, scales=scales)
 
     def run(self, *, optimizer: str | None = None, iters: int | None = None, batch: bool = False,
             progress: bool = False) -> EstimationResult:
         """Fit: :func:`estimate_material` with the task's settings (``optimizer`` and ``iters`` override them)."""
         return estimate_material(self.fit, initial=self.start, optimizer=optimizer or self.optimizer,
                                  iters=iters or self.iters, free=self.free, search=self.search, batch=batch,
-                                 progress=progress)
+                                 progress=progress, bounds=self.bounds, scales=self.scales)
 
 
 def _seed_sgd(fit: TrajectoryFit, param: MaterialParameterization, objective, iters: int) -> np.ndarray:

@@ -42,8 +42,22 @@ class EstimateJob:
     steps: int | None = None
     device: str | None = None
     batch: bool = False
+    free: tuple[str, ...] | None = None
+    """Parameters to fit instead of the task's (material parts and scene parameters), with the scene parameters'
+    ``bounds`` and ``scales`` by name (``EstimationTask.with_free``)."""
+    bounds: dict | None = None
+    scales: dict | None = None
 
     def task(self):
+        """The EstimationTask; ValueError or OSError for settings that do not make one (before any fit)."""
+        task = self._task()
+        if self.free is None:
+            if self.bounds or self.scales:
+                raise ValueError("an estimation job's bounds and scales apply to its free parameters; give free")
+            return task
+        return task.with_free(self.free, bounds=self.bounds, scales=self.scales)
+
+    def _task(self):
         """The EstimationTask; ValueError or OSError for settings that do not make one (before any fit)."""
         from warpcloth.materials import preset
         from warpcloth.mesh_io import load_obj_sequence, obj_sequence_files
@@ -112,7 +126,9 @@ class EstimateJob:
                   "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
                   "scan": [list(p) for p in result.scan], "scan_factors": result.scan_factors,
                   "estimate": {"density": m.density, "stretching": m.stretching.tolist(),
-                               "bending": m.bending.tolist()}}
+                               "bending": m.bending.tolist()},
+                  "parameters": {name: np.asarray(v).tolist() for name, v in result.parameters.items()},
+                  "start_parameters": {name: np.asarray(v).tolist() for name, v in result.initial_parameters.items()}}
         if task.truth is not None:
             record.update(E.parameter_errors(m, task.truth))
         return record

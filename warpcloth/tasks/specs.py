@@ -3,7 +3,7 @@ and the parser share. Keys, units and defaults: docs/concepts/scenes-and-tasks.m
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +26,10 @@ from warpcloth._toml_fields import (
     _vector,
 )
 from warpcloth.observations import MarkerFrames, PointCloudFrames
+from warpcloth.tasks.parameters import NOT_OFFERED, SCENE_PARAMETERS
 
 __all__ = ["CONTROLLERS", "CONTROL_OPTIMIZERS", "DEFAULT_CONTROL_ITERS", "ESTIMATION_OPTIMIZERS", "GLOBAL_OPTIMIZERS",
-           "MATERIAL_PARTS", "ControlSpec", "EstimateSpec", "SearchSpec", "check_control_optimizer",
+           "FREE_PARAMETERS", "MATERIAL_PARTS", "ControlSpec", "EstimateSpec", "SearchSpec", "check_control_optimizer",
            "default_control_optimizer", "parse_control", "parse_estimate"]
 
 
@@ -84,6 +85,10 @@ class EstimateSpec:
         targets_source: Where the recording came from, or None.
         frame_stride: Steps per target frame.
         steps: Steps compared.
+        free: The material parts and scene parameters fitted (``FREE_PARAMETERS``).
+        bounds: ``[low, high]`` of free scene parameters by name (``[estimate.bounds]``; each a number, +-inf for
+            none, or one per entry).
+        scales: The scale of free scene parameters by name (``[estimate.scales]``; a number or one per entry).
     """
 
     targets: list[np.ndarray] | PointCloudFrames | MarkerFrames | None
@@ -95,6 +100,8 @@ class EstimateSpec:
     optimizer: str
     iters: int
     search: SearchSpec = SearchSpec()
+    bounds: dict = field(default_factory=dict)
+    scales: dict = field(default_factory=dict)
 
 
 CONTROLLERS = ("open-loop", "mlp")
@@ -131,6 +138,42 @@ ESTIMATION_OPTIMIZERS = ("lbfgs", "adam", "seed-sgd", "cmaes", "multistart", "sm
 """Optimisers of an ``[estimate]`` task."""
 MATERIAL_PARTS = ("density", "stretching", "bending")
 """The parts of a material an ``[estimate]`` task may free."""
+FREE_PARAMETERS = MATERIAL_PARTS + tuple(SCENE_PARAMETERS)
+"""What an ``[estimate]`` task may free: the material's parts and the scene parameters
+(:data:`~warpcloth.tasks.parameters.SCENE_PARAMETERS`)."""
+
+
+def _numbers(value, path: str, *, positive: bool = False) -> float | list[float]:
+    # a number or an array of numbers (+-inf allowed unless positive; NaN never)
+    items = value if isinstance(value, list) else [value]
+    if not items:
+        raise _err(path, "expected a number or a non-empty array of numbers")
+    for k, v in enumerate(items):
+        where = f"{path}[{k}]" if isinstance(value, list) else path
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise _err(where, f"expected a number, got {_type_name(v)}")
+        if v != v or (positive and not (0.0 < v < float("inf"))):
+            raise _err(where, f"must be {'finite and > 0' if positive else 'a number (+-inf for no bound)'}, got {v}")
+    return [float(v) for v in value] if isinstance(value, list) else float(value)
+
+
+def _parse_parameter_options(table: dict, free: tuple[str, ...]) -> tuple[dict, dict]:
+    out = []
+    for key in ("bounds", "scales"):
+        path = f"estimate.{key}"
+        options = _table(table.get(key, {}), path)
+        parsed = {}
+        for name, value in options.items():
+            if name not in SCENE_PARAMETERS or name not in free:
+                raise _err(f"{path}.{name}", f"not a free scene parameter (free: {', '.join(free)})")
+            if key == "scales":
+                parsed[name] = _numbers(value, f"{path}.{name}", positive=True)
+                continue
+            if not isinstance(value, list) or len(value) != 2:
+                raise _err(f"{path}.{name}", "expected [low, high]")
+            parsed[name] = [_numbers(v, f"{path}.{name}[{k}]") for k, v in enumerate(value)]
+        out.append(parsed)
+    return out[0], out[1]
 
 
 def _steps_within(table: dict, path: str, sim_steps: int) -> int:
@@ -297,7 +340,7 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
     """The ``[estimate]`` table of a scene of ``sim_steps`` steps whose cloth has ``count`` particles and
     ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
     keys = ("targets", "markers", "huber", "both_ways", "frame_stride", "steps", "start", "free", "optimizer",
-            "iters", "search")
+            "iters", "search", "bounds", "scales")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
     steps = _steps_within(table, "estimate", sim_steps)
@@ -312,8 +355,12 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
         start = _materials.mean_material(_materials.SEED_INITIAL_GUESS_NAMES, thicken=thicken)
     free = table.get("free", list(MATERIAL_PARTS))
     if not isinstance(free, list) or not free:
-        raise _err("estimate.free", f"expected a non-empty array of {', '.join(MATERIAL_PARTS)}")
-    free = tuple(_choice(v, f"estimate.free[{k}]", MATERIAL_PARTS) for k, v in enumerate(free))
+        raise _err("estimate.free", f"expected a non-empty array of {', '.join(MATERIAL_PARTS)} or scene parameters "
+                                    f"({', '.join(SCENE_PARAMETERS)})")
+    for k, v in enumerate(free):
+        if isinstance(v, str) and v in NOT_OFFERED:
+            raise _err(f"estimate.free[{k}]", f"{v!r} is not offered: {NOT_OFFERED[v]}")
+    free = tuple(_choice(v, f"estimate.free[{k}]", FREE_PARAMETERS) for k, v in enumerate(free))
     if len(set(free)) != len(free):
         k = next(k for k in range(len(free)) if free[k] in free[:k])
         raise _err(f"estimate.free[{k}]", f"names {free[k]!r} a second time")
@@ -322,5 +369,6 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
         raise _err("estimate.optimizer", "seed-sgd fits the whole material; use lbfgs or adam to free only some of it")
     iters = _int(table.get("iters", 100), "estimate.iters", min_value=1)
     search = _parse_search(table, "estimate", optimizer, iters)
+    bounds, scales = _parse_parameter_options(table, free)
     return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
-                        free=free, optimizer=optimizer, iters=iters, search=search)
+                        free=free, optimizer=optimizer, iters=iters, search=search, bounds=bounds, scales=scales)
