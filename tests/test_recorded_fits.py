@@ -132,3 +132,33 @@ def test_a_recording_short_of_the_compared_frames_is_refused_naming_what_it_hold
     path.write_text(SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'))
     with pytest.raises(ValueError, match="compare 5 frames .* holds 3"):
         wc.load_scene(path)
+
+
+def test_a_scene_registers_its_start_to_the_first_point_cloud(tmp_path):
+    """The recorded cloth hung 4 cm and 3 cm away from where the scene places it: start_shape = "registered" moves
+    the fit's start, and the handles with it, onto the recording's frame 0."""
+    moved = SCENE.replace("rot_deg = [90.0, 0.0, 90.0]", "rot_deg = [90.0, 0.0, 90.0]\npos = [0.04, 0.0, 0.03]")
+    (tmp_path / "moved.toml").write_text(moved.format(extra=""))
+    truth_model = wc.load_scene(tmp_path / "moved.toml").finalize("cpu", requires_grad=True)
+    frames = np.stack(E.TrajectoryFit.simulate_targets(truth_model, _truth(), steps=12, frame_stride=STRIDE, dt=0.02))
+    clouds = recordings.point_cloud_recording(frames, truth_model.triangles_np, points=600, noise=0.001, drop=0.0,
+                                              rng=np.random.default_rng(3))
+    recordings.write_point_clouds(tmp_path / "clouds", clouds, kind=".npy")
+    errors = {}
+    for shape in ("scene", "registered"):
+        path = tmp_path / f"{shape}.toml"
+        path.write_text(SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'
+                                           f'start_shape = "{shape}"\n'))
+        model = E.EstimationTask.from_scene(path, device="cpu").fit.model
+        start = model.particle_x0.numpy()
+        errors[shape] = float(np.sqrt(np.mean(np.sum((start - frames[0]) ** 2, axis=1))))
+        held = model.handle_particle.numpy()
+        np.testing.assert_allclose(model.handle_rest_target, start[held], atol=1e-6)
+    assert errors["scene"] > 0.045 and errors["registered"] < 0.005, errors
+
+
+def test_a_registered_start_needs_a_point_cloud_recording(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(SCENE.format(extra='[estimate]\nstart_shape = "registered"\n'))
+    with pytest.raises(ValueError, match="estimate.start_shape: 'registered' places the cloth on frame 0"):
+        wc.load_scene(path)

@@ -1011,6 +1011,31 @@ class _WorldFit:
         return 100.0 * math.sqrt(self.loss(m))
 
 
+def registered_start(model: wc.Model, points: np.ndarray) -> np.ndarray:
+    """The start positions (particle_count, 3) [m] of a one-world model's cloth on a recorded point cloud ``points``
+    (P, 3) [m]: the cloth as the scene places it, moved rigidly onto the points from there (not from any placement,
+    so that a square cloth keeps its corners where the scene put them), then deformed smoothly
+    (:func:`warpcloth.registration.register_nonrigid`). ValueError for a model of several worlds or bad points."""
+    from warpcloth.registration import MAX_POLISH_VERTICES, register_nonrigid, register_rigid
+
+    if model.world_count != 1:
+        raise ValueError(f"registered_start places one world's cloth; the model has {model.world_count}")
+    x, tris = model.particle_x0.numpy().astype(np.float64), model.triangles_np
+    rigid = register_rigid(x, tris, points, init=(np.eye(3), np.zeros(3)))
+    polish = 10 if len(x) <= MAX_POLISH_VERTICES else 0
+    return register_nonrigid(x, tris, points, rigid=rigid, polish=polish).positions
+
+
+def place_start(model: wc.Model, positions: np.ndarray) -> None:
+    """Start the model's cloth at ``positions`` (particle_count, 3) [m]: its initial positions, and the handles' and
+    pins' default targets at their particles' new places."""
+    model.particle_x0.assign(np.asarray(positions, dtype=model.particle_x0.numpy().dtype))
+    for held, targets in ((model.handle_particle, model.handle_rest_target),
+                          (model.pin_particle, model.pin_rest_target)):
+        if held is not None:
+            targets[:] = positions[held.numpy()]
+
+
 @dataclass
 class EstimationTask:
     """A material estimation: what :meth:`run` fits, from where and how. The fields are :func:`estimate_material`'s
@@ -1053,8 +1078,13 @@ class EstimationTask:
             targets = TrajectoryFit.simulate_targets(model, truth, steps=steps, frame_stride=spec.frame_stride,
                                                      dt=scene.dt, options=scene.solver_options)
             source = f"{truth.name} simulated by warpcloth"
+        template = scene.model_builder
+        if spec.start_shape == "registered":
+            place_start(model, registered_start(model, targets.points[0]))
+            source += ", the start registered to its frame 0"
+            template = None  # the builder's copies would start where the scene placed the cloth: no batched worlds
         fit = TrajectoryFit(model, targets, steps=steps, frame_stride=spec.frame_stride, dt=scene.dt,
-                            options=scene.solver_options, template=scene.model_builder)
+                            options=scene.solver_options, template=template)
         task = cls(fit, start=spec.start, optimizer=spec.optimizer, iters=spec.iters, search=spec.search, truth=truth,
                    source=source)
         try:

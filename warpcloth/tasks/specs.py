@@ -89,6 +89,8 @@ class EstimateSpec:
         bounds: ``[low, high]`` of free scene parameters by name (``[estimate.bounds]``; each a number, +-inf for
             none, or one per entry).
         scales: The scale of free scene parameters by name (``[estimate.scales]``; a number or one per entry).
+        start_shape: ``"scene"`` (the cloth as the scene places it) or ``"registered"`` (the scene's cloth
+            registered to frame 0 of a point-cloud recording: :mod:`warpcloth.registration`).
     """
 
     targets: list[np.ndarray] | PointCloudFrames | MarkerFrames | None
@@ -102,8 +104,11 @@ class EstimateSpec:
     search: SearchSpec = SearchSpec()
     bounds: dict = field(default_factory=dict)
     scales: dict = field(default_factory=dict)
+    start_shape: str = "scene"
 
 
+START_SHAPES = ("scene", "registered")
+"""Where a fit's cloth starts: as the scene places it, or registered to the recording's first frame."""
 CONTROLLERS = ("open-loop", "mlp")
 """Controllers of a ``[control]`` task."""
 CONTROL_OPTIMIZERS = {"open-loop": ("gauss-newton", "lbfgs", "multistart", "cmaes", "smoothed"),
@@ -339,8 +344,8 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
                    base_dir: Path) -> EstimateSpec:
     """The ``[estimate]`` table of a scene of ``sim_steps`` steps whose cloth has ``count`` particles and
     ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
-    keys = ("targets", "markers", "huber", "both_ways", "frame_stride", "steps", "start", "free", "optimizer",
-            "iters", "search", "bounds", "scales")
+    keys = ("targets", "markers", "huber", "both_ways", "start_shape", "frame_stride", "steps", "start", "free",
+            "optimizer", "iters", "search", "bounds", "scales")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
     steps = _steps_within(table, "estimate", sim_steps)
@@ -348,6 +353,12 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
         raise _err("estimate.frame_stride", f"the {steps} steps compared are not a whole number of frames of "
                                             f"{frame_stride} steps")
     targets, source = _parse_recording(table, base_dir, count, steps // frame_stride + 1, frame_stride, steps)
+    start_shape = _choice(table.get("start_shape", "scene"), "estimate.start_shape", START_SHAPES)
+    if start_shape == "registered" and not isinstance(targets, PointCloudFrames):
+        raise _err("estimate.start_shape", "'registered' places the cloth on frame 0 of a point-cloud recording "
+                                           "(estimate.targets of .ply or .npy files)")
+    if start_shape == "registered" and targets.points[0] is None:
+        raise _err("estimate.start_shape", f"'registered' needs frame 0, which {source} does not hold")
     thicken = cloth_material.thicken
     if "start" in table:
         start = _parse_material(table["start"], "estimate.start", thicken, base_dir)
@@ -371,4 +382,5 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
     search = _parse_search(table, "estimate", optimizer, iters)
     bounds, scales = _parse_parameter_options(table, free)
     return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
-                        free=free, optimizer=optimizer, iters=iters, search=search, bounds=bounds, scales=scales)
+                        free=free, optimizer=optimizer, iters=iters, search=search, bounds=bounds, scales=scales,
+                        start_shape=start_shape)
