@@ -73,3 +73,31 @@ def gpu_devices() -> list:
         return ["cuda:0"]
     reason = "no CUDA device: the CPU is compared with a GPU only where there is one"
     return [pytest.param("cuda:0", marks=pytest.mark.skip(reason=reason))]
+
+
+SMALL_SCENE = """
+name = "small"
+[sim]
+dt = 0.02
+steps = 12
+[solver]
+cg_tol = 1e-12
+[cloth]
+grid = {{ res = [4, 4], size = [0.5, 0.5] }}
+rot_deg = [90.0, 0.0, 90.0]
+material = "gray-interlock"
+thicken = 2.0
+[[handles]]
+grid_vertex = [0, -1]
+[[handles]]
+grid_vertex = [-1, -1]
+{extra}
+"""
+
+
+def small_scene(tmp_path, extra: str = "", name: str = "small.toml"):
+    """A small hanging sheet (4x4 cells of 0.5 m, two soft handles, 12 steps of 0.02 s) with ``extra`` TOML, written
+    to ``tmp_path / name``; returns the path."""
+    path = tmp_path / name
+    path.write_text(SMALL_SCENE.format(extra=extra))
+    return path

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import warp as wp
+from conftest import small_scene
 
 import warpcloth as wc
 from warpcloth.tasks import estimation as E
@@ -16,31 +17,6 @@ EXACT = wc.SolverOptions(cg_tol=1e-12, cg_atol=1e-30, cg_max_iters=2000)
 GRID_TO_YZ = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
-SMALL = """
-name = "small"
-[sim]
-dt = 0.02
-steps = 12
-[solver]
-cg_tol = 1e-12
-[cloth]
-grid = {{ res = [4, 4], size = [0.5, 0.5] }}
-rot_deg = [90.0, 0.0, 90.0]
-material = "gray-interlock"
-thicken = 2.0
-[[handles]]
-grid_vertex = [0, -1]
-[[handles]]
-grid_vertex = [-1, -1]
-{extra}
-"""
-
-
-def small_scene(tmp_path, extra: str = ""):
-    """A small hanging sheet (4x4 cells, two soft handles) with ``extra`` TOML."""
-    path = tmp_path / "small.toml"
-    path.write_text(SMALL.format(extra=extra))
-    return path
 
 
 def _rotation_y(deg):

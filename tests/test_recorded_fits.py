@@ -7,30 +7,13 @@ import math
 
 import numpy as np
 import pytest
+from conftest import SMALL_SCENE
 
 import warpcloth as wc
 from warpcloth import recordings
 from warpcloth.observations import MarkerFrames, PointCloudFrames, VertexFrames
 from warpcloth.tasks import estimation as E
 
-SCENE = """
-name = "small"
-[sim]
-dt = 0.02
-steps = 12
-[solver]
-cg_tol = 1e-12
-[cloth]
-grid = {{ res = [4, 4], size = [0.5, 0.5] }}
-rot_deg = [90.0, 0.0, 90.0]
-material = "gray-interlock"
-thicken = 2.0
-[[handles]]
-grid_vertex = [0, -1]
-[[handles]]
-grid_vertex = [-1, -1]
-{extra}
-"""
 STRIDE = 3
 
 
@@ -42,7 +25,7 @@ def _truth() -> wc.Material:
 def _recorded(tmp_path):
     """The small scene's model and its true vertex frames (every STRIDE steps, frame 0 the start)."""
     path = tmp_path / "base.toml"
-    path.write_text(SCENE.format(extra=""))
+    path.write_text(SMALL_SCENE.format(extra=""))
     model = wc.load_scene(path).finalize("cpu", requires_grad=True)
     frames = E.TrajectoryFit.simulate_targets(model, _truth(), steps=12, frame_stride=STRIDE, dt=0.02)
     return model, np.stack(frames)
@@ -102,7 +85,7 @@ def test_a_scene_reads_a_point_cloud_directory_and_a_marker_file(tmp_path):
     cases = (('targets = "clouds"\nhuber = 0.01', PointCloudFrames), ('markers = "markers.json"', MarkerFrames))
     for extra, kind in cases:
         path = tmp_path / "fit.toml"
-        path.write_text(SCENE.format(extra=f'[estimate]\n{extra}\nframe_stride = {STRIDE}\nfree = ["density"]\n'
+        path.write_text(SMALL_SCENE.format(extra=f'[estimate]\n{extra}\nframe_stride = {STRIDE}\nfree = ["density"]\n'
                                            'iters = 2\n'))
         task = E.EstimationTask.from_scene(path, device="cpu")
         assert isinstance(task.fit.observation, kind) and task.truth is None
@@ -120,7 +103,7 @@ def test_a_scene_refuses_a_recording_it_cannot_use(tmp_path, extra, message):
     model, frames = _recorded(tmp_path)
     recordings.write_point_clouds(tmp_path / "clouds", [f + 0.0 for f in frames], kind=".npy")
     path = tmp_path / "bad.toml"
-    path.write_text(SCENE.format(extra=f"[estimate]\n{extra}\nframe_stride = {STRIDE}\n"))
+    path.write_text(SMALL_SCENE.format(extra=f"[estimate]\n{extra}\nframe_stride = {STRIDE}\n"))
     with pytest.raises(ValueError, match=message):
         wc.load_scene(path)
 
@@ -129,7 +112,7 @@ def test_a_recording_short_of_the_compared_frames_is_refused_naming_what_it_hold
     model, frames = _recorded(tmp_path)
     recordings.write_point_clouds(tmp_path / "clouds", list(frames[:3]), kind=".ply")
     path = tmp_path / "short.toml"
-    path.write_text(SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'))
+    path.write_text(SMALL_SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'))
     with pytest.raises(ValueError, match="compare 5 frames .* holds 3"):
         wc.load_scene(path)
 
@@ -137,7 +120,7 @@ def test_a_recording_short_of_the_compared_frames_is_refused_naming_what_it_hold
 def test_a_scene_registers_its_start_to_the_first_point_cloud(tmp_path):
     """The recorded cloth hung 4 cm and 3 cm away from where the scene places it: start_shape = "registered" moves
     the fit's start, and the handles with it, onto the recording's frame 0."""
-    moved = SCENE.replace("rot_deg = [90.0, 0.0, 90.0]", "rot_deg = [90.0, 0.0, 90.0]\npos = [0.04, 0.0, 0.03]")
+    moved = SMALL_SCENE.replace("rot_deg = [90.0, 0.0, 90.0]", "rot_deg = [90.0, 0.0, 90.0]\npos = [0.04, 0.0, 0.03]")
     (tmp_path / "moved.toml").write_text(moved.format(extra=""))
     truth_model = wc.load_scene(tmp_path / "moved.toml").finalize("cpu", requires_grad=True)
     frames = np.stack(E.TrajectoryFit.simulate_targets(truth_model, _truth(), steps=12, frame_stride=STRIDE, dt=0.02))
@@ -147,7 +130,7 @@ def test_a_scene_registers_its_start_to_the_first_point_cloud(tmp_path):
     errors = {}
     for shape in ("scene", "registered"):
         path = tmp_path / f"{shape}.toml"
-        path.write_text(SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'
+        path.write_text(SMALL_SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'
                                            f'start_shape = "{shape}"\n'))
         model = E.EstimationTask.from_scene(path, device="cpu").fit.model
         start = model.particle_x0.numpy()
@@ -159,6 +142,6 @@ def test_a_scene_registers_its_start_to_the_first_point_cloud(tmp_path):
 
 def test_a_registered_start_needs_a_point_cloud_recording(tmp_path):
     path = tmp_path / "bad.toml"
-    path.write_text(SCENE.format(extra='[estimate]\nstart_shape = "registered"\n'))
+    path.write_text(SMALL_SCENE.format(extra='[estimate]\nstart_shape = "registered"\n'))
     with pytest.raises(ValueError, match="estimate.start_shape: 'registered' places the cloth on frame 0"):
         wc.load_scene(path)

@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 import warp as wp
+from conftest import SMALL_SCENE, small_scene
 
 import warpcloth as wc
 from warpcloth.cli import main
@@ -21,24 +22,6 @@ from warpcloth.tasks.control import ControlTask
 from warpcloth.tasks.controllers import ControlResult, optimize_open_loop
 
 # A small hanging sheet: 4x4 cells, two soft handles, no contact; pushes on two lower corners.
-SMALL = """
-name = "small"
-[sim]
-dt = 0.02
-steps = 12
-[solver]
-cg_tol = 1e-12
-[cloth]
-grid = {{ res = [4, 4], size = [0.5, 0.5] }}
-rot_deg = [90.0, 0.0, 90.0]
-material = "gray-interlock"
-thicken = 2.0
-[[handles]]
-grid_vertex = [0, -1]
-[[handles]]
-grid_vertex = [-1, -1]
-{extra}
-"""
 CONTROL = """
 [control]
 grid_vertices = [[0, 0], [-1, 0]]
@@ -48,12 +31,6 @@ loss = {loss}
 regularizer = {reg}
 {more}
 """
-
-
-def small_scene(tmp_path, extra: str = "", name: str = "small.toml"):
-    path = tmp_path / name
-    path.write_text(SMALL.format(extra=extra))
-    return path
 
 
 def write_obj(path, x: np.ndarray) -> None:
@@ -373,7 +350,7 @@ def test_cli_lists_the_scenes_tasks(capsys):
 def test_estimation_targets_are_simulated_with_the_scenes_solver(tmp_path):
     """A scene's solver options (here BDF2) make its targets too, so its own material fits them exactly."""
     path = tmp_path / "bdf2.toml"
-    path.write_text(SMALL.format(extra='[estimate]\nfree = ["density"]\n').replace(
+    path.write_text(SMALL_SCENE.format(extra='[estimate]\nfree = ["density"]\n').replace(
         "cg_tol = 1e-12", 'cg_tol = 1e-12\nintegrator = "bdf2"'))
     task = E.EstimationTask.from_scene(path, dtype=wp.float64)
     assert task.fit.sim.options.integrator == "bdf2"
