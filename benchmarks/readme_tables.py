@@ -965,7 +965,89 @@ def recordings(d: dict) -> str:
             f"at random; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: medians, the range in "
             "parentheses (the vertex fit is one run).",
             "", provenance(d)]
+    if "parameters" in d:
+        out += ["", recording_parameters(d["parameters"])]
+    if "start" in d:
+        out += ["", recording_start(d["start"])]
     return "\n".join(out)
+
+
+def recording_start(p: dict) -> str:
+    """The start unknown: the fit from point clouds alone against the fit given the true start
+    (benchmarks/recordings.py, its ``start`` part, with its own run metadata)."""
+    st = p["settings"]
+    labels = {"given": "given the start", "alone": "point clouds alone",
+              "both_ways": "alone, registered both ways (diagnostic)"}
+
+    def each(runs, key, n=2):
+        return ", ".join(g(r[key], n) for r in runs)
+
+    def placed(s, kind):
+        runs = s[kind]["runs"]
+        return (", ".join(g(r["registration_err_mean_m"] * 100, 2) for r in runs) + " cm; handles "
+                + ", ".join("/".join(g(h * 100, 2) for h in r["handle_err_m"]) for r in runs) + " cm")
+
+    rows = []
+    for s in p["sequences"]:
+        for kind, label in labels.items():
+            if kind in s:
+                e = s[kind]
+                rows.append([s["target"], label, g(e["median"]["sim_err_pct"], 2), each(e["runs"], "sim_err_pct"),
+                             g(e["median"]["density_err_pct"], 2), each(e["runs"], "density_err_pct"),
+                             "–" if kind == "given" else placed(s, kind)])
+    out = ["The start unknown: the cloth draped and moving at frame 0, its material fitted from point clouds given the "
+           "true start, and from the point clouds alone:", "",
+           table(["sequence", "fit", "simulation error %", "each seed", "density %", "each seed",
+                  "registered start off the true one: mean (each seed); handles"], rows), ""]
+    for key, label in {"sim_err_pct": "simulation error", "density_err_pct": "density error"}.items():
+        ts = [(s["target"], s["targets"][key]) for s in p["sequences"]]
+        out.append(f"- point clouds alone, {label} ≤ {g(ts[0][1]['limit'], 2)}× the fit given the start: "
+                   f"{met(p['targets'][key])} (" + ", ".join(f"{t} {g(v['ratio'], 3)}×" for t, v in ts) + ")")
+    both = [(s["target"], s["both_ways_ratios"]) for s in p["sequences"] if "both_ways_ratios" in s]
+    if both:
+        out.append("- the diagnostic fit over the fit given the start (outside the target): " + "; ".join(
+            f"{t} simulation error {g(r['sim_err_pct'], 3)}×, density {g(r['density_err_pct'], 3)}×" for t, r in both))
+    out += ["", f"From the seed's frame {st['start_frame']}, {st['steps']} steps of {g(st['dt'], 2)} s, frames "
+            f"compared every {st['frame_stride']} steps, against the seed's frames from it. Given the start: the "
+            f"seed's vertices and velocities (its OBJ `nv` lines) there, the scene's handles. Alone: "
+            f"`registered_start` on the start frame's cloud, then `place_start` (which moves the handles' targets, "
+            f"vertices {', '.join(str(h) for h in p['sequences'][0]['handles'])}, with it), `start_velocity` free from "
+            f"zero; the diagnostic: the same with `register_nonrigid` run both ways from the scene's placement, no "
+            f"rigid step. Point clouds of {st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm noise, "
+            f"{g(st['drop'] * 100, 2)} % of the frames dropped, one depth camera; {st['optimizer']}, {st['iters']} "
+            f"evaluations a fit from the mean fabric; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: "
+            "medians.", "", provenance({"meta": p.get("meta")})]
+    return "\n".join(out)
+
+
+def recording_parameters(p: dict) -> str:
+    """Scene parameters fitted from point clouds with the material known (benchmarks/recordings.py, its
+    ``parameters`` part, with its own run metadata)."""
+    def value(v, unit="", n=3):
+        return (g(v[0], n) if len(v) == 1 else "(" + ", ".join(g(x, n) for x in v) + ")") + unit
+
+    st = p["settings"]
+    labels = {"friction": f"cloth dropped on a {g(st['tilt_deg'], 2)}° table: obstacle friction",
+              "wind": "hanging cloth: wind velocity"}
+    units = {"friction": "", "wind": " m/s"}
+    rows = [[labels[s["scene"]], value(s["truth"], units[s["scene"]]), value(s["start"], units[s["scene"]]),
+             "; ".join(value(r["fitted"], n=4) for r in s["runs"]),
+             ", ".join(g(r["rel_err_pct"], 2) for r in s["runs"]), g(s["median_rel_err_pct"], 2),
+             f"≤ {g(s['limit_pct'], 2)} %: {met(s['met'])}"] for s in p["scenes"]]
+    friction = next((s for s in p["scenes"] if s["scene"] == "friction"), None)
+    slide = f" (it slides {g(friction['slide_m'] * 100, 2)} cm down)" if friction else ""
+    return "\n".join([
+        "Scene parameters from point clouds, the material known:", "",
+        table(["scene: unknown", "true", "fit's start", "fitted (each seed)", "error % (each seed)",
+               "median error %", "target"], rows), "",
+        f"A 0.5 m square of 12×12 cells dropped flat from {g(st['drop_height_m'] * 100, 2)} cm onto a plane tilted "
+        f"{g(st['tilt_deg'], 2)}°{slide}, and `scenes.hanging_cloth` in the wind; {st['material']}, "
+        f"{st['steps']} steps of {g(st['dt'], 2)} s, frames compared every {st['frame_stride']} steps; point clouds of "
+        f"{st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm noise, {g(st['drop'] * 100, 2)} % of the frames "
+        f"dropped, one depth camera; {st['optimizer']}, {st['iters']} evaluations a fit, one free parameter; error: "
+        f"‖fitted − true‖ / ‖true‖ (the vectors' norms for the wind); {st['seeds']} recording "
+        f"seed{'s' if st['seeds'] != 1 else ''}.", "",
+        provenance({"meta": p.get("meta")})])
 
 
 def headline(est: dict, control: dict, ablation: dict) -> str:

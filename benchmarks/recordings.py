@@ -23,22 +23,56 @@ frame that holds data. Targets (issue 55): the point-cloud fit's simulation erro
 on each sequence and its density error within 2x; the marker fit's simulation and density errors within 1.2x; the
 point-cloud fit at most 2x the vertex fit's time per simulated step (medians over the seeds).
 
-Usage: python benchmarks/recordings.py [--quick] [--out PATH] [--iters 150] [--seeds 3] [--sequences all|gray,...]
-       [--optimizer lbfgs] [--steps 50] [--points 2000] [--markers 12]
-       (--quick: gray, 4 steps, 2 evaluations, 1 seed, 200 points)
+Scene parameters (``--parts parameters``): two scenes of the public API, their truth simulated, each recorded as
+point clouds as above (``--points`` points, 2 mm noise, 10 % of the frames dropped, one depth camera) with
+``--seeds`` recording seeds, and one unknown fitted with the material known (``estimate_material(free=[...])``,
+L-BFGS, one stage, ``--param-iters`` evaluations of ``--steps`` steps) from a wrong start:
+
+- friction: a 0.5 m square (12 x 12 cells) dropped flat from 5 cm onto a plane tilted 20 degrees, cloth-obstacle
+  friction 0.3 (it lands and slides down part way); the fit starts from 0.1, bounds (0.01, 2); the camera above the
+  plane's downhill side;
+- wind: ``scenes.hanging_cloth`` (16 x 16 cells) in a wind of (4, 0, 1) m/s; the fit starts from (2, 1, 0) m/s,
+  unbounded; the camera 2.4 m upwind of the sheet.
+
+Target (issue 55): each unknown recovered within 10 % (the median over the seeds of the relative error: |fitted -
+true| / |true|, the vectors' norms for the wind).
+
+The start unknown (``--parts start``): each sequence from its frame ``--start-frame`` (the cloth draped and moving),
+``--steps`` steps against the seed's frames from there, recorded as point clouds as above with ``--seeds`` seeds, the
+material fitted (L-BFGS from the mean fabric, ``--iters`` evaluations) twice: given the true start (the seed's
+vertices and its OBJ ``nv`` velocities at that frame, the scene's handles), and from the point clouds alone
+(``estimation.registered_start`` on the start frame's cloud, ``place_start``, which moves the handles' targets with it,
+``start_velocity`` free from zero). Reported: each fit's simulation and density errors, the registered start's
+distance from the true one (its handles' too), and a third fit, a diagnostic outside the target: from the point clouds
+alone with the start registered by ``register_nonrigid`` both ways from the scene's placement (no rigid step).
+Target (issue 55): the fit from point clouds alone within 2x of the fit given the start (medians over the seeds).
+
+The parameters and start parts keep their own run metadata (``parameters.meta``, ``start.meta``); a run of some
+parts keeps the other parts' records (and their metadata) from the file at ``--out``; the start part writes after
+each sequence.
+
+Usage: python benchmarks/recordings.py [--quick] [--out PATH] [--parts all|sequences|parameters|start,...]
+       [--iters 150] [--seeds 3] [--sequences all|gray,...] [--optimizer lbfgs] [--steps 50] [--points 2000]
+       [--markers 12] [--param-iters 20] [--start-frame 10]
+       (--quick: gray, 4 steps, 2 evaluations (--param-iters too), 1 seed, 200 points)
 """
 
 from __future__ import annotations
 
+import json
+import math
 import time
+from pathlib import Path
 
 import common
 import numpy as np
 import warp as wp
 from common import wc
 
+from warpcloth import mesh_io
 from warpcloth import recordings as R
 from warpcloth.observations import MarkerFrames, PointCloudFrames, VertexFrames
+from warpcloth.registration import register_nonrigid
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
 
@@ -206,12 +240,267 @@ def targets(record: dict) -> dict:
     return out
 
 
-def main():
-    args = common.parse_args(__doc__, iters=150, seeds=3, sequences="all", optimizer="lbfgs", steps=E.STEPS,
-                             points=2000, markers=12,
-                             quick={"iters": 2, "seeds": 1, "sequences": "gray", "steps": 4, "points": 200})
-    info = common.machine_info()
-    common.print_machine(info)
+# -- scene parameters --------------------------------------------------------------------------------------------
+PARTS = ("sequences", "parameters", "start")
+PARAMETER_LIMIT_PCT = 10.0
+"""Target: each scene parameter recovered within this relative error [%] (median over the recording seeds)."""
+TILT_DEG = 20.0
+"""The table's tilt [degrees] (about y; downhill is -x)."""
+TABLE_FRICTION = {"truth": 0.3, "start": 0.1, "bounds": [0.01, 2.0]}
+WIND = {"truth": [4.0, 0.0, 1.0], "start": [2.0, 1.0, 0.0]}
+"""The scene parameters: true values, the fits' starts, bounds [m/s or -]."""
+DROP_HEIGHT = 0.05
+"""The flat cloth's start above the table [m]."""
+TABLE_CAMERA_OFFSET = (-0.6, -1.2, 1.2)
+"""The camera's eye from the centre of the table motion's bounding box [m]: above the plane, on its downhill side."""
+WIND_CAMERA_OFFSET = (-2.4, 0.0, 0.3)
+"""The camera's eye from the centre of the hanging cloth's motion [m]: upwind of the sheet (in the y-z plane)."""
+
+
+def _rotation_y(deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def table_scene(material, friction: float):
+    """A 0.5 m square (12 x 12 cells) flat ``DROP_HEIGHT`` above a 3 m plane tilted ``TILT_DEG``; the model and the
+    plane's (name, vertices, triangles) for the camera's occlusion."""
+    rot = _rotation_y(TILT_DEG)
+    b = wc.ModelBuilder(gravity=S.GRAVITY)
+    b.add_obstacle_plane((3.0, 3.0), rot=rot)
+    b.add_cloth_grid((12, 12), (0.5, 0.5), material=material, rot=rot, pos=rot @ np.array([-0.25, -0.25,
+                                                                                            DROP_HEIGHT]))
+    b.set_collision(obstacle_friction=friction)
+    vertices, triangles = wc.plane_mesh((3.0, 3.0), (1, 1))
+    return b.finalize(None, requires_grad=True), ("table", np.asarray(vertices) @ rot.T, np.asarray(triangles))
+
+
+def wind_scene(material, wind):
+    """``scenes.hanging_cloth`` in a wind of ``wind`` [m/s]."""
+    model = S.hanging_cloth(material)
+    model.wind_velocity.assign(np.array([wind], dtype=np.float64))
+    return model, None
+
+
+def _scene(name, material, value):
+    return table_scene(material, value) if name == "friction" else wind_scene(material, value)
+
+
+def _set_start(name, model, start):
+    if name == "friction":
+        friction = model.contact_friction.numpy()
+        model.contact_friction.assign(np.array([friction[0], start]))
+    else:
+        model.wind_velocity.assign(np.array([start], dtype=np.float64))
+
+
+def _rel_err_pct(fitted, truth) -> float:
+    return 100.0 * float(np.linalg.norm(np.asarray(fitted) - truth) / np.linalg.norm(truth))
+
+
+def run_parameter(name: str, args) -> dict:
+    """One scene parameter's fits from point clouds, one per recording seed, with the material known."""
+    material = wc.preset("gray-interlock", thicken=S.THICKEN)
+    spec = TABLE_FRICTION if name == "friction" else WIND
+    key = "obstacle_friction" if name == "friction" else "wind"
+    truth = np.atleast_1d(np.asarray(spec["truth"], dtype=np.float64))
+    model, obstacle = _scene(name, material, spec["truth"])
+    frames = E.TrajectoryFit.simulate_targets(model, material, steps=args.steps)
+    x = np.concatenate(frames)
+    centre = 0.5 * (x.min(axis=0) + x.max(axis=0))
+    offset = TABLE_CAMERA_OFFSET if name == "friction" else WIND_CAMERA_OFFSET
+    camera = R.look_at(centre + np.array(offset), centre, **CAMERA)
+    obstacles = () if obstacle is None else (obstacle,)
+    rot = _rotation_y(TILT_DEG)
+    record = {"scene": name, "parameter": key, "truth": truth, "start": np.atleast_1d(spec["start"]),
+              "bounds": spec.get("bounds"), "frames": len(frames),
+              "camera": {"eye": camera.eye, "forward": camera.forward, **CAMERA},
+              "in_image": in_image(camera, frames),
+              "seen_fraction": seen_fraction(camera, frames, model.triangles_np, np.random.default_rng(12345))}
+    if name == "friction":  # how far the centre slid down the table
+        along = [(rot.T @ f.mean(axis=0))[0] for f in frames]
+        record["slide_m"] = float(along[0] - along[-1])
+    runs = []
+    for seed in range(args.seeds):
+        rng = np.random.default_rng(seed)
+        clouds = R.point_cloud_recording(frames, model.triangles_np, points=args.points, noise=NOISE, camera=camera,
+                                         drop=DROP, obstacles=obstacles, rng=rng)
+        fit_model, _ = _scene(name, material, spec["truth"])
+        _set_start(name, fit_model, spec["start"])
+        fit = E.TrajectoryFit(fit_model, PointCloudFrames(clouds), steps=args.steps, reference=frames)
+        t0 = time.perf_counter()
+        bounds = {key: spec["bounds"]} if spec.get("bounds") else None
+        result = E.estimate_material(fit, initial=material, free=[key], iters=args.param_iters, curriculum=None,
+                                     bounds=bounds)
+        fitted = np.asarray(result.parameters[key], dtype=np.float64)
+        run = {"seed": seed, "fitted": fitted, "rel_err_pct": _rel_err_pct(fitted, truth),
+               "start_rel_err_pct": _rel_err_pct(record["start"], truth),
+               "sim_err_pct": result.simulation_error_pct, "sim_err_pct_start": result.initial_simulation_error_pct,
+               "evaluations": len(result.losses), "seconds": time.perf_counter() - t0,
+               "diverged": len(result.diverged), "dropped_frames": [k for k, c in enumerate(clouds) if c is None]}
+        runs.append(run)
+        print(f"{name:8s} seed {seed}: {key} {np.array2string(fitted, precision=4)} (true "
+              f"{np.array2string(truth, precision=4)}): error {run['rel_err_pct']:.3g} %  sim err "
+              f"{run['sim_err_pct']:.3g} %  ({run['seconds']:.0f} s)", flush=True)
+    record["runs"] = runs
+    record["median_rel_err_pct"] = common.median([r["rel_err_pct"] for r in runs])
+    record["limit_pct"] = PARAMETER_LIMIT_PCT
+    record["met"] = bool(record["median_rel_err_pct"] <= PARAMETER_LIMIT_PCT)
+    return record
+
+
+def run_parameters(args) -> dict:
+    scenes = [run_parameter(name, args) for name in ("friction", "wind")]
+    print("\nscene parameters from point clouds (material known):")
+    for s in scenes:
+        print(f"  {s['scene']:8s} {s['parameter']:18s} median error {s['median_rel_err_pct']:.3g} % over "
+              f"{len(s['runs'])} seed(s) (limit {s['limit_pct']:g} %): {'met' if s['met'] else 'not met'}")
+    settings = {"optimizer": "lbfgs", "curriculum": None, "iters": args.param_iters, "seeds": args.seeds,
+                "steps": args.steps, "dt": E.DT, "frame_stride": E.FRAME_STRIDE, "points": args.points,
+                "noise_m": NOISE, "drop": DROP, "material": "gray-interlock", "tilt_deg": TILT_DEG,
+                "drop_height_m": DROP_HEIGHT, "table_camera_offset_m": TABLE_CAMERA_OFFSET,
+                "wind_camera_offset_m": WIND_CAMERA_OFFSET, "camera": CAMERA}
+    return {"settings": settings, "scenes": scenes}
+
+
+# -- a start shape unknown -----------------------------------------------------------------------------------------
+START_FRAME = 10
+"""The seed frame the start part starts from (the cloth draped and moving): the truth is the seed's frames from it."""
+START_LIMIT = 2.0
+"""Target: the fit from point clouds alone within this many times the fit given the start (simulation error)."""
+START_FIGURES = ("sim_err_pct", "density_err_pct", "stretch_linear_err_pct", "seconds")
+
+
+START_KINDS = ("given", "alone", "both_ways")
+"""The start part's fits: given the true start; from the point clouds alone (``registered_start``); and, a diagnostic
+outside the target, alone with the non-rigid registration run both ways from the scene's placement (no rigid step)."""
+
+
+def registration(files, frames, clouds, targets, kind: str) -> tuple[np.ndarray, dict]:
+    """The start registered on cloud 0 (``kind`` "alone": ``estimation.registered_start``; "both_ways":
+    ``register_nonrigid`` both ways from the scene's placement) and its distances from the true start (frame 0) and
+    of its handles from the scene's handle ``targets``."""
+    model = S.hanging_cloth(E.initial_guess(), mesh_path=files[0], lagged_normals=True, self_collision=True)
+    if kind == "alone":
+        positions = E.registered_start(model, clouds[0])
+    else:
+        positions = register_nonrigid(mesh_io.load_obj(files[0]).positions, model.triangles_np, clouds[0],
+                                      rigid=(np.eye(3), np.zeros(3), 0.0), both_ways=True, polish=10).positions
+    held = model.handle_particle.numpy()
+    gap = np.linalg.norm(positions - frames[0], axis=1)
+    return positions, {"registration_err_mean_m": float(gap.mean()), "registration_err_max_m": float(gap.max()),
+                       "handle_err_m": gap[held],
+                       "handle_target_shift_m": np.linalg.norm(positions[held] - targets, axis=1)}
+
+
+def start_fit(files, frames, clouds, truth, args, start=None, positions=None) -> dict:
+    """One fit of the material from point clouds ``clouds`` (frame 0: the start frame), its errors against the seed's
+    vertex frames ``frames``: given ``start``, the true (positions, velocities), with the scene's handles; else from
+    the registered ``positions`` (``place_start``: the handles' targets move with it), ``start_velocity`` free from
+    zero."""
+    model = S.hanging_cloth(E.initial_guess(), mesh_path=files[0], lagged_normals=True, self_collision=True)
+    free = list(E.MATERIAL_PARTS)
+    if start is None:
+        E.place_start(model, positions)
+        free.append("start_velocity")
+    else:
+        model.particle_x0.assign(start[0].astype(model.particle_x0.numpy().dtype))
+        model.particle_v0.assign(start[1].astype(model.particle_v0.numpy().dtype))
+    fit = E.TrajectoryFit(model, PointCloudFrames(clouds), steps=args.steps, reference=frames)
+    result = E.estimate_material(fit, optimizer=args.optimizer, iters=args.iters, free=free)
+    errors = E.parameter_errors(result.material, truth)
+    run = {"sim_err_pct": result.simulation_error_pct, "sim_err_pct_start": result.initial_simulation_error_pct,
+           "density_err_pct": errors["density_err_pct"], "stretch_linear_err_pct": errors["stretch_linear_err_pct"],
+           "bending_err_pct": errors["bending_err_pct"], "evaluations": len(result.losses),
+           "seconds": result.seconds, "diverged": len(result.diverged)}
+    if start is None:
+        run["start_velocity"] = np.asarray(result.parameters["start_velocity"], dtype=np.float64)
+    return run
+
+
+def run_start_sequence(short: str, args) -> dict:
+    """The start part on one seed sequence: per recording seed, each of ``START_KINDS``."""
+    name = SEED_TARGETS[short]
+    truth = wc.preset(name, thicken=S.THICKEN)
+    files = wc.obj_sequence_files(common.seed_dir() / "targets" / short)
+    frames = [np.asarray(f, dtype=np.float64) for f in wc.load_obj_sequence(files)]
+    k = args.start_frame
+    if k < 1 or k + args.steps // E.FRAME_STRIDE >= len(frames):
+        raise SystemExit(f"--start-frame {k} with --steps {args.steps}: the seed's {short} has {len(frames)} frames")
+    recorded = frames[k: k + args.steps // E.FRAME_STRIDE + 1]
+    velocities = np.asarray(mesh_io.load_obj(files[k]).velocities, dtype=np.float64)  # the seed's own (nv lines)
+    model = S.hanging_cloth(E.initial_guess(), mesh_path=files[0], lagged_normals=True, self_collision=True)
+    held = model.handle_particle.numpy()
+    targets = np.asarray(model.handle_rest_target, dtype=np.float64).copy()  # one per handle
+    camera = camera_for(recorded)
+    central = (frames[k + 1] - frames[k - 1]) / (2 * E.DT * E.FRAME_STRIDE)
+    record = {"target": short, "material": name, "start_frame": k, "frames": len(recorded),
+              "moved_from_frame0_m": float(np.linalg.norm(recorded[0] - frames[0], axis=1).mean()),
+              "true_mean_velocity": velocities.mean(axis=0),
+              "velocity_rms": float(np.sqrt((velocities ** 2).sum(axis=1).mean())),
+              "velocity_vs_central_difference_rms": float(np.sqrt(((velocities - central) ** 2).sum(axis=1).mean())),
+              "handles": held, "handle_sag_m": np.linalg.norm(recorded[0][held] - targets, axis=1),
+              "in_image": in_image(camera, recorded)}
+    runs = {kind: [] for kind in START_KINDS}
+    for seed in range(args.seeds):
+        clouds = R.point_cloud_recording(recorded, model.triangles_np, points=args.points, noise=NOISE,
+                                         camera=camera, drop=DROP, rng=np.random.default_rng(seed))
+        for kind in START_KINDS:
+            t0 = time.perf_counter()
+            if kind == "given":
+                run, more = start_fit(files, recorded, clouds, truth, args, start=(recorded[0], velocities)), ""
+            else:
+                positions, placed = registration(files, recorded, clouds, targets, kind)
+                run = {**start_fit(files, recorded, clouds, truth, args, positions=positions), **placed}
+                more = (f"  registered: mean {placed['registration_err_mean_m'] * 100:.3g} cm, handles "
+                        f"{np.array2string(placed['handle_err_m'] * 100, precision=3)} cm")
+            run["seed"] = seed
+            runs[kind].append(run)
+            print(f"{short:6s} start {kind:9s} seed {seed}: sim err {run['sim_err_pct']:.3g} %  density "
+                  f"{run['density_err_pct']:.3g} %{more}  ({time.perf_counter() - t0:.0f} s)", flush=True)
+    for kind, rs in runs.items():
+        record[kind] = {"runs": rs, "median": {key: common.median([r[key] for r in rs]) for key in START_FIGURES}}
+    record["targets"] = {key: {"ratio": r, "limit": START_LIMIT, "met": bool(r <= START_LIMIT)}
+                         for key in ("sim_err_pct", "density_err_pct")
+                         for r in [ratio(record["alone"]["median"][key], record["given"]["median"][key])]}
+    record["both_ways_ratios"] = {key: ratio(record["both_ways"]["median"][key], record["given"]["median"][key])
+                                  for key in ("sim_err_pct", "density_err_pct")}
+    return record
+
+
+def run_start(args, write=None) -> dict:
+    """The start part: every chosen sequence; ``write(part)`` after each (so a cut-short run keeps what it did)."""
+    shorts = list(SEED_TARGETS) if args.sequences == "all" else args.sequences.split(",")
+    settings = {"optimizer": args.optimizer, "iters": args.iters, "seeds": args.seeds, "steps": args.steps,
+                "start_frame": args.start_frame, "dt": E.DT, "frame_stride": E.FRAME_STRIDE, "points": args.points,
+                "noise_m": NOISE, "drop": DROP, "camera_offset_m": CAMERA_OFFSET, "camera": CAMERA,
+                "limit": START_LIMIT, "lagged_normals": True, "self_collision": True,
+                "given": "the seed's vertices and velocities (its OBJ nv lines) at the start frame; the scene's "
+                         "handles",
+                "alone": "estimation.registered_start on the start frame's cloud, place_start (the handles' targets "
+                         "moved with it), start_velocity free from zero",
+                "both_ways": "as alone, registered by register_nonrigid both ways from the scene's placement (no "
+                             "rigid step): a diagnostic outside the target"}
+    part = {"settings": settings, "sequences": []}
+    for short in shorts:
+        part["sequences"].append(run_start_sequence(short, args))
+        part["targets"] = {key: all(s["targets"][key]["met"] for s in part["sequences"])
+                           for key in ("sim_err_pct", "density_err_pct")}
+        if write is not None:
+            write(part)
+    print(f"\nthe start unknown (from seed frame {args.start_frame}): point clouds alone over given the start "
+          "(medians over the recording seeds)")
+    for s in part["sequences"]:
+        for key, t in s["targets"].items():
+            print(f"  {s['target']:6s} {key:16s} alone {s['alone']['median'][key]:.3g}  given "
+                  f"{s['given']['median'][key]:.3g}  {t['ratio']:6.2f}x  (limit {t['limit']}x): "
+                  f"{'met' if t['met'] else 'not met'}")
+        print(f"  {s['target']:6s} the diagnostic (registered both ways) over given the start: " + ", ".join(
+            f"{key} {r:.2f}x" for key, r in s["both_ways_ratios"].items()))
+    return part
+
+
+def run_sequences(args) -> dict:
     shorts = list(SEED_TARGETS) if args.sequences == "all" else args.sequences.split(",")
     unknown = [s for s in shorts if s not in SEED_TARGETS]
     if unknown:
@@ -241,7 +530,65 @@ def main():
                 "markers": args.markers, "hidden": HIDDEN, "camera_offset_m": CAMERA_OFFSET, "camera": CAMERA,
                 "lagged_normals": True, "self_collision": True}
     summary = {key: all(s["targets"][key]["met"] for s in sequences) for key in sequences[0]["targets"]}
-    common.write_result(args, {"settings": settings, "sequences": sequences, "targets": summary})
+    return {"settings": settings, "sequences": sequences, "targets": summary}
+
+
+def jsonable(obj):
+    """``obj`` with arrays as lists and non-finite floats as None (strict JSON), as common.write_result writes."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    return None if isinstance(obj, float) and not math.isfinite(obj) else obj
+
+
+def main():
+    args = common.parse_args(__doc__, iters=150, seeds=3, sequences="all", optimizer="lbfgs", steps=E.STEPS,
+                             points=2000, markers=12, parts="all", param_iters=20, start_frame=START_FRAME,
+                             quick={"iters": 2, "seeds": 1, "sequences": "gray", "steps": 4, "points": 200,
+                                    "param_iters": 2})
+    parts = list(PARTS) if args.parts == "all" else args.parts.split(",")
+    unknown = [p for p in parts if p not in PARTS]
+    if unknown or not parts:
+        raise SystemExit(f"--parts: unknown {unknown}; choose all or some of {', '.join(PARTS)}")
+    info = common.machine_info()
+    common.print_machine(info)
+    path = Path(args.out)
+    old = json.loads(path.read_text()) if path.exists() and set(parts) != set(PARTS) else {}
+    if old and "sequences" not in parts and old.get("meta", {}).get("quick", args.quick) != args.quick:
+        raise SystemExit(f"--parts {args.parts}: {path} holds a {'--quick' if old['meta']['quick'] else 'full'} run; "
+                         "this run is not: write elsewhere with --out")
+    data = {}
+
+    def write_parts(done: dict) -> None:
+        # the parts run now (each but the sequences with its own meta); the others as the file at --out holds them
+        if "sequences" in parts:
+            kept = {k: old[k] for k in PARTS[1:] if k in old and k not in parts}
+            common.write_result(args, {**done, **kept})
+            return
+        merged = {**old, **done} if old else {"meta": next(iter(done.values()))["meta"], **done}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(jsonable(merged), indent=2) + "\n")
+        print(f"\nwrote {path}: the {', '.join(parts)} part(s) (own meta); the rest as it was", flush=True)
+
+    if "sequences" in parts:
+        data.update(run_sequences(args))
+    if "parameters" in parts:
+        data["parameters"] = run_parameters(args)
+        data["parameters"]["meta"] = common.run_metadata(args)  # this part's own run
+    if "start" in parts:
+        def partial(part):
+            part["meta"] = common.run_metadata(args)
+            if parts == ["start"]:
+                write_parts({**data, "start": part})
+
+        data["start"] = run_start(args, partial)
+        data["start"]["meta"] = common.run_metadata(args)
+    write_parts(data)
 
 
 if __name__ == "__main__":
