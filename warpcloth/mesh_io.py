@@ -395,8 +395,8 @@ def grid_mesh(res_x: int, res_y: int, size_x: float, size_y: float) -> TriangleM
     return TriangleMesh(positions=positions, triangles=triangles, tri_uv=tri_uv)
 
 
-def _natural_key(name: str) -> list:
-    # digit runs compared as numbers: 2.obj before 10.obj
+def natural_key(name: str) -> list:
+    """The sort key of a frame file's name: digit runs compared as numbers (``2.obj`` before ``10.obj``)."""
     return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name)]
 
 
@@ -405,7 +405,7 @@ def obj_sequence_files(directory: str | os.PathLike) -> list[Path]:
     (2.obj before 10.obj). ValueError for a missing directory or fewer than two files."""
     if not Path(directory).is_dir():
         raise ValueError(f"sequence directory {str(directory)!r} does not exist")
-    files = sorted(Path(directory).glob("*.obj"), key=lambda f: _natural_key(f.name))
+    files = sorted(Path(directory).glob("*.obj"), key=lambda f: natural_key(f.name))
     if len(files) < 2:
         raise ValueError(f"sequence directory {str(directory)!r} holds {len(files)} .obj files; need >= 2")
     return files

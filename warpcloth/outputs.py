@@ -60,3 +60,26 @@ def check_triangles(triangles, vertex_count: int, what: str) -> np.ndarray:
         t = int(bad[0][0])
         raise ValueError(f"{what}: triangle {t} {tris[t].tolist()} has an index out of range [0, {vertex_count})")
     return tris.astype(np.int32)
+
+
+def check_geometry(triangles, frames, obstacles, what: str, *, static: bool = False):
+    """The cloth's checked triangles, ``frames``, and each obstacle ``(name, vertices, triangles)`` checked as
+    ``(vertices, triangles)``: vertices (M, 3), or (F, M, 3) one per frame unless ``static``. ValueError naming
+    ``what`` and the obstacle."""
+    tris = check_triangles(triangles, frames[0].shape[0], f"{what} cloth")
+    checked = []
+    for k, obstacle in enumerate(obstacles):
+        if len(obstacle) != 3:
+            raise ValueError(f"{what}: obstacle {k} must be (name, vertices, triangles)")
+        name, verts, otris = obstacle
+        verts = np.asarray(verts, dtype=np.float64)
+        if verts.ndim not in (2, 3) or verts.shape[-1] != 3 or (static and verts.ndim != 2):
+            shapes = "(M, 3)" if static else "(M, 3) or (F, M, 3)"
+            raise ValueError(f"{what}: obstacle {name!r} vertices must have shape {shapes}, got {verts.shape}")
+        if verts.ndim == 3 and verts.shape[0] != len(frames):
+            raise ValueError(f"{what}: obstacle {name!r} has {verts.shape[0]} frames of vertices, the cloth "
+                             f"has {len(frames)}; time-sampled obstacles need one per cloth frame")
+        if not np.all(np.isfinite(verts)):
+            raise ValueError(f"{what}: obstacle {name!r} has non-finite vertices")
+        checked.append((verts, check_triangles(otris, verts.shape[-2], f"{what} obstacle {name!r}")))
+    return tris, frames, checked

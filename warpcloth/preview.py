@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from warpcloth.kernels.render import ray_cast
-from warpcloth.outputs import PREVIEW_SUFFIXES, check_frames, check_triangles, prepare_output_path
+from warpcloth.outputs import PREVIEW_SUFFIXES, check_frames, check_geometry, prepare_output_path
 
 __all__ = ["PREVIEW_FRAMES", "Camera", "check_preview_path", "preview_frame_indices", "render_frame", "write_preview"]
 
@@ -182,7 +182,7 @@ def render_frame(triangles: np.ndarray, positions: np.ndarray,
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
         raise ValueError(f"render_frame: samples must be an integer >= 1, got {samples!r}")
     frames = check_frames([positions], "render_frame")
-    tris, frames, checked = _checked_geometry(triangles, frames, obstacles, "render_frame")
+    tris, frames, checked = check_geometry(triangles, frames, obstacles, "render_frame", static=True)
     renderer = _Renderer(tris, len(frames[0]), checked, device)
     points = renderer.points_at(frames[0], 0)
     if camera is None:
@@ -217,26 +217,6 @@ def preview_frame_indices(frame_count: int, max_frames: int) -> np.ndarray:
     return np.rint(np.linspace(0, frame_count - 1, n)).astype(np.int64)
 
 
-def _checked_geometry(triangles, frames, obstacles, what):
-    tris = check_triangles(triangles, frames[0].shape[0], f"{what} cloth")
-    checked = []
-    for k, obstacle in enumerate(obstacles):
-        if len(obstacle) != 3:
-            raise ValueError(f"{what}: obstacle {k} must be (name, vertices, triangles)")
-        name, verts, otris = obstacle
-        verts = np.asarray(verts, dtype=np.float64)
-        if verts.ndim not in (2, 3) or verts.shape[-1] != 3 or (what == "render_frame" and verts.ndim != 2):
-            shapes = "(M, 3)" if what == "render_frame" else "(M, 3) or (F, M, 3)"
-            raise ValueError(f"{what}: obstacle {name!r} vertices must have shape {shapes}, got {verts.shape}")
-        if verts.ndim == 3 and verts.shape[0] != len(frames):
-            raise ValueError(f"{what}: obstacle {name!r} has {verts.shape[0]} frames of vertices, the cloth "
-                             f"has {len(frames)}; time-sampled obstacles need one per cloth frame")
-        if not np.all(np.isfinite(verts)):
-            raise ValueError(f"{what}: obstacle {name!r} has non-finite vertices")
-        checked.append((verts, check_triangles(otris, verts.shape[-2], f"{what} obstacle {name!r}")))
-    return tris, frames, checked
-
-
 def _checked(triangles, frames, fps, obstacles, max_frames, kind):
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
         raise ValueError(f"write_preview: fps must be a finite number > 0, got {fps!r}")
@@ -245,7 +225,7 @@ def _checked(triangles, frames, fps, obstacles, max_frames, kind):
     if isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1:
         raise ValueError(f"write_preview: max_frames must be an integer >= 1, got {max_frames!r}")
     frames = check_frames(frames, "write_preview")
-    tris, frames, checked = _checked_geometry(triangles, frames, obstacles, "write_preview")
+    tris, frames, checked = check_geometry(triangles, frames, obstacles, "write_preview")
     return tris, frames, checked, int(max_frames)
 
 

@@ -17,9 +17,9 @@ import numpy as np
 import warp as wp
 
 from warpcloth.kernels.recordings import unoccluded
-from warpcloth.mesh_io import _natural_key
-from warpcloth.outputs import check_frames, check_triangles
-from warpcloth.preview import Camera, _checked_geometry
+from warpcloth.mesh_io import natural_key
+from warpcloth.outputs import check_frames, check_geometry, check_triangles
+from warpcloth.preview import Camera
 
 __all__ = ["MarkerRecording", "check_markers", "look_at", "marker_recording", "point_cloud_recording",
            "read_markers", "read_point_clouds", "sample_surface", "visible", "write_markers", "write_point_clouds"]
@@ -189,7 +189,7 @@ def visible(points, positions, triangles, camera: Camera, *, obstacles=(), toler
     point, position, triangle, obstacle, camera or tolerance."""
     what = "visible"
     p = _points(points, what)
-    tris, frames, checked = _checked_geometry(triangles, check_frames([positions], what), obstacles, what)
+    tris, frames, checked = check_geometry(triangles, check_frames([positions], what), obstacles, what)
     if len(tris) == 0:
         raise ValueError(f"{what}: the cloth has no triangles")
     tolerance = _tolerance(tolerance, what)
@@ -207,7 +207,7 @@ def point_cloud_recording(trajectory_frames, triangles, *, points: int = 2000, n
     frame 0 (the start is always recorded) are dropped. Returns F entries, (points, 3) float64 arrays or None
     (dropped). ValueError naming a bad frame, triangle, obstacle or argument, or a frame the camera sees none of."""
     what = "point_cloud_recording"
-    tris, frames, checked = _checked_geometry(triangles, check_frames(trajectory_frames, what), obstacles, what)
+    tris, frames, checked = check_geometry(triangles, check_frames(trajectory_frames, what), obstacles, what)
     count, rng = _integer(points, "points", what), _rng(rng, what)
     noise, drop = _number(noise, "noise", what, 0.0), _number(drop, "drop", what, 0.0, 1.0)
     tolerance = _tolerance(tolerance, what)
@@ -428,7 +428,7 @@ def _cloud_files(directory, what):
     if not d.is_dir():
         raise ValueError(f"{what}: {str(directory)!r} is not a directory")
     files = sorted((f for f in d.iterdir() if f.suffix.lower() in (*POINT_CLOUD_SUFFIXES, ".obj")),
-                   key=lambda f: _natural_key(f.name))
+                   key=lambda f: natural_key(f.name))
     return d, files
 
 
