@@ -335,6 +335,8 @@ def implicit_kernels(scalar):
         handle_particle: wp.array(dtype=wp.int32),
         handle_stiffness: wp.array(dtype=scalar),
         particle_diag_slot: wp.array(dtype=wp.int32),
+        # Model at the step's end: 1 or 0 for each handle (a gripper's grasp and release); empty: all hold
+        handle_active: wp.array(dtype=scalar),
         # State in:
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
@@ -350,6 +352,8 @@ def implicit_kernels(scalar):
         h = wp.tid()
         p = handle_particle[h]
         k = handle_stiffness[h]
+        if handle_active.shape[0] > 0:
+            k = k * handle_active[h]
         c = x[p] - (handle_target[h] + handle_offset[h])
         wp.atomic_add(values, particle_diag_slot[p], (dt * dt * k) * wp.identity(n=3, dtype=scalar))
         wp.atomic_sub(rhs, p, (dt * k) * (c + dt * v[p]))

@@ -109,17 +109,24 @@ def loss_kernels(scalar):
         particles: wp.array(dtype=wp.int32),
         first: wp.array(dtype=wp.int32),
         scale: scalar,
+        bound: scalar,
         # out:
         force: wp.array(dtype=vec3),
     ):
-        """force[first[w] + particles[j]] = scale push[(w blocks + block) m + j], m = len(particles): block
+        """force[first[w] + particles[j]] = scale a(push[(w blocks + block) m + j]), m = len(particles): block
         ``block`` of world w's ``blocks`` blocks of pushes (one per particle) as forces on those particles of world
-        w; one thread per world and particle of ``particles``."""
+        w; one thread per world and particle of ``particles``. a(p) = p where ``bound`` <= 0, else
+        ``bound tanh(|p| / bound) p / |p|``: shorter than ``bound``, and p itself to first order."""
         t = wp.tid()
         m = particles.shape[0]
         w = t / m
         j = t - w * m
-        force[first[w] + particles[j]] = scale * push[(w * blocks + block) * m + j]
+        p = push[(w * blocks + block) * m + j]
+        if bound > scalar(0.0):
+            r = wp.length(p)
+            if r > bound * scalar(1.0e-6):  # below, tanh(x) / x = 1 to 1e-13
+                p = p * (bound * wp.tanh(r / bound) / r)
+        force[first[w] + particles[j]] = scale * p
 
     @wp.kernel
     def store_frame(

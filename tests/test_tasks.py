@@ -111,6 +111,32 @@ def test_control_gradient_matches_central_differences_for_every_push(tmp_path, k
     assert np.all(grad != 0.0)
 
 
+
+def test_a_push_bound_keeps_every_push_within_it_and_its_gradient_matches_central_differences(tmp_path):
+    from warpcloth.tasks.control import scene_task_args
+
+    scene = wc.load_scene(small_scene(tmp_path, CONTROL.format(loss="{ com = [0.1, 0.0, -0.3] }", reg=0.0, more="")))
+    args = scene_task_args(scene)
+    def model():
+        return scene.finalize(device="cpu", requires_grad=True, dtype=wp.float64)
+
+    bounded, free = ControlTask(model(), **{**args, "push_bound": 3.0}), ControlTask(model(), **args)
+    params = np.random.default_rng(2).normal(scale=4.0, size=bounded.n_params)  # some pushes past the bound
+    applied = bounded.applied_pushes(params)
+    lengths = np.linalg.norm(applied, axis=-1)
+    assert np.all(lengths < 3.0) and np.any(np.linalg.norm(params.reshape(applied.shape), axis=-1) > 3.0)
+    assert np.allclose(bounded.applied_pushes(1e-3 * params), 1e-3 * params.reshape(applied.shape), rtol=1e-4)
+    value, grad, _ = bounded.loss_and_grad(params)
+    assert value == pytest.approx(free.loss_and_grad(applied)[0], rel=1e-12)  # the bound acts through the pushes
+    for k in range(bounded.n_params):
+        for eps in (1e-4, 1e-5):
+            e = np.zeros(bounded.n_params)
+            e[k] = eps
+            fd = (bounded.loss_and_grad(params + e)[0] - bounded.loss_and_grad(params - e)[0]) / (2 * eps)
+            assert grad[k] == pytest.approx(fd, rel=1e-5, abs=1e-12), (k, eps)
+    with pytest.raises(ValueError, match="push_bound"):
+        ControlTask(free.model, **{**args, "push_bound": -1.0})
+
 FREE_FLIGHT = """
 name = "free-flight"
 [sim]
@@ -245,6 +271,8 @@ BAD_CONTROL = [
      r"control.iters: expected an integer, got string"),
     ("particles = [5]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }",
      r"control.particles\[0\]: particle 5 is pinned by pins\[0\]"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\npush_bound = 0.0",
+     r"control.push_bound: must be > 0"),
 ]
 BAD_ESTIMATE = [
     ("free = ['density', 'windy']", r"estimate.free\[1\]: unknown value 'windy'; one of: density, stretching, bending"),

@@ -6,6 +6,7 @@ from warpcloth import _source_tree  # noqa: F401
 from warpcloth.builder import ModelBuilder
 from warpcloth.errors import CollisionError, ContactCapacityError, SimulationError
 from warpcloth.geometry.primitives import box_mesh, funnel_mesh, plane_mesh, sphere_mesh
+from warpcloth.grippers import Gripper
 from warpcloth.materials import PRESET_NAMES, Material, load_material_json, mean_material, preset
 from warpcloth.mesh_io import TriangleMesh, grid_mesh, load_obj, load_obj_sequence, load_usd_mesh, obj_sequence_files
 from warpcloth.model import CollisionSettings, Control, Model, State
@@ -53,6 +54,7 @@ __all__ = [
     "CollisionSettings",
     "ContactCapacityError",
     "Control",
+    "Gripper",
     "LinearSolver",
     "Material",
     "Model",

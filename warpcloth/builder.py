@@ -106,7 +106,8 @@ class ModelBuilder:
         self._rest_angle_initial: list[bool] = []
         self._materials: list[Material] = []
         self._particle_count = 0
-        self._handles: list[tuple[int, float, Motion | None]] = []
+        self._handles: list[tuple[int, float, Motion | None, tuple[float, float] | None]] = []
+        self._grippers: list = []  # warpcloth.grippers.Gripper, in the order added
         self._pins: list[tuple[int, Motion | None]] = []
         self.wind: tuple[np.ndarray, float, float] | None = None
         self.wind_lagged_normals = False
@@ -176,7 +177,9 @@ class ModelBuilder:
         self._tri_uv += [uv.copy() for uv in builder._tri_uv]
         self._tri_material += [np.asarray(materials, dtype=np.int32)[m] for m in builder._tri_material]
         self._rest_angle_initial += builder._rest_angle_initial
-        self._handles += [(p + offset, k, motion) for p, k, motion in builder._handles]
+        self._handles += [(p + offset, k, motion, window) for p, k, motion, window in builder._handles]
+        self._grippers += [dataclasses.replace(g, particles=tuple(p + offset for p in g.particles))
+                           for g in builder._grippers]
         self._pins += [(p + offset, motion) for p, motion in builder._pins]
         starts = [s.first_obstacle for s in sources] + [len(builder._obstacles)]
         for w in range(len(sources)):
@@ -347,18 +350,55 @@ class ModelBuilder:
             raise ValueError(f"{what}: particle {particle} out of range [0, {self._particle_count})")
         return p
 
-    def add_handle(self, particle: int, *, stiffness: float = DEFAULT_HANDLE_STIFFNESS, motion=None) -> int:
+    def add_handle(self, particle: int, *, stiffness: float = DEFAULT_HANDLE_STIFFNESS, motion=None,
+                   window: tuple[float, float] | None = None) -> int:
         """Hold ``particle`` by a spring ``1/2 k |x - target|^2`` (``k`` [N/m]) to its initial position plus
-        ``Control.handle_target``'s change and ``motion`` (``(time [s], (dx, dy, dz) [m])`` keys); returns its index."""
+        ``Control.handle_target``'s change and ``motion`` (``(time [s], (dx, dy, dz) [m])`` keys, or an object with
+        ``at(t) -> offset``); ``window`` (on, off) [s]: it holds in the steps that end in (on, off] only. Returns its
+        index."""
         self._check_own("add_handle")
         p = self._check_particle("add_handle", particle)
-        if any(q == p for q, _, _ in self._handles):
+        if any(h[0] == p for h in self._handles):
             raise ValueError(f"particle {p} has a handle already")
         k = float(stiffness)
         if not math.isfinite(k) or k < 0.0:
             raise ValueError(f"handle on particle {p}: stiffness must be finite and >= 0, got {stiffness}")
-        self._handles.append((p, k, _motion(f"handle on particle {p}", motion)))
+        if window is not None:
+            on, off = (float(w) for w in window)
+            if math.isnan(on) or math.isnan(off) or not off > on:
+                raise ValueError(f"handle on particle {p}: window (on, off) must have off > on, got {window}")
+            window = (on, off)
+        if motion is not None and callable(getattr(motion, "at", None)) and not isinstance(motion, Motion):
+            self._handles.append((p, k, motion, window))
+        else:
+            self._handles.append((p, k, _motion(f"handle on particle {p}", motion), window))
         return len(self._handles) - 1
+
+    def add_gripper(self, gripper) -> list[int]:
+        """Hold a :class:`warpcloth.grippers.Gripper`'s particles by handles of its stiffness, on between its grasp
+        and release, their scripted motion its knots'; returns the handles' indices.
+
+        Raises:
+            ValueError: a particle the cloth lacks, or one another gripper or handle holds already (naming them)."""
+        from warpcloth.grippers import Gripper, GripperMotion
+
+        self._check_own("add_gripper")
+        if not isinstance(gripper, Gripper):
+            raise TypeError(f"add_gripper: expected a warpcloth.grippers.Gripper, got {type(gripper).__name__}")
+        held = {p: g.name for g in self._grippers for p in g.particles}
+        for p in gripper.particles:
+            if not _is_integer(p) or not 0 <= p < self._particle_count:
+                raise ValueError(f"{gripper.name}: particle {p} out of range: the cloth has {self._particle_count} "
+                                 "particles")
+            if p in held:
+                raise ValueError(f"{gripper.name}: particle {p} is held by {held[p]} already")
+            if any(h[0] == p for h in self._handles):
+                raise ValueError(f"{gripper.name}: particle {p} has a handle already")
+        x0 = np.concatenate(self._positions)[list(gripper.particles)]
+        handles = [self.add_handle(p, stiffness=gripper.stiffness, motion=GripperMotion(gripper, x0, j),
+                                   window=(gripper.grasp, gripper.release)) for j, p in enumerate(gripper.particles)]
+        self._grippers.append(gripper)
+        return handles
 
     def add_pin(self, particle: int, *, motion=None) -> int:
         """Fix ``particle`` exactly to a target (its velocity is prescribed); ``motion`` as in :meth:`add_handle`."""
@@ -552,7 +592,7 @@ class ModelBuilder:
         pin_of = np.full(n, -1, dtype=np.int32)
         for q, (p, _) in enumerate(self._pins):
             pin_of[p] = q
-        for p, _, _ in self._handles:
+        for p, *_ in self._handles:
             if pin_of[p] >= 0:
                 raise ValueError(f"particle {p} has both a hard pin and a soft handle; keep one")
 
@@ -624,6 +664,9 @@ class ModelBuilder:
             handle_stiffness=arr(np.array([h[1] for h in self._handles]), scalar, True),
             handle_rest_target=positions[[h[0] for h in self._handles]].reshape(-1, 3),
             handle_motion=[h[2] for h in self._handles],
+            handle_window=(None if all(h[3] is None for h in self._handles) else
+                           np.array([h[3] or (-math.inf, math.inf) for h in self._handles], dtype=np.float64)),
+            grippers=list(self._grippers),
             pin_count=len(self._pins),
             pin_particle=arr(np.array([p[0] for p in self._pins], dtype=np.int32), wp.int32),
             pin_rest_target=positions[[p[0] for p in self._pins]].reshape(-1, 3),

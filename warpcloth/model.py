@@ -273,6 +273,10 @@ class Model:
     """Host copy of obstacle_tri_indices, for I/O [-], (obstacle_tri_count, 3) int32."""
     obstacle_world: np.ndarray | None = field(repr=False, default=None)
     """World of each obstacle [-], (obstacle_count,) int32 (host)."""
+    handle_window: np.ndarray | None = None
+    """When each handle holds [s], (handle_count, 2) (host): in the steps that end in (on, off]; None: always."""
+    grippers: list = field(default_factory=list)
+    """The grippers (:class:`warpcloth.grippers.Gripper`) whose handles the model holds [-], (gripper_count,) (host)."""
 
     @property
     def types(self):

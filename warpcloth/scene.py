@@ -36,7 +36,7 @@ from warpcloth._toml_fields import (
 )
 from warpcloth.builder import DEFAULT_HANDLE_STIFFNESS
 from warpcloth.geometry.transforms import QUAT_UNIT_TOL
-from warpcloth.tasks.specs import ControlSpec, EstimateSpec, parse_control, parse_estimate
+from warpcloth.tasks.specs import ControlSpec, EstimateSpec, GripperControlSpec, parse_control, parse_estimate
 
 __all__ = ["DEFAULT_SCENE", "SCENE_NAMES", "Scene", "load_scene", "scene_from_toml"]
 
@@ -76,7 +76,7 @@ class Scene:
     grid_res: tuple[int, int] | None = None
     max_dt: float | None = None
     cloth_material: _materials.Material | None = None
-    control: ControlSpec | None = None
+    control: ControlSpec | GripperControlSpec | None = None
     estimate: EstimateSpec | None = None
 
     MAX_FRAME_BYTES = 4 * 2**30
@@ -199,8 +199,8 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         data,
         "",
         (
-            "name", "description", "gravity", "sim", "solver", "cloth", "handles", "pins", "wind", "damping",
-            "obstacles", "collision", "control", "estimate",
+            "name", "description", "gravity", "sim", "solver", "cloth", "handles", "pins", "grippers", "wind",
+            "damping", "obstacles", "collision", "control", "estimate",
         ),
         required=("name", "sim", "cloth"),
     )
@@ -229,6 +229,12 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         for k, entry in enumerate(entries):
             path = f"{kind}[{k}]"
             _parse_attachment(builder, kind, path, _table(entry, path), first, count, grid_res, attached)
+
+    grippers = data.get("grippers", [])
+    if not isinstance(grippers, list):
+        raise _err("grippers", f"expected an array of tables ([[grippers]]), got {_type_name(grippers)}")
+    for k, entry in enumerate(grippers):
+        _parse_gripper(builder, f"grippers[{k}]", _table(entry, f"grippers[{k}]"), first, count, grid_res, attached)
 
     if "wind" in data:
         wind = _table(data["wind"], "wind")
@@ -273,6 +279,8 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
     if "control" in data:
         control = parse_control(_table(data["control"], "control"), dt, steps, first, count, grid_res, attached,
                                 base_dir)
+        if isinstance(control, GripperControlSpec) and not grippers:
+            raise _err("control.controls", "'grippers' moves the scene's grippers, and it has no [[grippers]] table")
     if "estimate" in data:
         estimate = parse_estimate(_table(data["estimate"], "estimate"), steps, count, cloth_material, base_dir)
 
@@ -454,6 +462,78 @@ def _parse_attachment(
                 builder.add_handle(first + p, stiffness=stiffness, motion=motion)
             else:
                 builder.add_pin(first + p, motion=motion)
+
+
+_GRIPPER_LIMITS = ("max_speed", "max_acceleration", "max_yaw_rate", "max_yaw_acceleration", "stiffness")
+
+
+def _parse_gripper(builder, path: str, entry: dict, first: int, count: int, grid_res, attached: dict[int, str]) -> None:
+    """A ``[[grippers]]`` table: the held particles (one selector), grasp, release, knots and limits."""
+    from warpcloth.grippers import Gripper
+
+    selectors = ("particles", "grid_vertices", "grid_row", "grid_column")
+    _check_keys(entry, path, ("name", "grasp", "release", "knots") + selectors + _GRIPPER_LIMITS,
+                required=("knots",))
+    given = [key for key in selectors if key in entry]
+    if len(given) != 1:
+        raise _err(path, f"give exactly one of {', '.join(selectors)} (the held particles)")
+    key = given[0]
+    value = entry[key]
+    if key != "particles" and grid_res is None:
+        raise _err(f"{path}.{key}", "needs a grid cloth (cloth.grid)")
+    if key in ("particles", "grid_vertices"):
+        if not isinstance(value, list) or not value:
+            raise _err(f"{path}.{key}", f"expected a non-empty array, got {_type_name(value)}")
+        particles = []
+        for k, item in enumerate(value):
+            where = f"{path}.{key}[{k}]"
+            if key == "particles":
+                p = _int(item, where, min_value=0)
+                if p >= count:
+                    raise _err(where, f"particle {p} out of range: the cloth has {count} particles")
+            else:
+                p = _grid_vertex(item, where, grid_res)
+            particles.append(p)
+    else:
+        nx, ny = grid_res[0] + 1, grid_res[1] + 1
+        if key == "grid_row":
+            j = _grid_index(_int(value, f"{path}.{key}"), ny, f"{path}.{key}")
+            particles = [j * nx + i for i in range(nx)]
+        else:
+            i = _grid_index(_int(value, f"{path}.{key}"), nx, f"{path}.{key}")
+            particles = [j * nx + i for j in range(ny)]
+    for p in particles:
+        other = attached.get(p)
+        if other is not None:
+            raise _err(path, f"particle {p} is also held by {other}; a gripper's particles take no other handle or "
+                             "pin")
+        attached[p] = path
+    knots = entry["knots"]
+    if not isinstance(knots, list) or len(knots) < 2:
+        raise _err(f"{path}.knots", "expected an array of at least 2 tables { t, pos, yaw }")
+    times, positions, yaws = [], [], []
+    for k, knot in enumerate(knots):
+        kp = f"{path}.knots[{k}]"
+        knot = _table(knot, kp)
+        _check_keys(knot, kp, ("t", "pos", "yaw"), required=("t", "pos"))
+        times.append(_float(knot["t"], f"{kp}.t"))
+        positions.append(_vector(knot["pos"], f"{kp}.pos"))
+        if ("yaw" in knot) != ("yaw" in knots[0]):
+            raise _err(f"{kp}.yaw", "give yaw [rad] at every knot of a gripper or at none")
+        if "yaw" in knot:
+            yaws.append(_float(knot["yaw"], f"{kp}.yaw"))
+    options = {name: _float(entry[name], f"{path}.{name}", min_value=0.0, strict=True)
+               for name in _GRIPPER_LIMITS if name in entry}
+    grasp = _float(entry.get("grasp", times[0]), f"{path}.grasp")
+    release = entry.get("release", math.inf)
+    release = release if release == math.inf else _float(release, f"{path}.release")
+    name = _str(entry.get("name", path), f"{path}.name")
+    try:  # the gripper's errors name it (its path, or the path and its name)
+        gripper = Gripper(particles=tuple(first + p for p in particles), times=times, positions=positions,
+                          yaw=yaws or None, grasp=grasp, release=release, name=name, **options)
+        builder.add_gripper(gripper)
+    except ValueError as exc:
+        raise _SceneError(str(exc) if name == path else f"{path}: {exc}") from None
 
 
 def _keyframes(value: Any, path: str, form: str, arity: int):

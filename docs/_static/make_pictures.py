@@ -118,7 +118,47 @@ def throw():
            max_step=2.0)
 
 
-PICTURES = {"drape": drape, "hanging": hanging, "flag": flag, "throw": throw}
+def _dots(rgb: np.ndarray, camera: Camera, points: np.ndarray, colour, radius: int = 2) -> np.ndarray:
+    """``rgb`` with a square dot of ``colour`` at each point's pixel."""
+    out = rgb.copy()
+    rows, cols = np.floor(camera.pixel(points)).astype(int).T
+    for dr in range(-radius + 1, radius):
+        for dc in range(-radius + 1, radius):
+            r, c = rows + dr, cols + dc
+            keep = (r >= 0) & (r < out.shape[0]) & (c >= 0) & (c < out.shape[1])
+            out[r[keep], c[keep]] = colour
+    return out
+
+
+def pointcloud():
+    """fit-recorded-frames: a point-cloud recording (left) and the material fitted to it (right), mid-gust."""
+    from warpcloth import recordings
+    from warpcloth.observations import PointCloudFrames
+    from warpcloth.scene import scene_from_toml
+    from warpcloth.tasks import estimation as E
+
+    text = (HERE.parent / "howto" / "fit-recorded-frames.md").read_text()
+    text = text.split("```{code-block} toml")[1].split("```")[0].split("\n", 2)[2].split("\n[estimate]")[0]
+    frames = E.TrajectoryFit.simulate_targets(scene_from_toml(text).finalize(device="cpu"),
+                                              wc.preset("royal-target", thicken=2), steps=20, frame_stride=1)
+    model = scene_from_toml(text).finalize(requires_grad=True, device="cpu")
+    camera = recordings.look_at(eye=(-2.0, 0.0, 0.0), target=(0.0, 0.0, 0.0))
+    clouds = recordings.point_cloud_recording(frames, model.triangles_np, points=2000, noise=0.002, camera=camera,
+                                              drop=0.1, rng=np.random.default_rng(0))
+    fit = E.TrajectoryFit(model, PointCloudFrames(clouds), steps=20, frame_stride=1, reference=frames)
+    result = E.estimate_material(fit, iters=30)
+    k = 12  # mid-gust, the sheet half blown over
+    fitted = fit.trajectory(result.material)[k]
+    view = Camera.framing(np.concatenate([frames[k], clouds[k]]), WIDTH // 2, HEIGHT, (25.0, -150.0))
+    blank = np.full((HEIGHT, WIDTH // 2, 3), 255, dtype=np.uint8)
+    left = _dots(blank, view, clouds[k], (40, 40, 40), radius=1)
+    right, _ = render_frame(model.triangles_np, fitted, camera=view, samples=SAMPLES, device="cpu")
+    right = _dots(right, view, clouds[k], (200, 30, 30), radius=1)
+    Image.fromarray(np.concatenate([left, right], axis=1)).save(HERE / "pointcloud-fit.png", optimize=True)
+    print(f"pointcloud: simulation error {result.simulation_error_pct:.2f} % after {result.evaluations} evaluations")
+
+
+PICTURES = {"drape": drape, "hanging": hanging, "flag": flag, "throw": throw, "pointcloud": pointcloud}
 
 
 def main(argv=None):

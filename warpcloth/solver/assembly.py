@@ -42,6 +42,8 @@ class SystemAssembler:
         vec3 = model.types.vec3
         self._none = wp.empty(0, dtype=vec3, device=self.device)
         self._motion_offsets: dict[tuple[str, float], wp.array] = {}  # offsets() of scripted motions
+        self._active: dict[float, wp.array] = {}  # handles_active() of handles with windows
+        self._always = wp.empty(0, dtype=model.scalar, device=self.device)
         self._zero_offsets = {
             "handle": wp.zeros(model.handle_count, dtype=vec3, device=self.device),
             "pin": wp.zeros(model.pin_count, dtype=vec3, device=self.device),
@@ -102,8 +104,9 @@ class SystemAssembler:
                       outputs=[rhs])
         if model.handle_count:
             wp.launch(k.handles, model.handle_count, device=self.device,
-                      inputs=[model.handle_particle, model.handle_stiffness, model.particle_diag_slot, x, v,
-                              control.handle_target, self.offsets("handle", t_next), dt],
+                      inputs=[model.handle_particle, model.handle_stiffness, model.particle_diag_slot,
+                              self.handles_active(t_next), x, v, control.handle_target,
+                              self.offsets("handle", t_next), dt],
                       outputs=[values, rhs])
         if control.particle_force is not None:
             wp.launch(k.external_forces, model.particle_count, device=self.device,
@@ -168,3 +171,16 @@ class SystemAssembler:
             values = np.array([np.zeros(3) if m is None else m.at(t) for m in motions])
             self._motion_offsets[key] = wp.array(values, dtype=self.model.types.vec3, device=self.device)
         return self._motion_offsets[key]
+
+    def handles_active(self, t_end: float) -> wp.array:
+        """1 or 0 for each handle in the step that ends at ``t_end`` [s]: held where ``Model.handle_window`` puts
+        ``t_end`` in (on, off]; an empty array where no handle has a window (every handle holds)."""
+        windows = self.model.handle_window
+        if windows is None:
+            return self._always
+        key = float(t_end)
+        if key not in self._active:  # kept per time, as offsets()
+            eps = 1e-6 * self.dt  # step ends accumulate rounding: t_end = n dt to within this
+            on = (windows[:, 0] + eps < t_end) & (t_end <= windows[:, 1] + eps)
+            self._active[key] = wp.array(on.astype(np.float64), dtype=self.model.scalar, device=self.device)
+        return self._active[key]

@@ -308,7 +308,11 @@ class Simulator:
             control = control if control is not None else self._default_control()
             x = state.particle_x.numpy()[model.handle_particle.numpy()]
             target = control.handle_target.numpy() + self.assembler.offsets("handle", state.time).numpy()
-            handle = float(0.5 * np.sum(model.handle_stiffness.numpy() * np.sum((x - target) ** 2, axis=1)))
+            stiffness = model.handle_stiffness.numpy()
+            active = self.assembler.handles_active(state.time).numpy()
+            if active.size:  # the handles that held in the step that ended at state.time
+                stiffness = stiffness * active
+            handle = float(0.5 * np.sum(stiffness * np.sum((x - target) ** 2, axis=1)))
         e["handles"] = handle
         e["total"] = sum(e.values())
         return e

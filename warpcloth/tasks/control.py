@@ -39,16 +39,18 @@ class ControlTask:
             "Block SSOR for control tasks".
         segment_steps: Checkpoint segment length [steps]; default
             :func:`warpcloth.solver.gradients.default_segment_steps` (the whole horizon where the tape stays small).
+        push_bound: The longest push [m/s^2], or None: a parameter p then pushes with ``bound tanh(|p| / bound) p /
+            |p|`` (:meth:`applied_pushes`; p itself while short), so every optimiser's point is within it.
         controller, optimizer, iters, search, warm_start: What :meth:`run` does unless told otherwise.
         template: The one-world builder ``model`` was finalised from: with it :meth:`evaluate_many` batches worlds.
 
     Raises:
         ValueError: For worlds of different sizes, bad particles or step counts, not exactly one target, a negative
-            regulariser, or an unknown controller or optimiser.
+            regulariser or push bound, or an unknown controller or optimiser.
     """
 
     def __init__(self, model: wc.Model, dt: float, *, particles, interval_steps: int, intervals: int, steps: int,
-                 target_com=None, target_positions=None, regularizer: float = 0.0,
+                 target_com=None, target_positions=None, regularizer: float = 0.0, push_bound: float | None = None,
                  options: wc.SolverOptions | None = None, segment_steps: int | None = None,
                  controller: str = "open-loop", optimizer: str | None = None, iters: int | None = None,
                  search: SearchSpec | None = None, warm_start: int = 0, template: wc.ModelBuilder | None = None):
@@ -75,6 +77,8 @@ class ControlTask:
                 raise ValueError(f"target_positions must be finite, of shape ({n}, 3), got {target_positions.shape}")
         if not (regularizer >= 0.0 and math.isfinite(regularizer)):
             raise ValueError(f"regularizer must be finite and >= 0, got {regularizer!r}")
+        if push_bound is not None and not (push_bound > 0.0 and math.isfinite(push_bound)):
+            raise ValueError(f"push_bound must be finite and > 0 [m/s^2] (or None), got {push_bound!r}")
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
         options = options or wc.SolverOptions()
@@ -82,7 +86,8 @@ class ControlTask:
             options = dataclasses.replace(options, preconditioner="block_ssor")
         self._args = dict(dt=dt, particles=self.particles, interval_steps=interval_steps, intervals=intervals,
                           steps=steps, target_com=target_com, target_positions=target_positions,
-                          regularizer=regularizer, options=options, segment_steps=segment_steps,
+                          regularizer=regularizer, push_bound=push_bound, options=options,
+                          segment_steps=segment_steps,
                           controller=controller, optimizer=optimizer, iters=iters, search=search,
                           warm_start=warm_start, template=template)
         self.model, self.dt, self.steps = model, float(dt), int(steps)
@@ -92,6 +97,7 @@ class ControlTask:
         self.target_com = None if target_com is None else np.asarray(target_com, dtype=np.float64).reshape(3)
         self.target_positions = target_positions
         self.regularizer = float(regularizer)
+        self.push_bound = None if push_bound is None else float(push_bound)
         self.segment_steps = segment_steps or default_segment_steps(model.particle_count, self.steps)
         self.controller = controller
         self.optimizer = optimizer or default_control_optimizer(controller, self.target_com, self.regularizer)
@@ -179,8 +185,19 @@ class ControlTask:
         for s, f in enumerate(forces):
             wp.launch(self._kernels.push_forces, self.world_count * m,
                       inputs=[push, s, self.intervals, self._particles, self._first,
-                              self.model.scalar(self.push_mass)], outputs=[f], device=self.model.device)
+                              self.model.scalar(self.push_mass), self.model.scalar(self.push_bound or 0.0)],
+                      outputs=[f], device=self.model.device)
         return forces
+
+    def applied_pushes(self, params) -> np.ndarray:
+        """The pushes [m/s^2] that parameters ``params`` (n_params numbers) apply, shape ``params_shape``: the
+        parameters themselves without a push bound."""
+        p = np.asarray(params, dtype=np.float64).reshape(self.params_shape)
+        if self.push_bound is None:
+            return p.copy()
+        r = np.linalg.norm(p, axis=-1, keepdims=True)
+        small = r <= self.push_bound * 1e-6
+        return np.where(small, p, p * self.push_bound * np.tanh(r / self.push_bound) / np.where(small, 1.0, r))
 
     def _control_fn(self, forces: list[wp.array]):
         base = self.model.control(requires_grad=False)
@@ -679,4 +696,4 @@ def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.Solve
                 steps=steps or spec.steps, target_com=spec.target_com, target_positions=spec.target_positions,
                 regularizer=spec.regularizer, options=options or scene.solver_options, segment_steps=segment_steps,
                 controller=spec.controller, optimizer=spec.optimizer, iters=spec.iters, search=spec.search,
-                warm_start=spec.warm_start)
+                warm_start=spec.warm_start, push_bound=spec.push_bound)

@@ -28,7 +28,8 @@ from warpcloth._toml_fields import (
 from warpcloth.observations import MarkerFrames, PointCloudFrames
 from warpcloth.tasks.parameters import NOT_OFFERED, SCENE_PARAMETERS
 
-__all__ = ["CONTROLLERS", "CONTROL_OPTIMIZERS", "DEFAULT_CONTROL_ITERS", "ESTIMATION_OPTIMIZERS", "GLOBAL_OPTIMIZERS",
+__all__ = ["CONTROLLERS", "GRIPPER_LOSSES", "GRIPPER_OPTIMIZERS", "GripperControlSpec",
+           "CONTROL_OPTIMIZERS", "DEFAULT_CONTROL_ITERS", "ESTIMATION_OPTIMIZERS", "GLOBAL_OPTIMIZERS",
            "FREE_PARAMETERS", "MATERIAL_PARTS", "ControlSpec", "EstimateSpec", "SearchSpec", "check_control_optimizer",
            "default_control_optimizer", "parse_control", "parse_estimate"]
 
@@ -70,6 +71,86 @@ class ControlSpec:
     iters: int
     search: SearchSpec = SearchSpec()
     warm_start: int = 0
+    push_bound: float | None = None
+
+
+GRIPPER_OPTIMIZERS = ("lbfgs", "adam", "cmaes", "random")
+"""The optimisers of a gripper task: local on the gradient (lbfgs, adam), or forward-only searches."""
+GRIPPER_LOSSES = ("coverage", "points", "positions")
+"""The goals of a ``[control]`` table with ``controls = "grippers"`` (:mod:`warpcloth.goals`)."""
+
+
+@dataclass
+class GripperControlSpec:
+    """A scene's ``[control]`` table with ``controls = "grippers"``, checked (``GripperTask.from_scene``).
+
+    Attributes:
+        loss: The goal, ``(kind, arguments)``: ``("coverage", {"table_height", "flat_tolerance"})``,
+            ``("points", {"points": (P, 3)})`` or ``("positions", {"positions": (n, 3)})`` [m].
+        acceleration_weight, path_weight, optimizer, iters, sigma, seed: ``GripperTask``'s.
+    """
+
+    steps: int
+    loss: tuple[str, dict]
+    acceleration_weight: float = 0.0
+    path_weight: float = 0.0
+    optimizer: str = "lbfgs"
+    iters: int = 50
+    sigma: float = 0.5
+    seed: int = 0
+
+    def goal(self, model):
+        """The goal on ``model`` (ValueError from :mod:`warpcloth.goals`, e.g. coverage without a table)."""
+        from warpcloth import goals
+
+        kind, args = self.loss
+        if kind == "coverage":
+            return goals.Coverage(model, **args)
+        if kind == "points":
+            return goals.TargetPoints(model, args["points"])
+        return goals.TargetPositions(model, args["positions"])
+
+
+def _parse_gripper_control(table: dict, sim_steps: int, count: int, base_dir: Path) -> GripperControlSpec:
+    keys = ("controls", "steps", "loss", "acceleration_weight", "path_weight", "optimizer", "iters", "sigma", "seed")
+    _check_keys(table, "control", keys, required=("loss",))
+    steps = _steps_within(table, "control", sim_steps)
+    loss = _table(table["loss"], "control.loss")
+    _check_keys(loss, "control.loss", GRIPPER_LOSSES)
+    if len(loss) != 1:
+        raise _err("control.loss", f"give exactly one of {', '.join(GRIPPER_LOSSES)}")
+    kind = next(iter(loss))
+    path = f"control.loss.{kind}"
+    if kind == "coverage":
+        cov = _table(loss[kind], path)
+        _check_keys(cov, path, ("table_height", "flat_tolerance"), required=("table_height",))
+        args = {"table_height": _float(cov["table_height"], f"{path}.table_height")}
+        if "flat_tolerance" in cov:
+            args["flat_tolerance"] = _float(cov["flat_tolerance"], f"{path}.flat_tolerance", min_value=0.0,
+                                            strict=True)
+    else:
+        file = _existing_file(base_dir, loss[kind], path, path)
+        with _Context(path):
+            if file.suffix.lower() == ".npy":
+                points = np.load(file)
+            elif file.suffix.lower() == ".obj":
+                points = mesh_io.load_obj(file, validate=False).positions
+            else:
+                raise ValueError(f"{file.name}: expected an .obj or .npy file of points")
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
+            raise _err(path, f"{file.name} must hold finite points (P, 3), got shape {points.shape}")
+        if kind == "positions" and len(points) != count:
+            raise _err(path, f"{file.name} has {len(points)} vertices, the cloth has {count}")
+        args = {kind: points}
+    weights = {key: _float(table.get(key, 0.0), f"control.{key}", min_value=0.0)
+               for key in ("acceleration_weight", "path_weight")}
+    optimizer = _choice(table.get("optimizer", "lbfgs"), "control.optimizer", GRIPPER_OPTIMIZERS)
+    iters = _int(table.get("iters", 50), "control.iters", min_value=1)
+    sigma = _float(table.get("sigma", 0.5), "control.sigma", min_value=0.0, strict=True)
+    seed = _int(table.get("seed", 0), "control.seed", min_value=0)
+    return GripperControlSpec(steps=steps, loss=(kind, args), optimizer=optimizer, iters=iters, sigma=sigma,
+                              seed=seed, **weights)
 
 
 @dataclass
@@ -186,12 +267,17 @@ def _steps_within(table: dict, path: str, sim_steps: int) -> int:
 
 
 def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int, grid_res, attached: dict[int, str],
-                  base_dir: Path) -> ControlSpec:
+                  base_dir: Path) -> ControlSpec | GripperControlSpec:
     """The ``[control]`` table of a scene of ``sim_steps`` steps of ``dt`` [s] whose cloth has ``count`` particles from
     ``first`` (``grid_res``: its grid cells, None for a mesh; ``attached``: particle -> the entry that holds it; paths
-    relative to ``base_dir``). ValueError names the key path of the first bad value."""
-    keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "controller",
-            "optimizer", "iters", "search", "warm_start")
+    relative to ``base_dir``). With ``controls = "grippers"``, a :class:`GripperControlSpec`. ValueError names the
+    key path of the first bad value."""
+    controls = _choice(table.get("controls", "pushes"), "control.controls", ("pushes", "grippers"))
+    if controls == "grippers":
+        return _parse_gripper_control(table, sim_steps, count, base_dir)
+    table = {k: v for k, v in table.items() if k != "controls"}
+    keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "push_bound",
+            "controller", "optimizer", "iters", "search", "warm_start")
     _check_keys(table, "control", keys, required=("interval", "intervals", "loss"))
     if ("particles" in table) == ("grid_vertices" in table):
         raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
@@ -244,6 +330,9 @@ def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int
         if not np.all(np.isfinite(target_positions)):
             raise _err("control.loss.positions", f"{file.name} has non-finite positions")
     regularizer = _float(table.get("regularizer", 0.0), "control.regularizer", min_value=0.0)
+    push_bound = None
+    if "push_bound" in table:
+        push_bound = _float(table["push_bound"], "control.push_bound", min_value=0.0, strict=True)
     controller = _choice(table.get("controller", "open-loop"), "control.controller", CONTROLLERS)
     optimizer = _str(table.get("optimizer", default_control_optimizer(controller, target_com, regularizer)),
                      "control.optimizer")
@@ -263,7 +352,7 @@ def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int
     return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
                        intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,
                        regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters, search=search,
-                       warm_start=warm_start)
+                       warm_start=warm_start, push_bound=push_bound)
 
 
 def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchSpec:
