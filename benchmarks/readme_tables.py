@@ -712,22 +712,73 @@ def motion_control(d: dict) -> str:
 
 def global_search(d: dict) -> str:
     target = d["target"]
+    shares = any("capture_share" in r for r in d["optimizers"].values())  # in runs since the capture split
+
+    def share(r):
+        return [pct(100 * r["capture_share"], 2)] if shares else []
+
     rows = []
     for name, r in d["optimizers"].items():
         for run in r["runs"]:
             rows.append([name, run["start"], pct(run["error_pct"], 3), str(run["simulations"]), str(run["iters"]),
-                         str(len(run["failed_trials"])), f"{run['seconds']:.0f}"])
+                         str(len(run["failed_trials"])), f"{run['seconds']:.0f}"] + share(run))
         rows.append([f"**{name}**", "median", f"**{pct(r['error_pct'], 3)}**", f"{r['simulations']:g}", "", "",
-                     f"{r['seconds']:.0f}"])
+                     f"{r['seconds']:.0f}"] + share(r))
     verdicts = "; ".join(
         f"{name} {met(r['error_pct'] <= target['error_pct'] and r['simulations'] <= target['simulations'])}"
         for name, r in d["optimizers"].items())
     header = ["optimizer", "start", "error", "simulations to the best", "budget", "failed trials", "wall s"]
+    header += ["time capturing graphs"] if shares else []
+    bound = f", pushes bounded at {d['push_bound']:g} m/s²" if d.get("push_bound") else ""
     return "\n".join([
         table(header, rows), "",
-        f"`{d['scene']}`, {d['steps']} steps; error = |com_T − target| / |com_0 − target|; every simulation counted, "
-        f"forward-only ones included. Target: ≤ {target['error_pct']:g} % in ≤ {target['simulations']} "
+        f"`{d['scene']}`, {d['steps']} steps{bound}; error = |com_T − target| / |com_0 − target|; every simulation "
+        f"counted, forward-only ones included. Target: ≤ {target['error_pct']:g} % in ≤ {target['simulations']} "
         f"simulations, median of the starts: {verdicts}.", "", provenance(d) + kept_runs(d["optimizers"])])
+
+
+def grippers(d: dict) -> str:
+    """Gripper control on the fling and fold scenes (benchmarks/grippers.py): every run, medians, the targets."""
+    out = []
+    for name in ("fling", "fold"):
+        p = d.get(name)
+        if not p:
+            continue
+        fling = name == "fling"
+
+        def score(r, fling=fling):
+            return pct(100 * r["coverage"], 3) if fling else length(r["mean_distance_m"])
+
+        def to_target(r):
+            k = r["to_target_simulations"]
+            return "–" if k is None else (f"{k:g} ({g(r['to_target_seconds'], 2)} s)" if "to_target_seconds" in r
+                                           and r["to_target_seconds"] is not None else f"{k:g}")
+
+        rows = [["scripted knots", "", score(p["scripted"]), "1", "", ""]]
+        if "hand" in p:
+            rows.append(["hand-scripted fling", "", score(p["hand"]), "1", "", ""])
+        verdicts = []
+        for opt, s in p["optimizers"].items():
+            for r in s["runs"]:
+                rows.append([opt, str(r["seed"]), score(r), str(r["simulations"]), to_target(r), f"{r['seconds']:.0f}"])
+            waits = sorted(math.inf if r["to_target_seconds"] is None else r["to_target_seconds"] for r in s["runs"])
+            wait = waits[len(waits) // 2] if len(waits) % 2 else 0.5 * (waits[len(waits) // 2 - 1]
+                                                                         + waits[len(waits) // 2])
+            median = {"to_target_simulations": s["to_target_simulations"],
+                      "to_target_seconds": wait if math.isfinite(wait) else None}
+            rows.append([f"**{opt}**", "median", f"**{score(s)}**", "", to_target(median), f"{s['seconds']:.0f}"])
+            verdicts.append(f"{opt} {met(s['met'])}")
+        what = "coverage" if fling else "mean vertex distance"
+        t = p["target"]
+        goal = (f"coverage ≥ {100 * t['coverage']:g} % in ≤ {t['simulations']} simulations, within "
+                f"{t['seconds'] / 60:g} minutes" if fling else
+                f"mean vertex distance ≤ {length(t['mean_distance_m'])} in ≤ {t['simulations']} simulations")
+        out += [f"**{name}** ({p['steps']} steps; {what} of the best simulation):", "",
+                table(["run", "seed", what, "simulations", "to the target (wall)", "wall s"], rows), "",
+                f"Target: {goal}, median of the seeds: {'; '.join(verdicts)}.", ""]
+    out.append("Every simulation counted; the tasks run uncaptured, so no time goes to capturing graphs. "
+               + provenance(d))
+    return "\n".join(out)
 
 
 def kept_runs(records: dict) -> str:
@@ -984,8 +1035,10 @@ def recording_start(p: dict) -> str:
 
     def placed(s, kind):
         runs = s[kind]["runs"]
+        fitted = ("; fitted " + ", ".join(g(r["fitted_start_err_mean_m"] * 100, 2) for r in runs) + " cm"
+                  if all("fitted_start_err_mean_m" in r for r in runs) else "")
         return (", ".join(g(r["registration_err_mean_m"] * 100, 2) for r in runs) + " cm; handles "
-                + ", ".join("/".join(g(h * 100, 2) for h in r["handle_err_m"]) for r in runs) + " cm")
+                + ", ".join("/".join(g(h * 100, 2) for h in r["handle_err_m"]) for r in runs) + " cm" + fitted)
 
     rows = []
     for s in p["sequences"]:
@@ -1007,13 +1060,22 @@ def recording_start(p: dict) -> str:
     if both:
         out.append("- the diagnostic fit over the fit given the start (outside the target): " + "; ".join(
             f"{t} simulation error {g(r['sim_err_pct'], 3)}×, density {g(r['density_err_pct'], 3)}×" for t, r in both))
+    handles = ", ".join(str(h) for h in p["sequences"][0]["handles"])
+    if "both_ways" not in st:
+        alone = (f"`registered_start` on the start frame's cloud (the held corners, vertices {handles}, kept where "
+                 "the scene holds them, the rest deformed onto the points both ways), then `place_start`; "
+                 "`start_deformation` and `start_deformation_rate` free from zero (the start's shape and velocity in "
+                 "its 16 smoothest displacements, the held corners fixed), alone for a third of the evaluations, "
+                 "then with the material, without the start scan; fitted: the fitted start's mean distance from the "
+                 "true one")
+    else:
+        alone = (f"`registered_start` on the start frame's cloud, then `place_start` (which moves the handles' "
+                 f"targets, vertices {handles}, with it), `start_velocity` free from zero; the diagnostic: the same "
+                 "with `register_nonrigid` run both ways from the scene's placement, no rigid step")
     out += ["", f"From the seed's frame {st['start_frame']}, {st['steps']} steps of {g(st['dt'], 2)} s, frames "
             f"compared every {st['frame_stride']} steps, against the seed's frames from it. Given the start: the "
-            f"seed's vertices and velocities (its OBJ `nv` lines) there, the scene's handles. Alone: "
-            f"`registered_start` on the start frame's cloud, then `place_start` (which moves the handles' targets, "
-            f"vertices {', '.join(str(h) for h in p['sequences'][0]['handles'])}, with it), `start_velocity` free from "
-            f"zero; the diagnostic: the same with `register_nonrigid` run both ways from the scene's placement, no "
-            f"rigid step. Point clouds of {st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm noise, "
+            f"seed's vertices and velocities (its OBJ `nv` lines) there, the scene's handles. Alone: {alone}. "
+            f"Point clouds of {st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm noise, "
             f"{g(st['drop'] * 100, 2)} % of the frames dropped, one depth camera; {st['optimizer']}, {st['iters']} "
             f"evaluations a fit from the mean fabric; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: "
             "medians.", "", provenance({"meta": p.get("meta")})]
@@ -1098,6 +1160,7 @@ BLOCKS = {
     "material_estimation": material_estimation,
     "motion_control": motion_control,
     "global_search": global_search,
+    "grippers": grippers,
     "memory": memory,
     "worlds": worlds,
     "prediction": prediction,

@@ -45,6 +45,7 @@ BENCHMARKS = {
     "graph_step": (("cases", "gradients", "throw"), False, False),
     "jobs": (("records", "workers", "target_speedup"), True, True),
     "global_search": (("scene", "target", "optimizers"), False, False),
+    "grippers": (("fling", "fold"), False, False),
     "estimation_batch": (("records", "iters", "reps"), True, False),
     "bvh_update": (("cases",), False, False),
     "projection_qp": (("records",), False, False),

@@ -225,3 +225,18 @@ def test_scene_gripper_follows_its_knots():
     held = traj[-1].particle_x.numpy()[list(gripper.particles)]
     assert np.abs(held - target).max() < 2e-3  # the handles' lag under the cloth's weight
     assert held[:, 2].min() > x0[:, 2].max() + 0.01
+
+
+def test_params_of_knots_round_trip_and_projection():
+    g = line_gripper()
+    rng = np.random.default_rng(4)
+    p = 0.3 * rng.standard_normal(g.n_params)  # within the limits' balls
+    P, yaw = g.control_points(p)
+    np.testing.assert_allclose(g.params_of(P, yaw), p, atol=1e-12)
+    far = g.params_of(P + np.linspace(0.0, 5.0, g.knot_count)[:, None], yaw)  # 5 m in 0.12 s: past the limits
+    Q, _ = g.control_points(far)
+    assert np.linalg.norm(g.velocity_points(Q), axis=1).max() <= g.max_speed * (1 + 1e-12)
+    with pytest.raises(ValueError, match=r"line: knot positions must be \(4, 3\) finite numbers, got shape \(3, 3\)"):
+        g.params_of(P[:3])
+    with pytest.raises(ValueError, match=r"line: yaw must be 4 finite angles"):
+        g.params_of(P, [0.0, np.nan, 0.0, 0.0])

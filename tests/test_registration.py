@@ -95,6 +95,47 @@ def test_an_arch_is_recovered_by_the_nonrigid_step_with_its_edge_lengths():
     assert np.allclose(smooth.positions, placed + smooth.deformation.displacements(smooth.coefficients))
 
 
+def curl(x, radius=0.3):
+    """The grid hanging from its top edge (y = 0.5) and curled about it on a cylinder (an isometry): the top edge
+    stays, the bottom swings 0.3 m out of the plane."""
+    s = 0.5 - x[:, 1]
+    return np.stack([x[:, 0], 0.5 - radius * np.sin(s / radius), -radius * (1.0 - np.cos(s / radius))], axis=1)
+
+
+def test_a_held_cloth_keeps_its_held_vertices_and_the_rest_fits_the_points():
+    """A cloth held at its top corners and swung: the held vertices stay exactly where the template has them (no
+    rigid step moves them), the rest lands on the curled cloth; registered freely, the held vertices move."""
+    rng = np.random.default_rng(8)
+    held = [int(np.argmin(np.sum((X - [0.0, 0.5, 0.0]) ** 2, axis=1))),
+            int(np.argmin(np.sum((X - [0.5, 0.5, 0.0]) ** 2, axis=1)))]
+    y = curl(X)
+    pts = seen_cloud(y, y.mean(axis=0) + [0.3, -0.2, 1.5], rng)
+    fit = register_nonrigid(X, TRIS, pts, fixed=held, both_ways=True, polish=30)
+    np.testing.assert_array_equal(fit.positions[held], X[held])
+    assert fit.rms < 0.004  # the noise is 2 mm along each axis
+    assert np.sqrt(np.mean(np.sum((fit.positions - y) ** 2, axis=1))) < 0.01
+    assert vertex_rms(X, y) > 0.1  # the template is far from it
+    free = register_nonrigid(X, TRIS, pts)
+    assert np.linalg.norm(free.positions[held] - X[held], axis=1).max() > 0.01
+    modes = SmoothDeformation(X, TRIS, 8, fixed=held)
+    assert np.all(modes.basis[held] == 0.0) and np.allclose(modes.basis.T @ (modes.mass[:, None] * modes.basis),
+                                                            np.eye(8), atol=1e-8)
+
+
+def test_a_second_frame_is_registered_from_the_first():
+    """initial: the deformation starts from the given positions (a frame's registration), not from the template."""
+    rng = np.random.default_rng(9)
+    held = [int(np.argmin(np.sum((X - [0.0, 0.5, 0.0]) ** 2, axis=1))),
+            int(np.argmin(np.sum((X - [0.5, 0.5, 0.0]) ** 2, axis=1)))]
+    y0, y1 = curl(X, 0.3), curl(X, 0.28)
+    first = register_nonrigid(X, TRIS, seen_cloud(y0, y0.mean(axis=0) + [0.3, -0.2, 1.5], rng), fixed=held,
+                              both_ways=True)
+    pts = seen_cloud(y1, y1.mean(axis=0) + [0.3, -0.2, 1.5], rng)
+    second = register_nonrigid(X, TRIS, pts, fixed=held, both_ways=True, initial=first.positions)
+    assert np.sqrt(np.mean(np.sum((second.positions - y1) ** 2, axis=1))) < 0.015
+    np.testing.assert_array_equal(second.positions[held], first.positions[held])
+
+
 def test_five_percent_stray_points_do_not_break_it():
     rng = np.random.default_rng(4)
     y = arch(X)
@@ -149,6 +190,11 @@ def _pts():
     (lambda: register_nonrigid(X, TRIS, _pts(), preserve_lengths=-1.0), "preserve_lengths"),
     (lambda: register_nonrigid(X, TRIS, _pts(), smoothness=math.nan), "smoothness"),
     (lambda: register_nonrigid(X, TRIS, _pts(), polish=-1), "polish"),
+    (lambda: register_nonrigid(X, TRIS, _pts(), fixed=[3, len(X)]), "fixed entry 1"),
+    (lambda: register_nonrigid(X, TRIS, _pts(), fixed=[0.5]), "fixed must hold vertex indices"),
+    (lambda: register_nonrigid(X, TRIS, _pts(), initial=X[:-1]), "initial has shape"),
+    (lambda: register_nonrigid(X, TRIS, _pts(), initial=X, rigid=(np.eye(3), np.zeros(3))), "initial positions"),
+    (lambda: SmoothDeformation(X, TRIS, len(X) - 1, fixed=[0, 1]), "modes"),
     (lambda: start_from_points("cloth", _pts()), "model_or_template"),
 ])
 def test_bad_input_is_refused_naming_the_argument(call, match):

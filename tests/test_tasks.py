@@ -137,6 +137,15 @@ def test_a_push_bound_keeps_every_push_within_it_and_its_gradient_matches_centra
     with pytest.raises(ValueError, match="push_bound"):
         ControlTask(free.model, **{**args, "push_bound": -1.0})
 
+
+def test_a_scenes_waypoints_reach_the_task_and_make_lbfgs_its_default(tmp_path):
+    more = "waypoints = [[0.1, [0.0, 0.0, 0.2], 2.0]]"
+    task = ControlTask.from_scene(small_scene(tmp_path, CONTROL.format(loss="{ com = [0.1, 0.0, -0.3] }", reg=0.0,
+                                                                       more=more)), device="cpu")
+    (step, target, weight), = task.waypoints
+    assert step == round(0.1 / task.dt) and target.tolist() == [0.0, 0.0, 0.2] and weight == 2.0
+    assert task.optimizer == "lbfgs"
+
 FREE_FLIGHT = """
 name = "free-flight"
 [sim]
@@ -273,6 +282,12 @@ BAD_CONTROL = [
      r"control.particles\[0\]: particle 5 is pinned by pins\[0\]"),
     ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\npush_bound = 0.0",
      r"control.push_bound: must be > 0"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nwaypoints = [[0.105, [0, 0, 0], 1]]",
+     r"control.waypoints: waypoint 0: time 0.105 s is not a whole step"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nwaypoints = [[0.1, [0, 0], 1]]",
+     r"control.waypoints\[0\]\[1\]"),
+    ("particles = [1]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nwaypoints = [[0.1, [0, 0, 0], 1]]"
+     "\noptimizer = 'gauss-newton'", r"control.optimizer: gauss-newton fits the horizon's centre of mass only"),
 ]
 BAD_ESTIMATE = [
     ("free = ['density', 'windy']", r"estimate.free\[1\]: unknown value 'windy'; one of: density, stretching, bending"),

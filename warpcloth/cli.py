@@ -44,7 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scenes", help="list the embedded scenes")
 
     from warpcloth.materials import PRESET_NAMES
-    from warpcloth.tasks.specs import CONTROL_OPTIMIZERS, CONTROLLERS, ESTIMATION_OPTIMIZERS
+    from warpcloth.tasks.specs import CONTROL_OPTIMIZERS, CONTROLLERS, ESTIMATION_OPTIMIZERS, GRIPPER_OPTIMIZERS
 
     est = sub.add_parser("estimate", help="estimate a fabric's material from how it moves (a scene's [estimate] task)")
     est.add_argument("scene", nargs="*", default=[],
@@ -75,20 +75,22 @@ def _parser() -> argparse.ArgumentParser:
     _add_workers(est)
     _add_outputs(est)
 
-    ctl = sub.add_parser("control", help="find the pushes that move a cloth where a scene's [control] task says")
+    ctl = sub.add_parser("control", help="find the pushes or gripper trajectories that move a cloth where a scene's "
+                         "[control] task says")
     ctl.add_argument("scene", nargs="?", default=CONTROL_SCENE,
                      help=f"a scene with a [control] table: embedded name or .toml path (default: {CONTROL_SCENE}, "
-                     "the seed's throw into a basket)")
+                     "the seed's throw into a basket; fling and fold move grippers)")
     ctl.add_argument("--controller", default=None, choices=CONTROLLERS,
                      help="open-loop: the pushes themselves; mlp: a PyTorch MLP of the cloth's state, trained "
                      "through the simulator (needs the torch extra); each with the scene's optimiser where it is the "
                      "scene's controller, else its default (Gauss-Newton for a centre-of-mass target); default: the "
                      "scene's")
-    ctl.add_argument("--optimizer", default=None, choices=sorted({o for v in CONTROL_OPTIMIZERS.values() for o in v}),
+    ctl.add_argument("--optimizer", default=None,
+                     choices=sorted({o for v in CONTROL_OPTIMIZERS.values() for o in v} | set(GRIPPER_OPTIMIZERS)),
                      help="the controller's optimiser (open loop: gauss-newton, lbfgs, or a global search over "
                      "worlds: multistart, local runs from random starts in lockstep, or cmaes or smoothed (Adam "
-                     "on the Gaussian-smoothed loss), then the local default; mlp: gauss-newton or adam) (default: "
-                     "the scene's)")
+                     "on the Gaussian-smoothed loss), then the local default; mlp: gauss-newton or adam; a "
+                     f"gripper scene: {', '.join(GRIPPER_OPTIMIZERS)}) (default: the scene's)")
     ctl.add_argument("--iters", type=int, default=None, help="simulations (default: the scene's)")
     ctl.add_argument("--warm-start", type=int, default=None, metavar="N",
                      help="the MLP: first optimise the pushes themselves with N simulations and fit the network to "
@@ -477,12 +479,19 @@ def _cmd_control(args: argparse.Namespace) -> int:
 
     if args.starts < 1:
         return _error(f"--starts must be >= 1, got {args.starts}", _USAGE_ERROR)
+    from warpcloth.tasks.specs import GripperControlSpec
+
+    try:
+        scene = load_scene(args.scene)
+    except (ValueError, OSError) as exc:
+        return _error(str(exc), _USAGE_ERROR)
+    if isinstance(scene.control, GripperControlSpec):
+        return _cmd_control_grippers(args, scene)
     if args.optimizer or args.warm_start is not None:  # refused here, before any job starts
-        try:
-            spec = load_scene(args.scene).control
-        except (ValueError, OSError) as exc:
-            return _error(str(exc), _USAGE_ERROR)
+        spec = scene.control
         controller = args.controller or (spec.controller if spec is not None else None)
+        if args.optimizer and spec is None:
+            return _error(f"--optimizer: scene {scene.name!r} has no [control] table", _USAGE_ERROR)
         if args.optimizer and spec is not None:
             problem = check_control_optimizer(args.optimizer, controller, spec.target_com, spec.regularizer)
             if problem:
@@ -498,7 +507,6 @@ def _cmd_control(args: argparse.Namespace) -> int:
                          lambda r: [r["error_pct"], r["simulations"], len(r["failed_trials"])])
     job = jobs[0]
     try:
-        scene = load_scene(args.scene)
         task = ControlTask.from_scene(scene, device=args.device)
     except (ValueError, OSError, RuntimeError) as exc:
         return _error(str(exc), _USAGE_ERROR)
@@ -539,6 +547,77 @@ def _cmd_control(args: argparse.Namespace) -> int:
         print(f"wrote {os.path.abspath(args.plot)}")
     if args.usd or args.preview:
         frames = result.trajectory(task)
+        times = [i * task.dt for i in range(len(frames))]
+        drawing = dict(triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
+                       obstacles=obstacle_meshes_numpy(task.model, times))
+        if args.usd:
+            write_usd(args.usd, **drawing)
+            print(f"wrote {os.path.abspath(args.usd)}")
+        if args.preview:
+            write_preview(args.preview, **drawing, title=scene.name)
+            print(f"wrote {os.path.abspath(args.preview)}")
+    return 0
+
+
+def _goal_score(goal, value: float) -> str:
+    """A gripper goal's measure as users read it: coverage in %, a distance in mm."""
+    return f"{100.0 * value:.1f} %" if goal.name == "coverage" else f"{1000.0 * value:.2f} mm"
+
+
+def _cmd_control_grippers(args: argparse.Namespace, scene) -> int:
+    """``warpcloth control`` on a scene whose [control] moves grippers (GripperTask)."""
+    from warpcloth.errors import CollisionError, SimulationError
+    from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.preview import write_preview
+    from warpcloth.progress import progress_bar
+    from warpcloth.tasks.grippers import GripperTask
+    from warpcloth.tasks.specs import GRIPPER_OPTIMIZERS
+    from warpcloth.usd import write_usd
+
+    refused = [flag for flag, given in (("--controller", args.controller),
+                                        ("--warm-start", args.warm_start is not None)) if given]
+    if refused:
+        return _error(f"{refused[0]}: scene {scene.name!r} moves grippers, not pushes; {refused[0]} applies to "
+                      "scenes whose [control] pushes particles", _USAGE_ERROR)
+    if args.optimizer and args.optimizer not in GRIPPER_OPTIMIZERS:
+        return _error(f"--optimizer {args.optimizer}: scene {scene.name!r} moves grippers; its optimisers are "
+                      f"{', '.join(GRIPPER_OPTIMIZERS)}", _USAGE_ERROR)
+    if args.starts > 1 or args.workers > 1 or args.address:
+        return _error(f"scene {scene.name!r} moves grippers: one run in this process (--starts 1, --workers 1, no "
+                      "--address); benchmarks/grippers.py runs several starts", _USAGE_ERROR)
+    try:
+        task = GripperTask.from_scene(scene, device=args.device)
+    except (ValueError, OSError, RuntimeError) as exc:
+        return _error(str(exc), _USAGE_ERROR)
+    optimizer, iters = args.optimizer or task.optimizer, args.iters or task.iters
+    names = ", ".join(g.name for g in task.grippers)
+    print(f"{scene.name}: {len(task.grippers)} gripper(s) ({names}){', tied' if task.tied else ''}, "
+          f"{task.n_params} parameters, {task.steps} steps of {task.dt:g} s, goal {task.goal.name}; optimizer "
+          f"{optimizer}, {iters} simulations")
+    _print_solver_note(task.sim)
+    try:
+        start = task.loss(task.default_params())  # the scripted knots' score (not counted in the run's budget)
+        with progress_bar(iters, "control", "sim") as bar:
+            result = task.run(optimizer, iters, callback=lambda k, e: bar.update())
+    except (SimulationError, CollisionError) as exc:
+        return _error(str(exc), _RUNTIME_ERROR)
+    print()
+    _print_table(["", "scripted knots", "optimised"],
+                 [[task.goal.name, _goal_score(task.goal, start.error), _goal_score(task.goal, result.error)],
+                  ["loss", start.loss, result.loss], ["simulations", "-", result.simulations],
+                  ["wall [s]", "-", result.seconds]])
+    record = {"scene": scene.name, "goal": task.goal.name, "optimizer": optimizer, "iters": iters,
+              "simulations": result.simulations, "seconds": result.seconds, "start_error": start.error,
+              "start_loss": start.loss, "error": result.error, "loss": result.loss, "losses": result.losses,
+              "errors": result.errors, "params": result.params.tolist(), "tied": task.tied}
+    if args.json:
+        _write_json(args.json, record)
+        print(f"wrote {os.path.abspath(args.json)}")
+    if args.plot:
+        _plot_losses(args.plot, {optimizer: result.losses}, "loss", f"{scene.name}: gripper control")
+        print(f"wrote {os.path.abspath(args.plot)}")
+    if args.usd or args.preview:
+        frames = task.trajectory(result.params)
         times = [i * task.dt for i in range(len(frames))]
         drawing = dict(triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
                        obstacles=obstacle_meshes_numpy(task.model, times))

@@ -145,10 +145,25 @@ class Gripper:
 
     def default_params(self) -> np.ndarray:
         """The parameters of the scripted knots (:meth:`control_points` returns them)."""
+        return self.params_of(self.positions)
+
+    def params_of(self, positions, yaw=None) -> np.ndarray:
+        """The parameters whose :meth:`control_points` are ``positions`` (K, 3) [m] and ``yaw`` (K,) [rad] (None:
+        the scripted yaws) where those keep the limits, else of their projection into them; knot 0 is the
+        gripper's own (not a parameter). ValueError for a bad shape or a value not finite."""
+        P = np.array(positions, dtype=np.float64)
+        if P.shape != self.positions.shape or not np.all(np.isfinite(P)):
+            raise ValueError(f"{self.name}: knot positions must be {self.positions.shape} finite numbers, got "
+                             f"shape {P.shape}")
+        P[0] = self.positions[0]
         h = self.knot_interval
-        parts = [_increments(np.diff(self.positions, axis=0) / h, self.max_acceleration * h)]
+        parts = [_increments(np.diff(P, axis=0) / h, self.max_acceleration * h)]
         if self.rotates:
-            parts.append(_increments(np.diff(self.yaw)[:, None] / h, self.max_yaw_acceleration * h))
+            Y = np.array(self.yaw if yaw is None else yaw, dtype=np.float64).reshape(-1)
+            if Y.shape != self.yaw.shape or not np.all(np.isfinite(Y)):
+                raise ValueError(f"{self.name}: yaw must be {self.knot_count} finite angles [rad]")
+            Y[0] = self.yaw[0]
+            parts.append(_increments(np.diff(Y)[:, None] / h, self.max_yaw_acceleration * h))
         return np.concatenate([p.reshape(-1) for p in parts])
 
     def control_points(self, params) -> tuple[np.ndarray, np.ndarray | None]:

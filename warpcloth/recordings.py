@@ -246,9 +246,9 @@ def marker_recording(trajectory_frames, triangles, *, markers: int = 12, hidden:
                      rng: np.random.Generator) -> MarkerRecording:
     """What a motion-capture system records of a cloth trajectory (F, N, 3) [m]: ``markers`` points on the surface,
     spread by farthest-point sampling (in frame 0's shape) over surface points sampled uniformly by area, followed
-    through every frame, moved by Gaussian noise of standard deviation ``noise`` [m] along each axis, and
-    ``round(hidden * F * markers)`` (frame, marker) pairs, drawn at random, hidden (NaN). ValueError naming a bad
-    frame, triangle or argument."""
+    through every frame, moved by Gaussian noise of standard deviation ``noise`` [m] along each axis, and in each
+    frame ``round(hidden * markers)`` of them, drawn at random, hidden (NaN). ValueError naming a bad frame,
+    triangle or argument."""
     what = "marker_recording"
     frames = check_frames(trajectory_frames, what)
     tris = check_triangles(triangles, len(frames[0]), what)
@@ -265,9 +265,9 @@ def marker_recording(trajectory_frames, triangles, *, markers: int = 12, hidden:
     positions = np.einsum("mk,fmkc->fmc", bary, np.stack(frames)[:, tris[face]])
     if noise > 0.0:
         positions += rng.normal(0.0, noise, positions.shape)
-    hide = rng.choice(positions.shape[0] * count, size=math.floor(hidden * positions.shape[0] * count + 0.5),
-                      replace=False)
-    positions[hide // count, hide % count] = np.nan
+    per_frame = math.floor(hidden * count + 0.5)  # round half up
+    for k in range(positions.shape[0]):
+        positions[k, rng.choice(count, size=per_frame, replace=False)] = np.nan
     return MarkerRecording(face, bary, positions)
 
 

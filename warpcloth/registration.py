@@ -90,6 +90,20 @@ def _count(value, name, what, minimum=1):
     return int(value)
 
 
+def _vertices(value, n, name, what):
+    # sorted unique vertex indices in [0, n) (None: none)
+    if value is None:
+        return np.zeros(0, dtype=np.int64)
+    a = np.asarray(value).ravel()
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{what}: {name} must hold vertex indices (integers), got dtype {a.dtype}")
+    a = a.astype(np.int64)
+    bad = np.flatnonzero((a < 0) | (a >= n))
+    if bad.size:
+        raise ValueError(f"{what}: {name} entry {int(bad[0])} ({int(a[bad[0]])}) is no vertex of the {n}")
+    return np.unique(a)
+
+
 def _weight(value, name, what):
     ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
     if not ok or not math.isfinite(value) or value < 0.0:
@@ -285,19 +299,22 @@ class SmoothDeformation:
     """Smooth displacements of a cloth: the ``modes`` lowest eigenvectors of its cotangent Laplacian (lumped vertex
     areas as the mass), the vibration modes of a membrane over its rest shape (positions (n, 3) [m], triangles
     (T, 3)), from the uniform translation up in spatial frequency; intrinsic to the surface, so they follow it
-    through any rigid placement. ``basis`` (n, modes): mass-orthonormal columns; ``eigenvalues`` (modes,) [1/m^2];
-    ``displacements(c)`` = ``basis @ c``. ValueError naming a bad argument; above :data:`MAX_DENSE_VERTICES`
-    vertices (a dense eigen-decomposition) refused."""
+    through any rigid placement. ``fixed`` (vertex indices): vertices no mode moves (a held cloth's). ``basis``
+    (n, modes): mass-orthonormal columns; ``eigenvalues`` (modes,) [1/m^2]; ``displacements(c)`` = ``basis @ c``.
+    ValueError naming a bad argument; above :data:`MAX_DENSE_VERTICES` vertices (a dense eigen-decomposition)
+    refused."""
 
-    def __init__(self, rest_positions, triangles, modes: int = DEFAULT_MODES):
+    def __init__(self, rest_positions, triangles, modes: int = DEFAULT_MODES, fixed=None):
         what = "SmoothDeformation"
         x, tris = _template(rest_positions, triangles, what)
         n = len(x)
         if n > MAX_DENSE_VERTICES:
             raise ValueError(f"{what}: {n} vertices; at most {MAX_DENSE_VERTICES} (a dense eigen-decomposition)")
+        fixed = _vertices(fixed, n, "fixed", what)
+        free = np.setdiff1d(np.arange(n), fixed)
         modes = _count(modes, "modes", what)
-        if modes > n:
-            raise ValueError(f"{what}: modes {modes} exceeds the template's {n} vertices")
+        if modes > len(free):
+            raise ValueError(f"{what}: modes {modes} exceeds the template's {len(free)} vertices that are not fixed")
         stiffness = np.zeros((n, n))
         mass = np.zeros(n)
         area = 0.5 * np.linalg.norm(_cross_rows(x, tris), axis=1)
@@ -312,11 +329,13 @@ class SmoothDeformation:
             np.add.at(mass, o, area / 3.0)
         if np.any(mass <= 0.0):
             raise ValueError(f"{what}: vertex {int(np.flatnonzero(mass <= 0.0)[0])} is on no triangle")
-        scale = 1.0 / np.sqrt(mass)
-        values, vectors = np.linalg.eigh(scale[:, None] * stiffness * scale[None, :])
-        self.rest_positions, self.triangles = x, tris
+        scale = 1.0 / np.sqrt(mass[free])
+        # the fixed vertices as a Dirichlet condition: the eigenproblem of the free vertices alone
+        values, vectors = np.linalg.eigh(scale[:, None] * stiffness[np.ix_(free, free)] * scale[None, :])
+        self.rest_positions, self.triangles, self.fixed = x, tris, fixed
         self.mass = mass  # lumped vertex areas [m^2]
-        self.basis = scale[:, None] * vectors[:, :modes]
+        self.basis = np.zeros((n, modes))
+        self.basis[free] = scale[:, None] * vectors[:, :modes]
         self.eigenvalues = np.maximum(values[:modes], 0.0)
         self._stiffness = stiffness
 
@@ -336,9 +355,10 @@ class SmoothDeformation:
 
 class NonrigidFit(NamedTuple):
     """:func:`register_nonrigid`'s result: ``positions`` (n, 3) [m], the deformed template (polished);
-    ``coefficients`` (modes, 3) [m]: the smooth fit before the polish, the rigidly placed template displaced by
-    ``deformation.displacements(coefficients)``; ``rms`` [m], as :func:`register_rigid`'s; ``strain`` (E,), each
-    edge's length over its rest length, less one; ``rigid`` (R, t, rms) of the placement it started from."""
+    ``coefficients`` (modes, 3) [m]: the smooth fit before the polish, the rigidly placed template (or the
+    ``initial`` positions) displaced by ``deformation.displacements(coefficients)``; ``rms`` [m], as
+    :func:`register_rigid`'s; ``strain`` (E,), each edge's length over its rest length, less one; ``rigid`` (R, t,
+    rms) of the placement it started from."""
 
     positions: np.ndarray
     coefficients: np.ndarray
@@ -351,7 +371,8 @@ class NonrigidFit(NamedTuple):
 def register_nonrigid(template_positions, template_triangles, points, *, rigid=None, modes: int | None = None,
                       smoothness: float = 0.1, preserve_lengths: float = 30.0, iterations: int = 40,
                       trim: float = 5.0, both_ways: bool = False, polish: int = 10,
-                      deformation: SmoothDeformation | None = None, device=None) -> NonrigidFit:
+                      deformation: SmoothDeformation | None = None, fixed=None, initial=None,
+                      device=None) -> NonrigidFit:
     """The template (positions (n, 3) [m], its rest shape, triangles (T, 3)) rigidly placed (``rigid`` (R, t) or
     (R, t, rms); None: :func:`register_rigid`), then deformed by the ``modes`` smoothest displacements
     (:class:`SmoothDeformation`, or ``deformation`` built on the same template) to least squares: the mean squared
@@ -360,7 +381,10 @@ def register_nonrigid(template_positions, template_triangles, points, *, rigid=N
     ``smoothness`` times the mean squared Laplacian of the displacement at the interior vertices, scaled by the
     squared mean edge length to metres (a change of curvature). Fits the modes coarse to fine (4, 8, 16, then all),
     ``iterations`` closest-point steps in all, then ``polish`` steps with every vertex free under the same energy
-    (weights scaled by the spread alone; at most :data:`MAX_POLISH_VERTICES` vertices; 0: none). Returns a
+    (weights scaled by the spread alone; at most :data:`MAX_POLISH_VERTICES` vertices; 0: none). ``fixed`` (vertex
+    indices, a held cloth's): no rigid step unless ``rigid`` is given, and these vertices stay where it places them
+    (``deformation``, if given, must fix the same). ``initial`` (n, 3) [m]: deform from these positions instead of
+    the placed template (no rigid step; the edges' rest lengths stay the template's). Returns a
     :class:`NonrigidFit`; ValueError naming a bad argument."""
     what = "register_nonrigid"
     x, tris = _template(template_positions, template_triangles, what)
@@ -369,13 +393,24 @@ def register_nonrigid(template_positions, template_triangles, points, *, rigid=N
     preserve_lengths = _weight(preserve_lengths, "preserve_lengths", what)
     iterations, trim = _count(iterations, "iterations", what), _trim(trim, what)
     polish = _count(polish, "polish", what, minimum=0)
+    fixed = _vertices(fixed, len(x), "fixed", what)
     if deformation is None:
-        deformation = SmoothDeformation(x, tris, min(DEFAULT_MODES, len(x)) if modes is None else modes)
+        count = len(x) - len(fixed)
+        deformation = SmoothDeformation(x, tris, min(DEFAULT_MODES, count) if modes is None else modes, fixed)
     elif not isinstance(deformation, SmoothDeformation) or deformation.rest_positions.shape != x.shape \
-            or not np.array_equal(deformation.triangles, tris):
-        raise ValueError(f"{what}: deformation must be a SmoothDeformation of this template")
+            or not np.array_equal(deformation.triangles, tris) or not np.array_equal(deformation.fixed, fixed):
+        raise ValueError(f"{what}: deformation must be a SmoothDeformation of this template with the same fixed "
+                         "vertices")
+    if initial is not None:
+        initial = _rows(initial, "initial", what)
+        if initial.shape != x.shape:
+            raise ValueError(f"{what}: initial has shape {initial.shape}, the template {x.shape}")
+        if rigid is not None:
+            raise ValueError(f"{what}: initial positions take no rigid placement; give one or the other")
+        rigid = (np.eye(3), np.zeros(3), float("nan"))
     if rigid is None:
-        rigid = register_rigid(x, tris, p, trim=trim, device=device)
+        rigid = (np.eye(3), np.zeros(3), float("nan")) if len(fixed) else register_rigid(x, tris, p, trim=trim,
+                                                                                         device=device)
     R, t = _placement(rigid, what, "rigid")
     rigid = tuple(rigid) if len(tuple(rigid)) == 3 else (R, t, float("nan"))
     phi, m = deformation.basis, deformation.modes
@@ -383,7 +418,8 @@ def register_nonrigid(template_positions, template_triangles, points, *, rigid=N
         raise ValueError(f"{what}: polish needs at most {MAX_POLISH_VERTICES} vertices (a dense solve), the template "
                          f"has {len(x)}; pass polish=0")
     center = p.mean(axis=0)
-    placed, q = x @ R.T + t - center, p - center
+    placed = (x @ R.T + t if initial is None else initial) - center
+    q = p - center
     edges, boundary = _edges(tris)
     rest = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)
     h = float(rest.mean())
@@ -441,7 +477,9 @@ def register_nonrigid(template_positions, template_triangles, points, *, rigid=N
             _FLOOR * h)
     xs = placed + phi @ c
     if polish:
-        xs = xs + fit(xs, np.eye(len(x)), [len(x)], polish, smooth @ (phi @ c), 1e-6 * h)
+        free = np.setdiff1d(np.arange(len(x)), fixed)
+        each = np.eye(len(x))[:, free]
+        xs = xs + each @ fit(xs, each, [len(free)], polish, smooth @ (phi @ c), 1e-6 * h)
     surface.update(xs)
     d2 = np.sum((surface.closest(q)[2] - q) ** 2, axis=1)
     rms = _rms(d2, trim, _FLOOR * h)

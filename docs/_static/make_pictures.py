@@ -158,7 +158,41 @@ def pointcloud():
     print(f"pointcloud: simulation error {result.simulation_error_pct:.2f} % after {result.evaluations} evaluations")
 
 
-PICTURES = {"drape": drape, "hanging": hanging, "flag": flag, "throw": throw, "pointcloud": pointcloud}
+def _gripper_result(name: str, iters: int):
+    """A gripper scene optimised with its own [control] settings: the task, the result and its trajectory."""
+    from warpcloth.tasks.grippers import GripperTask
+
+    task = GripperTask.from_scene(name, device="cpu")
+    start = task.loss(task.default_params()).error
+    result = task.run(iters=iters)
+    print(f"{name}: {task.goal.name} {start:.4f} -> {result.error:.4f} after {result.simulations} simulations")
+    frames = task.trajectory(result.params)
+    return task, frames, wc.obstacle_meshes_numpy(task.model, [i * task.dt for i in range(len(frames))])
+
+
+def _close_strobe(path: Path, triangles, frames, obstacles, view, chosen, shift=(0.0, 0.0, 0.0)):
+    """The cloth at frames ``chosen`` in one picture, copy k moved by k ``shift`` [m], framed on the cloth (the
+    table around it cut off)."""
+    n = len(frames[0])
+    tris = np.concatenate([triangles + k * n for k in range(len(chosen))])
+    points = np.concatenate([frames[i] + k * np.asarray(shift) for k, i in enumerate(chosen)])
+    camera = Camera.framing(points, WIDTH, HEIGHT, view)
+    rgb, _ = render_frame(tris, points, at(obstacles, len(frames) - 1), camera=camera, samples=SAMPLES, device="cpu")
+    Image.fromarray(rgb).save(path, optimize=True)
+
+
+def grippers():
+    """grippers how-to: the fling and the fold after the scenes' own searches, each at moments of its motion."""
+    task, frames, obstacles = _gripper_result("fling", 100)
+    _close_strobe(HERE / "fling.png", task.model.tri_indices.numpy(), frames, obstacles, (20.0, -35.0),
+                  [0, 60, 110, 200])
+    task, frames, obstacles = _gripper_result("fold", 100)
+    _close_strobe(HERE / "fold.png", task.model.tri_indices.numpy(), frames, obstacles, (30.0, -60.0),
+                  [60, 200], shift=(0.7, 0.0, 0.0))
+
+
+PICTURES = {"drape": drape, "hanging": hanging, "flag": flag, "throw": throw, "pointcloud": pointcloud,
+            "grippers": grippers}
 
 
 def main(argv=None):

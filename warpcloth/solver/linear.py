@@ -281,8 +281,10 @@ class LinearSolver:
             return None, False
         where = f" in world {world}" if world is not None and self.model.world_count > 1 else ""
         if not math.isfinite(residual):
+            grown = ("" if which != "adjoint" else ", or the gradient flowing back outgrew the float type (it can grow "
+                     "a few percent a step through long sliding contact: a shorter horizon or dtype=wp.float64)")
             return (f"{which} CG solve of step {step}{where} produced a non-finite residual after {iters} "
-                    "iterations; the system is not positive definite or the state is already invalid"
+                    f"iterations; the system is not positive definite or the state is already invalid{grown}"
                     + self.hint(), True)
         name, tol = "cg_tol", opt.cg_tol
         if which == "adjoint" and opt.adjoint_cg_tol is not None:

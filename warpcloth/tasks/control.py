@@ -17,14 +17,21 @@ from warpcloth.kernels.losses import loss_kernels
 from warpcloth.scene import Scene, load_scene
 from warpcloth.solver.gradients import GraphCache, default_segment_steps, plan_gradient
 from warpcloth.tasks.controllers import ControlResult, Evaluation, optimize_open_loop, train_mlp
-from warpcloth.tasks.specs import CONTROLLERS, SearchSpec, check_control_optimizer, default_control_optimizer
+from warpcloth.tasks.specs import (
+    CONTROLLERS,
+    SearchSpec,
+    check_control_optimizer,
+    check_waypoints,
+    default_control_optimizer,
+)
 
 
 class ControlTask:
     """Loss, gradient and trajectory of a cloth as functions of its pushes ``p[interval, particle, xyz]`` [m/s^2], each
     a force ``push_mass * p`` on its particle for ``interval_steps`` steps (why accelerations: docs/decisions.md,
     "Control pushes are accelerations"). The loss at the horizon is ``1/2 |com_T - target|^2`` on the mass-weighted
-    centre of mass, or ``1/2 mean_i |x_i,T - target_i|^2``, plus ``regularizer * 1/2 |p|^2``.
+    centre of mass, or ``1/2 mean_i |x_i,T - target_i|^2``, plus ``regularizer * 1/2 |p|^2`` and each waypoint's
+    ``weight * 1/2 |com_t - target|^2``.
 
     Args:
         model: The scene's model, with gradients: one world, or several equal worlds each with its own pushes.
@@ -41,17 +48,19 @@ class ControlTask:
             :func:`warpcloth.solver.gradients.default_segment_steps` (the whole horizon where the tape stays small).
         push_bound: The longest push [m/s^2], or None: a parameter p then pushes with ``bound tanh(|p| / bound) p /
             |p|`` (:meth:`applied_pushes`; p itself while short), so every optimiser's point is within it.
+        waypoints: ``(time [s], centre-of-mass target [m], weight)`` terms of the loss at whole steps in (0, horizon];
+            they guide a search, ``error_pct`` still measures the horizon only. Not with Gauss-Newton.
         controller, optimizer, iters, search, warm_start: What :meth:`run` does unless told otherwise.
         template: The one-world builder ``model`` was finalised from: with it :meth:`evaluate_many` batches worlds.
 
     Raises:
         ValueError: For worlds of different sizes, bad particles or step counts, not exactly one target, a negative
-            regulariser or push bound, or an unknown controller or optimiser.
+            regulariser or push bound, a bad waypoint, or an unknown controller or optimiser.
     """
 
     def __init__(self, model: wc.Model, dt: float, *, particles, interval_steps: int, intervals: int, steps: int,
                  target_com=None, target_positions=None, regularizer: float = 0.0, push_bound: float | None = None,
-                 options: wc.SolverOptions | None = None, segment_steps: int | None = None,
+                 waypoints=(), options: wc.SolverOptions | None = None, segment_steps: int | None = None,
                  controller: str = "open-loop", optimizer: str | None = None, iters: int | None = None,
                  search: SearchSpec | None = None, warm_start: int = 0, template: wc.ModelBuilder | None = None):
         starts = np.asarray(model.world_particle_start)
@@ -81,12 +90,14 @@ class ControlTask:
             raise ValueError(f"push_bound must be finite and > 0 [m/s^2] (or None), got {push_bound!r}")
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        self.waypoints = check_waypoints(waypoints, float(dt), int(steps))
+        """The waypoints as ``(step, target (3,), weight)``."""
         options = options or wc.SolverOptions()
         if options.preconditioner == "auto":
             options = dataclasses.replace(options, preconditioner="block_ssor")
         self._args = dict(dt=dt, particles=self.particles, interval_steps=interval_steps, intervals=intervals,
                           steps=steps, target_com=target_com, target_positions=target_positions,
-                          regularizer=regularizer, push_bound=push_bound, options=options,
+                          regularizer=regularizer, push_bound=push_bound, waypoints=waypoints, options=options,
                           segment_steps=segment_steps,
                           controller=controller, optimizer=optimizer, iters=iters, search=search,
                           warm_start=warm_start, template=template)
@@ -100,8 +111,10 @@ class ControlTask:
         self.push_bound = None if push_bound is None else float(push_bound)
         self.segment_steps = segment_steps or default_segment_steps(model.particle_count, self.steps)
         self.controller = controller
-        self.optimizer = optimizer or default_control_optimizer(controller, self.target_com, self.regularizer)
+        self.optimizer = optimizer or self.optimizer_for(controller, own=False)
         problem = check_control_optimizer(self.optimizer, controller, self.target_com, self.regularizer)
+        if problem is None and self.waypoints and self.optimizer == "gauss-newton":
+            problem = "gauss-newton fits the horizon's centre of mass only; use lbfgs or a search with waypoints"
         if problem:
             raise ValueError(f"optimizer: {problem}")
         self.iters = iters
@@ -137,10 +150,14 @@ class ControlTask:
         self.batch_retries = 0
         """Batches run again world by world because one of their simulations raised."""
         self.seconds = 0.0
+        self.seconds_by_kind = dict.fromkeys(EVALUATION_KINDS, 0.0)
+        """Of ``seconds``, the evaluations that captured graphs, replayed them, or ran uncaptured
+        (:data:`EVALUATION_KINDS`)."""
         self.name = ""
         """The scene's name, where the task comes from one (:meth:`from_scene`)."""
         self._batched: dict[int, ControlTask] = {self.world_count: self}
         self._graphs: GraphCache = GraphCache(after=2)  # _captured's, by kind
+        self._kind = "uncaptured"  # how the evaluation under way runs (_captured's)
 
     @classmethod
     def from_scene(cls, scene: str | os.PathLike | Scene, *, device=None, dtype=None,
@@ -224,8 +241,10 @@ class ControlTask:
         return wp.array(self._push_values(params), dtype=self.model.types.vec3, device=self.model.device,
                         requires_grad=True)
 
-    # launch every world's loss on the final state (no read): the losses and, for a com target, the centres of mass
-    def _loss_values(self, state: wc.State, components: list[int | None]) -> tuple[wp.array, wp.array | None]:
+    # launch every world's loss on the final state (no read): the losses and, for a com target, the centres of mass;
+    # the waypoints' terms too where ``trajectory`` (every step's state) is given and no component is asked for
+    def _loss_values(self, state: wc.State, components: list[int | None],
+                     trajectory: list[wc.State] | None = None) -> tuple[wp.array, wp.array | None]:
         model, kernels = self.model, self._kernels
         W = self.world_count
         com = None
@@ -246,16 +265,40 @@ class ControlTask:
             else:
                 wp.launch(kernels.add_component, W, outputs=[values], device=model.device,
                           inputs=[com, wp.array(components, dtype=wp.int32, device=model.device)])
+        if trajectory is not None and components[0] is None:
+            for k, (step, _, _) in enumerate(self.waypoints):
+                self._add_waypoint(k, trajectory[step], values)
         return values, com
 
+    # values[w] += waypoint k's term of world w at ``state``
+    def _add_waypoint(self, k: int, state: wc.State, values: wp.array) -> None:
+        model = self.model
+        _, target, weight = self.waypoints[k]
+        com = wp.zeros(self.world_count, dtype=model.types.vec3, device=model.device, requires_grad=True)
+        wp.launch(self._kernels.centre_of_mass, model.particle_count,
+                  inputs=[state.particle_x, model.particle_world, self._com_weights], outputs=[com],
+                  device=model.device)
+        wp.launch(self._kernels.point_squared_distance, self.world_count,
+                  inputs=[com, model.types.vec3(*target), model.scalar(0.5 * weight)], outputs=[values],
+                  device=model.device)
+
     def _loss_fn(self, components: list[int | None], final: dict):
+        passed = {}  # each waypoint's values, by waypoint (a checkpointed rollout passes a step twice)
+
         def loss(i: int, state: wc.State, out: wp.array) -> None:
+            for k, (step, _, _) in enumerate(self.waypoints if components[0] is None else ()):
+                if step == i:
+                    values = wp.zeros(self.world_count, dtype=self.model.scalar, device=self.model.device,
+                                      requires_grad=True)
+                    self._add_waypoint(k, state, values)
+                    wp.launch(self._kernels.add_sum, 1, inputs=[values], outputs=[out], device=self.model.device)
+                    passed[k] = values.numpy().astype(np.float64)
             if i != self.steps:
                 return
             final["positions"] = state.particle_x.numpy().astype(np.float64)
             values, _ = self._loss_values(state, components)
             wp.launch(self._kernels.add_sum, 1, inputs=[values], outputs=[out], device=self.model.device)
-            final["values"] = values.numpy().astype(np.float64)
+            final["values"] = values.numpy().astype(np.float64) + sum(passed.values(), np.zeros(self.world_count))
 
         return loss
 
@@ -283,6 +326,8 @@ class ControlTask:
         t0 = time.perf_counter()
         pushes = self._push_values(params)  # checked before anything runs
         captured = self._captured("evaluate") if all(c is None for c in components) else None
+        if captured is None:
+            self._kind = "uncaptured"
         if captured is not None:
             final = captured.run(pushes)
             grads = final["grads"]
@@ -299,7 +344,7 @@ class ControlTask:
             grads = push.grad.numpy().astype(np.float64).reshape(W, -1)
         self.simulations += W
         self.batches += W > 1
-        self.seconds += time.perf_counter() - t0
+        self._spent(t0)
         out = []
         for w in range(W):
             value, grad = float(final["values"][w]), grads[w]
@@ -315,11 +360,22 @@ class ControlTask:
     # can be (plan_gradient), made at the second call that can use it and again where it went stale.
     def _captured(self, kind: str = "evaluate") -> _CapturedEvaluation | _CapturedLosses | None:
         backward = kind == "evaluate"
+        self._kind = "uncaptured"
         if not plan_gradient(self.sim, self.steps, segment_steps=self.segment_steps if backward else self.steps,
                              backward=backward).captured:
             return None
         make = _CapturedEvaluation if backward else _CapturedLosses
-        return self._graphs.get(kind, lambda: make(self), lambda captured: captured.current())
+        made = self._graphs.made
+        captured = self._graphs.get(kind, lambda: make(self), lambda captured: captured.current())
+        if captured is not None:
+            self._kind = "capture" if self._graphs.made > made else "replay"
+        return captured
+
+    # an evaluation begun at t0 ends: its time, by how it ran (_captured's)
+    def _spent(self, t0: float) -> None:
+        seconds = time.perf_counter() - t0
+        self.seconds += seconds
+        self.seconds_by_kind[self._kind] += seconds
 
     @property
     def rerun_steps(self) -> list[int]:
@@ -351,7 +407,7 @@ class ControlTask:
                 trajectory[-2] = None  # keep only the last state
         self.simulations += W
         self.batches += W > 1
-        self.seconds += time.perf_counter() - t0
+        self._spent(t0)
         out_list = []
         for w in range(W):
             value = float(final["values"][w])
@@ -391,7 +447,7 @@ class ControlTask:
             self.reverse_passes += 0 if skip else 3 * W
             self.simulations += W
             self.batches += W > 1
-            self.seconds += time.perf_counter() - t0
+            self._spent(t0)
             return [[Evaluation(loss=float(coms[w, c]), grad=grads[c][w], com=centres[w],
                                 positions=positions[model.world_slice(w)]) for c in range(3)] for w in range(W)]
         push = self._push_array(params)
@@ -422,7 +478,7 @@ class ControlTask:
             grads = self._reverse_rows(tape, outer, com, forces, push)
         self.simulations += W
         self.batches += W > 1
-        self.seconds += time.perf_counter() - t0
+        self._spent(t0)
         return [[Evaluation(loss=float(coms[w, c]), grad=grads[c][w], com=centres[w],
                             positions=positions[model.world_slice(w)]) for c in range(3)] for w in range(W)]
 
@@ -551,6 +607,9 @@ class ControlTask:
         self.reverse_passes += batch.reverse_passes
         self.batches += batch.batches
         self.seconds += batch.seconds
+        for kind, seconds in batch.seconds_by_kind.items():
+            self.seconds_by_kind[kind] += seconds
+        batch.seconds_by_kind = dict.fromkeys(EVALUATION_KINDS, 0.0)
         batch.simulations = batch.batches = batch.reverse_passes = 0
         batch.seconds = 0.0
 
@@ -581,6 +640,8 @@ class ControlTask:
         controller = controller or self.controller
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        if controller == "mlp" and self.waypoints:
+            raise ValueError("the MLP controller fits the horizon's loss only; use the open loop with waypoints")
         iters = iters or self.default_iters(controller)
         kwargs.setdefault("optimizer", self.optimizer_for(controller))
         if controller == "open-loop":
@@ -588,11 +649,13 @@ class ControlTask:
         kwargs.setdefault("warm_start", self.warm_start if controller == self.controller else 0)
         return train_mlp(self, iters=iters, progress=progress, **kwargs)
 
-    def optimizer_for(self, controller: str) -> str:
-        """The task's optimiser where ``controller`` is its own, else that controller's default for this loss."""
-        if controller == self.controller:
+    def optimizer_for(self, controller: str, *, own: bool = True) -> str:
+        """The task's optimiser where ``controller`` is its own (and ``own``), else that controller's default for this
+        loss (L-BFGS for the open loop's waypoints)."""
+        if own and controller == self.controller:
             return self.optimizer
-        return default_control_optimizer(controller, self.target_com, self.regularizer)
+        default = default_control_optimizer(controller, self.target_com, self.regularizer)
+        return "lbfgs" if self.waypoints and default == "gauss-newton" and controller == "open-loop" else default
 
     def default_iters(self, controller: str) -> int:
         """Simulations ``controller``'s run spends unless told: the task's ``iters`` for its own, else 50 (MLP: 100)."""
@@ -639,7 +702,7 @@ class _CapturedEvaluation(_Captured):
         self.com: wp.array | None = None  # the centres of mass the loss is made from (a centre-of-mass target)
 
         def loss(trajectory):
-            values, self.com = task._loss_values(trajectory[-1], [None] * W)  # the last call's are the graph's
+            values, self.com = task._loss_values(trajectory[-1], [None] * W, trajectory)  # the last call's: the graph's
             return values
 
         self.rollout = wc.CapturedRollout(task.sim, model.state(requires_grad=False), task._control_fn(self.forces),
@@ -682,10 +745,16 @@ class _CapturedLosses(_Captured):
     def run(self, push: np.ndarray) -> dict:
         task = self.task
         self.set_pushes(push)
-        final = self.rollout.run()[-1]
-        values, _ = task._loss_values(final, [None] * task.world_count)
+        trajectory = self.rollout.run()
+        final = trajectory[-1]
+        values, _ = task._loss_values(final, [None] * task.world_count, trajectory)
         return {"values": values.numpy().astype(np.float64),
                 "positions": final.particle_x.numpy().astype(np.float64)}
+
+
+EVALUATION_KINDS = ("capture", "replay", "uncaptured")
+"""How a :class:`ControlTask`'s evaluation ran (``seconds_by_kind``): capturing its graphs (a capture costs several
+uncaptured runs), replaying them, or uncaptured."""
 
 
 def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.SolverOptions | None = None,
@@ -696,4 +765,4 @@ def scene_task_args(scene: Scene, *, steps: int | None = None, options: wc.Solve
                 steps=steps or spec.steps, target_com=spec.target_com, target_positions=spec.target_positions,
                 regularizer=spec.regularizer, options=options or scene.solver_options, segment_steps=segment_steps,
                 controller=spec.controller, optimizer=spec.optimizer, iters=spec.iters, search=spec.search,
-                warm_start=spec.warm_start, push_bound=spec.push_bound)
+                warm_start=spec.warm_start, push_bound=spec.push_bound, waypoints=spec.waypoints)

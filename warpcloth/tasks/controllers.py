@@ -18,6 +18,7 @@ from warpcloth.tasks.optim import (
     SMOOTHED_COPIES,
     FitSummary,
     cmaes,
+    cmaes_restarts,
     lbfgs,
     smoothed_descent,
     smoothed_steps,
@@ -26,6 +27,8 @@ from warpcloth.tasks.specs import SearchSpec, check_control_optimizer, default_c
 
 SEARCH_SIGMA = 5.0
 """The global searches' default spread of the pushes [m/s^2] (``SearchSpec.sigma``)."""
+CMAES_RESTARTS = False
+"""Whether the open loop's CMA-ES restarts with growing populations where a run stalls (IPOP)."""
 SMOOTHED_SIGMA = 5.0
 """The smoothed optimiser's default spread [m/s^2] (``SearchSpec.sigma``)."""
 SMOOTHED_STEP_FRACTION = 1.0
@@ -60,6 +63,7 @@ class ControlProblem(Protocol):
     target_com: np.ndarray | None
     target_positions: np.ndarray | None
     regularizer: float
+    waypoints: tuple
     push_mass: float
     com_weights: np.ndarray
     search: SearchSpec
@@ -103,7 +107,8 @@ class ControlResult(FitSummary):
 
 def optimize_open_loop(task: ControlProblem, *, iters: int = 50, max_step: float = 20.0, damping: float = 1e-3,
                        start: np.ndarray | None = None, optimizer: str | None = None, search: SearchSpec | None = None,
-                       batch: bool = True, progress: bool = False, callback=None, _evaluate=None) -> ControlResult:
+                       batch: bool = True, progress: bool = False, callback=None, restarts: bool | None = None,
+                       _evaluate=None) -> ControlResult:
     """Optimise the pushes directly; returns the pushes of least ``error_pct`` and the history.
 
     Args:
@@ -122,12 +127,17 @@ def optimize_open_loop(task: ControlProblem, *, iters: int = 50, max_step: float
         search: The global search's settings (default ``task.search``).
         batch: Run a point's three Gauss-Newton simulations as one batch of worlds: the same result, bitwise.
         callback: ``callback(k, loss, error_pct, params)`` after the k-th simulation.
+        restarts: CMA-ES restarts with growing populations (:func:`~warpcloth.tasks.optim.cmaes_restarts`); default
+            :data:`CMAES_RESTARTS`.
 
     Raises:
         ValueError: For an optimiser that does not fit the loss, or a search budget that makes no generation or step.
     """
     optimizer = optimizer or task.optimizer_for("open-loop")
+    restarts = CMAES_RESTARTS if restarts is None else restarts
     problem = check_control_optimizer(optimizer, "open-loop", task.target_com, task.regularizer)
+    if problem is None and optimizer == "gauss-newton" and task.waypoints:
+        problem = "gauss-newton fits the horizon's centre of mass only; use lbfgs or a search with waypoints"
     if problem:
         raise ValueError(f"optimizer: {problem}")
     run = _evaluate or (task.evaluate_many if batch else lambda requests: [_evaluate_one(task, *r) for r in requests])
@@ -187,7 +197,7 @@ def optimize_open_loop(task: ControlProblem, *, iters: int = 50, max_step: float
                          failures=(wc.SimulationError, wc.CollisionError))
         if math.isfinite(result.error_pct):
             params = result.params.reshape(-1).copy()  # the local stage starts from the best point
-        optimizer = default_control_optimizer("open-loop", task.target_com, task.regularizer)
+        optimizer = _local_optimizer(task)
 
     if optimizer == "cmaes":
         search = search or task.search
@@ -211,11 +221,15 @@ def optimize_open_loop(task: ControlProblem, *, iters: int = 50, max_step: float
                 bar.close()
             raise ValueError(f"cmaes: {iters} simulations, {refine} of them left to the local optimiser, make no "
                              f"generation of {population} points; raise iters or lower search.population/refine")
-        cmaes(generation, params, sigma=search.sigma or SEARCH_SIGMA, generations=generations,
-              rng=np.random.default_rng(search.seed), popsize=population)
+        if restarts:
+            cmaes_restarts(generation, params, sigma=search.sigma or SEARCH_SIGMA, budget=iters - refine,
+                           rng=np.random.default_rng(search.seed), popsize=population)
+        else:
+            cmaes(generation, params, sigma=search.sigma or SEARCH_SIGMA, generations=generations,
+                  rng=np.random.default_rng(search.seed), popsize=population)
         if math.isfinite(result.error_pct):
             params = result.params.reshape(-1).copy()  # the local stage starts from the best point
-        optimizer = default_control_optimizer("open-loop", task.target_com, task.regularizer)
+        optimizer = _local_optimizer(task)
 
     if optimizer == "lbfgs":
         def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
@@ -308,7 +322,7 @@ def _multistart(task: ControlProblem, params: np.ndarray, *, iters: int, search:
 
     runs = optimize_open_loop_starts(
         task, points, batch=batch, iters=iters // starts, callback_of=recorder,
-        optimizer=default_control_optimizer("open-loop", task.target_com, task.regularizer), **local)
+        optimizer=_local_optimizer(task), **local)
     result = ControlResult(params=np.zeros(task.params_shape))
     position = {}  # (run, its simulation k) -> the simulation's place in the interleaved history
     for k in range(max(len(r.losses) for r in runs)):
@@ -327,6 +341,13 @@ def _multistart(task: ControlProblem, params: np.ndarray, *, iters: int, search:
                                           for k, loss, err, point in points):
             callback(n, loss, err, point)
     return _finish(result, bar, t0)
+
+
+# the local optimiser that ends a search or runs from each start: Gauss-Newton fits the horizon's loss only
+def _local_optimizer(task: ControlProblem) -> str:
+    if task.waypoints:
+        return "lbfgs"
+    return default_control_optimizer("open-loop", task.target_com, task.regularizer)
 
 
 def _evaluate_one(task: ControlProblem, params: np.ndarray, component: int | None) -> Evaluation | Exception:

@@ -1013,14 +1013,21 @@ class _WorldFit:
 
 def registered_start(model: wc.Model, points: np.ndarray) -> np.ndarray:
     """The start positions (particle_count, 3) [m] of a one-world model's cloth on a recorded point cloud ``points``
-    (P, 3) [m]: the cloth as the scene places it, moved rigidly onto the points from there (not from any placement,
-    so that a square cloth keeps its corners where the scene put them), then deformed smoothly
-    (:func:`warpcloth.registration.register_nonrigid`). ValueError for a model of several worlds or bad points."""
+    (P, 3) [m]: a held cloth (soft handles, pins) deformed from where the scene places it, its held particles kept
+    there (:func:`warpcloth.registration.register_nonrigid` with them ``fixed``, both ways); a free one moved
+    rigidly from there (not from any placement, so that a square cloth keeps its corners where the scene put them),
+    then deformed. ValueError for a model of several worlds or bad points. Why: docs/decisions.md, "A held cloth's
+    registration keeps its held particles"."""
     from warpcloth.registration import MAX_POLISH_VERTICES, register_nonrigid, register_rigid
 
     if model.world_count != 1:
         raise ValueError(f"registered_start places one world's cloth; the model has {model.world_count}")
     x, tris = model.particle_x0.numpy().astype(np.float64), model.triangles_np
+    held = [a.numpy() for a in (model.handle_particle, model.pin_particle) if a is not None]
+    held = np.unique(np.concatenate(held)) if held else np.zeros(0, dtype=np.int64)
+    if len(held):
+        return register_nonrigid(x, tris, points, fixed=held, both_ways=True, preserve_lengths=300.0,
+                                 polish=30 if len(x) <= MAX_POLISH_VERTICES else 0).positions
     rigid = register_rigid(x, tris, points, init=(np.eye(3), np.zeros(3)))
     polish = 10 if len(x) <= MAX_POLISH_VERTICES else 0
     return register_nonrigid(x, tris, points, rigid=rigid, polish=polish).positions

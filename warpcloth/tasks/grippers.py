@@ -22,6 +22,7 @@ from warpcloth.tasks.specs import GRIPPER_OPTIMIZERS, GripperControlSpec
 PATH_EPSILON = 1e-3
 """The path-length regulariser's smoothing speed [m/s]: sqrt(|V|^2 + eps^2) is differentiable at rest."""
 _FAILURES = (wc.SimulationError, wc.CollisionError)
+_LIMITS = ("max_speed", "max_acceleration", "max_yaw_rate", "max_yaw_acceleration")
 
 
 @dataclass
@@ -62,17 +63,19 @@ class GripperTask:
         acceleration_weight, path_weight: the regularisers' weights, >= 0.
         options, segment_steps: as :class:`~warpcloth.tasks.control.ControlTask`'s.
         optimizer, iters, sigma, seed: what :meth:`run` does unless told.
+        tied: every gripper follows the first's knots (one trajectory's parameters; the grippers need the same knot
+            times, limits and first knot).
         capture: replay graphs where the plan allows (off by default: docs/decisions.md, "Gripper tasks run
             uncaptured").
 
     Raises:
         ValueError: several worlds, no gripper, a gripper whose particles the model holds by no handle, bad steps,
-            weights or optimiser."""
+            weights or optimiser, tied grippers unlike the first."""
 
     def __init__(self, model: wc.Model, dt: float, *, steps: int, goal, acceleration_weight: float = 0.0,
                  path_weight: float = 0.0, options: wc.SolverOptions | None = None, segment_steps: int | None = None,
-                 optimizer: str = "lbfgs", iters: int = 50, sigma: float = 0.5, seed: int = 0,
-                 capture: bool = False):
+                 optimizer: str = "lbfgs", iters: int = 50, sigma: float = 0.05, seed: int = 0,
+                 capture: bool = False, tied: bool = False):
         if model.world_count != 1:
             raise ValueError(f"a gripper task runs one world; the model has {model.world_count}")
         if not model.grippers:
@@ -86,6 +89,16 @@ class GripperTask:
             raise ValueError(f"unknown optimizer {optimizer!r}; one of {', '.join(GRIPPER_OPTIMIZERS)}")
         self.model, self.dt, self.steps, self.goal = model, float(dt), int(steps), goal
         self.grippers: list[Gripper] = list(model.grippers)
+        self.tied = bool(tied)
+        if self.tied:
+            first = self.grippers[0]
+            for g in self.grippers[1:]:
+                same = (g.knot_count == first.knot_count and np.array_equal(g.times, first.times)
+                        and np.array_equal(g.positions[0], first.positions[0]) and g.rotates == first.rotates
+                        and all(getattr(g, k) == getattr(first, k) for k in _LIMITS))
+                if not same:
+                    raise ValueError(f"tied grippers: {g.name} differs from {first.name} in its knot times, limits "
+                                     "or first knot (tied grippers follow one trajectory)")
         self.acceleration_weight, self.path_weight = float(acceleration_weight), float(path_weight)
         self.optimizer, self.iters, self.sigma, self.seed = optimizer, int(iters), float(sigma), int(seed)
         self.sim = wc.Simulator(model, dt, options=options)
@@ -101,7 +114,7 @@ class GripperTask:
                                  "ModelBuilder.add_gripper)")
             self._handles.append(np.array([handle_of[p] for p in g.particles]))
             self._x0.append(x0[list(g.particles)])
-        self._sizes = np.cumsum([0] + [g.n_params for g in self.grippers])
+        self._sizes = np.cumsum([0] + [g.n_params for g in self._free])
         # the step ending at times[s] holds the targets at times[s]; accumulated as the states' times are
         self.times = np.cumsum(np.full(self.steps, self.dt))
         H = model.handle_count
@@ -135,25 +148,59 @@ class GripperTask:
         task = cls(model, scene.dt, steps=steps or spec.steps, goal=spec.goal(model),
                    acceleration_weight=spec.acceleration_weight, path_weight=spec.path_weight,
                    options=options or scene.solver_options, optimizer=spec.optimizer, iters=spec.iters,
-                   sigma=spec.sigma, seed=spec.seed, capture=capture)
+                   sigma=spec.sigma, seed=spec.seed, capture=capture, tied=spec.tied)
         task.name = scene.name
         return task
 
     # -- parameters ------------------------------------------------------------------------------------------------
     @property
+    def _free(self) -> list[Gripper]:
+        """The grippers whose knots are parameters (the first only where tied)."""
+        return self.grippers[:1] if self.tied else self.grippers
+
+    @property
     def n_params(self) -> int:
         return int(self._sizes[-1])
 
     def default_params(self) -> np.ndarray:
-        """The parameters of the grippers' scripted knots."""
-        return np.concatenate([g.default_params() for g in self.grippers])
+        """The parameters of the grippers' scripted knots (the first gripper's where tied)."""
+        return np.concatenate([g.default_params() for g in self._free])
 
     def split(self, params) -> list[np.ndarray]:
         """``params`` checked (:attr:`n_params` finite numbers) and cut into each gripper's."""
         p = np.asarray(params, dtype=np.float64).reshape(-1)
         if p.size != self.n_params or not np.all(np.isfinite(p)):
             raise ValueError(f"gripper parameters must be {self.n_params} finite numbers, got {p.size}")
-        return [p[a:b] for a, b in zip(self._sizes[:-1], self._sizes[1:])]
+        parts = [p[a:b] for a, b in zip(self._sizes[:-1], self._sizes[1:])]
+        return parts * len(self.grippers) if self.tied else parts
+
+    def _join(self, grads: list[np.ndarray]) -> np.ndarray:
+        """Per-gripper gradients as one over :attr:`n_params` (summed where tied)."""
+        return np.sum(grads, axis=0) if self.tied else np.concatenate(grads)
+
+    def params_of_increments(self, increments) -> np.ndarray:
+        """The parameters of knot increments (:meth:`knot_increments`' form, :attr:`n_params` numbers); knots past a
+        limit are projected into it (:meth:`Gripper.params_of`)."""
+        d = np.asarray(increments, dtype=np.float64).reshape(-1)
+        if d.size != self.n_params or not np.all(np.isfinite(d)):
+            raise ValueError(f"knot increments must be {self.n_params} finite numbers, got {d.size}")
+        out = []
+        for g, a, b in zip(self._free, self._sizes[:-1], self._sizes[1:]):
+            K = g.knot_count
+            P = g.positions[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(d[a:a + 3 * (K - 1)].reshape(-1, 3), 0)])
+            yaw = g.yaw[0] + np.concatenate([[0.0], np.cumsum(d[a + 3 * (K - 1):b])]) if g.rotates else None
+            out.append(g.params_of(P, yaw))
+        return np.concatenate(out)
+
+    def knot_increments(self, params) -> np.ndarray:
+        """The free grippers' (the first only where tied) knot increments ``P_k - P_(k-1)`` [m], then yaw
+        increments [rad] where a gripper turns, flat (:attr:`n_params`): the space the forward-only searches step
+        in, where a step moves every later knot alike."""
+        out = []
+        for g, p in zip(self._free, self.split(params)):
+            P, yaw = g.control_points(p)
+            out += [np.diff(P, axis=0).reshape(-1)] + ([np.diff(yaw)] if g.rotates else [])
+        return np.concatenate(out)
 
     def trajectory_frames(self, params) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each gripper's frame displacements (steps, 3) [m] and yaws (steps,) [rad] at the steps' ends."""
@@ -181,7 +228,7 @@ class GripperTask:
             g_P[1:] += g_V / h
             g_P[:-1] -= g_V / h
             grads.append(g.control_points_vjp(p, g_P, None))
-        return value, np.concatenate(grads)
+        return value, self._join(grads)
 
     # -- simulations -----------------------------------------------------------------------------------------------
     def evaluate(self, params) -> GripperEvaluation:
@@ -207,8 +254,8 @@ class GripperTask:
             value, final = wc.checkpointed_backward(self.sim, self.model.state(requires_grad=False), self._controls,
                                                     steps=self.steps, loss=loss, segment_steps=self.segment_steps)
         G = self._targets.grad.numpy().astype(np.float64).reshape(self.steps, self.model.handle_count, 3)
-        grad = np.concatenate([g.targets_vjp(p, self.times, x0, G[:, handles])
-                               for g, p, handles, x0 in zip(self.grippers, parts, self._handles, self._x0)])
+        grad = self._join([g.targets_vjp(p, self.times, x0, G[:, handles])
+                           for g, p, handles, x0 in zip(self.grippers, parts, self._handles, self._x0)])
         reg, reg_grad = self.regularizer(params)
         positions = final.particle_x.numpy().astype(np.float64)
         self.seconds += time.perf_counter() - t0
@@ -282,16 +329,22 @@ class GripperTask:
     # -- optimisation ----------------------------------------------------------------------------------------------
     def run(self, optimizer: str | None = None, iters: int | None = None, *, start=None, sigma: float | None = None,
             seed: int | None = None, callback=None) -> GripperResult:
-        """Optimise from ``start`` (default the scripted knots) with ``iters`` simulations: ``lbfgs``/``adam`` on
-        the gradient, ``cmaes`` or ``random`` (the start plus Gaussian steps of ``sigma``, the best kept) forward
-        only. A simulation that fails counts with an infinite loss. ``callback(k, evaluation)`` after each."""
+        """Optimise from ``start`` (parameters; default the scripted knots) with ``iters`` simulations: ``lbfgs`` or
+        ``adam`` (step 0.1 ``sigma``) on the gradient, or forward only in the knot increments
+        (:meth:`knot_increments`, ``sigma`` [m]): ``compass`` (a compass search: steps of +-sigma along one
+        increment at a time in a random order, the first that lowers the loss taken, the step halved after a round
+        with none), ``cmaes`` (spread sigma) or ``random`` (the start, then the start plus Gaussian steps of
+        ``sigma``). The best simulation is kept; one that fails counts with an infinite loss. ``callback(k,
+        evaluation)`` after each (evaluation None where it failed)."""
         optimizer = optimizer or self.optimizer
         if optimizer not in GRIPPER_OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; one of {', '.join(GRIPPER_OPTIMIZERS)}")
         iters = int(iters or self.iters)
         sigma = self.sigma if sigma is None else float(sigma)
+        if not (math.isfinite(sigma) and sigma > 0.0):
+            raise ValueError(f"sigma must be finite and > 0, got {sigma!r}")
         rng = np.random.default_rng(self.seed if seed is None else seed)
-        x0 = self.default_params() if start is None else np.concatenate(self.split(start))
+        x0 = self.default_params() if start is None else np.concatenate(self.split(start)[:len(self._free)])
         result = GripperResult(params=x0.copy(), loss=math.inf, error=math.nan, optimizer=optimizer)
         sims0, t0 = self.simulations, time.perf_counter()
 
@@ -313,25 +366,55 @@ class GripperTask:
                 return math.inf, np.zeros_like(theta)
             return record(theta, e), e.grad
 
-        def forward(theta) -> float:
+        def forward(u) -> float:  # u: knot increments
+            theta = self.params_of_increments(u)
             try:
                 e = self.loss(theta)
             except _FAILURES:
                 e = None
             return record(theta, e)
 
+        u0 = self.knot_increments(x0)
         if optimizer == "lbfgs":
             optim.lbfgs(with_gradient, x0, iters=iters)
         elif optimizer == "adam":
             optim.adam(with_gradient, x0, iters=iters, lr=0.1 * sigma)
         elif optimizer == "cmaes":
-            popsize = max(2, min(4 + int(3 * math.log(max(x0.size, 1))), iters))  # within the budget
-            optim.cmaes(lambda points: [forward(p) for p in points], x0, sigma=sigma,
+            popsize = max(2, min(4 + int(3 * math.log(max(u0.size, 1))), iters))  # within the budget
+            optim.cmaes(lambda points: [forward(p) for p in points], u0, sigma=sigma,
                         generations=max(1, iters // popsize), rng=rng, popsize=popsize)
+        elif optimizer == "compass":
+            compass_search(forward, u0, step=sigma, budget=iters, rng=rng)
         else:
-            forward(x0)
+            forward(u0)
             for _ in range(iters - 1):
-                forward(x0 + sigma * rng.standard_normal(x0.size))
+                forward(u0 + sigma * rng.standard_normal(u0.size))
         result.simulations = self.simulations - sims0
         result.seconds = time.perf_counter() - t0
         return result
+
+
+def compass_search(f, x0: np.ndarray, *, step: float, budget: int, rng: np.random.Generator,
+                   shrink: float = 0.5) -> tuple[float, np.ndarray]:
+    """Compass search (Kolda, Lewis and Torczon 2003, "Optimization by direct search"): from ``x0``, try ``x +-
+    step e_i`` one coordinate at a time in a random order and move to the first point that lowers ``f``; after a
+    round of all 2n with none, multiply ``step`` by ``shrink``. ``budget`` calls of ``f`` (the first at ``x0``).
+    Returns the best (f, x)."""
+    x = np.asarray(x0, dtype=np.float64).copy()
+    best, calls = f(x), 1
+    while calls < budget:
+        moved = False
+        for i in rng.permutation(x.size):
+            for sign in rng.permutation([1.0, -1.0]):
+                if calls >= budget:
+                    return best, x
+                trial = x.copy()
+                trial[i] += sign * step
+                value = f(trial)
+                calls += 1
+                if value < best:
+                    best, x, moved = value, trial, True
+                    break
+        if not moved:
+            step *= shrink
+    return best, x

@@ -202,8 +202,38 @@ def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int
     ``sigma``: ``evaluate_population(points) -> losses`` a generation at once (infinite for a failed simulation),
     ``popsize`` default 4 + floor(3 ln n). ValueError for a ``popsize`` under 2 or a ``sigma`` not finite and > 0."""
     x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
+    lam = popsize or 4 + int(3 * math.log(x0.size))
+    return _cmaes_run(evaluate_population, x0, sigma, lam, generations, rng, None, callback, 0)[1]
+
+
+def cmaes_restarts(evaluate_population, x0: np.ndarray, *, sigma: float, budget: int, rng: np.random.Generator,
+                   popsize: int | None = None, growth: int = 2, stall: int = 8, callback=None) -> np.ndarray:
+    """IPOP-CMA-ES (Auger and Hansen 2005): :func:`cmaes` from ``x0``, restarted from ``x0`` with ``growth`` times
+    the population whenever a run's best loss has not dropped by 1e-3 of itself for ``stall`` generations, while
+    ``budget`` evaluations last (a run stops where the next generation does not fit). Returns the best point of all
+    runs. ValueError as :func:`cmaes`, or for ``growth`` < 1, ``stall`` < 1 or a budget under one population."""
+    x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
+    lam = popsize or 4 + int(3 * math.log(x0.size))
+    if growth < 1 or stall < 1:
+        raise ValueError(f"cmaes_restarts needs growth >= 1 and stall >= 1, got {growth!r} and {stall!r}")
+    if budget < lam:
+        raise ValueError(f"cmaes_restarts: a budget of {budget} evaluations makes no generation of {lam}")
+    best, spent = (math.inf, x0.copy()), 0
+    while budget - spent >= lam:
+        loss, point, used = _cmaes_run(evaluate_population, x0, sigma, lam, (budget - spent) // lam, rng, stall,
+                                       callback, spent)
+        spent += used
+        if loss < best[0]:
+            best = (loss, point)
+        lam *= growth
+    return best[1]
+
+
+# One CMA-ES run of at most ``generations`` generations of ``lam`` points, ended early where its best loss has not
+# dropped by 1e-3 of itself for ``stall`` generations (None: never): (best loss, best point, evaluations)
+def _cmaes_run(evaluate_population, x0: np.ndarray, sigma: float, lam: int, generations: int,
+               rng: np.random.Generator, stall: int | None, callback, evaluations: int) -> tuple:
     n = x0.size
-    lam = popsize or 4 + int(3 * math.log(n))
     if lam < 2 or sigma <= 0.0 or not math.isfinite(sigma):
         raise ValueError(f"cmaes needs popsize >= 2 and a finite sigma > 0, got {lam} and {sigma!r}")
     mu = lam // 2
@@ -219,7 +249,8 @@ def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int
     mean, C = x0.copy(), np.eye(n)
     p_sigma, p_c = np.zeros(n), np.zeros(n)
     best = (math.inf, x0.copy())
-    evaluations = 0
+    first = evaluations
+    improved = 0  # the generation of the last drop of the best loss by 1e-3 of itself
     for generation in range(1, generations + 1):
         eigenvalues, B = np.linalg.eigh(C)
         D = np.sqrt(np.maximum(eigenvalues, 1e-300))
@@ -232,7 +263,11 @@ def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int
             if callback:
                 callback(evaluations, float(loss), point)
             if loss < best[0]:
+                if loss < best[0] - 1e-3 * abs(best[0]) or not math.isfinite(best[0]):
+                    improved = generation
                 best = (float(loss), point.copy())
+        if stall is not None and generation - improved >= stall:
+            break
         order = np.argsort(np.where(np.isfinite(losses), losses, np.inf))[:mu]
         y_w = weights @ y[order]
         mean = mean + sigma * y_w
@@ -246,4 +281,4 @@ def cmaes(evaluate_population, x0: np.ndarray, *, sigma: float, generations: int
              + c_mu * rank_mu)
         C = 0.5 * (C + C.T)
         sigma *= math.exp((c_sigma / d_sigma) * (np.linalg.norm(p_sigma) / chi_n - 1.0))
-    return best[1]
+    return best[0], best[1], evaluations - first

@@ -21,6 +21,14 @@ SCENE_PARAMETERS = {
     "start_placement": "a rigid move of the start positions: a rotation vector [rad] about the cloth's centre (the "
                        "mean start position) then a translation [m], (6,); linear, scales 0.1 rad and 0.01 m; the "
                        "velocities, handle and pin targets stay",
+    "start_deformation": "a smooth deformation of the start positions: coefficients [m^2] of the START_MODES "
+                         "smoothest displacements of the start shape (registration.SmoothDeformation, the held "
+                         "particles fixed; fewer on a cloth of fewer free particles), before start_placement, "
+                         "(START_MODES * 3,); linear, scale 1 cm of RMS displacement; the velocities, handle and pin "
+                         "targets stay",
+    "start_deformation_rate": "a smooth start velocity: coefficients [m^2/s] of the same displacements as "
+                              "start_deformation, added to the start velocities, (START_MODES * 3,); linear, scale "
+                              "0.1 m/s of RMS velocity",
     "start_velocity": "a velocity [m/s] added to every particle's start velocity, (3,); linear, scale 0.1 m/s",
     "start_velocities": "a velocity [m/s] added to each particle's start velocity, (particle_count * 3,); linear, "
                         "scale 0.1 m/s",
@@ -29,20 +37,20 @@ SCENE_PARAMETERS = {
 }
 """The scene parameters an estimation can free (beside the material's ``density``, ``stretching``, ``bending``):
 name to what it is, its units and shape, and how it is fitted. Not offered: damping (the model's Rayleigh
-coefficients are host constants of the step, with no gradient) and a smooth non-rigid deformation of the start
-(:data:`NOT_OFFERED`)."""
+coefficients are host constants of the step, with no gradient) (:data:`NOT_OFFERED`)."""
 
 NOT_OFFERED = {
     "damping": "the Rayleigh damping coefficients are host constants of the step (Model.damping_mass and "
                "damping_stiffness), with no gradient",
-    "start_deformation": "a smooth non-rigid deformation of the start needs the registration's deformation basis, "
-                         "which the estimation does not take yet; free start_placement (rigid) instead",
 }
 """Names refused with the reason: scene inputs the estimation cannot fit."""
 
 _ROTATION_SCALE = 0.1  # [rad]
 _TRANSLATION_SCALE = 0.01  # [m]
 _VELOCITY_SCALE = 0.1  # [m/s]
+_SHAPE_SCALE = 0.01  # [m]
+START_MODES = 16
+"""How many smooth displacements ``start_deformation`` and ``start_deformation_rate`` take."""
 
 
 # -- rotations (analytic, so that a complex step differentiates them) ------------------------------------------------
@@ -265,12 +273,35 @@ class _Start:
         self.placement = np.zeros(6)
         self.velocity = np.zeros(3)
         self.velocities = np.zeros_like(self.v_base)
+        self._modes = None
+        held = [a.numpy() for a in (model.handle_particle, model.pin_particle) if a is not None]
+        self.held = np.unique(np.concatenate(held)) if held else np.zeros(0, dtype=np.int64)
+        count = min(START_MODES, len(self.x_base) - len(self.held))  # a cloth of few particles: fewer modes
+        self.shape = np.zeros((count, 3))
+        self.rate = np.zeros((count, 3))
+
+    @property
+    def modes(self):
+        """The start shape's smooth displacements (registration.SmoothDeformation), the held particles fixed."""
+        if self._modes is None:
+            from warpcloth.registration import SmoothDeformation
+
+            self._modes = SmoothDeformation(self.x_base, self.model.triangles_np, len(self.shape), fixed=self.held)
+        return self._modes
+
+    def relative(self) -> np.ndarray:
+        # the deformed start about the centre, before the rigid placement
+        x = self.x_base if self._modes is None else self.x_base + self._modes.basis @ self.shape
+        return x - self.centre
 
     def write(self) -> None:
         r, t = self.placement[:3], self.placement[3:]
-        x = (self.x_base - self.centre) @ rotation_matrix(r).T + self.centre + t
+        x = self.relative() @ rotation_matrix(r).T + self.centre + t
         self.model.particle_x0.assign(x)
-        self.model.particle_v0.assign(self.v_base + self.velocity + self.velocities)
+        v = self.v_base + self.velocity + self.velocities
+        if self._modes is not None:
+            v = v + self._modes.basis @ self.rate
+        self.model.particle_v0.assign(v)
 
     def grads(self) -> tuple[np.ndarray, np.ndarray]:
         state = self.fit.start_state
@@ -304,7 +335,7 @@ class _StartPlacement(SceneParameter):
     def grad(self):
         gx, _ = self.start.grads()
         s = self.start
-        rel = s.x_base - s.centre
+        rel = s.relative()
         jac = _jacobian(rotation_matrix, s.placement[:3])  # (3, 3, 3): d R / d r_k
         g_r = [float(np.sum(gx * (rel @ jac[:, :, k].T))) for k in range(3)]
         return np.concatenate([g_r, gx.sum(axis=0)])
@@ -347,6 +378,47 @@ class _StartVelocities(_StartVelocity):
 
     def grad(self):
         return self.start.grads()[1].ravel()
+
+
+class _StartDeformation(SceneParameter):
+    name = "start_deformation"
+
+    def __init__(self, fit, start: _Start):
+        super().__init__(fit)
+        self.start = start
+        self.scale = _SHAPE_SCALE * np.sqrt(start.modes.mass.sum())  # mass-orthonormal modes: RMS over the area
+
+    def read(self):
+        return self.start.shape.ravel().copy()
+
+    def write(self, values):
+        self.start.shape = np.asarray(values, dtype=np.float64).reshape(-1, 3).copy()
+        self.start.write()
+
+    def grad(self):
+        gx, _ = self.start.grads()
+        return (self.start.modes.basis.T @ gx @ rotation_matrix(self.start.placement[:3])).ravel()
+
+    def zero_grad(self):
+        self.start.zero()
+
+
+class _StartDeformationRate(_StartDeformation):
+    name = "start_deformation_rate"
+
+    def __init__(self, fit, start: _Start):
+        super().__init__(fit, start)
+        self.scale = _VELOCITY_SCALE * np.sqrt(start.modes.mass.sum())
+
+    def read(self):
+        return self.start.rate.ravel().copy()
+
+    def write(self, values):
+        self.start.rate = np.asarray(values, dtype=np.float64).reshape(-1, 3).copy()
+        self.start.write()
+
+    def grad(self):
+        return (self.start.modes.basis.T @ self.start.grads()[1]).ravel()
 
 
 class _ObstaclePlacement(SceneParameter):
@@ -419,6 +491,10 @@ def _make(fit, name: str, start: _Start) -> SceneParameter:
         return _StartPlacement(fit, start)
     if name == "start_velocity":
         return _StartVelocity(fit, start)
+    if name == "start_deformation":
+        return _StartDeformation(fit, start)
+    if name == "start_deformation_rate":
+        return _StartDeformationRate(fit, start)
     if name == "start_velocities":
         return _StartVelocities(fit, start)
     if name == "obstacle_placement":
@@ -459,5 +535,5 @@ def bind_parameters(fit, names: Sequence[str]) -> list[SceneParameter]:
     return [_make(fit, name, start) for name in names]
 
 
-__all__ = ["SCENE_PARAMETERS", "NOT_OFFERED", "ParameterTransform", "SceneParameter", "bind_parameters",
+__all__ = ["SCENE_PARAMETERS", "NOT_OFFERED", "START_MODES", "ParameterTransform", "SceneParameter", "bind_parameters",
            "check_names", "check_options", "rotation_matrix", "rotation_quaternion"]

@@ -3,6 +3,7 @@ and the parser share. Keys, units and defaults: docs/concepts/scenes-and-tasks.m
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from warpcloth.tasks.parameters import NOT_OFFERED, SCENE_PARAMETERS
 __all__ = ["CONTROLLERS", "GRIPPER_LOSSES", "GRIPPER_OPTIMIZERS", "GripperControlSpec",
            "CONTROL_OPTIMIZERS", "DEFAULT_CONTROL_ITERS", "ESTIMATION_OPTIMIZERS", "GLOBAL_OPTIMIZERS",
            "FREE_PARAMETERS", "MATERIAL_PARTS", "ControlSpec", "EstimateSpec", "SearchSpec", "check_control_optimizer",
-           "default_control_optimizer", "parse_control", "parse_estimate"]
+           "check_waypoints", "default_control_optimizer", "parse_control", "parse_estimate"]
 
 
 @dataclass(frozen=True)
@@ -72,9 +73,10 @@ class ControlSpec:
     search: SearchSpec = SearchSpec()
     warm_start: int = 0
     push_bound: float | None = None
+    waypoints: tuple = ()
 
 
-GRIPPER_OPTIMIZERS = ("lbfgs", "adam", "cmaes", "random")
+GRIPPER_OPTIMIZERS = ("lbfgs", "adam", "compass", "cmaes", "random")
 """The optimisers of a gripper task: local on the gradient (lbfgs, adam), or forward-only searches."""
 GRIPPER_LOSSES = ("coverage", "points", "positions")
 """The goals of a ``[control]`` table with ``controls = "grippers"`` (:mod:`warpcloth.goals`)."""
@@ -87,7 +89,7 @@ class GripperControlSpec:
     Attributes:
         loss: The goal, ``(kind, arguments)``: ``("coverage", {"table_height", "flat_tolerance"})``,
             ``("points", {"points": (P, 3)})`` or ``("positions", {"positions": (n, 3)})`` [m].
-        acceleration_weight, path_weight, optimizer, iters, sigma, seed: ``GripperTask``'s.
+        acceleration_weight, path_weight, optimizer, iters, sigma, seed, tied: ``GripperTask``'s.
     """
 
     steps: int
@@ -96,8 +98,9 @@ class GripperControlSpec:
     path_weight: float = 0.0
     optimizer: str = "lbfgs"
     iters: int = 50
-    sigma: float = 0.5
+    sigma: float = 0.05
     seed: int = 0
+    tied: bool = False
 
     def goal(self, model):
         """The goal on ``model`` (ValueError from :mod:`warpcloth.goals`, e.g. coverage without a table)."""
@@ -112,7 +115,8 @@ class GripperControlSpec:
 
 
 def _parse_gripper_control(table: dict, sim_steps: int, count: int, base_dir: Path) -> GripperControlSpec:
-    keys = ("controls", "steps", "loss", "acceleration_weight", "path_weight", "optimizer", "iters", "sigma", "seed")
+    keys = ("controls", "steps", "loss", "acceleration_weight", "path_weight", "optimizer", "iters", "sigma", "seed",
+            "tied")
     _check_keys(table, "control", keys, required=("loss",))
     steps = _steps_within(table, "control", sim_steps)
     loss = _table(table["loss"], "control.loss")
@@ -147,10 +151,13 @@ def _parse_gripper_control(table: dict, sim_steps: int, count: int, base_dir: Pa
                for key in ("acceleration_weight", "path_weight")}
     optimizer = _choice(table.get("optimizer", "lbfgs"), "control.optimizer", GRIPPER_OPTIMIZERS)
     iters = _int(table.get("iters", 50), "control.iters", min_value=1)
-    sigma = _float(table.get("sigma", 0.5), "control.sigma", min_value=0.0, strict=True)
+    sigma = _float(table.get("sigma", 0.05), "control.sigma", min_value=0.0, strict=True)
     seed = _int(table.get("seed", 0), "control.seed", min_value=0)
+    tied = table.get("tied", False)
+    if not isinstance(tied, bool):
+        raise _err("control.tied", f"expected true or false, got {tied!r}")
     return GripperControlSpec(steps=steps, loss=(kind, args), optimizer=optimizer, iters=iters, sigma=sigma,
-                              seed=seed, **weights)
+                              seed=seed, tied=tied, **weights)
 
 
 @dataclass
@@ -266,6 +273,29 @@ def _steps_within(table: dict, path: str, sim_steps: int) -> int:
     return _int(table.get("steps", sim_steps), f"{path}.steps", min_value=1)
 
 
+def check_waypoints(waypoints, dt: float, steps: int) -> tuple:
+    """Waypoints ``(time [s], (x, y, z) [m], weight >= 0)`` as ``(step, target (3,), weight)``, each time a whole
+    step of ``dt`` in (0, ``steps`` dt]; ValueError names the bad waypoint."""
+    out = []
+    for k, waypoint in enumerate(waypoints):
+        try:
+            t, target, weight = waypoint
+            t, weight = float(t), float(weight)
+            target = np.asarray(target, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"waypoint {k}: give (time [s], (x, y, z) [m], weight), got {waypoint!r}") from exc
+        step = round(t / dt) if math.isfinite(t) else 0
+        if not (1 <= step <= steps and abs(t / dt - step) <= 1e-6 * max(1, step)):
+            raise ValueError(f"waypoint {k}: time {t!r} s is not a whole step of dt = {dt} s within the horizon "
+                             f"(0, {steps * dt:g}] s")
+        if not np.all(np.isfinite(target)):
+            raise ValueError(f"waypoint {k}: target must be finite, got {target.tolist()}")
+        if not (weight >= 0.0 and math.isfinite(weight)):
+            raise ValueError(f"waypoint {k}: weight must be finite and >= 0, got {weight!r}")
+        out.append((step, target, weight))
+    return tuple(out)
+
+
 def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int, grid_res, attached: dict[int, str],
                   base_dir: Path) -> ControlSpec | GripperControlSpec:
     """The ``[control]`` table of a scene of ``sim_steps`` steps of ``dt`` [s] whose cloth has ``count`` particles from
@@ -277,7 +307,7 @@ def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int
         return _parse_gripper_control(table, sim_steps, count, base_dir)
     table = {k: v for k, v in table.items() if k != "controls"}
     keys = ("particles", "grid_vertices", "interval", "intervals", "steps", "loss", "regularizer", "push_bound",
-            "controller", "optimizer", "iters", "search", "warm_start")
+            "waypoints", "controller", "optimizer", "iters", "search", "warm_start")
     _check_keys(table, "control", keys, required=("interval", "intervals", "loss"))
     if ("particles" in table) == ("grid_vertices" in table):
         raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
@@ -334,9 +364,16 @@ def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int
     if "push_bound" in table:
         push_bound = _float(table["push_bound"], "control.push_bound", min_value=0.0, strict=True)
     controller = _choice(table.get("controller", "open-loop"), "control.controller", CONTROLLERS)
-    optimizer = _str(table.get("optimizer", default_control_optimizer(controller, target_com, regularizer)),
-                     "control.optimizer")
+    waypoints = _parse_waypoints(table, dt, steps) if "waypoints" in table else ()
+    if waypoints and controller != "open-loop":
+        raise _err("control.waypoints", "the MLP controller fits the horizon's loss only; use the open loop")
+    default = default_control_optimizer(controller, target_com, regularizer)
+    if waypoints and default == "gauss-newton":
+        default = "lbfgs"
+    optimizer = _str(table.get("optimizer", default), "control.optimizer")
     problem = check_control_optimizer(optimizer, controller, target_com, regularizer)
+    if problem is None and waypoints and optimizer == "gauss-newton":
+        problem = "gauss-newton fits the horizon's centre of mass only; use lbfgs or a search with waypoints"
     if problem:
         raise _err("control.optimizer", problem)
     iters = _int(table.get("iters", DEFAULT_CONTROL_ITERS[controller]), "control.iters", min_value=1)
@@ -352,7 +389,26 @@ def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int
     return ControlSpec(particles=tuple(first + p for p in particles), interval_steps=interval_steps,
                        intervals=intervals, steps=steps, target_com=target_com, target_positions=target_positions,
                        regularizer=regularizer, controller=controller, optimizer=optimizer, iters=iters, search=search,
-                       warm_start=warm_start, push_bound=push_bound)
+                       warm_start=warm_start, push_bound=push_bound, waypoints=waypoints)
+
+
+def _parse_waypoints(table: dict, dt: float, steps: int) -> tuple:
+    values = table["waypoints"]
+    if not isinstance(values, list) or not values:
+        raise _err("control.waypoints", f"expected a non-empty array of [time, [x, y, z], weight], got "
+                                        f"{_type_name(values)}")
+    out = []
+    for k, value in enumerate(values):
+        item = f"control.waypoints[{k}]"
+        if not isinstance(value, list) or len(value) != 3:
+            raise _err(item, f"expected [time [s], [x, y, z] [m], weight], got {value!r}")
+        out.append((_float(value[0], f"{item}[0]"), _vector(value[1], f"{item}[1]"),
+                    _float(value[2], f"{item}[2]", min_value=0.0)))
+    try:
+        check_waypoints(out, dt, steps)
+    except ValueError as exc:
+        raise _err("control.waypoints", str(exc)) from None
+    return tuple(out)  # as ControlTask takes them: (time [s], target, weight)
 
 
 def _parse_search(table: dict, path: str, optimizer: str, iters: int) -> SearchSpec:
