@@ -57,7 +57,11 @@ BOUNDED_OPTIMIZERS = ("gauss-newton", "lbfgs", "multistart", "cmaes", "smoothed"
 CHUTE_WAYPOINTS = [(2.0, (-1.4, 0.0, 1.4), 1.0), (3.0, (-0.6, 0.0, 1.0), 1.0)]
 """A user's waypoints for chute-throw: the centre of mass on the upper plate's foot at 2 s, on the lower plate at 3 s
 (where a hand lob over the wall passes)."""
+OVER_WALL_WAYPOINTS = [(1.0, (-2.45, 0.35, 2.8), 1.0), (2.0, (-1.5, 0.35, 1.9), 1.0)]
+"""Waypoints for chute-throw that ask for the lift first: the centre of mass 0.6 m over the wall's top at 1 s, on
+the upper plate at 2 s."""
 VARIANTS = {
+    "cmaes-over-wall": ("cmaes", {}, {}, {"waypoints": OVER_WALL_WAYPOINTS}),
     "cmaes-ipop": ("cmaes", {"restarts": True}, {}, {}),
     "cmaes-norefine": ("cmaes", {}, {"refine": 0}, {}),
     "cmaes-ipop-norefine": ("cmaes", {"restarts": True}, {"refine": 0}, {}),
