@@ -177,3 +177,22 @@ def _grid_vertex(value: Any, path: str, grid_res: tuple[int, int]) -> int:
     j = _grid_index(_int(value[1], f"{path}[1]"), ny, f"{path}[1]")
     return j * nx + i
 
+
+def _particle_indices(values: Any, path: str, count: int, grid_res, *, grid: bool) -> list[int]:
+    """A non-empty array at ``path`` of particle indices (or, ``grid``, grid vertices ``[i, j]``) as indices into a
+    cloth of ``count`` particles (``grid_res``: its grid cells, None for a mesh)."""
+    if not isinstance(values, list) or not values:
+        raise _err(path, f"expected a non-empty array, got {_type_name(values)}")
+    if grid and grid_res is None:
+        raise _err(path, "needs a grid cloth (cloth.grid)")
+    out = []
+    for k, value in enumerate(values):
+        item = f"{path}[{k}]"
+        if grid:
+            out.append(_grid_vertex(value, item, grid_res))
+            continue
+        p = _int(value, item, min_value=0)
+        if p >= count:
+            raise _err(item, f"particle {p} out of range: the cloth has {count} particles")
+        out.append(p)
+    return out

@@ -469,13 +469,10 @@ def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures)
 
 def _cmd_control(args: argparse.Namespace) -> int:
     from warpcloth.errors import SimulationError
-    from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.preview import write_preview
     from warpcloth.scene import load_scene
     from warpcloth.tasks.control import ControlTask
     from warpcloth.tasks.jobs import ControlJob
     from warpcloth.tasks.specs import check_control_optimizer
-    from warpcloth.usd import write_usd
 
     if args.starts < 1:
         return _error(f"--starts must be >= 1, got {args.starts}", _USAGE_ERROR)
@@ -538,25 +535,38 @@ def _cmd_control(args: argparse.Namespace) -> int:
     if result.failed_trials:
         print(f"{len(result.failed_trials)} trial(s) raised and were rejected as bad steps; the first: "
               f"{result.failed_trials[0]}")
-    record = job.record(task, result)
+    _write_control_outputs(args, scene.name, task.model, task.dt, job.record(task, result),
+                           ({controller: result.errors_pct}, "error [%]", "motion control"),
+                           lambda: result.trajectory(task))
+    return 0
+
+
+def _write_control_outputs(args: argparse.Namespace, name: str, model, dt: float, record: dict, curves: tuple,
+                           trajectory) -> None:
+    """A control run's --json (``record``), --plot (``curves``: {label: values}, y label, what) and --usd/--preview
+    (``trajectory()``: the result's frames), each where its flag asks."""
+    from warpcloth.obstacles import obstacle_meshes_numpy
+    from warpcloth.preview import write_preview
+    from warpcloth.usd import write_usd
+
     if args.json:
         _write_json(args.json, record)
         print(f"wrote {os.path.abspath(args.json)}")
     if args.plot:
-        _plot_losses(args.plot, {controller: result.errors_pct}, "error [%]", f"{scene.name}: motion control")
+        values, ylabel, what = curves
+        _plot_losses(args.plot, values, ylabel, f"{name}: {what}")
         print(f"wrote {os.path.abspath(args.plot)}")
     if args.usd or args.preview:
-        frames = result.trajectory(task)
-        times = [i * task.dt for i in range(len(frames))]
-        drawing = dict(triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
-                       obstacles=obstacle_meshes_numpy(task.model, times))
+        frames = trajectory()
+        times = [i * dt for i in range(len(frames))]
+        drawing = dict(triangles=model.tri_indices.numpy(), frames=frames, fps=1.0 / dt,
+                       obstacles=obstacle_meshes_numpy(model, times))
         if args.usd:
             write_usd(args.usd, **drawing)
             print(f"wrote {os.path.abspath(args.usd)}")
         if args.preview:
-            write_preview(args.preview, **drawing, title=scene.name)
+            write_preview(args.preview, **drawing, title=name)
             print(f"wrote {os.path.abspath(args.preview)}")
-    return 0
 
 
 def _goal_score(goal, value: float) -> str:
@@ -567,12 +577,9 @@ def _goal_score(goal, value: float) -> str:
 def _cmd_control_grippers(args: argparse.Namespace, scene) -> int:
     """``warpcloth control`` on a scene whose [control] moves grippers (GripperTask)."""
     from warpcloth.errors import CollisionError, SimulationError
-    from warpcloth.obstacles import obstacle_meshes_numpy
-    from warpcloth.preview import write_preview
     from warpcloth.progress import progress_bar
     from warpcloth.tasks.grippers import GripperTask
     from warpcloth.tasks.specs import GRIPPER_OPTIMIZERS
-    from warpcloth.usd import write_usd
 
     refused = [flag for flag, given in (("--controller", args.controller),
                                         ("--warm-start", args.warm_start is not None)) if given]
@@ -610,23 +617,9 @@ def _cmd_control_grippers(args: argparse.Namespace, scene) -> int:
               "simulations": result.simulations, "seconds": result.seconds, "start_error": start.error,
               "start_loss": start.loss, "error": result.error, "loss": result.loss, "losses": result.losses,
               "errors": result.errors, "params": result.params.tolist(), "tied": task.tied}
-    if args.json:
-        _write_json(args.json, record)
-        print(f"wrote {os.path.abspath(args.json)}")
-    if args.plot:
-        _plot_losses(args.plot, {optimizer: result.losses}, "loss", f"{scene.name}: gripper control")
-        print(f"wrote {os.path.abspath(args.plot)}")
-    if args.usd or args.preview:
-        frames = task.trajectory(result.params)
-        times = [i * task.dt for i in range(len(frames))]
-        drawing = dict(triangles=task.model.tri_indices.numpy(), frames=frames, fps=1.0 / task.dt,
-                       obstacles=obstacle_meshes_numpy(task.model, times))
-        if args.usd:
-            write_usd(args.usd, **drawing)
-            print(f"wrote {os.path.abspath(args.usd)}")
-        if args.preview:
-            write_preview(args.preview, **drawing, title=scene.name)
-            print(f"wrote {os.path.abspath(args.preview)}")
+    _write_control_outputs(args, scene.name, task.model, task.dt, record,
+                           ({optimizer: result.losses}, "loss", "gripper control"),
+                           lambda: task.trajectory(result.params))
     return 0
 
 

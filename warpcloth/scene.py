@@ -28,6 +28,7 @@ from warpcloth._toml_fields import (
     _grid_vertex,
     _int,
     _parse_material,
+    _particle_indices,
     _SceneError,
     _str,
     _table,
@@ -482,18 +483,7 @@ def _parse_gripper(builder, path: str, entry: dict, first: int, count: int, grid
     if key != "particles" and grid_res is None:
         raise _err(f"{path}.{key}", "needs a grid cloth (cloth.grid)")
     if key in ("particles", "grid_vertices"):
-        if not isinstance(value, list) or not value:
-            raise _err(f"{path}.{key}", f"expected a non-empty array, got {_type_name(value)}")
-        particles = []
-        for k, item in enumerate(value):
-            where = f"{path}.{key}[{k}]"
-            if key == "particles":
-                p = _int(item, where, min_value=0)
-                if p >= count:
-                    raise _err(where, f"particle {p} out of range: the cloth has {count} particles")
-            else:
-                p = _grid_vertex(item, where, grid_res)
-            particles.append(p)
+        particles = _particle_indices(value, f"{path}.{key}", count, grid_res, grid=key == "grid_vertices")
     else:
         nx, ny = grid_res[0] + 1, grid_res[1] + 1
         if key == "grid_row":

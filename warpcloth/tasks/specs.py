@@ -18,9 +18,9 @@ from warpcloth._toml_fields import (
     _err,
     _existing_file,
     _float,
-    _grid_vertex,
     _int,
     _parse_material,
+    _particle_indices,
     _str,
     _table,
     _type_name,
@@ -312,20 +312,10 @@ def parse_control(table: dict, dt: float, sim_steps: int, first: int, count: int
     if ("particles" in table) == ("grid_vertices" in table):
         raise _err("control", "give exactly one of 'particles' and 'grid_vertices' (the pushed particles)")
     key = "particles" if "particles" in table else "grid_vertices"
-    values = table[key]
-    if not isinstance(values, list) or not values:
-        raise _err(f"control.{key}", f"expected a non-empty array, got {_type_name(values)}")
     particles = []
-    for k, value in enumerate(values):
+    indices = _particle_indices(table[key], f"control.{key}", count, grid_res, grid=key == "grid_vertices")
+    for k, p in enumerate(indices):
         item = f"control.{key}[{k}]"
-        if key == "particles":
-            p = _int(value, item, min_value=0)
-            if p >= count:
-                raise _err(item, f"particle {p} out of range: the cloth has {count} particles")
-        else:
-            if grid_res is None:
-                raise _err(f"control.{key}", "needs a grid cloth (cloth.grid)")
-            p = _grid_vertex(value, item, grid_res)
         if p in particles:
             raise _err(item, f"particle {p} is pushed twice")
         if attached.get(p, "").startswith("pins"):
