@@ -107,10 +107,10 @@ def test_gradient_of_every_knot_through_grasp_flight_and_landing():
     assert z[9, :3].min() > 0.03, "the gripper lifts its particles"
     assert np.median(z[-1]) < 0.006 and z[-1, :3].max() < z[10, :3].min(), "the cloth lands on the table"
     e = task.evaluate(p)
-    eps = 1e-6
-    fd = np.array([(task.loss(p + d).loss - task.loss(p - d).loss) / (2 * eps) for d in np.eye(p.size) * eps])
-    err = np.abs(e.grad - fd).max() / np.abs(fd).max()
-    assert err < 1e-4, f"relative error {err:.2e}: {e.grad} vs {fd}"
+    for eps in (1e-6, 3e-7):  # the same slope at two step sizes (at 1e-5 the landing's contacts change: 3.6e-3)
+        fd = np.array([(task.loss(p + d).loss - task.loss(p - d).loss) / (2 * eps) for d in np.eye(p.size) * eps])
+        err = np.abs(e.grad - fd).max() / np.abs(fd).max()
+        assert err < 1e-4, f"step {eps}: relative error {err:.2e}: {e.grad} vs {fd}"
 
 
 def test_handles_switch_on_at_grasp_and_off_at_release():
