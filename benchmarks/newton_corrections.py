@@ -77,7 +77,7 @@ class Bdf2Newton:
 
     def run(self, steps_per_s: int, horizon: float) -> np.ndarray:
         dt, m = 1.0 / steps_per_s, self.mass
-        alpha, beta = self.model.damping_mass, self.model.damping_stiffness
+        alpha, beta = float(self.model.damping_mass.numpy()[0]), float(self.model.damping_stiffness.numpy()[0])
         s0 = self.model.state()
         x = s0.particle_x.numpy().reshape(-1).astype(np.float64)
         v = s0.particle_v.numpy().reshape(-1).astype(np.float64)

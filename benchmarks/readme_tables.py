@@ -1012,9 +1012,9 @@ def recordings(d: dict) -> str:
             f"noise, {dropped} of the {first['frames']} frames dropped, seen by one depth camera "
             f"(the share of the surface it sees: "
             + ", ".join(f"{s['target']} {g(s['seen_fraction'] * 100, 2)} %" for s in d["sequences"])
-            + f"); {st['markers']} markers, {g(st['hidden'] * 100, 2)} % of the (frame, marker) pairs hidden, drawn "
-            f"at random; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: medians, the range in "
-            "parentheses (the vertex fit is one run).",
+            + f"); {st['markers']} markers, {round(st['hidden'] * st['markers'])} of them hidden in each frame, "
+            f"drawn at random per frame; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: medians, the "
+            "range in parentheses (the vertex fit is one run).",
             "", provenance(d)]
     if "parameters" in d:
         out += ["", recording_parameters(d["parameters"])]
@@ -1027,54 +1027,52 @@ def recording_start(p: dict) -> str:
     """The start unknown: the fit from point clouds alone against the fit given the true start
     (benchmarks/recordings.py, its ``start`` part, with its own run metadata)."""
     st = p["settings"]
-    labels = {"given": "given the start", "alone": "point clouds alone",
-              "both_ways": "alone, registered both ways (diagnostic)"}
+    labels = {"given": "given the start", "alone": "point clouds alone"}
 
     def each(runs, key, n=2):
         return ", ".join(g(r[key], n) for r in runs)
 
-    def placed(s, kind):
-        runs = s[kind]["runs"]
-        fitted = ("; fitted " + ", ".join(g(r["fitted_start_err_mean_m"] * 100, 2) for r in runs) + " cm"
-                  if all("fitted_start_err_mean_m" in r for r in runs) else "")
+    def placed(runs):
         return (", ".join(g(r["registration_err_mean_m"] * 100, 2) for r in runs) + " cm; handles "
-                + ", ".join("/".join(g(h * 100, 2) for h in r["handle_err_m"]) for r in runs) + " cm" + fitted)
+                + ", ".join("/".join(g(h * 100, 2) for h in r["handle_err_m"]) for r in runs) + " cm; fitted "
+                + ", ".join(g(r["fitted_start_err_mean_m"] * 100, 2) for r in runs) + " cm")
 
     rows = []
     for s in p["sequences"]:
         for kind, label in labels.items():
-            if kind in s:
-                e = s[kind]
-                rows.append([s["target"], label, g(e["median"]["sim_err_pct"], 2), each(e["runs"], "sim_err_pct"),
-                             g(e["median"]["density_err_pct"], 2), each(e["runs"], "density_err_pct"),
-                             "–" if kind == "given" else placed(s, kind)])
+            e = s[kind]
+            rows.append([s["target"], label, g(e["median"]["sim_err_pct"], 2), each(e["runs"], "sim_err_pct"),
+                         g(e["median"]["material_sim_err_pct"], 2), g(e["median"]["density_err_pct"], 2),
+                         each(e["runs"], "density_err_pct"), "–" if kind == "given" else placed(e["runs"])])
     out = ["The start unknown: the cloth draped and moving at frame 0, its material fitted from point clouds given the "
            "true start, and from the point clouds alone:", "",
-           table(["sequence", "fit", "simulation error %", "each seed", "density %", "each seed",
-                  "registered start off the true one: mean (each seed); handles"], rows), ""]
+           table(["sequence", "fit", "simulation error %", "each seed", "its material from the true start %",
+                  "density %", "each seed", "registered start off the true one: mean (each seed); handles; fitted"],
+                 rows), ""]
     for key, label in {"sim_err_pct": "simulation error", "density_err_pct": "density error"}.items():
         ts = [(s["target"], s["targets"][key]) for s in p["sequences"]]
         out.append(f"- point clouds alone, {label} ≤ {g(ts[0][1]['limit'], 2)}× the fit given the start: "
                    f"{met(p['targets'][key])} (" + ", ".join(f"{t} {g(v['ratio'], 3)}×" for t, v in ts) + ")")
-    both = [(s["target"], s["both_ways_ratios"]) for s in p["sequences"] if "both_ways_ratios" in s]
-    if both:
-        out.append("- the diagnostic fit over the fit given the start (outside the target): " + "; ".join(
-            f"{t} simulation error {g(r['sim_err_pct'], 3)}×, density {g(r['density_err_pct'], 3)}×" for t, r in both))
+    out.append("- the fitted material simulated from the true start, point clouds alone over given the start "
+               "(outside the target): " + ", ".join(f"{s['target']} {g(s['material_ratio'], 3)}×"
+                                                    for s in p["sequences"]))
+    out.append("- what the start alone costs: the true material simulated from the registered start, "
+               + "; ".join(f"{s['target']} {g(s['truth_from_registered']['truth_sim_err_pct'], 2)} % with the true "
+                           f"velocities, {g(s['truth_from_registered']['truth_at_rest_sim_err_pct'], 2)} % at rest "
+                           f"(given the start: {g(s['given']['median']['sim_err_pct'], 2)} %)"
+                           for s in p["sequences"]))
     handles = ", ".join(str(h) for h in p["sequences"][0]["handles"])
-    if "both_ways" not in st:
-        alone = (f"`registered_start` on the start frame's cloud (the held corners, vertices {handles}, kept where "
-                 "the scene holds them, the rest deformed onto the points both ways), then `place_start`; "
-                 "`start_deformation` and `start_deformation_rate` free from zero (the start's shape and velocity in "
-                 "its 16 smoothest displacements, the held corners fixed), alone for a third of the evaluations, "
-                 "then with the material, without the start scan; fitted: the fitted start's mean distance from the "
-                 "true one")
-    else:
-        alone = (f"`registered_start` on the start frame's cloud, then `place_start` (which moves the handles' "
-                 f"targets, vertices {handles}, with it), `start_velocity` free from zero; the diagnostic: the same "
-                 "with `register_nonrigid` run both ways from the scene's placement, no rigid step")
+    alone = (f"`registered_start` on the start frame's cloud (the held corners, vertices {handles}, kept where "
+             "the scene holds them, the rest deformed onto the points both ways), then `place_start`; "
+             "`start_deformation` and `start_deformation_rate` free from zero (the start's shape and velocity in "
+             "its 16 smoothest displacements, the held corners fixed), alone for a third of the evaluations, "
+             "then with the material, without the start scan; fitted: the fitted start's mean distance from the "
+             "true one")
     out += ["", f"From the seed's frame {st['start_frame']}, {st['steps']} steps of {g(st['dt'], 2)} s, frames "
             f"compared every {st['frame_stride']} steps, against the seed's frames from it. Given the start: the "
             f"seed's vertices and velocities (its OBJ `nv` lines) there, the scene's handles. Alone: {alone}. "
+            "Simulation error: each fit from its own start; its material from the true start: the fitted material "
+            "simulated from the seed's vertices and velocities. "
             f"Point clouds of {st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm noise, "
             f"{g(st['drop'] * 100, 2)} % of the frames dropped, one depth camera; {st['optimizer']}, {st['iters']} "
             f"evaluations a fit from the mean fabric; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: "
@@ -1090,8 +1088,9 @@ def recording_parameters(p: dict) -> str:
 
     st = p["settings"]
     labels = {"friction": f"cloth dropped on a {g(st['tilt_deg'], 2)}° table: obstacle friction",
-              "wind": "hanging cloth: wind velocity"}
-    units = {"friction": "", "wind": " m/s"}
+              "wind": "hanging cloth: wind velocity",
+              "damping": "hanging cloth: Rayleigh damping (α [1/s], β [s])"}
+    units = {"friction": "", "wind": " m/s", "damping": ""}
     rows = [[labels[s["scene"]], value(s["truth"], units[s["scene"]]), value(s["start"], units[s["scene"]]),
              "; ".join(value(r["fitted"], n=4) for r in s["runs"]),
              ", ".join(g(r["rel_err_pct"], 2) for r in s["runs"]), g(s["median_rel_err_pct"], 2),
@@ -1103,11 +1102,13 @@ def recording_parameters(p: dict) -> str:
         table(["scene: unknown", "true", "fit's start", "fitted (each seed)", "error % (each seed)",
                "median error %", "target"], rows), "",
         f"A 0.5 m square of 12×12 cells dropped flat from {g(st['drop_height_m'] * 100, 2)} cm onto a plane tilted "
-        f"{g(st['tilt_deg'], 2)}°{slide}, and `scenes.hanging_cloth` in the wind; {st['material']}, "
+        f"{g(st['tilt_deg'], 2)}°{slide}, and `scenes.hanging_cloth` in the wind (its own 5 m/s for the damping); "
+        f"{st['material']}, "
         f"{st['steps']} steps of {g(st['dt'], 2)} s, frames compared every {st['frame_stride']} steps; point clouds of "
         f"{st['points']} points with {g(st['noise_m'] * 1e3, 2)} mm noise, {g(st['drop'] * 100, 2)} % of the frames "
-        f"dropped, one depth camera; {st['optimizer']}, {st['iters']} evaluations a fit, one free parameter; error: "
-        f"‖fitted − true‖ / ‖true‖ (the vectors' norms for the wind); {st['seeds']} recording "
+        f"dropped, one depth camera; {st['optimizer']}, {st['iters']} evaluations a fit, the material known; error: "
+        f"‖fitted − true‖ / ‖true‖ (the vectors' norms for the wind, the larger of the two coefficients' for the "
+        f"damping); {st['seeds']} recording "
         f"seed{'s' if st['seeds'] != 1 else ''}.", "",
         provenance({"meta": p.get("meta")})])
 

@@ -23,7 +23,7 @@ frame that holds data. Targets (issue 55): the point-cloud fit's simulation erro
 on each sequence and its density error within 2x; the marker fit's simulation and density errors within 1.2x; the
 point-cloud fit at most 2x the vertex fit's time per simulated step (medians over the seeds).
 
-Scene parameters (``--parts parameters``): two scenes of the public API, their truth simulated, each recorded as
+Scene parameters (``--parts parameters``): three scenes of the public API, their truth simulated, each recorded as
 point clouds as above (``--points`` points, 2 mm noise, 10 % of the frames dropped, one depth camera) with
 ``--seeds`` recording seeds, and one unknown fitted with the material known (``estimate_material(free=[...])``,
 L-BFGS, one stage, ``--param-iters`` evaluations of ``--steps`` steps) from a wrong start:
@@ -32,10 +32,13 @@ L-BFGS, one stage, ``--param-iters`` evaluations of ``--steps`` steps) from a wr
   friction 0.3 (it lands and slides down part way); the fit starts from 0.1, bounds (0.01, 2); the camera above the
   plane's downhill side;
 - wind: ``scenes.hanging_cloth`` (16 x 16 cells) in a wind of (4, 0, 1) m/s; the fit starts from (2, 1, 0) m/s,
-  unbounded; the camera 2.4 m upwind of the sheet.
+  unbounded; the camera 2.4 m upwind of the sheet;
+- damping: ``scenes.hanging_cloth`` in its 5 m/s wind with Rayleigh damping alpha 0.5 1/s and beta 2 ms, both
+  unknown; the fit starts from 0.2 1/s and 5 ms, unbounded (log space); the camera as for the wind.
 
-Target (issue 55): each unknown recovered within 10 % (the median over the seeds of the relative error: |fitted -
-true| / |true|, the vectors' norms for the wind).
+Target (issue 55, for the friction and the wind; the damping held to the same): each unknown recovered within 10 %
+(the median over the seeds of the relative error: |fitted - true| / |true|, the vectors' norms for the wind, the
+larger of the two coefficients' errors for the damping).
 
 The start unknown (``--parts start``): each sequence from its frame ``--start-frame`` (the cloth draped and moving),
 ``--steps`` steps against the seed's frames from there, recorded as point clouds as above with ``--seeds`` seeds, the
@@ -44,8 +47,10 @@ vertices and its OBJ ``nv`` velocities at that frame, the scene's handles), and 
 (``estimation.registered_start`` on the start frame's cloud, which keeps the held corners where the scene holds them,
 ``place_start``; ``start_deformation`` and ``start_deformation_rate`` free from zero: the start's shape and velocity
 in the cloth's smoothest displacements, the held corners fixed), fitted alone for the first ``START_SHARE`` of the
-evaluations, then with the material, without the start scan. Reported: each fit's simulation and density errors, the
-registered start's distance from the true one (its handles' too) and the fitted start's.
+evaluations, then with the material, without the start scan. Reported: each fit's simulation error (from its own
+start), its material's simulation error from the true start, its density error, the registered start's distance from
+the true one (its handles' too) and the fitted start's, and the true material's simulation error from the registered
+start (with the true velocities, and at rest): what the start alone costs.
 Target (issue 55): the fit from point clouds alone within 2x of the fit given the start (medians over the seeds).
 
 The parameters and start parts keep their own run metadata (``parameters.meta``, ``start.meta``); a run of some
@@ -246,14 +251,17 @@ PARAMETER_LIMIT_PCT = 10.0
 """Target: each scene parameter recovered within this relative error [%] (median over the recording seeds)."""
 TILT_DEG = 20.0
 """The table's tilt [degrees] (about y; downhill is -x)."""
-TABLE_FRICTION = {"truth": 0.3, "start": 0.1, "bounds": [0.01, 2.0]}
-WIND = {"truth": [4.0, 0.0, 1.0], "start": [2.0, 1.0, 0.0]}
-"""The scene parameters: true values, the fits' starts, bounds [m/s or -]."""
+TABLE_FRICTION = {"free": ["obstacle_friction"], "truth": [0.3], "start": [0.1], "bounds": [0.01, 2.0]}
+WIND = {"free": ["wind"], "truth": [4.0, 0.0, 1.0], "start": [2.0, 1.0, 0.0]}
+DAMPING = {"free": ["damping_mass", "damping_stiffness"], "truth": [0.5, 2e-3], "start": [0.2, 5e-3]}
+"""The scene parameters: the free ones, their true values and the fits' starts (concatenated), bounds [-, m/s, 1/s
+and s]."""
+PARAMETER_SCENES = {"friction": TABLE_FRICTION, "wind": WIND, "damping": DAMPING}
 DROP_HEIGHT = 0.05
 """The flat cloth's start above the table [m]."""
 TABLE_CAMERA_OFFSET = (-0.6, -1.2, 1.2)
 """The camera's eye from the centre of the table motion's bounding box [m]: above the plane, on its downhill side."""
-WIND_CAMERA_OFFSET = (-2.4, 0.0, 0.3)
+HANGING_CAMERA_OFFSET = (-2.4, 0.0, 0.3)
 """The camera's eye from the centre of the hanging cloth's motion [m]: upwind of the sheet (in the y-z plane)."""
 
 
@@ -282,37 +290,53 @@ def wind_scene(material, wind):
     return model, None
 
 
-def _scene(name, material, value):
-    return table_scene(material, value) if name == "friction" else wind_scene(material, value)
+def damping_scene(material, damping):
+    """``scenes.hanging_cloth`` (its 5 m/s wind) with Rayleigh damping ``damping`` (alpha [1/s], beta [s])."""
+    model = S.hanging_cloth(material)
+    _set_values("damping", model, damping)
+    return model, None
 
 
-def _set_start(name, model, start):
+def _scene(name, material, values):
+    if name == "friction":
+        return table_scene(material, values[0])
+    return (wind_scene if name == "wind" else damping_scene)(material, values)
+
+
+def _set_values(name, model, values):
     if name == "friction":
         friction = model.contact_friction.numpy()
-        model.contact_friction.assign(np.array([friction[0], start]))
+        model.contact_friction.assign(np.array([friction[0], values[0]]))
+    elif name == "wind":
+        model.wind_velocity.assign(np.array([values], dtype=np.float64))
     else:
-        model.wind_velocity.assign(np.array([start], dtype=np.float64))
+        model.damping_mass.assign(np.array([values[0]]))
+        model.damping_stiffness.assign(np.array([values[1]]))
 
 
-def _rel_err_pct(fitted, truth) -> float:
-    return 100.0 * float(np.linalg.norm(np.asarray(fitted) - truth) / np.linalg.norm(truth))
+def _rel_err_pct(name, fitted, truth) -> float:
+    # the wind: the vectors' norms; the damping: the larger of its two coefficients' relative errors
+    fitted, truth = np.asarray(fitted, dtype=np.float64), np.asarray(truth, dtype=np.float64)
+    if name == "damping":
+        return 100.0 * float(np.max(np.abs(fitted - truth) / truth))
+    return 100.0 * float(np.linalg.norm(fitted - truth) / np.linalg.norm(truth))
 
 
 def run_parameter(name: str, args) -> dict:
     """One scene parameter's fits from point clouds, one per recording seed, with the material known."""
     material = wc.preset("gray-interlock", thicken=S.THICKEN)
-    spec = TABLE_FRICTION if name == "friction" else WIND
-    key = "obstacle_friction" if name == "friction" else "wind"
-    truth = np.atleast_1d(np.asarray(spec["truth"], dtype=np.float64))
+    spec = PARAMETER_SCENES[name]
+    key = "+".join(spec["free"])
+    truth = np.asarray(spec["truth"], dtype=np.float64)
     model, obstacle = _scene(name, material, spec["truth"])
     frames = E.TrajectoryFit.simulate_targets(model, material, steps=args.steps)
     x = np.concatenate(frames)
     centre = 0.5 * (x.min(axis=0) + x.max(axis=0))
-    offset = TABLE_CAMERA_OFFSET if name == "friction" else WIND_CAMERA_OFFSET
+    offset = TABLE_CAMERA_OFFSET if name == "friction" else HANGING_CAMERA_OFFSET
     camera = R.look_at(centre + np.array(offset), centre, **CAMERA)
     obstacles = () if obstacle is None else (obstacle,)
     rot = _rotation_y(TILT_DEG)
-    record = {"scene": name, "parameter": key, "truth": truth, "start": np.atleast_1d(spec["start"]),
+    record = {"scene": name, "parameter": key, "truth": truth, "start": np.asarray(spec["start"], dtype=np.float64),
               "bounds": spec.get("bounds"), "frames": len(frames),
               "camera": {"eye": camera.eye, "forward": camera.forward, **CAMERA},
               "in_image": in_image(camera, frames),
@@ -326,15 +350,15 @@ def run_parameter(name: str, args) -> dict:
         clouds = R.point_cloud_recording(frames, model.triangles_np, points=args.points, noise=NOISE, camera=camera,
                                          drop=DROP, obstacles=obstacles, rng=rng)
         fit_model, _ = _scene(name, material, spec["truth"])
-        _set_start(name, fit_model, spec["start"])
+        _set_values(name, fit_model, spec["start"])
         fit = E.TrajectoryFit(fit_model, PointCloudFrames(clouds), steps=args.steps, reference=frames)
         t0 = time.perf_counter()
-        bounds = {key: spec["bounds"]} if spec.get("bounds") else None
-        result = E.estimate_material(fit, initial=material, free=[key], iters=args.param_iters, curriculum=None,
-                                     bounds=bounds)
-        fitted = np.asarray(result.parameters[key], dtype=np.float64)
-        run = {"seed": seed, "fitted": fitted, "rel_err_pct": _rel_err_pct(fitted, truth),
-               "start_rel_err_pct": _rel_err_pct(record["start"], truth),
+        bounds = {n: spec["bounds"] for n in spec["free"]} if spec.get("bounds") else None
+        result = E.estimate_material(fit, initial=material, free=spec["free"], iters=args.param_iters,
+                                     curriculum=None, bounds=bounds)
+        fitted = np.concatenate([np.asarray(result.parameters[n], dtype=np.float64) for n in spec["free"]])
+        run = {"seed": seed, "fitted": fitted, "rel_err_pct": _rel_err_pct(name, fitted, truth),
+               "start_rel_err_pct": _rel_err_pct(name, record["start"], truth),
                "sim_err_pct": result.simulation_error_pct, "sim_err_pct_start": result.initial_simulation_error_pct,
                "evaluations": len(result.losses), "seconds": time.perf_counter() - t0,
                "diverged": len(result.diverged), "dropped_frames": [k for k, c in enumerate(clouds) if c is None]}
@@ -350,7 +374,7 @@ def run_parameter(name: str, args) -> dict:
 
 
 def run_parameters(args) -> dict:
-    scenes = [run_parameter(name, args) for name in ("friction", "wind")]
+    scenes = [run_parameter(name, args) for name in PARAMETER_SCENES]
     print("\nscene parameters from point clouds (material known):")
     for s in scenes:
         print(f"  {s['scene']:8s} {s['parameter']:18s} median error {s['median_rel_err_pct']:.3g} % over "
@@ -359,7 +383,7 @@ def run_parameters(args) -> dict:
                 "steps": args.steps, "dt": E.DT, "frame_stride": E.FRAME_STRIDE, "points": args.points,
                 "noise_m": NOISE, "drop": DROP, "material": "gray-interlock", "tilt_deg": TILT_DEG,
                 "drop_height_m": DROP_HEIGHT, "table_camera_offset_m": TABLE_CAMERA_OFFSET,
-                "wind_camera_offset_m": WIND_CAMERA_OFFSET, "camera": CAMERA}
+                "hanging_camera_offset_m": HANGING_CAMERA_OFFSET, "camera": CAMERA}
     return {"settings": settings, "scenes": scenes}
 
 
@@ -368,7 +392,7 @@ START_FRAME = 10
 """The seed frame the start part starts from (the cloth draped and moving): the truth is the seed's frames from it."""
 START_LIMIT = 2.0
 """Target: the fit from point clouds alone within this many times the fit given the start (simulation error)."""
-START_FIGURES = ("sim_err_pct", "density_err_pct", "stretch_linear_err_pct", "seconds")
+START_FIGURES = ("sim_err_pct", "material_sim_err_pct", "density_err_pct", "stretch_linear_err_pct", "seconds")
 
 
 START_KINDS = ("given", "alone")
@@ -391,6 +415,19 @@ def registration(files, frames, clouds, targets) -> tuple[np.ndarray, dict]:
     return positions, {"registration_err_mean_m": float(gap.mean()), "registration_err_max_m": float(gap.max()),
                        "handle_err_m": gap[held],
                        "handle_target_shift_m": np.linalg.norm(positions[held] - targets, axis=1)}
+
+
+def simulation_error_from(files, frames, clouds, material, positions, velocities, args) -> float:
+    """The simulation error of ``material`` against the seed's vertex ``frames`` from the start (``positions``,
+    ``velocities``): the true start with the scene's handles, or a registered one placed by ``place_start``."""
+    model = S.hanging_cloth(E.initial_guess(), mesh_path=files[0], lagged_normals=True, self_collision=True)
+    if positions is frames[0]:
+        model.particle_x0.assign(positions.astype(model.particle_x0.numpy().dtype))
+    else:
+        E.place_start(model, positions)
+    model.particle_v0.assign(np.asarray(velocities).astype(model.particle_v0.numpy().dtype))
+    return E.TrajectoryFit(model, PointCloudFrames(clouds), steps=args.steps, reference=frames).simulation_error(
+        material)
 
 
 def start_fit(files, frames, clouds, truth, args, start, positions=None) -> dict:
@@ -417,7 +454,10 @@ def start_fit(files, frames, clouds, truth, args, start, positions=None) -> dict
             first = E.estimate_material(fit, optimizer=args.optimizer, iters=share, free=START_FREE)
         result = E.estimate_material(fit, optimizer=args.optimizer, iters=args.iters - share, free=free, scan=None)
     errors = E.parameter_errors(result.material, truth)
-    run = {"sim_err_pct": result.simulation_error_pct, "sim_err_pct_start": (
+    run = {"sim_err_pct": result.simulation_error_pct,
+           "material_sim_err_pct": simulation_error_from(files, frames, clouds, result.material, frames[0], start[1],
+                                                         args),
+           "sim_err_pct_start": (
                result.initial_simulation_error_pct if first is None else first.initial_simulation_error_pct),
            "density_err_pct": errors["density_err_pct"], "stretch_linear_err_pct": errors["stretch_linear_err_pct"],
            "bending_err_pct": errors["bending_err_pct"],
@@ -460,6 +500,10 @@ def run_start_sequence(short: str, args) -> dict:
         clouds = R.point_cloud_recording(recorded, model.triangles_np, points=args.points, noise=NOISE,
                                          camera=camera, drop=DROP, rng=np.random.default_rng(seed))
         positions, placed = registration(files, recorded, clouds, targets)
+        placed["truth_sim_err_pct"] = simulation_error_from(files, recorded, clouds, truth, positions, velocities,
+                                                            args)
+        placed["truth_at_rest_sim_err_pct"] = simulation_error_from(files, recorded, clouds, truth, positions,
+                                                                    np.zeros_like(velocities), args)
         for kind in START_KINDS:
             t0 = time.perf_counter()
             if kind == "given":
@@ -473,13 +517,18 @@ def run_start_sequence(short: str, args) -> dict:
                         f"{run['fitted_velocity_err_rms']:.3g} m/s")
             run["seed"] = seed
             runs[kind].append(run)
-            print(f"{short:6s} start {kind:16s} seed {seed}: sim err {run['sim_err_pct']:.3g} %  density "
+            print(f"{short:6s} start {kind:16s} seed {seed}: sim err {run['sim_err_pct']:.3g} %  material from the "
+                  f"true start {run['material_sim_err_pct']:.3g} %  density "
                   f"{run['density_err_pct']:.3g} %{more}  ({time.perf_counter() - t0:.0f} s)", flush=True)
     for kind, rs in runs.items():
         record[kind] = {"runs": rs, "median": {key: common.median([r[key] for r in rs]) for key in START_FIGURES}}
     record["targets"] = {key: {"ratio": r, "limit": START_LIMIT, "met": bool(r <= START_LIMIT)}
                          for key in ("sim_err_pct", "density_err_pct")
                          for r in [ratio(record["alone"]["median"][key], record["given"]["median"][key])]}
+    record["material_ratio"] = ratio(record["alone"]["median"]["material_sim_err_pct"],
+                                     record["given"]["median"]["material_sim_err_pct"])
+    record["truth_from_registered"] = {key: common.median([r[key] for r in runs["alone"]])
+                                       for key in ("truth_sim_err_pct", "truth_at_rest_sim_err_pct")}
 
     return record
 
@@ -510,6 +559,11 @@ def run_start(args, write=None) -> dict:
             print(f"  {s['target']:6s} {key:16s} alone {s['alone']['median'][key]:.3g}  given "
                   f"{s['given']['median'][key]:.3g}  {t['ratio']:6.2f}x  (limit {t['limit']}x): "
                   f"{'met' if t['met'] else 'not met'}")
+        floor = s["truth_from_registered"]
+        print(f"  {s['target']:6s} the fitted material from the true start: alone over given "
+              f"{s['material_ratio']:.2f}x; the true material from the registered start: "
+              f"{floor['truth_sim_err_pct']:.3g} % (true velocities), {floor['truth_at_rest_sim_err_pct']:.3g} % "
+              "(at rest)")
     return part
 
 

@@ -48,7 +48,7 @@ def implicit_kernels(scalar):
     class FaceData:
         # What the face kernels read from the Model (warpcloth/model.py documents each array). A struct, so the
         # kernels that assemble, differentiate and measure the faces share one argument list; gradients reach the
-        # differentiable members (materials, gravity) through the tape's adjoint struct.
+        # differentiable members (materials, gravity, damping) through the tape's adjoint struct.
         indices: wp.array2d(dtype=wp.int32)
         material: wp.array(dtype=wp.int32)
         inv_dm: wp.array(dtype=mat22)
@@ -62,6 +62,8 @@ def implicit_kernels(scalar):
         lut_row: wp.array(dtype=wp.int32)
         gravity: wp.array(dtype=vec3)  # per world
         particle_world: wp.array(dtype=wp.int32)
+        damping_mass: wp.array(dtype=scalar)  # (1,)
+        damping_stiffness: wp.array(dtype=scalar)  # (1,)
 
     @wp.struct
     class HingeData:
@@ -76,6 +78,7 @@ def implicit_kernels(scalar):
         particle_pin: wp.array(dtype=wp.int32)
         bending: wp.array3d(dtype=scalar)
         thicken: wp.array(dtype=scalar)
+        damping_stiffness: wp.array(dtype=scalar)  # (1,)
 
     @wp.struct
     class ElementState:
@@ -87,8 +90,6 @@ def implicit_kernels(scalar):
         lam: wp.array(dtype=vec3)
         dv: wp.array(dtype=vec3)
         dt: scalar
-        damping_mass: scalar
-        damping_stiffness: scalar
 
     @wp.func
     def face_element(f: int, indices: wp.array2d(dtype=wp.int32), material: wp.array(dtype=wp.int32),
@@ -175,12 +176,12 @@ def implicit_kernels(scalar):
         ):
             f = wp.tid()
             x, v, pin_dv, lam, dv, dt = s.x, s.v, s.pin_dv, s.lam, s.dv, s.dt
-            damping_mass = s.damping_mass
+            damping_mass = face.damping_mass[0]
             particle_pin, gravity = face.particle_pin, face.gravity
             idx, du, dw, xu, xv, G00, G11, G01, k, area, node_mass = face_element(
                 f, face.indices, face.material, face.inv_dm, face.area, face.density, face.stretching, face.thicken,
                 face.lut_weight, face.lut_row, x)
-            c = dt * (dt + s.damping_stiffness)
+            c = dt * (dt + face.damping_stiffness[0])
             g = gravity[face.particle_world[idx[0]]]
             if wp.static(mode == "assemble"):
                 eye = wp.identity(n=3, dtype=scalar)
@@ -258,7 +259,7 @@ def implicit_kernels(scalar):
             particle_pin = hinge.particle_pin
             idx, theta, kappa = hinge_element(e, hinge, x)
             d = theta - hinge.rest_angle[e]
-            c = dt * (dt + s.damping_stiffness)
+            c = dt * (dt + hinge.damping_stiffness[0])
             if wp.static(mode == "energy"):
                 # E = ke l^2 / (8 (A0 + A1)) (theta - rest)^2 = -kappa/2 (theta - rest)^2
                 wp.atomic_add(scalars, 0, scalar(-0.5) * kappa * d * d)

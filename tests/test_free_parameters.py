@@ -24,8 +24,9 @@ def _rotation_y(deg):
     return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
 
 
-def hanging(wind=(2.0, 0.0, 0.5)):
-    """A 0.3 m sheet held by two soft handles, in a wind with drag, moving at the start."""
+def hanging(wind=(2.0, 0.0, 0.5), damping=(0.5, 2e-3)):
+    """A 0.3 m sheet held by two soft handles, in a wind with drag, damped (alpha [1/s], beta [s]), moving at the
+    start."""
     b = wc.ModelBuilder()
     mesh = wc.grid_mesh(3, 3, 0.3, 0.3)
     jitter = np.random.default_rng(7).uniform(-1.0, 1.0, mesh.positions.shape) * 2e-3  # off the lookups' kinks
@@ -35,6 +36,7 @@ def hanging(wind=(2.0, 0.0, 0.5)):
     b.add_handle(12)
     b.add_handle(15)
     b.set_wind(wind, drag=0.5)
+    b.set_damping(mass=damping[0], stiffness=damping[1])
     return b.finalize("cpu", requires_grad=True, dtype=wp.float64)
 
 
@@ -89,14 +91,15 @@ def _rel(pair):
     return abs(tape - fd) / max(abs(fd), 1e-300)
 
 
-def test_every_offered_parameter_is_described_and_damping_is_not_offered():
-    assert {"wind", "obstacle_friction", "handle_stiffness", "start_placement", "start_velocity",
-            "start_deformation", "start_deformation_rate", "obstacle_placement"} <= set(SCENE_PARAMETERS)
-    assert "damping" in NOT_OFFERED
+def test_every_offered_parameter_is_described_and_damping_names_its_two_parts():
+    assert {"wind", "obstacle_friction", "handle_stiffness", "damping_mass", "damping_stiffness", "start_placement",
+            "start_velocity", "start_deformation", "start_deformation_rate", "obstacle_placement"
+            } <= set(SCENE_PARAMETERS)
+    assert "damping_mass" in NOT_OFFERED["damping"] and "damping_stiffness" in NOT_OFFERED["damping"]
 
 
-HANGING = ["wind", "wind_density", "wind_drag", "gravity", "handle_stiffness", "start_placement", "start_velocity",
-           "start_velocities"]
+HANGING = ["wind", "wind_density", "wind_drag", "gravity", "handle_stiffness", "damping_mass", "damping_stiffness",
+           "start_placement", "start_velocity", "start_velocities"]
 
 
 @pytest.mark.parametrize("capture", [False, True])
@@ -184,6 +187,19 @@ def test_fit_recovers_a_wind_velocity():
     assert set(result.parameters) == {"wind"}
 
 
+def test_fit_recovers_the_damping():
+    truth = (0.5, 2e-3)
+    fit = make_fit(hanging(damping=truth), 20, 0.01)
+    fit.model.damping_mass.assign(np.array([0.2]))  # the fit's start
+    fit.model.damping_stiffness.assign(np.array([5e-3]))
+    result = E.estimate_material(fit, initial=wc.preset("gray-interlock", thicken=2),
+                                 free=["damping_mass", "damping_stiffness"], iters=25, curriculum=None)
+    fitted = [float(result.parameters[n][0]) for n in ("damping_mass", "damping_stiffness")]
+    errors = [abs(f - t) / t for f, t in zip(fitted, truth)]
+    assert max(errors) < 0.1, (fitted, errors)
+    assert fit.model.damping_mass.numpy()[0] == fitted[0]  # the model keeps it
+
+
 def test_fit_recovers_an_obstacle_friction():
     truth = 0.3
     fit = make_fit(sliding(friction=truth), 40, 0.005, stride=4)
@@ -231,7 +247,7 @@ def test_scene_file_and_cli_take_the_start_deformation(tmp_path):
 
 
 @pytest.mark.parametrize("extra, message", [
-    ('free = ["density", "damping"]', r"estimate.free\[1\]: 'damping' is not offered: the Rayleigh damping"),
+    ('free = ["density", "damping"]', r"estimate.free\[1\]: 'damping' names no one parameter: the Rayleigh"),
     ('free = ["density", "windd"]', r"estimate.free\[1\]: unknown value 'windd'"),
     ('free = ["wind"]\n[estimate.bounds]\ndensity = [0.0, 1.0]', r"estimate.bounds.density: not a free scene"),
     ('free = ["wind"]\n[estimate.bounds]\nwind = [1.0]', r"estimate.bounds.wind: expected \[low, high\]"),
@@ -255,10 +271,14 @@ def test_a_parameter_the_scene_lacks_or_bad_bounds_are_named(tmp_path):
         E.estimate_material(fit, free=["handle_stiffness"], iters=2, bounds={"handle_stiffness": [10.0, 1.0]})
     with pytest.raises(ValueError, match=r"free\[1\]: unknown free parameter 'breeze'"):
         E.estimate_material(fit, free=["density", "breeze"], iters=2)
-    with pytest.raises(ValueError, match=r"'damping' is not offered"):
+    with pytest.raises(ValueError, match=r"'damping' names no one parameter: .*damping_mass"):
         E.estimate_material(fit, free=["damping"], iters=2)
     with pytest.raises(ValueError, match=r"bounds: 'gravity' is not a free scene parameter"):
         E.estimate_material(fit, free=["wind"], iters=2, bounds={"gravity": [-20.0, 20.0]})
+    undamped = make_fit(hanging(damping=(0.0, 2e-3)), 4, 0.01)
+    with pytest.raises(ValueError, match=r"free parameter 'damping_mass': entry 0 starts at 0; it is fitted in log "
+                                         r"space and must start > 0"):
+        E.estimate_material(undamped, free=["damping_mass"], iters=2)
 
 
 def test_cli_takes_free_parameters_bounds_and_scales(tmp_path):

@@ -171,7 +171,7 @@ def test_selectors_motion_forces_and_solver():
     np.testing.assert_array_equal(np.sort(model.pin_particle.numpy()), [0, 4, 5, 10, 15])
     np.testing.assert_allclose(model.gravity.numpy()[0], [0, 0, -1])
     np.testing.assert_allclose(model.wind_drag.numpy(), [0.5])
-    assert model.damping_mass == pytest.approx(0.1)
+    assert model.damping_mass.numpy()[0] == pytest.approx(0.1)
 
 
 def test_material_table_forms(tmp_path):

@@ -116,7 +116,8 @@ def rollout_gradients(element_adjoint):
     tape.backward(loss)
     arrays = [state.particle_x, state.particle_v, model.material_density, model.material_stretching,
               model.material_bending, model.gravity, model.wind_velocity, model.handle_stiffness,
-              control.particle_force, control.handle_target, control.pin_target]
+              model.damping_mass, model.damping_stiffness, control.particle_force, control.handle_target,
+              control.pin_target]
     return [a.grad.numpy().copy() for a in arrays]
 
 

@@ -196,10 +196,11 @@ class Model:
     """Tangential drag coefficient of each world's wind [kg/(m^2 s)], (world_count,) (0 in a world without wind)."""
     wind_lagged_normals: bool
     """Wind uses the last step's start normals (ARCSim's lag) [-], scalar (host)."""
-    damping_mass: float
-    """Rayleigh mass-proportional damping alpha [1/s], scalar (host)."""
-    damping_stiffness: float
-    """Rayleigh stiffness-proportional damping beta [s] (ARCSim's material ``damping``), scalar (host)."""
+    damping_mass: wp.array
+    """Rayleigh mass-proportional damping alpha [1/s] of every world, (1,); takes gradients."""
+    damping_stiffness: wp.array
+    """Rayleigh stiffness-proportional damping beta [s] (ARCSim's material ``damping``) of every world, (1,); takes
+    gradients."""
 
     handle_count: int
     """Number of soft handles [-], scalar (host)."""

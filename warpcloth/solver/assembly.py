@@ -30,14 +30,16 @@ class SystemAssembler:
                             ("area", m.tri_area), ("block_slot", m.tri_block_slot), ("particle_pin", m.particle_pin),
                             ("density", m.material_density), ("stretching", m.material_stretching),
                             ("thicken", m.material_thicken), ("lut_weight", m.lut_weight), ("lut_row", m.lut_row),
-                            ("gravity", m.gravity), ("particle_world", m.particle_world)):
+                            ("gravity", m.gravity), ("particle_world", m.particle_world),
+                            ("damping_mass", m.damping_mass), ("damping_stiffness", m.damping_stiffness)):
             setattr(self.face_data, name, array)
         self.hinge_data = k.HingeData()
         for name, array in (("indices", m.hinge_indices), ("material", m.hinge_material),
                             ("rest_angle", m.hinge_rest_angle), ("rest_length", m.hinge_rest_length),
                             ("rest_area", m.hinge_rest_area), ("direction", m.hinge_direction),
                             ("block_slot", m.hinge_block_slot), ("particle_pin", m.particle_pin),
-                            ("bending", m.material_bending), ("thicken", m.material_thicken)):
+                            ("bending", m.material_bending), ("thicken", m.material_thicken),
+                            ("damping_stiffness", m.damping_stiffness)):
             setattr(self.hinge_data, name, array)
         vec3 = model.types.vec3
         self._none = wp.empty(0, dtype=vec3, device=self.device)
@@ -56,8 +58,7 @@ class SystemAssembler:
         es = self.kernels.ElementState()
         # an empty array, not None, where a use needs no input: the tape's adjoint of a struct reads every member
         es.x, es.v, es.pin_dv, es.lam, es.dv = (self._none if a is None else a for a in (x, v, pin_dv, lam, dv))
-        es.dt, es.damping_mass, es.damping_stiffness = (m.scalar(self.dt), m.scalar(m.damping_mass),
-                                                        m.scalar(m.damping_stiffness))
+        es.dt = m.scalar(self.dt)
         return es
 
     def element_launches(self, kernels: tuple, element_state) -> list:

@@ -18,6 +18,10 @@ SCENE_PARAMETERS = {
     "cloth_friction": "the cloth-cloth Coulomb friction coefficient [-], (1,); log space (self-collision scenes)",
     "contact_stiffness": "the contact repulsion stiffness per m^2 of rest area [N/m^3], (1,); log space",
     "handle_stiffness": "each soft handle's stiffness [N/m], (handle_count,); log space",
+    "damping_mass": "the Rayleigh mass-proportional damping alpha [1/s], (1,); log space (a scene's [damping] "
+                    "mass must be > 0)",
+    "damping_stiffness": "the Rayleigh stiffness-proportional damping beta [s], (1,); log space (a scene's "
+                         "[damping] stiffness must be > 0)",
     "start_placement": "a rigid move of the start positions: a rotation vector [rad] about the cloth's centre (the "
                        "mean start position) then a translation [m], (6,); linear, scales 0.1 rad and 0.01 m; the "
                        "velocities, handle and pin targets stay",
@@ -36,14 +40,12 @@ SCENE_PARAMETERS = {
                           "translation [m], (obstacle_count * 6,); linear, scales 0.1 rad and 0.01 m",
 }
 """The scene parameters an estimation can free (beside the material's ``density``, ``stretching``, ``bending``):
-name to what it is, its units and shape, and how it is fitted. Not offered: damping (the model's Rayleigh
-coefficients are host constants of the step, with no gradient) (:data:`NOT_OFFERED`)."""
+name to what it is, its units and shape, and how it is fitted."""
 
 NOT_OFFERED = {
-    "damping": "the Rayleigh damping coefficients are host constants of the step (Model.damping_mass and "
-               "damping_stiffness), with no gradient",
+    "damping": "the Rayleigh damping is two parameters: name damping_mass (alpha) or damping_stiffness (beta)",
 }
-"""Names refused with the reason: scene inputs the estimation cannot fit."""
+"""Names refused with the reason and what to name instead."""
 
 _ROTATION_SCALE = 0.1  # [rad]
 _TRANSLATION_SCALE = 0.01  # [m]
@@ -483,6 +485,8 @@ def _make(fit, name: str, start: _Start) -> SceneParameter:
             return _ArrayEntries(fit, name, "contact_repulsion_stiffness", positive=True, scale=1.0)
         return _ArrayEntries(fit, name, "contact_friction", positive=True, scale=1.0,
                              index=[1] if name == "obstacle_friction" else [0])
+    if name in ("damping_mass", "damping_stiffness"):
+        return _ArrayEntries(fit, name, name, positive=True, scale=1.0)
     if name == "handle_stiffness":
         if model.handle_count == 0:
             raise _missing(name, "no soft handle")
@@ -508,7 +512,7 @@ def check_names(names: Sequence[str], material_parts: Sequence[str], where: str 
     seen = set()
     for k, name in enumerate(names):
         if name in NOT_OFFERED:
-            raise ValueError(f"{where}[{k}]: {name!r} is not offered: {NOT_OFFERED[name]}")
+            raise ValueError(f"{where}[{k}]: {name!r} names no one parameter: {NOT_OFFERED[name]}")
         if name not in material_parts and name not in SCENE_PARAMETERS:
             raise ValueError(f"{where}[{k}]: unknown free parameter {name!r}; choose from "
                              f"{', '.join(list(material_parts) + list(SCENE_PARAMETERS))}")

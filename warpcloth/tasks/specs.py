@@ -505,7 +505,7 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
                                     f"({', '.join(SCENE_PARAMETERS)})")
     for k, v in enumerate(free):
         if isinstance(v, str) and v in NOT_OFFERED:
-            raise _err(f"estimate.free[{k}]", f"{v!r} is not offered: {NOT_OFFERED[v]}")
+            raise _err(f"estimate.free[{k}]", f"{v!r} names no one parameter: {NOT_OFFERED[v]}")
     free = tuple(_choice(v, f"estimate.free[{k}]", FREE_PARAMETERS) for k, v in enumerate(free))
     if len(set(free)) != len(free):
         k = next(k for k in range(len(free)) if free[k] in free[:k])
