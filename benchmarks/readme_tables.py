@@ -1013,8 +1013,9 @@ def recordings(d: dict) -> str:
             f"(the share of the surface it sees: "
             + ", ".join(f"{s['target']} {g(s['seen_fraction'] * 100, 2)} %" for s in d["sequences"])
             + f"); {st['markers']} markers, {round(st['hidden'] * st['markers'])} of them hidden in each frame, "
-            f"drawn at random per frame; {st['seeds']} recording seed{'s' if st['seeds'] != 1 else ''}: medians, the "
-            "range in parentheses (the vertex fit is one run).",
+            f"drawn at random per frame; {st['seeds']} run{'s' if st['seeds'] != 1 else ''} of each kind, run k from "
+            "start k (" + ", ".join(st.get("starts", ["mean fabric"])[: st["seeds"]]) + ") and recording seed k: "
+            "medians, the range in parentheses.",
             "", provenance(d)]
     if "parameters" in d:
         out += ["", recording_parameters(d["parameters"])]

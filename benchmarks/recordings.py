@@ -2,9 +2,9 @@
 
 The seed's three target sequences (../shared/reference/liang2019/targets: 11oz, gray, tango; made by the seed's C++
 code, their true fabrics known) fitted as material_estimation.py's cross-check fits them: the seed's demo_wind.obj
-start, simulated as the seed did (lagged wind normals, self-collision), L-BFGS from the mean fabric, 50 steps, every
-second step's frame compared. Each sequence is fitted three ways, with the same optimizer and ``--iters``
-evaluations:
+start, simulated as the seed did (lagged wind normals, self-collision), L-BFGS, 50 steps, every second step's frame
+compared. Each sequence is fitted three ways, with the same optimizer and ``--iters`` evaluations, ``--seeds``
+times each, run k from start k (``STARTS``: the mean fabric, then its bending halved and doubled, cycled):
 
 - vertices: every vertex of every compared frame (the cross-check's fit);
 - point clouds (``warpcloth.recordings.point_cloud_recording``): ``--points`` points a frame with 2 mm Gaussian
@@ -14,9 +14,10 @@ evaluations:
 - markers (``marker_recording``): ``--markers`` markers spread over the cloth, a fifth of them (rounded) hidden in
   each frame.
 
-The point clouds and the markers are drawn with ``--seeds`` recording seeds (0, 1, ...): every run is reported, and
-the medians. Each fit's simulation error is measured against the seed's full vertex trajectory (the fit's
-``reference``); density and linear stretching errors against the true fabric (``estimation.parameter_errors``).
+Run k's point clouds and markers are drawn with recording seed k: every run is reported, and the medians (a fit
+ends where its path takes it, so the vertex fit too is a median over starts). Each fit's simulation error is
+measured against the seed's full vertex trajectory (the fit's ``reference``); density and linear stretching errors
+against the true fabric (``estimation.parameter_errors``).
 Time per evaluation: the fit's wall time per evaluation and per simulated step. The losses' cost per frame: one
 evaluation of each observation's loss (forward, and forward plus backward on a tape) on the seed's frames, per
 frame that holds data. Targets (issue 55): the point-cloud fit's simulation error within 1.5x of the vertex fit's
@@ -68,6 +69,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import common
@@ -126,14 +128,32 @@ def seen_fraction(camera, frames, triangles, rng) -> float:
     return common.median(fractions)
 
 
-def fit_once(files, frames, observation, truth, optimizer: str, iters: int, steps: int) -> dict:
-    """One fit from the mean fabric; its errors against the seed's vertex frames and the true fabric."""
+STARTS = (1.0, 0.5, 2.0)
+"""The sequences' fits' starts, run k from the k-th (cycled): the mean fabric (``estimation.initial_guess``) with
+its bending scaled by this factor (the start scan scales density and stretch, not bending, so each start takes its
+own path). Two of the seed's other fabrics as starts were tried: their fits took four times as long."""
+
+
+def start_material(k: int):
+    """Start k of ``STARTS`` as a material."""
+    m = E.initial_guess()
+    return replace(m, bending=m.bending * STARTS[k % len(STARTS)])
+
+
+def start_name(k: int) -> str:
+    factor = STARTS[k % len(STARTS)]
+    return "mean fabric" if factor == 1.0 else f"mean fabric, bending x{factor:g}"
+
+
+def fit_once(files, frames, observation, truth, optimizer: str, iters: int, steps: int, initial=None) -> dict:
+    """One fit from ``initial`` (default the mean fabric); its errors against the seed's vertex frames and the true
+    fabric."""
     model = S.hanging_cloth(E.initial_guess(), mesh_path=files[0], lagged_normals=True, self_collision=True)
     if observation is None:
         fit = E.TrajectoryFit(model, frames, steps=steps)
     else:
         fit = E.TrajectoryFit(model, observation, steps=steps, reference=frames)
-    result = E.estimate_material(fit, optimizer=optimizer, iters=iters)
+    result = E.estimate_material(fit, initial=initial, optimizer=optimizer, iters=iters)
     errors = E.parameter_errors(result.material, truth)
     return {"sim_err_pct": result.simulation_error_pct, "sim_err_pct_start": result.initial_simulation_error_pct,
             "density_err_pct": errors["density_err_pct"],
@@ -191,32 +211,28 @@ def run_sequence(short: str, args) -> dict:
               "camera": {"eye": camera.eye, "forward": camera.forward, **CAMERA},
               "in_image": in_image(camera, recorded),
               "seen_fraction": seen_fraction(camera, recorded, triangles, np.random.default_rng(12345))}
-    t0 = time.perf_counter()
-    vertex = fit_once(files, frames, None, truth, args.optimizer, args.iters, args.steps)
-    print(f"{short:6s} vertices     sim err {vertex['sim_err_pct']:.3g} %  density {vertex['density_err_pct']:.3g} % "
-          f" linear str {vertex['stretch_linear_err_pct']:.3g} %  ({time.perf_counter() - t0:.0f} s)", flush=True)
-    runs = {"point_clouds": [], "markers": []}
+    runs = {"vertices": [], "point_clouds": [], "markers": []}
     observations = {}
     for seed in range(args.seeds):
         rng = np.random.default_rng(seed)
         clouds = R.point_cloud_recording(recorded, triangles, points=args.points, noise=NOISE, camera=camera,
                                          drop=DROP, rng=rng)
         markers = R.marker_recording(recorded, triangles, markers=args.markers, hidden=HIDDEN, rng=rng)
-        observations[seed] = {"point_clouds": PointCloudFrames(clouds),
+        observations[seed] = {"vertices": None, "point_clouds": PointCloudFrames(clouds),
                               "markers": MarkerFrames(markers.triangles, markers.barycentric, markers.positions)}
-        for kind in ("point_clouds", "markers"):
+        for kind in runs:
             t0 = time.perf_counter()
-            run = fit_once(files, frames, observations[seed][kind], truth, args.optimizer, args.iters, args.steps)
-            run["seed"] = seed
+            run = fit_once(files, frames, observations[seed][kind], truth, args.optimizer, args.iters, args.steps,
+                           initial=start_material(seed))
+            run["seed"], run["start"] = seed, start_name(seed)
             if kind == "point_clouds":
                 run["dropped_frames"] = [k for k, c in enumerate(clouds) if c is None]
-            else:
+            elif kind == "markers":
                 run["hidden_pairs"] = int(np.isnan(markers.positions[..., 0]).sum())
             runs[kind].append(run)
-            print(f"{short:6s} {kind:12s} seed {seed}: sim err {run['sim_err_pct']:.3g} %  density "
+            print(f"{short:6s} {kind:12s} run {seed} ({run['start']}): sim err {run['sim_err_pct']:.3g} %  density "
                   f"{run['density_err_pct']:.3g} %  linear str {run['stretch_linear_err_pct']:.3g} %  "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    record["vertices"] = {"runs": [vertex], "median": median_record([vertex])}
     for kind, rs in runs.items():
         record[kind] = {"runs": rs, "median": median_record(rs)}
     reps = 3 if args.quick else 10
@@ -595,7 +611,8 @@ def run_sequences(args) -> dict:
     settings = {"optimizer": args.optimizer, "iters": args.iters, "seeds": args.seeds, "steps": args.steps,
                 "frame_stride": E.FRAME_STRIDE, "points": args.points, "noise_m": NOISE, "drop": DROP,
                 "markers": args.markers, "hidden": HIDDEN, "camera_offset_m": CAMERA_OFFSET, "camera": CAMERA,
-                "lagged_normals": True, "self_collision": True}
+                "lagged_normals": True, "self_collision": True,
+                "starts": [start_name(k) for k in range(len(STARTS))]}
     summary = {key: all(s["targets"][key]["met"] for s in sequences) for key in sequences[0]["targets"]}
     return {"settings": settings, "sequences": sequences, "targets": summary}
 
