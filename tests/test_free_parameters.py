@@ -228,6 +228,21 @@ def test_scene_file_and_task_take_scene_parameters(tmp_path):
     assert set(result.parameters) == {"density", "wind"} and np.all(np.abs(result.parameters["wind"]) < 5.0)
 
 
+def test_scene_file_and_cli_take_the_damping(tmp_path):
+    import json
+
+    from warpcloth.cli import main
+
+    scene = small_scene(tmp_path, '[damping]\nmass = 0.3\nstiffness = 1e-3\n[estimate]\n'
+                                  'free = ["density", "damping_mass", "damping_stiffness"]\niters = 3\n')
+    result = E.EstimationTask.from_scene(scene, device="cpu").run()
+    assert {"damping_mass", "damping_stiffness"} <= set(result.parameters)
+    assert result.parameters["damping_mass"].shape == (1,) and result.parameters["damping_mass"][0] > 0.0
+    out = tmp_path / "fit.json"
+    assert main(["estimate", str(scene), "--free", "damping_stiffness", "--device", "cpu", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["start_parameters"]["damping_stiffness"] == pytest.approx([1e-3])
+
+
 def test_scene_file_and_cli_take_the_start_deformation(tmp_path):
     import json
 
