@@ -130,8 +130,7 @@ def seen_fraction(camera, frames, triangles, rng) -> float:
 
 STARTS = (1.0, 0.5, 2.0)
 """The sequences' fits' starts, run k from the k-th (cycled): the mean fabric (``estimation.initial_guess``) with
-its bending scaled by this factor (the start scan scales density and stretch, not bending, so each start takes its
-own path). Two of the seed's other fabrics as starts were tried: their fits took four times as long."""
+its bending scaled by this factor. Why: docs/decisions.md, "Recording fits are compared over three starts"."""
 
 
 def start_material(k: int):
