@@ -432,14 +432,15 @@ def registration(files, frames, clouds, targets) -> tuple[np.ndarray, dict]:
                        "handle_target_shift_m": np.linalg.norm(positions[held] - targets, axis=1)}
 
 
-def simulation_error_from(files, frames, clouds, material, positions, velocities, args) -> float:
-    """The simulation error of ``material`` against the seed's vertex ``frames`` from the start (``positions``,
-    ``velocities``): the true start with the scene's handles, or a registered one placed by ``place_start``."""
+def simulation_error_from(files, frames, clouds, material, velocities, args, registered=None) -> float:
+    """The simulation error of ``material`` against the seed's vertex ``frames`` from the start with ``velocities``
+    at its positions: without ``registered``, the true ones (frame 0) with the scene's handles; else those
+    positions, placed by ``place_start``."""
     model = S.hanging_cloth(E.initial_guess(), mesh_path=files[0], lagged_normals=True, self_collision=True)
-    if positions is frames[0]:
-        model.particle_x0.assign(positions.astype(model.particle_x0.numpy().dtype))
+    if registered is None:
+        model.particle_x0.assign(frames[0].astype(model.particle_x0.numpy().dtype))
     else:
-        E.place_start(model, positions)
+        E.place_start(model, registered)
     model.particle_v0.assign(np.asarray(velocities).astype(model.particle_v0.numpy().dtype))
     return E.TrajectoryFit(model, PointCloudFrames(clouds), steps=args.steps, reference=frames).simulation_error(
         material)
@@ -470,8 +471,7 @@ def start_fit(files, frames, clouds, truth, args, start, positions=None) -> dict
         result = E.estimate_material(fit, optimizer=args.optimizer, iters=args.iters - share, free=free, scan=None)
     errors = E.parameter_errors(result.material, truth)
     run = {"sim_err_pct": result.simulation_error_pct,
-           "material_sim_err_pct": simulation_error_from(files, frames, clouds, result.material, frames[0], start[1],
-                                                         args),
+           "material_sim_err_pct": simulation_error_from(files, frames, clouds, result.material, start[1], args),
            "sim_err_pct_start": (
                result.initial_simulation_error_pct if first is None else first.initial_simulation_error_pct),
            "density_err_pct": errors["density_err_pct"], "stretch_linear_err_pct": errors["stretch_linear_err_pct"],
@@ -515,10 +515,11 @@ def run_start_sequence(short: str, args) -> dict:
         clouds = R.point_cloud_recording(recorded, model.triangles_np, points=args.points, noise=NOISE,
                                          camera=camera, drop=DROP, rng=np.random.default_rng(seed))
         positions, placed = registration(files, recorded, clouds, targets)
-        placed["truth_sim_err_pct"] = simulation_error_from(files, recorded, clouds, truth, positions, velocities,
-                                                            args)
-        placed["truth_at_rest_sim_err_pct"] = simulation_error_from(files, recorded, clouds, truth, positions,
-                                                                    np.zeros_like(velocities), args)
+        placed["truth_sim_err_pct"] = simulation_error_from(files, recorded, clouds, truth, velocities, args,
+                                                            registered=positions)
+        placed["truth_at_rest_sim_err_pct"] = simulation_error_from(files, recorded, clouds, truth,
+                                                                    np.zeros_like(velocities), args,
+                                                                    registered=positions)
         for kind in START_KINDS:
             t0 = time.perf_counter()
             if kind == "given":
