@@ -319,20 +319,30 @@ class _Start:
                 a.grad.zero_()
 
 
-class _StartPlacement(SceneParameter):
-    name = "start_placement"
-    scale = np.array([_ROTATION_SCALE] * 3 + [_TRANSLATION_SCALE] * 3)
+class _StartPart(SceneParameter):
+    # one part of the shared _Start (its attribute ``attr``), read flat and written back in that part's shape
+
+    attr = ""
 
     def __init__(self, fit, start: _Start):
         super().__init__(fit)
         self.start = start
 
     def read(self):
-        return self.start.placement.copy()
+        return getattr(self.start, self.attr).ravel().copy()
 
     def write(self, values):
-        self.start.placement = np.asarray(values, dtype=np.float64).copy()
+        shape = getattr(self.start, self.attr).shape
+        setattr(self.start, self.attr, np.asarray(values, dtype=np.float64).reshape(shape).copy())
         self.start.write()
+
+    def zero_grad(self):
+        self.start.zero()
+
+
+class _StartPlacement(_StartPart):
+    name, attr = "start_placement", "placement"
+    scale = np.array([_ROTATION_SCALE] * 3 + [_TRANSLATION_SCALE] * 3)
 
     def grad(self):
         gx, _ = self.start.grads()
@@ -342,82 +352,41 @@ class _StartPlacement(SceneParameter):
         g_r = [float(np.sum(gx * (rel @ jac[:, :, k].T))) for k in range(3)]
         return np.concatenate([g_r, gx.sum(axis=0)])
 
-    def zero_grad(self):
-        self.start.zero()
 
-
-class _StartVelocity(SceneParameter):
-    name = "start_velocity"
+class _StartVelocity(_StartPart):
+    name, attr = "start_velocity", "velocity"
     scale = _VELOCITY_SCALE
-
-    def __init__(self, fit, start: _Start):
-        super().__init__(fit)
-        self.start = start
-
-    def read(self):
-        return self.start.velocity.copy()
-
-    def write(self, values):
-        self.start.velocity = np.asarray(values, dtype=np.float64).reshape(3).copy()
-        self.start.write()
 
     def grad(self):
         return self.start.grads()[1].sum(axis=0)
 
-    def zero_grad(self):
-        self.start.zero()
 
-
-class _StartVelocities(_StartVelocity):
-    name = "start_velocities"
-
-    def read(self):
-        return self.start.velocities.ravel().copy()
-
-    def write(self, values):
-        self.start.velocities = np.asarray(values, dtype=np.float64).reshape(-1, 3).copy()
-        self.start.write()
+class _StartVelocities(_StartPart):
+    name, attr = "start_velocities", "velocities"
+    scale = _VELOCITY_SCALE
 
     def grad(self):
         return self.start.grads()[1].ravel()
 
 
-class _StartDeformation(SceneParameter):
-    name = "start_deformation"
+class _StartDeformation(_StartPart):
+    name, attr = "start_deformation", "shape"
 
     def __init__(self, fit, start: _Start):
-        super().__init__(fit)
-        self.start = start
+        super().__init__(fit, start)
         self.scale = _SHAPE_SCALE * np.sqrt(start.modes.mass.sum())  # mass-orthonormal modes: RMS over the area
-
-    def read(self):
-        return self.start.shape.ravel().copy()
-
-    def write(self, values):
-        self.start.shape = np.asarray(values, dtype=np.float64).reshape(-1, 3).copy()
-        self.start.write()
 
     def grad(self):
         gx, _ = self.start.grads()
         return (self.start.modes.basis.T @ gx @ rotation_matrix(self.start.placement[:3])).ravel()
 
-    def zero_grad(self):
-        self.start.zero()
 
-
-class _StartDeformationRate(_StartDeformation):
-    name = "start_deformation_rate"
+class _StartDeformationRate(_StartPart):
+    name, attr = "start_deformation_rate", "rate"
 
     def __init__(self, fit, start: _Start):
         super().__init__(fit, start)
         self.scale = _VELOCITY_SCALE * np.sqrt(start.modes.mass.sum())
-
-    def read(self):
-        return self.start.rate.ravel().copy()
-
-    def write(self, values):
-        self.start.rate = np.asarray(values, dtype=np.float64).reshape(-1, 3).copy()
-        self.start.write()
 
     def grad(self):
         return (self.start.modes.basis.T @ self.start.grads()[1]).ravel()
