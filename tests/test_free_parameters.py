@@ -138,6 +138,17 @@ def test_start_deformation_gradients_match_central_differences_at_two_steps(h_re
     assert max(errors.values()) < (1e-5 if h_rel == 1e-6 else 1e-3), errors
 
 
+@pytest.mark.parametrize("steps, h_rel, tol", [(8, 1e-6, 1e-5), (8, 1e-4, 1e-3), (80, 1e-6, 1e-4)])
+def test_damping_gradients_converge_and_stay_bounded(steps, h_rel, tol):
+    """The damping's gradient at two step sizes, and over a rollout ten times longer (80 steps: the gradient neither
+    grows past the differences nor loses them)."""
+    fit = make_fit(hanging(), steps, 0.01, noise=0.01)
+    checks = directional_check(fit, ["damping_mass", "damping_stiffness"], h_rel=h_rel, seed=2)
+    errors = {name: _rel(pair) for name, pair in checks.items()}
+    assert all(abs(pair[1]) > 0.0 and np.isfinite(pair[0]) for pair in checks.values()), checks
+    assert max(errors.values()) < tol, errors
+
+
 def test_the_start_deformation_keeps_the_held_particles_and_moves_the_rest():
     model = hanging()
     fit = make_fit(model, 4, 0.01)
