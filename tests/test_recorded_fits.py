@@ -3,6 +3,7 @@ and from a scene's [estimate] table."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -60,6 +61,34 @@ def test_a_fit_from_point_clouds_or_markers_moves_the_density_towards_the_truth(
     after = abs(result.material.density - truth.density) / truth.density
     assert after < 0.5 * before, (before, after)
     assert result.simulation_error_pct < result.initial_simulation_error_pct
+
+
+def test_a_batch_of_marker_fits_reports_each_worlds_simulation_error_as_its_fit_alone(tmp_path):
+    """estimate_materials over two worlds of the small scene from two starts, one marker recording and one world's
+    true frames as the reference for both: each world's fitted and initial simulation errors are its fit's alone."""
+    model, frames = _recorded(tmp_path)
+    markers = recordings.marker_recording(frames, model.triangles_np, markers=6, hidden=0.2,
+                                          rng=np.random.default_rng(3))
+    observation = MarkerFrames(markers.triangles, markers.barycentric, markers.positions)
+    options = wc.SolverOptions(preconditioner="block_ssor", cg_tol=1e-10)  # a world solved alone as in the batch
+    batch = wc.ModelBuilder()
+    batch.replicate(wc.load_scene(tmp_path / "base.toml").model_builder, 2, own_materials=True)
+    batched = E.TrajectoryFit(batch.finalize("cpu", requires_grad=True), observation, steps=12, frame_stride=STRIDE,
+                              options=options, reference=list(frames))
+    assert len(batched.reference[0]) == 2 * len(frames[0])  # one world's frames serve both
+    starts = [E.initial_guess(), dataclasses.replace(E.initial_guess(), density=2.0 * E.initial_guess().density)]
+    results = E.estimate_materials(batched, initial=starts, iters=4, free=["density"], scan=None)
+    for start, result in zip(starts, results):
+        alone = E.TrajectoryFit(model, observation, steps=12, frame_stride=STRIDE, options=options,
+                                reference=list(frames))
+        expected = E.estimate_material(alone, initial=start, iters=4, free=["density"], scan=None)
+        assert result.losses == expected.losses
+        assert math.isfinite(result.simulation_error_pct)
+        assert result.simulation_error_pct == pytest.approx(expected.simulation_error_pct, rel=1e-12)
+        assert result.initial_simulation_error_pct == pytest.approx(expected.initial_simulation_error_pct, rel=1e-12)
+    assert results[0].simulation_error_pct != results[1].simulation_error_pct
+    with pytest.raises(ValueError, match="1 materials for 2 worlds"):
+        batched.simulation_errors([starts[0]])
 
 
 def test_a_point_cloud_fit_without_a_reference_says_it_cannot_measure_the_simulation_error(tmp_path):

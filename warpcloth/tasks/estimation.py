@@ -159,10 +159,11 @@ class TrajectoryFit:
     ``frame_stride`` steps up to ``steps``: vertex frames (particle_count, 3) [m] (the seed's loss, the mean over
     frames of the mean over vertices of ``|x_sim - x_target|^2`` [m^2]) or an observation of
     :mod:`warpcloth.observations` (markers, point clouds). ``reference``: the true vertex frames, where known, that
-    :meth:`simulation_error` measures against. A model of equal worlds, each with its own material, fits one per
-    world (:meth:`losses`, :meth:`losses_and_grads`). ``options`` default to a CG tolerance of 1e-6; ``template``
-    (the one-world builder ``model`` was finalised from) enables :meth:`worlds`. ValueError for worlds of different
-    sizes or sharing a material, or a recording short of ``steps``."""
+    :meth:`simulation_error` measures against (the whole model's, or one world's for every world). A model of equal
+    worlds, each with its own material, fits one per world (:meth:`losses`, :meth:`losses_and_grads`). ``options``
+    default to a CG tolerance of 1e-6; ``template`` (the one-world builder ``model`` was finalised from) enables
+    :meth:`worlds`. ValueError for worlds of different sizes or sharing a material, or a recording short
+    of ``steps``."""
 
     def __init__(self, model: wc.Model, targets: Sequence[np.ndarray] | Observation, *, steps: int = STEPS,
                  frame_stride: int = FRAME_STRIDE, dt: float = DT, options: wc.SolverOptions | None = None,
@@ -195,6 +196,9 @@ class TrajectoryFit:
             raise ValueError(f"{steps} steps compare {frames} frames after frame 0, but the recording has only "
                              f"{observation.frame_count - 1}")
         if reference is not None:
+            per_world = model.particle_count // worlds
+            if worlds > 1 and len(reference) and np.shape(reference[0]) == (per_world, 3):
+                reference = [np.tile(np.asarray(x), (worlds, 1)) for x in reference[: frames + 1]]  # every world's
             _check_vertex_frames(reference, steps, frames, model.particle_count, "reference")
             reference = [np.asarray(x, dtype=np.float64) for x in reference[: frames + 1]]
         self.model, self.steps, self.frame_stride = model, steps, frame_stride
@@ -265,9 +269,7 @@ class TrajectoryFit:
             builder = wc.ModelBuilder()
             builder.replicate(self.template, count, own_materials=True)
             model = builder.finalize(self.model.device, requires_grad=True, dtype=self.model.scalar)
-            init = dict(self._init)
-            if init["reference"] is not None:
-                init["reference"] = [np.tile(x, (count, 1)) for x in init["reference"]]
+            init = dict(self._init)  # a one-world reference serves every world
             if init["options"].preconditioner == "multigrid" and self.sim.linear_solver.backend != "sequential":
                 init["options"] = replace(init["options"], preconditioner="auto")  # its parallel form: one world
             self._batched[count] = TrajectoryFit(model, self.observation, **init)  # one recording, every world
@@ -385,12 +387,26 @@ class TrajectoryFit:
                                  "holds no vertex positions; give the fit a reference trajectory")
             return 100.0 * math.sqrt(self.loss(m))
         self._one_world("simulation_error")
-        steps = self.steps
-        trajectory = self.trajectory(m, steps)
-        frames = range(1, steps // self.frame_stride + 1)
-        squared = [np.mean(np.sum((trajectory[k * self.frame_stride] - self.reference[k]) ** 2, axis=1))
-                   for k in frames]
-        return 100.0 * math.sqrt(float(np.mean(squared)))
+        return self.simulation_errors([m])[0]
+
+    def simulation_errors(self, ms: Sequence[wc.Material]) -> list[float]:
+        """Each world's :meth:`simulation_error` with its own material ``ms[w]``, from one rollout of every world.
+        ValueError without a ``reference`` or for another count of materials than the worlds."""
+        if self.reference is None:
+            raise ValueError("TrajectoryFit.simulation_errors measures against a reference trajectory; this fit has "
+                             "none")
+        if len(ms) != self.model.world_count:
+            raise ValueError(f"TrajectoryFit.simulation_errors: {len(ms)} materials for {self.model.world_count} "
+                             "worlds")
+        trajectory = self.trajectory(list(ms), self.steps)
+        frames = range(1, self.steps // self.frame_stride + 1)
+        errors = []
+        for w in range(self.model.world_count):
+            part = self.model.world_slice(w)
+            squared = [np.mean(np.sum((trajectory[k * self.frame_stride][part] - self.reference[k][part]) ** 2,
+                                      axis=1)) for k in frames]
+            errors.append(100.0 * math.sqrt(float(np.mean(squared))))
+        return errors
 
     def trajectory(self, m: wc.Material | Sequence[wc.Material], steps: int | None = None) -> list[np.ndarray]:
         """Positions of every step with ``m`` (one material, or one per world)."""
@@ -933,6 +949,10 @@ def estimate_materials(fit: TrajectoryFit, *, initial: wc.Material | Sequence[wc
         if isinstance(exc, wc.SimulationError):
             raise wc.SimulationError(f"world {w}'s fit: {exc}", worlds=sorted(errors)) from exc
         raise exc
+    if fit.reference is not None:  # a world's loss is no simulation error here: one rollout of every world each
+        for r, fitted, start in zip(results, fit.simulation_errors([r.material for r in results]),
+                                    fit.simulation_errors([r.initial for r in results])):
+            r.simulation_error_pct, r.initial_simulation_error_pct = fitted, start
     return results
 
 
@@ -1004,7 +1024,7 @@ class _WorldFit:
 
     @property
     def has_reference(self) -> bool:
-        # a world's simulation error comes from its loss: a vertex recording's only
+        # a world's simulation error comes from its loss, a vertex recording's; estimate_materials measures the rest
         return self.batch.fit.reference is None and isinstance(self.batch.fit.observation, VertexFrames)
 
     def simulation_error(self, m: wc.Material) -> float:
