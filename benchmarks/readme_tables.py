@@ -974,10 +974,10 @@ def recordings(d: dict) -> str:
     """Fits to the seed's target sequences from vertices, point clouds and markers (benchmarks/recordings.py)."""
     kinds = {"vertices": "vertices", "point_clouds": "point clouds", "markers": "markers"}
 
-    def spread(entry, key, n=2):  # the median, and the range over the recording seeds
-        values = [r[key] for r in entry["runs"]]
-        text = g(entry["median"][key], n)
-        return text if len(values) == 1 else f"{text} ({g(min(values), n)}–{g(max(values), n)})"
+    def spread(entry, key, runs="chosen", median="median", n=2):  # the median, and the range it is taken over
+        values = [r[key] for r in entry[runs]]
+        text, low, high = g(entry[median][key], n), g(min(values), n), g(max(values), n)
+        return text if low == high else f"{text} ({low}–{high})"
 
     rows = []
     for s in d["sequences"]:
@@ -985,18 +985,23 @@ def recordings(d: dict) -> str:
             e = s[kind]
             rows.append([s["target"], label, str(len(e["runs"])), spread(e, "sim_err_pct"),
                          spread(e, "density_err_pct"), spread(e, "stretch_linear_err_pct"),
-                         g(e["median"]["s_per_eval"], 2), g(e["median"]["s_per_step_iter"], 2)])
+                         spread(e, "sim_err_pct", "runs", "median_single"),
+                         spread(e, "density_err_pct", "runs", "median_single"),
+                         g(e["s_per_eval"], 2), g(e["s_per_step_iter"], 2)])
     st = d["settings"]
-    out = [table(["sequence", "observation", "runs", "simulation error %", "density %", "linear str. %", "s/eval",
-                  "s/step/iter"], rows), ""]
+    out = [table(["sequence", "observation", "fits", "simulation error %", "density %", "linear str. %",
+                  "every fit: simulation error %", "density %", "s/eval", "s/step/iter"], rows), ""]
     names = {"point_clouds.sim_err_pct": "point clouds' simulation error", "point_clouds.density_err_pct":
              "point clouds' density error", "markers.sim_err_pct": "markers' simulation error",
              "markers.density_err_pct": "markers' density error",
              "point_clouds.s_per_step_iter": "point-cloud fit's time per step"}
     for key, label in names.items():
         each = [(s["target"], s["targets"][key]) for s in d["sequences"]]
+        single = "" if key.endswith("s_per_step_iter") else (
+            "; every fit's medians: " + ", ".join(f"{s['target']} {g(s['targets_single'][key]['ratio'], 3)}×"
+                                                  for s in d["sequences"]))
         out.append(f"- {label} ≤ {g(each[0][1]['limit'], 2)}× the vertex fit's: {met(d['targets'][key])} ("
-                   + ", ".join(f"{t} {g(v['ratio'], 3)}×" for t, v in each) + ")")
+                   + ", ".join(f"{t} {g(v['ratio'], 3)}×" for t, v in each) + single + ")")
     def seconds(x):
         return f"{g(x * 1e3, 2)} ms" if x >= 1e-3 else f"{g(x * 1e6, 2)} µs"
 
@@ -1013,9 +1018,10 @@ def recordings(d: dict) -> str:
             f"(the share of the surface it sees: "
             + ", ".join(f"{s['target']} {g(s['seen_fraction'] * 100, 2)} %" for s in d["sequences"])
             + f"); {st['markers']} markers, {round(st['hidden'] * st['markers'])} of them hidden in each frame, "
-            f"drawn at random per frame; {st['seeds']} run{'s' if st['seeds'] != 1 else ''} of each kind, run k from "
-            "start k (" + ", ".join(st.get("starts", ["mean fabric"])[: st["seeds"]]) + ") and recording seed k: "
-            "medians, the range in parentheses.",
+            f"drawn at random per frame; each recording ({st['seeds']} seed{'s' if st['seeds'] != 1 else ''} of "
+            "point clouds and of markers, the one vertex recording) fitted from each of the starts ("
+            + ", ".join(st["starts"]) + ") and the fit of least loss kept: medians over the seeds of these, the "
+            "range in parentheses; beside them, medians and ranges over every fit.",
             "", provenance(d)]
     if "parameters" in d:
         out += ["", recording_parameters(d["parameters"])]

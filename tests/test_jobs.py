@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from warpcloth.cli import main
+from warpcloth.tasks import estimation as E
 from warpcloth.tasks.jobs import ControlJob, EstimateJob, JobResult, JobsInterrupted, RolloutJob, run_jobs, run_one
 
 FIT = dict(steps=4, iters=3)  # the hanging cloth: 4 steps, 3 evaluations per fit
@@ -83,6 +84,33 @@ def test_bad_workers_and_missing_ray_are_named(monkeypatch):
     assert main(["estimate", "--steps", "2", "--iters", "1", "--workers", "2"]) == 2
     # one worker needs no Ray
     assert run_jobs([RolloutJob(steps=1)], workers=1)[0].ok
+
+
+def test_estimate_starts_fits_from_varied_bending_and_names_the_fit_of_least_loss(tmp_path, capsys):
+    """--starts 3: three jobs from the task's start with its bending times 1, 1/2 and 2, in one JSON that names the
+    one of least loss; the factors go on 1/4, 4; a bad count or start is refused."""
+    path = tmp_path / "starts.json"
+    assert main(["estimate", "--steps", "4", "--iters", "3", "--starts", "3", "--json", str(path)]) == 0
+    record = json.loads(path.read_text())
+    results = record["results"]
+    assert [r["job"]["start"] for r in results] == [0, 1, 2]
+    bending = [np.asarray(r["estimate"]["bending"]) for r in results]
+    assert not np.array_equal(bending[0], bending[1]) and not np.array_equal(bending[1], bending[2])
+    losses = [r["best_loss"] for r in results]
+    (label, index), = record["least"].items()
+    assert index == int(np.argmin(losses)) and "start" not in label
+    assert f"least loss of {label}'s 3 starts" in capsys.readouterr().out
+    start = EstimateJob(steps=4).task().start
+    for k, factor in enumerate((1.0, 0.5, 2.0, 0.25, 4.0)):
+        varied = E.varied_start(start, k)
+        np.testing.assert_array_equal(varied.bending, start.bending * factor)
+        assert varied.density == start.density and np.array_equal(varied.stretching, start.stretching)
+    assert EstimateJob(steps=4, start=2).task().start.bending[0, 0] == 2.0 * start.bending[0, 0]
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="a start is numbered 0, 1, 2"):
+            E.varied_start(start, bad)
+    assert main(["estimate", "--steps", "2", "--iters", "1", "--starts", "0"]) == 2
+    assert "--starts must be >= 1, got 0" in capsys.readouterr().err
 
 
 def test_control_jobs_start_from_zero_or_seeded_random_pushes():

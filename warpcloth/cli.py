@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -71,6 +72,9 @@ def _parser() -> argparse.ArgumentParser:
     est.add_argument("--scale", action="append", default=None, metavar="NAME=SCALE",
                      help="a free scene parameter's scale (the change per unit step); repeat it per parameter")
     est.add_argument("--steps", type=int, default=None, help="steps compared (default: the scene's)")
+    est.add_argument("--starts", type=int, default=1,
+                     help="fits from K starts, one job each: start k the task's start with its bending times 1, 1/2, "
+                     "2, 1/4, 4, ... (estimation.varied_start); the fit of least loss is named (default: 1)")
     est.add_argument("--handles", default="2,3", help="with --target: handled vertices (default: the seed's 2,3)")
     _add_workers(est)
     _add_outputs(est)
@@ -325,13 +329,16 @@ def _estimate_jobs(args: argparse.Namespace) -> list:
         raise ValueError("--bound and --scale apply to the parameters of --free")
     common = dict(optimizer=args.optimizer, iters=args.iters, steps=args.steps, device=args.device, batch=args.batch,
                   free=free, bounds=bounds or None, scales=scales or None)
+    if args.starts < 1:
+        raise ValueError(f"--starts must be >= 1, got {args.starts}")
+    starts = [None] if args.starts == 1 else list(range(args.starts))
     if args.target:
         if args.scene or args.material:
             raise ValueError("give scenes (and --material) or --target, not both")
         handles = tuple(_parse_handles(args.handles))
-        return [EstimateJob(target=t, handles=handles, **common) for t in args.target]
-    return [EstimateJob(scene=scene, material=m, **common) for scene in args.scene or [None]
-            for m in args.material or [None]]
+        return [EstimateJob(target=t, handles=handles, start=k, **common) for t in args.target for k in starts]
+    return [EstimateJob(scene=scene, material=m, start=k, **common) for scene in args.scene or [None]
+            for m in args.material or [None] for k in starts]
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
@@ -348,8 +355,10 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return _error(str(exc), _USAGE_ERROR)
     if len(jobs) > 1 or args.workers > 1 or args.address:
-        return _run_many(args, jobs, ["sim error [%]", "density error [%]", "simulations"],
-                         lambda r: [r["sim_err_pct"], r.get("density_err_pct", "-"), len(r["losses"])])
+        return _run_many(args, jobs, ["sim error [%]", "density error [%]", "simulations", "least loss"],
+                         lambda r: [r["sim_err_pct"], r.get("density_err_pct", "-"), len(r["losses"]),
+                                    r["best_loss"]],
+                         least=lambda r: r["best_loss"])
     job = jobs[0]
     try:
         task = job.task()
@@ -422,10 +431,11 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures) -> int:
+def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures, least=None) -> int:
     """Run ``jobs`` (tasks/jobs.py) with --workers/--address, print one row per job (``figures(record)`` under
     ``columns``) and write one JSON whose ``results`` has an entry per job; exit 1 when any failed, 130 on Ctrl-C
-    (after writing what finished)."""
+    (after writing what finished). ``least(record)``: a loss; of the jobs that differ only in their ``start``, the one
+    of least loss is named (and its index in ``results`` written as ``least``)."""
     from warpcloth.tasks.jobs import JobsInterrupted, run_jobs
 
     if args.workers < 1:
@@ -453,10 +463,20 @@ def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures)
     for r in failed:
         print(f"{r.job.label()}: {r.error}")
     print(f"{len(results) - len(failed)} of {len(results)} jobs finished in {wall:.1f} s wall time")
+    chosen = {}
+    if least is not None:
+        groups: dict = {}
+        for i, r in enumerate(results):
+            if r.ok and getattr(r.job, "start", None) is not None:
+                groups.setdefault(dataclasses.replace(r.job, start=None).label(), []).append(i)
+        for what, members in groups.items():
+            chosen[what] = min(members, key=lambda i: least(results[i].result))
+            print(f"least loss of {what}'s {len(members)} starts: {results[chosen[what]].job.label()}")
     if args.json:
         _write_json(args.json, {"command": args.command, "workers": args.workers, "address": args.address,
                                 "wall_s": wall, "interrupted": interrupted,
-                                "results": [r.to_json() for r in results]})
+                                "results": [r.to_json() for r in results],
+                                **({"least": chosen} if chosen else {})})
         print(f"wrote {os.path.abspath(args.json)}")
     if args.plot:
         curves = {r.job.label(): r.result.get("errors_pct") or r.result["losses"] for r in results if r.ok}

@@ -47,10 +47,17 @@ class EstimateJob:
     ``bounds`` and ``scales`` by name (``EstimationTask.with_free``)."""
     bounds: dict | None = None
     scales: dict | None = None
+    start: int | None = None
+    """Which of several starts (``estimation.varied_start``; 0 is the task's own), or None: the task's own, one of
+    one."""
 
     def task(self):
         """The EstimationTask; ValueError or OSError for settings that do not make one (before any fit)."""
+        from warpcloth.tasks.estimation import varied_start
+
         task = self._task()
+        if self.start is not None:
+            task = replace(task, start=varied_start(task.start, self.start))
         if self.free is None:
             if self.bounds or self.scales:
                 raise ValueError("an estimation job's bounds and scales apply to its free parameters; give free")
@@ -124,6 +131,7 @@ class EstimateJob:
                   "runtime_s_per_step_iter": result.seconds_per_step_iter,
                   "sim_err_pct_initial": result.initial_simulation_error_pct,
                   "sim_err_pct": result.simulation_error_pct, "losses": result.losses,
+                  "best_loss": result.best_loss, "start": self.start, "start_material": task.start.name,
                   "scan": [list(p) for p in result.scan], "scan_factors": result.scan_factors,
                   "estimate": {"density": m.density, "stretching": m.stretching.tolist(),
                                "bending": m.bending.tolist()},
@@ -140,7 +148,8 @@ class EstimateJob:
 
     def label(self) -> str:
         what = self.target or self.mesh or self.scene or ESTIMATE_SCENE
-        return f"{what} ({self.material})" if self.material else what
+        what = f"{what} ({self.material})" if self.material else what
+        return what if self.start is None else f"{what}, start {self.start}"
 
 
 @dataclass
