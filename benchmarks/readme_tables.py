@@ -1020,8 +1020,9 @@ def recordings(d: dict) -> str:
             + f"); {st['markers']} markers, {round(st['hidden'] * st['markers'])} of them hidden in each frame, "
             f"drawn at random per frame; each recording ({st['seeds']} seed{'s' if st['seeds'] != 1 else ''} of "
             "point clouds and of markers, the one vertex recording) fitted from each of the starts ("
-            + ", ".join(st["starts"]) + ") and the fit of least loss kept: medians over the seeds of these, the "
-            "range in parentheses; beside them, medians and ranges over every fit.",
+            + "; ".join(st["starts"]) + ") and the fit of least loss kept: medians over the seeds of these, the "
+            "range in parentheses; beside them, medians and ranges over every fit"
+            + (f"; {st['workers']} fits at a time, one a core" if st.get("workers", 1) > 1 else "") + ".",
             "", provenance(d)]
     if "parameters" in d:
         out += ["", recording_parameters(d["parameters"])]

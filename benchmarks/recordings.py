@@ -4,7 +4,7 @@ The seed's three target sequences (../shared/reference/liang2019/targets: 11oz, 
 code, their true fabrics known) fitted as material_estimation.py's cross-check fits them: the seed's demo_wind.obj
 start, simulated as the seed did (lagged wind normals, self-collision), L-BFGS, 50 steps, every second step's frame
 compared. Each sequence is fitted three ways, with the same optimizer and ``--iters`` evaluations, from each of
-``STARTS`` (the mean fabric, then its bending halved and doubled):
+``STARTS`` (the mean fabric, then its bending halved and doubled: ``estimation.varied_start``):
 
 - vertices: every vertex of every compared frame (the cross-check's fit);
 - point clouds (``warpcloth.recordings.point_cloud_recording``): ``--points`` points a frame with 2 mm Gaussian
@@ -75,7 +75,6 @@ import math
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 
 import common
@@ -134,20 +133,18 @@ def seen_fraction(camera, frames, triangles, rng) -> float:
     return common.median(fractions)
 
 
-STARTS = (1.0, 0.5, 2.0)
-"""The sequences' fits' starts: the mean fabric (``estimation.initial_guess``) with its bending scaled by this
-factor (start k the k-th, cycled). Why: docs/decisions.md, "Recording fits are compared over three starts"."""
+STARTS = 3
+"""The sequences' fits' starts: ``estimation.varied_start`` 0, 1, 2 of the mean fabric (``initial_guess``): its
+bending times 1, 1/2 and 2. Why: docs/decisions.md, "Recording fits are compared over three starts"."""
 
 
 def start_material(k: int):
-    """Start k of ``STARTS`` as a material."""
-    m = E.initial_guess()
-    return replace(m, bending=m.bending * STARTS[k % len(STARTS)])
+    return E.varied_start(E.initial_guess(), k)
 
 
 def start_name(k: int) -> str:
-    factor = STARTS[k % len(STARTS)]
-    return "mean fabric" if factor == 1.0 else f"mean fabric, bending x{factor:g}"
+    factor = start_material(k).bending.flat[0] / E.initial_guess().bending.flat[0]
+    return "mean fabric" if k == 0 else f"mean fabric, bending x{factor:g}"
 
 
 def fit_once(files, frames, observation, truth, optimizer: str, iters: int, steps: int, initial=None) -> dict:
@@ -263,7 +260,7 @@ def sequence_tasks(short: str, args) -> list[tuple]:
     st = {"optimizer": args.optimizer, "iters": args.iters, "steps": args.steps, "points": args.points,
           "markers": args.markers, "seeds": args.seeds}
     return [(short, kind, seed, start, st) for kind in KINDS for seed in range(1 if kind == "vertices" else args.seeds)
-            for start in range(len(STARTS))]
+            for start in range(STARTS)]
 
 
 def sequence_record(short: str, runs: list[dict], args) -> dict:
@@ -654,7 +651,7 @@ def run_sequences(args) -> dict:
                          m["stretch_linear_err_pct"], single["sim_err_pct"], single["density_err_pct"],
                          s[kind]["s_per_eval"], s[kind]["s_per_step_iter"]])
     print(f"\nfits to the seed's target sequences, {args.optimizer}, {args.iters} evaluations of {args.steps} steps "
-          f"each, from {len(STARTS)} starts: medians over the recording seeds of each one's fit of least loss "
+          f"each, from {STARTS} starts: medians over the recording seeds of each one's fit of least loss "
           "(best), and over every fit (single)")
     common.print_table(["sequence", "observation", "fits", "sim err %", "density %", "linear str %",
                         "single: sim err %", "density %", "s/eval", "s/step/iter"], rows,
@@ -673,7 +670,7 @@ def run_sequences(args) -> dict:
                 "frame_stride": E.FRAME_STRIDE, "points": args.points, "noise_m": NOISE, "drop": DROP,
                 "markers": args.markers, "hidden": HIDDEN, "camera_offset_m": CAMERA_OFFSET, "camera": CAMERA,
                 "lagged_normals": True, "self_collision": True, "workers": args.workers,
-                "starts": [start_name(k) for k in range(len(STARTS))]}
+                "starts": [start_name(k) for k in range(STARTS)]}
     summary = {key: all(s["targets"][key]["met"] for s in sequences) for key in sequences[0]["targets"]}
     summary_single = {key: all(s["targets_single"][key]["met"] for s in sequences)
                       for key in sequences[0]["targets_single"]}
