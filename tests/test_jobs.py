@@ -88,7 +88,8 @@ def test_bad_workers_and_missing_ray_are_named(monkeypatch):
 
 def test_estimate_starts_fits_from_varied_bending_and_names_the_fit_of_least_loss(tmp_path, capsys):
     """--starts 3: three jobs from the task's start with its bending times 1, 1/2 and 2, in one JSON that names the
-    one of least loss; the factors go on 1/4, 4; a bad count or start is refused."""
+    one of least loss; the factors go on 1/4, 4; a bad count or start is refused, and so is a varied start for a fit
+    that does not free the bending."""
     path = tmp_path / "starts.json"
     assert main(["estimate", "--steps", "4", "--iters", "3", "--starts", "3", "--json", str(path)]) == 0
     record = json.loads(path.read_text())
@@ -111,6 +112,11 @@ def test_estimate_starts_fits_from_varied_bending_and_names_the_fit_of_least_los
             E.varied_start(start, bad)
     assert main(["estimate", "--steps", "2", "--iters", "1", "--starts", "0"]) == 2
     assert "--starts must be >= 1, got 0" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="start 1 varies the bending, which this fit does not free"):
+        EstimateJob(steps=4, free=("density",), start=1).task()
+    assert EstimateJob(steps=4, free=("density",), start=0).task().start.name == start.name
+    assert main(["estimate", "--steps", "2", "--iters", "1", "--starts", "2", "--free", "density"]) == 2
+    assert "varies the bending, which this fit does not free" in capsys.readouterr().err
 
 
 def test_control_jobs_start_from_zero_or_seeded_random_pushes():

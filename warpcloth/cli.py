@@ -354,6 +354,11 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         jobs = _estimate_jobs(args)
     except ValueError as exc:
         return _error(str(exc), _USAGE_ERROR)
+    if args.starts > 1:  # refused here, before any job starts: a varied start the fit cannot use
+        try:
+            jobs[1].task()
+        except (ValueError, OSError) as exc:
+            return _error(str(exc), _USAGE_ERROR)
     if len(jobs) > 1 or args.workers > 1 or args.address:
         return _run_many(args, jobs, ["sim error [%]", "density error [%]", "simulations", "least loss"],
                          lambda r: [r["sim_err_pct"], r.get("density_err_pct", "-"), len(r["losses"]),
@@ -435,7 +440,7 @@ def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures,
     """Run ``jobs`` (tasks/jobs.py) with --workers/--address, print one row per job (``figures(record)`` under
     ``columns``) and write one JSON whose ``results`` has an entry per job; exit 1 when any failed, 130 on Ctrl-C
     (after writing what finished). ``least(record)``: a loss; of the jobs that differ only in their ``start``, the one
-    of least loss is named (and its index in ``results`` written as ``least``)."""
+    of least loss is named (the JSON's ``least`` maps each such group's label to that job's index in ``results``)."""
     from warpcloth.tasks.jobs import JobsInterrupted, run_jobs
 
     if args.workers < 1:

@@ -56,13 +56,17 @@ class EstimateJob:
         from warpcloth.tasks.estimation import varied_start
 
         task = self._task()
-        if self.start is not None:
-            task = replace(task, start=varied_start(task.start, self.start))
         if self.free is None:
             if self.bounds or self.scales:
                 raise ValueError("an estimation job's bounds and scales apply to its free parameters; give free")
-            return task
-        return task.with_free(self.free, bounds=self.bounds, scales=self.scales)
+        else:
+            task = task.with_free(self.free, bounds=self.bounds, scales=self.scales)
+        if self.start:  # a varied bending would stay fixed at its wrong value where the fit does not free it
+            if "bending" not in task.free:
+                raise ValueError(f"start {self.start} varies the bending, which this fit does not free (free: "
+                                 f"{', '.join(task.free)}); fit from one start")
+            task = replace(task, start=varied_start(task.start, self.start))
+        return task
 
     def _task(self):
         """The EstimationTask; ValueError or OSError for settings that do not make one (before any fit)."""
