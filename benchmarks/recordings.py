@@ -143,8 +143,7 @@ def start_material(k: int):
 
 
 def start_name(k: int) -> str:
-    factor = start_material(k).bending.flat[0] / E.initial_guess().bending.flat[0]
-    return "mean fabric" if k == 0 else f"mean fabric, bending x{factor:g}"
+    return "mean fabric" if k == 0 else f"mean fabric, bending x{E.start_bending_factor(k):g}"
 
 
 def fit_once(files, frames, observation, truth, optimizer: str, iters: int, steps: int, initial=None) -> dict:

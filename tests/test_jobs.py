@@ -100,7 +100,8 @@ def test_estimate_starts_fits_from_varied_bending_and_names_the_fit_of_least_los
     losses = [r["best_loss"] for r in results]
     (label, index), = record["least"].items()
     assert index == int(np.argmin(losses)) and "start" not in label
-    assert f"least loss of {label}'s 3 starts" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"least loss of {label}'s 3 starts" in out and f"{label}, start 1 (bending x0.5)" in out
     start = EstimateJob(steps=4).task().start
     for k, factor in enumerate((1.0, 0.5, 2.0, 0.25, 4.0)):
         varied = E.varied_start(start, k)

@@ -56,16 +56,20 @@ def initial_guess() -> wc.Material:
     return wc.mean_material(SEED_INITIAL_GUESS_NAMES, thicken=THICKEN)
 
 
-def varied_start(m: wc.Material, k: int) -> wc.Material:
-    """Start ``k`` of a fit from several: ``m`` with its bending times 1, 1/2, 2, 1/4, 4, ... (k = 0, 1, 2, ...;
-    start 0 is ``m``), named for it. ValueError for a negative or non-integer ``k``. Why bending: docs/decisions.md,
-    "A fit from several starts varies its bending"."""
+def start_bending_factor(k: int) -> float:
+    """The factor on the bending of start ``k`` of a fit from several: 1, 1/2, 2, 1/4, 4, ... (k = 0, 1, 2, ...).
+    ValueError for a negative or non-integer ``k``. Why bending: docs/decisions.md, "A fit from several starts
+    varies its bending"."""
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 0:
         raise ValueError(f"start {k!r}: a start is numbered 0, 1, 2, ...")
-    if k == 0:
-        return m
-    factor = 2.0 ** ((k + 1) // 2 * (-1 if k % 2 else 1))
-    return replace(m, bending=m.bending * factor, name=f"{m.name}, bending x{factor:g}")
+    return 2.0 ** ((k + 1) // 2 * (-1 if k % 2 else 1))
+
+
+def varied_start(m: wc.Material, k: int) -> wc.Material:
+    """Start ``k`` of a fit from several: ``m`` with its bending times :func:`start_bending_factor` ``(k)``, named
+    for it (start 0 is ``m``)."""
+    factor = start_bending_factor(k)
+    return m if factor == 1.0 else replace(m, bending=m.bending * factor, name=f"{m.name}, bending x{factor:g}")
 
 
 # -- parameterisation ------------------------------------------------------------------------------------------------

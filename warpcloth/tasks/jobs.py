@@ -153,7 +153,11 @@ class EstimateJob:
     def label(self) -> str:
         what = self.target or self.mesh or self.scene or ESTIMATE_SCENE
         what = f"{what} ({self.material})" if self.material else what
-        return what if self.start is None else f"{what}, start {self.start}"
+        if self.start is None:
+            return what
+        from warpcloth.tasks.estimation import start_bending_factor
+
+        return f"{what}, start {self.start} (bending x{start_bending_factor(self.start):g})"
 
 
 @dataclass
