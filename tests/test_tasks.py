@@ -14,6 +14,7 @@ import warp as wp
 from conftest import SMALL_SCENE, small_scene
 
 import warpcloth as wc
+from warpcloth import recordings
 from warpcloth.cli import main
 from warpcloth.tasks import estimation as E
 from warpcloth.tasks import scenes as S
@@ -245,6 +246,24 @@ def test_estimate_fits_recorded_frames(tmp_path):
         E.EstimationTask.from_scene(path, device="cpu", truth=truth)
 
 
+def test_a_recordings_frame_rate_sets_its_frame_stride(tmp_path):
+    """frame_rate = 25 at dt 0.02 s: a frame every 2 steps, as frame_stride = 2 gives; the scene's dt then stays
+    (its frames fall on its steps); frame_stride_of refuses a period that is not a whole number of steps."""
+    scene = wc.load_scene(small_scene(tmp_path, "[estimate]\nframe_rate = 25\nfree = ['density']\n"))
+    assert scene.estimate.frame_stride == 2 and scene.estimate.frame_rate == 25.0
+    assert E.EstimationTask.from_scene(scene, device="cpu").fit.frame_stride == 2
+    with pytest.raises(ValueError, match="recording's frames \\(25 a second\\) fall on its steps of 0.02 s"):
+        scene.set_dt(0.01)
+    scene.set_dt(0.02)  # the same step is no change
+    assert recordings.frame_stride_of(30, 1 / 60) == 2 and recordings.frame_stride_of(50.0, 0.02) == 1
+    for rate, dt in ((30, 0.02), (100, 0.02)):
+        with pytest.raises(ValueError, match="its frames must fall on steps"):
+            recordings.frame_stride_of(rate, dt)
+    for rate, dt in ((0, 0.02), (True, 0.02), (30, float("nan"))):
+        with pytest.raises(ValueError, match="must be a finite number > 0"):
+            recordings.frame_stride_of(rate, dt)
+
+
 # -- every key checked, before anything is simulated -----------------------------------------------------------------
 BAD_CONTROL = [
     ("grid_vertices = [[0, 0]]\ninterval = 0.1\nintervals = 2\nloss = { com = [0, 0, 0] }\nspeed = 1",
@@ -295,6 +314,12 @@ BAD_ESTIMATE = [
     ("free = ['density']\noptimizer = 'seed-sgd'", r"estimate.optimizer: seed-sgd fits the whole material"),
     ("free = []", r"estimate.free: expected a non-empty array"),
     ("frame_stride = 5", r"estimate.frame_stride: the 12 steps compared are not a whole number of frames of 5"),
+    ("frame_rate = 30", r"estimate.frame_rate: a recording at 30 frames/s has a frame every 1.667 steps of 0.02 s; "
+                        r"its frames must fall on steps: set dt to 0.0166667 s \(a frame every 2 steps\)"),
+    ("frame_rate = 0", r"estimate.frame_rate: must be > 0"),
+    ("frame_rate = 25\nframe_stride = 3", r"estimate.frame_stride: 3 steps a frame, but frame_rate 25 at dt 0.02 s "
+                                          r"is 2; give one of them"),
+    ("frame_rate = 10", r"estimate.frame_rate: the 12 steps compared are not a whole number of frames of 5"),
     ("targets = 'missing'", r"estimate.targets: sequence directory .* does not exist"),
     ("targets = 'few'", r"estimate.targets: its frames have 3 vertices, the cloth has 25"),
     ("targets = 'short'\nframe_stride = 3", r"estimate.targets: 12 steps compare 5 frames .* holds 2"),

@@ -21,8 +21,9 @@ from warpcloth.mesh_io import natural_key
 from warpcloth.outputs import check_frames, check_geometry, check_triangles
 from warpcloth.preview import Camera
 
-__all__ = ["MarkerRecording", "check_markers", "look_at", "marker_recording", "point_cloud_recording",
-           "read_markers", "read_point_clouds", "sample_surface", "visible", "write_markers", "write_point_clouds"]
+__all__ = ["MarkerRecording", "check_markers", "frame_stride_of", "look_at", "marker_recording",
+           "point_cloud_recording", "read_markers", "read_point_clouds", "sample_surface", "visible", "write_markers",
+           "write_point_clouds"]
 
 POINT_CLOUD_SUFFIXES = (".ply", ".npy")
 BARYCENTRIC_TOLERANCE = 1e-6
@@ -37,6 +38,27 @@ class MarkerRecording(NamedTuple):
     triangles: np.ndarray
     barycentric: np.ndarray
     positions: np.ndarray
+
+
+FRAME_RATE_TOLERANCE = 1e-6
+"""How far (relative) a recording's frame period may fall from a whole number of steps."""
+
+
+def frame_stride_of(frame_rate: float, dt: float) -> int:
+    """The steps of ``dt`` [s] between frames of a recording made at ``frame_rate`` [1/s]: its frame period must be a
+    whole number of steps (within :data:`FRAME_RATE_TOLERANCE`), since a fit compares a frame with the step it falls
+    on; ValueError otherwise, or for a rate or step not finite and positive, naming the step that would fit."""
+    for value, name in ((frame_rate, "frame_rate"), (dt, "dt")):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not 0.0 < value < math.inf:
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    steps = 1.0 / (float(frame_rate) * float(dt))
+    stride = max(1, round(steps))
+    if abs(steps - stride) > FRAME_RATE_TOLERANCE * stride:
+        raise ValueError(f"a recording at {frame_rate:g} frames/s has a frame every {steps:.4g} steps of {dt:g} s; its "
+                         f"frames must fall on steps: set dt to {1.0 / (frame_rate * stride):.6g} s (a frame every "
+                         f"{stride} step{'s' if stride > 1 else ''}) or another 1 / ({frame_rate:g} k) s, or resample "
+                         "the recording")
+    return stride
 
 
 def _rng(rng, what):

@@ -84,9 +84,13 @@ class Scene:
     """Most memory the frames of one ``warpcloth simulate`` run may take (they are kept until the USD is written)."""
 
     def set_dt(self, dt: float) -> None:
-        """Change the time step; ValueError for a dt not finite and > 0, or above the preset's ceiling ``max_dt``."""
+        """Change the time step; ValueError for a dt not finite and > 0, above the preset's ceiling ``max_dt``, or in
+        a scene whose ``[estimate]`` recording is timed by ``frame_rate`` (its frames fall on the file's steps)."""
         if not (isinstance(dt, (int, float)) and 0.0 < dt < math.inf):
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+        if self.estimate is not None and self.estimate.frame_rate is not None and dt != self.dt:
+            raise ValueError(f"scene {self.name!r}: its recording's frames ({self.estimate.frame_rate:g} a second) "
+                             f"fall on its steps of {self.dt:g} s; change dt and frame_rate in the scene file")
         if self.max_dt is not None and dt > self.max_dt * (1.0 + 1e-9):
             raise ValueError(f"scene {self.name!r} uses a solver preset that steps at most {self.max_dt:g} s, "
                              f"got {dt:g} s")
@@ -283,7 +287,7 @@ def _parse(data: dict, *, source: str, base_dir: Path) -> Scene:
         if isinstance(control, GripperControlSpec) and not grippers:
             raise _err("control.controls", "'grippers' moves the scene's grippers, and it has no [[grippers]] table")
     if "estimate" in data:
-        estimate = parse_estimate(_table(data["estimate"], "estimate"), steps, count, cloth_material, base_dir)
+        estimate = parse_estimate(_table(data["estimate"], "estimate"), steps, count, cloth_material, base_dir, dt)
 
     return Scene(
         name=name,

@@ -179,6 +179,8 @@ class EstimateSpec:
         scales: The scale of free scene parameters by name (``[estimate.scales]``; a number or one per entry).
         start_shape: ``"scene"`` (the cloth as the scene places it) or ``"registered"`` (the scene's cloth
             registered to frame 0 of a point-cloud recording: :mod:`warpcloth.registration`).
+        frame_rate: The recording's frames per second where the table gives it (``frame_stride`` follows from it
+            and the scene's dt: :func:`warpcloth.recordings.frame_stride_of`), else None.
     """
 
     targets: list[np.ndarray] | PointCloudFrames | MarkerFrames | None
@@ -193,6 +195,7 @@ class EstimateSpec:
     bounds: dict = field(default_factory=dict)
     scales: dict = field(default_factory=dict)
     start_shape: str = "scene"
+    frame_rate: float | None = None
 
 
 START_SHAPES = ("scene", "registered")
@@ -476,17 +479,28 @@ def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_s
 
 
 def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _materials.Material,
-                   base_dir: Path) -> EstimateSpec:
-    """The ``[estimate]`` table of a scene of ``sim_steps`` steps whose cloth has ``count`` particles and
-    ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
-    keys = ("targets", "markers", "huber", "both_ways", "start_shape", "frame_stride", "steps", "start", "free",
-            "optimizer", "iters", "search", "bounds", "scales")
+                   base_dir: Path, dt: float) -> EstimateSpec:
+    """The ``[estimate]`` table of a scene of ``sim_steps`` steps of ``dt`` [s] whose cloth has ``count`` particles
+    and ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
+    keys = ("targets", "markers", "huber", "both_ways", "start_shape", "frame_stride", "frame_rate", "steps", "start",
+            "free", "optimizer", "iters", "search", "bounds", "scales")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
+    rate = None
+    if "frame_rate" in table:
+        rate = _float(table["frame_rate"], "estimate.frame_rate", min_value=0.0, strict=True)
+        try:
+            by_rate = recordings.frame_stride_of(rate, dt)
+        except ValueError as exc:
+            raise _err("estimate.frame_rate", str(exc)) from None
+        if "frame_stride" in table and frame_stride != by_rate:
+            raise _err("estimate.frame_stride", f"{frame_stride} steps a frame, but frame_rate {rate:g} at dt {dt:g} s "
+                                                f"is {by_rate}; give one of them")
+        frame_stride = by_rate
     steps = _steps_within(table, "estimate", sim_steps)
     if steps % frame_stride:
-        raise _err("estimate.frame_stride", f"the {steps} steps compared are not a whole number of frames of "
-                                            f"{frame_stride} steps")
+        raise _err("estimate.frame_stride" if rate is None else "estimate.frame_rate",
+                   f"the {steps} steps compared are not a whole number of frames of {frame_stride} steps")
     targets, source = _parse_recording(table, base_dir, count, steps // frame_stride + 1, frame_stride, steps)
     start_shape = _choice(table.get("start_shape", "scene"), "estimate.start_shape", START_SHAPES)
     if start_shape == "registered" and not isinstance(targets, PointCloudFrames):
@@ -518,4 +532,4 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
     bounds, scales = _parse_parameter_options(table, free)
     return EstimateSpec(targets=targets, targets_source=source, frame_stride=frame_stride, steps=steps, start=start,
                         free=free, optimizer=optimizer, iters=iters, search=search, bounds=bounds, scales=scales,
-                        start_shape=start_shape)
+                        start_shape=start_shape, frame_rate=rate)
