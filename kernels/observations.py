@@ -15,7 +15,7 @@ from warpcloth.kernels.types import per_precision, types
 @per_precision
 def observation_kernels(scalar):
     """The observation kernels for ``scalar``: a namespace of ``marker_loss``, ``to_mesh_points``,
-    ``closest_on_surface``, ``surface_loss``, ``nearest_point`` and ``nearest_loss``."""
+    ``closest_on_surface``, ``surface_loss``, ``surface_distance2``, ``nearest_point`` and ``nearest_loss``."""
     vec3 = types(scalar).vec3
 
     @wp.func
@@ -154,14 +154,18 @@ def observation_kernels(scalar):
         face: wp.array(dtype=wp.int32),
         bary: wp.array(dtype=vec3),
         delta: scalar,
+        keep: wp.array(dtype=wp.int32),
         scale: scalar,
         # out:
         loss: wp.array(dtype=scalar),
     ):
         """loss[w] += scale rho(|q_i - c_i|), c_i world w's surface point at the fixed (face, bary); rho(d) = d^2
-        for delta <= 0, else Huber: d^2 / 2 up to delta, delta (d - delta / 2) beyond; one thread per world and
-        point."""
+        for delta <= 0, else Huber: d^2 / 2 up to delta, delta (d - delta / 2) beyond; a point whose
+        ``keep[base + t]`` is 0 is left out (an empty ``keep``: none is); one thread per world and point."""
         t = wp.tid()
+        if keep.shape[0] > 0:
+            if keep[base + t] == 0:
+                return
         w = t / count
         i = t - w * count
         r = q[offset + i] - surface_point(x, tri, face[base + t], first[w], bary[base + t])
@@ -173,6 +177,27 @@ def observation_kernels(scalar):
             else:
                 rho = delta * (wp.sqrt(d2) - scalar(0.5) * delta)
         wp.atomic_add(loss, w, scale * rho)
+
+    @wp.kernel
+    def surface_distance2(
+        x: wp.array(dtype=vec3),
+        tri: wp.array2d(dtype=wp.int32),
+        first: wp.array(dtype=wp.int32),
+        q: wp.array(dtype=vec3),
+        offset: int,
+        count: int,
+        base: int,
+        face: wp.array(dtype=wp.int32),
+        bary: wp.array(dtype=vec3),
+        # out:
+        d2: wp.array(dtype=scalar),
+    ):
+        """d2[t] = |q_i - c_i|^2 as surface_loss measures it; one thread per world and point. Not taped."""
+        t = wp.tid()
+        w = t / count
+        i = t - w * count
+        r = q[offset + i] - surface_point(x, tri, face[base + t], first[w], bary[base + t])
+        d2[t] = wp.dot(r, r)
 
     @wp.kernel
     def nearest_point(
@@ -220,6 +245,7 @@ def observation_kernels(scalar):
         to_mesh_points=to_mesh_points,
         closest_on_surface=closest_on_surface,
         surface_loss=surface_loss,
+        surface_distance2=surface_distance2,
         nearest_point=nearest_point,
         nearest_loss=nearest_loss,
     )

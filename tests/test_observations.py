@@ -110,7 +110,10 @@ def point_cloud_reference(x_frames, clouds, tri, robust=None, both_ways=False, b
         if q is None:
             continue
         d = surface_distances(q, x, tri)
-        term = (d**2 if robust is None else huber(d, robust[1])).mean()
+        if robust is not None and robust[0] == "trimmed":  # the P - floor(fraction P) nearest
+            term = (np.sort(d)[: len(d) - int(np.floor(robust[1] * len(d)))] ** 2).mean()
+        else:
+            term = (d**2 if robust is None else huber(d, robust[1])).mean()
         if both_ways:
             nearest = np.min(np.linalg.norm(x[:, None, :] - q[None, :, :], axis=2), axis=1)
             term += both_ways_weight * (nearest**2).mean()
@@ -207,8 +210,8 @@ def clouds_of(h, rng, sizes=(60, 45, None, 80), noise=0.01, outliers=3):
     return x, clouds
 
 
-@pytest.mark.parametrize("robust, both_ways", [(None, False), (("huber", 0.008), False), (None, True)],
-                         ids=["squared", "huber", "both-ways"])
+@pytest.mark.parametrize("robust, both_ways", [(None, False), (("huber", 0.008), False), (("trimmed", 0.1), False),
+                                               (None, True)], ids=["squared", "huber", "trimmed", "both-ways"])
 def test_point_cloud_loss_matches_brute_force_and_its_gradient_matches(robust, both_ways):
     h = Hanging()
     rng = np.random.default_rng(6)
@@ -218,7 +221,7 @@ def test_point_cloud_loss_matches_brute_force_and_its_gradient_matches(robust, b
     assert not bound.capturable
     expected = point_cloud_reference(x, clouds[1:], h.tri, robust, both_ways, 0.5)
     np.testing.assert_allclose(h.loss(bound), [expected], rtol=1e-10)
-    if robust is not None:  # both branches of the Huber loss are taken
+    if robust is not None and robust[0] == "huber":  # both branches of the Huber loss are taken
         d = np.concatenate([surface_distances(q, xk, h.tri) for xk, q in zip(x, clouds[1:]) if q is not None])
         assert (d < 0.008).any() and (d > 0.008).any()
     rel = h.check_gradient(bound, tol=1e-5)
@@ -235,6 +238,23 @@ def test_huber_is_its_formula():
         np.testing.assert_allclose(loss, huber(d, delta), rtol=1e-12)
         plain = PointCloudFrames([np.array([[0.21, -d, -0.27]])]).bind(h.model)([wp.array(x0, dtype=wp.vec3d)])
         np.testing.assert_allclose(plain.numpy()[0], d * d, rtol=1e-12)
+
+
+def test_trimming_leaves_out_the_outliers():
+    """Points on the flat cloth and two 0.3 m off it: trimming a fifth of ten leaves the two out (the loss is the
+    inliers' mean squared distance), and the kept set is chosen per world."""
+    h = Hanging(worlds=2, seed=3)
+    x0 = h.model.particle_x0.numpy()  # both worlds' cloths in the plane y = 0, x in [0, 0.5], z in [-0.5, 0]
+    rng = np.random.default_rng(4)
+    inliers = np.column_stack([rng.uniform(0.05, 0.45, 8), rng.uniform(-0.004, 0.004, 8), rng.uniform(-0.45, -0.05, 8)])
+    cloud = np.vstack([inliers, [[0.2, 0.3, -0.2], [0.3, -0.3, -0.3]]])
+    shifted = x0.copy()
+    shifted[h.n:, 1] += 0.002  # world 1's cloth 2 mm off the plane
+    loss = PointCloudFrames([cloud], robust=("trimmed", 0.2)).bind(h.model)([wp.array(shifted, dtype=wp.vec3d)])
+    np.testing.assert_allclose(loss.numpy(), [np.mean(inliers[:, 1] ** 2), np.mean((inliers[:, 1] - 0.002) ** 2)],
+                               rtol=1e-9)
+    plain = PointCloudFrames([cloud]).bind(h.model)([wp.array(shifted, dtype=wp.vec3d)]).numpy()
+    assert (plain > 100 * loss.numpy()).all()
 
 
 def test_each_world_has_its_own_loss():
@@ -303,8 +323,11 @@ def test_bad_input_names_the_offending_index():
         PointCloudFrames([None, None])
     with pytest.raises(ValueError, match="Huber delta must be positive"):
         PointCloudFrames([cloud], robust=("huber", -0.01))
-    with pytest.raises(ValueError, match="robust must be None or"):
-        PointCloudFrames([cloud], robust=("trimmed", 0.1))
+    with pytest.raises(ValueError, match=r"robust must be None, \('huber', delta \[m\]\) or \('trimmed', fraction\)"):
+        PointCloudFrames([cloud], robust=("median", 0.1))
+    for fraction in (0.0, 1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="the trimmed fraction must be in"):
+            PointCloudFrames([cloud], robust=("trimmed", fraction))
     with pytest.raises(ValueError, match="both_ways_weight"):
         PointCloudFrames([cloud], both_ways=True, both_ways_weight=-1.0)
     with pytest.raises(ValueError, match="every compared frame"):

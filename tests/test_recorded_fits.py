@@ -91,6 +91,29 @@ def test_a_batch_of_marker_fits_reports_each_worlds_simulation_error_as_its_fit_
         batched.simulation_errors([starts[0]])
 
 
+def test_a_trimmed_fit_of_a_cloud_with_outliers_ends_where_the_clean_clouds_fit_does(tmp_path):
+    """A tenth of each frame's points thrown 10 cm off (flying pixels): the squared loss's density fit is ruined (more
+    than 5x the clean fit's error) and Huber's too (2x); trimming 15 % of the points ends where the clean recording's
+    fit does."""
+    model, frames = _recorded(tmp_path)
+    clean = recordings.point_cloud_recording(frames, model.triangles_np, points=200, noise=0.001, drop=0.0,
+                                             rng=np.random.default_rng(5))
+    rng = np.random.default_rng(6)
+    noisy = [c.copy() for c in clean]
+    for c in noisy[1:]:
+        c[: len(c) // 10] += rng.normal(0.0, 0.1, (len(c) // 10, 3))
+    truth = _truth()
+
+    def density_error(clouds, robust=None):
+        fit = E.TrajectoryFit(model, PointCloudFrames(clouds, robust=robust), steps=12, frame_stride=STRIDE)
+        fitted = E.estimate_material(fit, iters=12, free=["density"]).material
+        return abs(fitted.density - truth.density) / truth.density
+
+    reference = density_error(clean)
+    assert density_error(noisy, ("trimmed", 0.15)) == pytest.approx(reference, rel=0.02)
+    assert density_error(noisy) > 5.0 * reference and density_error(noisy, ("huber", 0.005)) > 2.0 * reference
+
+
 def test_a_point_cloud_fit_without_a_reference_says_it_cannot_measure_the_simulation_error(tmp_path):
     model, frames = _recorded(tmp_path)
     clouds = recordings.point_cloud_recording(frames, model.triangles_np, points=100, noise=0.0, drop=0.0,
@@ -111,13 +134,17 @@ def test_a_scene_reads_a_point_cloud_directory_and_a_marker_file(tmp_path):
     recordings.write_point_clouds(tmp_path / "clouds", clouds, kind=".npy")
     markers = recordings.marker_recording(frames, model.triangles_np, markers=5, hidden=0.2, rng=rng)
     recordings.write_markers(tmp_path / "markers.json", *markers)
-    cases = (('targets = "clouds"\nhuber = 0.01', PointCloudFrames), ('markers = "markers.json"', MarkerFrames))
+    cases = (('targets = "clouds"\nhuber = 0.01', PointCloudFrames), ('targets = "clouds"\ntrimmed = 0.1',
+                                                                      PointCloudFrames),
+             ('markers = "markers.json"', MarkerFrames))
     for extra, kind in cases:
         path = tmp_path / "fit.toml"
         path.write_text(SMALL_SCENE.format(extra=f'[estimate]\n{extra}\nframe_stride = {STRIDE}\nfree = ["density"]\n'
                                            'iters = 2\n'))
         task = E.EstimationTask.from_scene(path, device="cpu")
         assert isinstance(task.fit.observation, kind) and task.truth is None
+        if "trimmed" in extra:
+            assert task.fit.observation.robust == ("trimmed", 0.1)
         assert task.fit.observation.frame_count == len(frames)
         assert task.run().evaluations >= 2
 
@@ -127,6 +154,10 @@ def test_a_scene_reads_a_point_cloud_directory_and_a_marker_file(tmp_path):
     ('huber = 0.01', "estimate.huber: applies to a point-cloud recording"),
     ('targets = "clouds"\nhuber = -1.0', "estimate.huber"),
     ('targets = "clouds"\nboth_ways = 1', "estimate.both_ways: expected true or false"),
+    ('trimmed = 0.1', "estimate.trimmed: applies to a point-cloud recording"),
+    ('targets = "clouds"\ntrimmed = 1.0', "estimate.trimmed: the fraction of points left out must be below 1"),
+    ('targets = "clouds"\ntrimmed = 0.0', "estimate.trimmed: must be > 0"),
+    ('targets = "clouds"\ntrimmed = 0.1\nhuber = 0.01', "estimate.trimmed: give huber or trimmed, not both"),
 ])
 def test_a_scene_refuses_a_recording_it_cannot_use(tmp_path, extra, message):
     model, frames = _recorded(tmp_path)

@@ -9,6 +9,7 @@ worlds (``ModelBuilder.replicate``) gets one loss per world: every world is comp
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -249,7 +250,12 @@ class _PointCloudLoss(ObservationLoss):
         self._slot = np.cumsum(sizes > 0) - 1  # each observed frame's row of the nearest-point buffer
         self._nearest = (wp.zeros(len(seen) * model.particle_count, dtype=wp.int32, device=device)
                          if obs.both_ways else None)
-        self._delta = model.scalar(0.0 if obs.robust is None else obs.robust[1])
+        huber = obs.robust is not None and obs.robust[0] == "huber"
+        self._delta = model.scalar(obs.robust[1] if huber else 0.0)
+        self._trim = obs.robust[1] if obs.robust is not None and obs.robust[0] == "trimmed" else None
+        # trimmed: each frame's kept points (1) by world, chosen on the host from their distances; else empty: all
+        self._keep = wp.zeros(W * total if self._trim else 0, dtype=wp.int32, device=device)
+        self._d2 = wp.zeros(W * int(sizes.max()) if self._trim else 0, dtype=model.scalar, device=device)
 
     def _launch(self, frames, positions, out, weight):
         model, K = self.model, self._kernels
@@ -268,9 +274,20 @@ class _PointCloudLoss(ObservationLoss):
             wp.launch(K.closest_on_surface, W * P, inputs=[self._mesh_ids, x, self._tri, self._first, self._q,
                                                            offset, P, base], outputs=[self._face, self._bary],
                       record_tape=False)
-            scale = self._scalar(weight / (len(seen) * P))
+            kept = P
+            if self._trim is not None:  # keep each world's P - floor(trim P) nearest points
+                kept = P - int(math.floor(self._trim * P))
+                wp.launch(K.surface_distance2, W * P, inputs=[x, self._tri, self._first, self._q, offset, P, base,
+                                                              self._face, self._bary], outputs=[self._d2],
+                          record_tape=False)
+                d2 = self._d2.numpy()[: W * P].reshape(W, P)
+                mask = np.zeros((W, P), dtype=np.int32)
+                np.put_along_axis(mask, np.argpartition(d2, kept - 1, axis=1)[:, :kept], 1, axis=1)
+                self._keep[base:base + W * P].assign(mask.ravel())
+            scale = self._scalar(weight / (len(seen) * kept))
             wp.launch(K.surface_loss, W * P, inputs=[x, self._tri, self._first, self._q, offset, P, base,
-                                                     self._face, self._bary, self._delta, scale], outputs=[out])
+                                                     self._face, self._bary, self._delta, self._keep, scale],
+                      outputs=[out])
             if self._nearest is not None:
                 row = int(self._slot[k]) * N
                 wp.launch(K.nearest_point, N, inputs=[x, self._q, offset, P, row], outputs=[self._nearest],
@@ -287,12 +304,15 @@ class PointCloudFrames:
     unique).
 
     Loss: per observed compared frame, the mean over its points of rho(d_i), rho(d) = d^2, or with
-    ``robust=("huber", delta)`` (delta > 0 [m]) d^2 / 2 up to delta and delta (d - delta / 2) beyond; with
+    ``robust=("huber", delta)`` (delta > 0 [m]) d^2 / 2 up to delta and delta (d - delta / 2) beyond, or with
+    ``robust=("trimmed", fraction)`` (0 < fraction < 1) d^2 over the P - floor(fraction P) points nearest the
+    surface, the rest left out (chosen per frame and world on the host: a read-back a frame on a GPU); with
     ``both_ways``, plus ``both_ways_weight`` times the mean over a world's vertices of the squared distance to their
     nearest recorded point (brute force over the frame's points); then the mean over observed compared frames
     [m^2]. Not capturable (:attr:`capturable`): the meshes' refits are host calls a CPU graph does not record.
     ValueError: no frame, a frame empty or not (P, 3), a point not finite (naming frame and point), a robust option
-    other than None or ("huber", delta > 0), a negative or non-finite both_ways_weight."""
+    other than None, ("huber", delta > 0) or ("trimmed", 0 < fraction < 1), a negative or non-finite
+    both_ways_weight."""
 
     capturable = False
 
@@ -314,12 +334,15 @@ class PointCloudFrames:
         if all(p is None for p in frames):
             raise ValueError("PointCloudFrames: every frame is dropped (None)")
         if robust is not None:
-            if (not isinstance(robust, (tuple, list)) or len(robust) != 2 or robust[0] != "huber"
+            if (not isinstance(robust, (tuple, list)) or len(robust) != 2 or robust[0] not in ("huber", "trimmed")
                     or isinstance(robust[1], bool) or not isinstance(robust[1], (int, float, np.floating))):
-                raise ValueError(f"PointCloudFrames: robust must be None or ('huber', delta [m]), got {robust!r}")
-            if not np.isfinite(robust[1]) or robust[1] <= 0.0:
+                raise ValueError("PointCloudFrames: robust must be None, ('huber', delta [m]) or ('trimmed', "
+                                 f"fraction), got {robust!r}")
+            if robust[0] == "huber" and (not np.isfinite(robust[1]) or robust[1] <= 0.0):
                 raise ValueError(f"PointCloudFrames: the Huber delta must be positive and finite, got {robust[1]!r}")
-            robust = ("huber", float(robust[1]))
+            if robust[0] == "trimmed" and not 0.0 < robust[1] < 1.0:
+                raise ValueError(f"PointCloudFrames: the trimmed fraction must be in (0, 1), got {robust[1]!r}")
+            robust = (robust[0], float(robust[1]))
         if not isinstance(both_ways, (bool, np.bool_)):
             raise ValueError(f"PointCloudFrames: both_ways must be a bool, got {both_ways!r}")
         if not np.isfinite(both_ways_weight) or both_ways_weight < 0.0:

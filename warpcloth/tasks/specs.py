@@ -434,7 +434,7 @@ def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_s
     """The recording of ``[estimate]``: (observation or vertex frames, its path), or (None, None) without one."""
     if "targets" in table and "markers" in table:
         raise _err("estimate.markers", "a scene fits one recording: give targets or markers, not both")
-    for key in ("huber", "both_ways"):
+    for key in ("huber", "trimmed", "both_ways"):
         if key in table and "targets" not in table:
             raise _err(f"estimate.{key}", "applies to a point-cloud recording (estimate.targets)")
     if "markers" in table:
@@ -447,8 +447,16 @@ def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_s
         directory = base_dir / _str(table["targets"], "estimate.targets")
         source = str(directory)
         if recordings.holds_point_clouds(directory):
-            huber = table.get("huber")
-            robust = None if huber is None else ("huber", _float(huber, "estimate.huber", min_value=0.0, strict=True))
+            if "huber" in table and "trimmed" in table:
+                raise _err("estimate.trimmed", "give huber or trimmed, not both")
+            robust = None
+            if "huber" in table:
+                robust = ("huber", _float(table["huber"], "estimate.huber", min_value=0.0, strict=True))
+            elif "trimmed" in table:
+                fraction = _float(table["trimmed"], "estimate.trimmed", min_value=0.0, strict=True)
+                if fraction >= 1.0:
+                    raise _err("estimate.trimmed", f"the fraction of points left out must be below 1, got {fraction:g}")
+                robust = ("trimmed", fraction)
             both_ways = table.get("both_ways", False)
             if not isinstance(both_ways, bool):
                 raise _err("estimate.both_ways", f"expected true or false, got {both_ways!r}")
@@ -460,7 +468,7 @@ def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_s
                 recording = PointCloudFrames(points, robust=robust, both_ways=both_ways)
             frames = recording.frame_count
         else:
-            for key in ("huber", "both_ways"):
+            for key in ("huber", "trimmed", "both_ways"):
                 if key in table:
                     raise _err(f"estimate.{key}", f"applies to a point-cloud recording; {directory} holds OBJ frames")
             with _Context("estimate.targets"):
@@ -482,8 +490,8 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
                    base_dir: Path, dt: float) -> EstimateSpec:
     """The ``[estimate]`` table of a scene of ``sim_steps`` steps of ``dt`` [s] whose cloth has ``count`` particles
     and ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
-    keys = ("targets", "markers", "huber", "both_ways", "start_shape", "frame_stride", "frame_rate", "steps", "start",
-            "free", "optimizer", "iters", "search", "bounds", "scales")
+    keys = ("targets", "markers", "huber", "trimmed", "both_ways", "start_shape", "frame_stride", "frame_rate",
+            "steps", "start", "free", "optimizer", "iters", "search", "bounds", "scales")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
     rate = None
