@@ -61,3 +61,12 @@ def test_throw_example(tmp_path):
     assert len(result.errors_pct) == 2 and (tmp_path / "t.usda").exists()
     with Image.open(tmp_path / "t.png") as im:  # a contact sheet of 3 x 3 frames
         assert im.size == (1200, 1200 + 30)
+
+
+def test_fit_point_clouds_example_reads_its_recording_from_disk(tmp_path):
+    result, truth = load("example_fit_point_clouds").main(iters=3, steps=4, points=200, device="cpu",
+                                                          preview=str(tmp_path / "p.png"), directory=str(tmp_path))
+    files = sorted((tmp_path / "clouds").iterdir())
+    assert 1 <= len(files) <= 5 and all(p.suffix == ".ply" for p in files)  # frames 0-4, some dropped
+    assert result.evaluations == 3 and all(np.isfinite(result.losses))
+    assert (tmp_path / "p.png").stat().st_size > 0

@@ -158,6 +158,8 @@ def test_a_scene_reads_a_point_cloud_directory_and_a_marker_file(tmp_path):
     ('targets = "clouds"\ntrimmed = 1.0', "estimate.trimmed: the fraction of points left out must be below 1"),
     ('targets = "clouds"\ntrimmed = 0.0', "estimate.trimmed: must be > 0"),
     ('targets = "clouds"\ntrimmed = 0.1\nhuber = 0.01', "estimate.trimmed: give huber or trimmed, not both"),
+    ('frame_count = 5', "estimate.frame_count: applies to a point-cloud recording"),
+    ('targets = "clouds"\nframe_count = 4', "estimate.frame_count: 4 frames, but .*clouds holds frame 4"),
 ])
 def test_a_scene_refuses_a_recording_it_cannot_use(tmp_path, extra, message):
     model, frames = _recorded(tmp_path)
@@ -175,6 +177,11 @@ def test_a_recording_short_of_the_compared_frames_is_refused_naming_what_it_hold
     path.write_text(SMALL_SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'))
     with pytest.raises(ValueError, match="compare 5 frames .* holds 3"):
         wc.load_scene(path)
+    # its last two frames dropped, said by frame_count: they count as dropped, not missing
+    path.write_text(SMALL_SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'
+                                             'frame_count = 5\n'))
+    points = wc.load_scene(path).estimate.targets.points
+    assert len(points) == 5 and points[3] is None and points[4] is None and points[2] is not None
 
 
 def test_a_scene_registers_its_start_to_the_first_point_cloud(tmp_path):

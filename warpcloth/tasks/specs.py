@@ -434,7 +434,7 @@ def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_s
     """The recording of ``[estimate]``: (observation or vertex frames, its path), or (None, None) without one."""
     if "targets" in table and "markers" in table:
         raise _err("estimate.markers", "a scene fits one recording: give targets or markers, not both")
-    for key in ("huber", "trimmed", "both_ways"):
+    for key in ("huber", "trimmed", "both_ways", "frame_count"):
         if key in table and "targets" not in table:
             raise _err(f"estimate.{key}", "applies to a point-cloud recording (estimate.targets)")
     if "markers" in table:
@@ -462,13 +462,21 @@ def _parse_recording(table: dict, base_dir: Path, count: int, need: int, frame_s
                 raise _err("estimate.both_ways", f"expected true or false, got {both_ways!r}")
             with _Context("estimate.targets"):
                 indices, clouds = recordings.read_point_clouds(directory)
-                points = [None] * (int(indices[-1]) + 1)
+            length = int(indices[-1]) + 1
+            if "frame_count" in table:  # frames dropped after the last file count as dropped
+                declared = _int(table["frame_count"], "estimate.frame_count", min_value=1)
+                if declared < length:
+                    raise _err("estimate.frame_count", f"{declared} frames, but {directory} holds frame "
+                                                       f"{length - 1}")
+                length = declared
+            with _Context("estimate.targets"):
+                points = [None] * length
                 for k, cloud in zip(indices, clouds):
                     points[int(k)] = cloud
                 recording = PointCloudFrames(points, robust=robust, both_ways=both_ways)
             frames = recording.frame_count
         else:
-            for key in ("huber", "trimmed", "both_ways"):
+            for key in ("huber", "trimmed", "both_ways", "frame_count"):
                 if key in table:
                     raise _err(f"estimate.{key}", f"applies to a point-cloud recording; {directory} holds OBJ frames")
             with _Context("estimate.targets"):
@@ -490,8 +498,8 @@ def parse_estimate(table: dict, sim_steps: int, count: int, cloth_material: _mat
                    base_dir: Path, dt: float) -> EstimateSpec:
     """The ``[estimate]`` table of a scene of ``sim_steps`` steps of ``dt`` [s] whose cloth has ``count`` particles
     and ``cloth_material`` (paths relative to ``base_dir``). ValueError names the key path of the first bad value."""
-    keys = ("targets", "markers", "huber", "trimmed", "both_ways", "start_shape", "frame_stride", "frame_rate",
-            "steps", "start", "free", "optimizer", "iters", "search", "bounds", "scales")
+    keys = ("targets", "markers", "huber", "trimmed", "both_ways", "frame_count", "start_shape", "frame_stride",
+            "frame_rate", "steps", "start", "free", "optimizer", "iters", "search", "bounds", "scales")
     _check_keys(table, "estimate", keys)
     frame_stride = _int(table.get("frame_stride", 1), "estimate.frame_stride", min_value=1)
     rate = None
