@@ -7,7 +7,7 @@ side facing it, 2 mm noise, a tenth of the frames dropped) with a few flying pix
 (``[estimate] targets``), its length and frame rate (``frame_count``: a dropped last frame has no file;
 ``frame_rate``) and a loss that leaves out each frame's farthest points
 (``trimmed``), and ``EstimationTask.from_scene`` reads it. The fitted material's errors are printed against the
-truth, and a preview draws the fitted cloth's motion against the true one (translucent).
+truth, and a preview draws the fitted cloth's motion against the true one (translucent) and the recorded points (red).
 
     python examples/example_fit_point_clouds.py --iters 60 --preview fit.gif
 """
@@ -84,7 +84,7 @@ def main(truth_name: str = "royal-target", iters: int = 60, steps: int = 20, poi
     if preview:
         fitted = task.fit.trajectory(result.material)
         tris = task.fit.model.triangles_np
-        write_preview(preview, triangles=tris, frames=fitted, fps=50.0,
+        write_preview(preview, triangles=tris, frames=fitted, fps=50.0, points=task.fit.observation.points,
                       obstacles=[("truth", np.stack(true_frames), tris)], title="fitted to point clouds")
         print(f"wrote {preview}")
     return result, truth

@@ -104,3 +104,28 @@ def test_drape_preview_draws_no_sphere_through_the_cloth(tmp_path):
     assert len(cloth) > 20
     span = column[cloth[0]: cloth[-1] + 1]
     assert span.mean() > 0.97, f"{np.sum(~span)} of {len(span)} pixels from the cloth's top to its bottom are not cloth"
+
+
+def test_a_preview_draws_recorded_points_over_the_cloth(tmp_path):
+    """Points beside a flat sheet are drawn as dots of POINT_COLOUR; without points there are none; points of
+    another frame count or not finite are refused, naming the frame and point."""
+    from warpcloth.preview import POINT_COLOUR
+
+    builder = wc.ModelBuilder()
+    builder.add_cloth_grid((4, 4), (0.5, 0.5), material=wc.preset("gray-interlock"))
+    model = builder.finalize("cpu")
+    x, tris = model.particle_x0.numpy(), model.tri_indices.numpy()
+    beside = np.column_stack([np.full(20, 0.8), np.linspace(0.0, 0.5, 20), np.zeros(20)])
+
+    def red_pixels(points):
+        wc.write_preview(tmp_path / "p.png", triangles=tris, frames=[x], fps=50.0, points=points, size=2.0)
+        with Image.open(tmp_path / "p.png") as im:
+            rgb = np.asarray(im.convert("RGB")).astype(int)
+        return int(np.sum(np.all(rgb == POINT_COLOUR, axis=-1)))
+
+    assert red_pixels([beside]) >= 20 and red_pixels(None) == 0 and red_pixels([None]) == 0
+    with pytest.raises(ValueError, match="points has 2 frames, the cloth 1"):
+        wc.write_preview(tmp_path / "p.png", triangles=tris, frames=[x], fps=50.0, points=[beside, beside])
+    with pytest.raises(ValueError, match="points of frame 0, point 3: not finite"):
+        wc.write_preview(tmp_path / "p.png", triangles=tris, frames=[x], fps=50.0,
+                         points=[np.where(np.arange(20)[:, None] == 3, np.nan, beside)])

@@ -149,6 +149,21 @@ def test_a_scene_reads_a_point_cloud_directory_and_a_marker_file(tmp_path):
         assert task.run().evaluations >= 2
 
 
+def test_estimate_previews_a_point_cloud_fit_with_its_recorded_points(tmp_path, capsys):
+    from warpcloth.cli import main
+
+    model, frames = _recorded(tmp_path)
+    clouds = recordings.point_cloud_recording(frames, model.triangles_np, points=100, noise=0.001, drop=0.0,
+                                              rng=np.random.default_rng(9))
+    recordings.write_point_clouds(tmp_path / "clouds", clouds, kind=".npy")
+    path = tmp_path / "fit.toml"
+    path.write_text(SMALL_SCENE.format(extra=f'[estimate]\ntargets = "clouds"\nframe_stride = {STRIDE}\n'
+                                             'free = ["density"]\niters = 1\n'))
+    assert main(["estimate", str(path), "--device", "cpu", "--preview", str(tmp_path / "fit.png")]) == 0
+    assert "the recorded points as red dots" in capsys.readouterr().out
+    assert (tmp_path / "fit.png").stat().st_size > 0
+
+
 @pytest.mark.parametrize("extra, message", [
     ('targets = "clouds"\nmarkers = "m.json"', "estimate.markers: a scene fits one recording"),
     ('huber = 0.01', "estimate.huber: applies to a point-cloud recording"),

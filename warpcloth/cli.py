@@ -430,10 +430,26 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             target = ", the target as /World/Obstacles/Target" if drawing["obstacles"] else ""
             print(f"wrote {os.path.abspath(args.usd)} (the estimate as /World/Cloth{target})")
         if args.preview:
-            write_preview(args.preview, **drawing, title=f"estimate of {task.source}")
+            recorded = _recorded_points(fit.observation, len(sim_frames))
+            write_preview(args.preview, **drawing, points=recorded, title=f"estimate of {task.source}")
             target = "; the target translucent" if drawing["obstacles"] else ""
-            print(f"wrote {os.path.abspath(args.preview)} (the estimate{target})")
+            dots = "; the recorded points as red dots" if recorded is not None else ""
+            print(f"wrote {os.path.abspath(args.preview)} (the estimate{target}{dots})")
     return 0
+
+
+def _recorded_points(observation, frames: int):
+    """A point-cloud or marker recording's points in each of its first ``frames`` frames (None where none was seen),
+    for a preview; None for a vertex recording."""
+    import numpy as np
+
+    from warpcloth.observations import MarkerFrames, PointCloudFrames
+
+    if isinstance(observation, PointCloudFrames):
+        return list(observation.points[:frames])
+    if isinstance(observation, MarkerFrames):
+        return [p[~np.isnan(p).any(axis=1)] for p in observation.positions[:frames]]
+    return None
 
 
 def _run_many(args: argparse.Namespace, jobs: list, columns: list[str], figures, least=None) -> int:

@@ -229,14 +229,41 @@ def _checked(triangles, frames, fps, obstacles, max_frames, kind):
     return tris, frames, checked, int(max_frames)
 
 
+POINT_COLOUR = (200, 30, 30)
+"""The colour (RGB) of the recorded points :func:`write_preview` draws over the cloth."""
+
+
+def _checked_points(points, frame_count: int, what: str):
+    # one (P, 3) array or None per frame; ValueError naming the frame and point
+    if points is None:
+        return None
+    points = list(points)
+    if len(points) != frame_count:
+        raise ValueError(f"{what}: points has {len(points)} frames, the cloth {frame_count}")
+    out = []
+    for k, p in enumerate(points):
+        if p is None:
+            out.append(None)
+            continue
+        p = np.asarray(p, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"{what}: points of frame {k} must be (P, 3) or None, got shape {p.shape}")
+        bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
+        if bad.size:
+            raise ValueError(f"{what}: points of frame {k}, point {bad[0]}: not finite")
+        out.append(p)
+    return out
+
+
 class _Scene:
     # the drawn frames, squeezed to MAX_ASPECT, and one camera for all of them
 
-    def __init__(self, tris, frames, obstacles, indices):
-        self.frames, self.indices = frames, indices
+    def __init__(self, tris, frames, obstacles, indices, dots=None):
+        self.frames, self.indices, self.dots = frames, indices, dots
         self.renderer = _Renderer(tris, frames[0].shape[0], obstacles)
         points = [frames[i] for i in indices]
         points += [v if v.ndim == 2 else v[indices].reshape(-1, 3) for v, _ in obstacles]
+        points += [dots[i] for i in indices if dots is not None and dots[i] is not None and len(dots[i])]
         points = np.concatenate(points)
         lo, hi = points.min(axis=0), points.max(axis=0)
         extent = hi - lo
@@ -257,7 +284,16 @@ class _Scene:
             self.cameras[key] = Camera.framing(self.framed, width, height, view)
         camera = self.cameras[key]
         points = self._squeeze(self.renderer.points_at(self.frames[i], i))
-        return self.renderer.render(points, camera, samples)[0]
+        rgb = self.renderer.render(points, camera, samples)[0]
+        if self.dots is not None and self.dots[i] is not None:  # drawn over the cloth, 2x2 pixels each
+            rgb = rgb.copy()
+            rows, cols = np.floor(camera.pixel(self._squeeze(self.dots[i]))).astype(int).T
+            for dr in (0, 1):
+                for dc in (0, 1):
+                    r, c = rows + dr, cols + dc
+                    inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+                    rgb[r[inside], c[inside]] = POINT_COLOUR
+        return rgb
 
 
 def _fontsize(text: str, width: int, dpi: int, largest: float) -> float:
@@ -277,6 +313,7 @@ def write_preview(
     view: tuple[float, float] = (20.0, -60.0),
     size: float = 4.0,
     dpi: int = 100,
+    points: Sequence[np.ndarray | None] | None = None,
 ) -> np.ndarray:
     """Draws a cloth trajectory and its obstacles (:func:`render_frame`): an animated GIF, an MP4 or a PNG sheet.
 
@@ -294,18 +331,22 @@ def write_preview(
         title: Text above the picture (e.g. the scene's name); each frame's time follows it.
         view: Camera elevation and azimuth [degrees] (:meth:`Camera.framing`).
         size: Width and height of one frame [inches]; ``size * dpi`` pixels with ``dpi`` pixels per inch.
+        points: Per cloth frame, recorded points (P, 3) [m] or None, drawn as dots of :data:`POINT_COLOUR` over the
+            cloth (a point cloud against the cloth fitted to it).
 
     Returns:
         The indices of the frames drawn, shape (min(F, max_frames),).
 
     Raises:
         ValueError: naming what is wrong: the path (:func:`check_preview_path`), ``fps``, ``max_frames``, no
-            frames, frames of different shapes, a non-finite position, a triangle index, obstacle vertices.
+            frames, frames of different shapes, a non-finite position, a triangle index, obstacle vertices, points
+            of another count of frames, shape or a non-finite point.
     """
     kind = check_preview_path(path)
     tris, frames, checked, max_frames = _checked(triangles, frames, fps, obstacles, max_frames, kind)
+    dots = _checked_points(points, len(frames), "write_preview")
     indices = preview_frame_indices(len(frames), max_frames)
-    scene = _Scene(tris, frames, checked, indices)
+    scene = _Scene(tris, frames, checked, indices, dots)
     if scene.squeezed:  # say where metres are not metres
         title = f"{title or ''} ({', '.join(scene.squeezed)} not to scale)".strip()
     prefix = f"{title}: " if title else ""
