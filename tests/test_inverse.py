@@ -298,6 +298,44 @@ def test_a_batch_of_worlds_fits_each_world_as_it_fits_alone():
     assert results[0].seconds > 0.0
 
 
+def test_lbfgs_with_backtracks_stops_where_no_step_lowers_the_loss():
+    """max(|theta|_1, 0.1) with the gradient of |theta|_1: on the plateau no step lowers the loss (as rounding hides
+    a float32 fit's last descent). Without backtracks the line search shrinks its step until the budget is spent;
+    with them it starts again from steepest descent, fails again and returns, at the same point, with evaluations
+    unspent. A bad count is refused."""
+    def runs(backtracks):
+        calls = []
+
+        def f(t):
+            calls.append(t.copy())
+            return max(float(np.abs(t).sum()), 0.1), np.sign(t)
+
+        return lbfgs(f, np.array([1.0, -0.5]), iters=60, backtracks=backtracks), len(calls)
+
+    (plain, spent), (stopped, used) = runs(None), runs(3)
+    assert spent == 60 and used < 30
+    np.testing.assert_array_equal(stopped, plain)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="backtracks must be None or an integer >= 1"):
+            runs(bad)
+
+
+def test_a_material_fit_with_backtracks_passes_a_stalled_stages_evaluations_on():
+    """backtracks=1: each stage may end early; its unspent evaluations go to the next, so the fit spends at most
+    iters, over growing horizons, and its last stage at least its share; a bad count is refused before any
+    simulation."""
+    truth = wc.preset("tango-red-jet-set", thicken=2)
+    fit = _fit_alone(S.hanging_cloth_builder(truth, res=3), truth)
+    result = E.estimate_material(fit, iters=14, scan=None, backtracks=1)
+    assert len(result.losses) <= 14 and result.horizons == sorted(result.horizons)
+    assert result.horizons.count(6) >= 6 or len(result.losses) < 14  # the last stage: its share, or the fit ended
+    assert fit.loss(result.material) < fit.loss(E.initial_guess())
+    before = fit.evaluations
+    with pytest.raises(ValueError, match="backtracks must be None or an integer >= 1, got 0"):
+        E.estimate_material(fit, iters=14, scan=None, backtracks=0)
+    assert fit.evaluations == before
+
+
 def test_lbfgs_fits_in_stages_of_growing_horizon():
     """The default curriculum (E.CURRICULUM): L-BFGS on the first 2 steps' frames, then on 4, then on all 6, with
     2 : 2 : 3 of the evaluations, each stage from where the one before ended; every loss the simulation's at its

@@ -31,6 +31,7 @@ from warpcloth.tasks.optim import (
     SMOOTHED_COPIES,
     FitSummary,
     adam,
+    check_backtracks,
     cmaes,
     lbfgs,
     smoothed_descent,
@@ -609,7 +610,8 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
                       scan: dict[str, Sequence[float]] | None = START_SCAN, search: SearchSpec | None = None,
                       curriculum: Sequence[tuple[float, float]] | None = CURRICULUM, batch: bool = False,
                       progress: bool = False, bounds: Mapping[str, Sequence] | None = None,
-                      scales: Mapping[str, float | Sequence[float]] | None = None) -> EstimationResult:
+                      scales: Mapping[str, float | Sequence[float]] | None = None,
+                      backtracks: int | None = None) -> EstimationResult:
     """Fit the model's material to ``fit``'s targets; returns the estimate and the history.
 
     Args:
@@ -633,6 +635,11 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         bounds: ``{name: [low, high]}`` for free scene parameters (each a number or one per entry, None for none):
             the fit stays inside (:class:`~warpcloth.tasks.parameters.ParameterTransform`).
         scales: ``{name: scale}`` replacing a free scene parameter's default scale (``SCENE_PARAMETERS``).
+        backtracks: ``lbfgs`` only: where a stage's line search shrinks its step this many times without a decrease,
+            it starts again from steepest descent, and the stage ends when that fails too, its unspent evaluations
+            passing to the next stage (the last stage's are not spent: ``result.evaluations`` may end under
+            ``iters``). None (default): the line search shrinks its step until a decrease or the stage's end. Why:
+            docs/decisions.md, "A stalled line search may end its stage".
 
     Raises:
         ValueError: For an unknown optimiser or part, a batch without a global search or template, or a budget that
@@ -642,6 +649,7 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
     """
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    check_backtracks(backtracks)
     if optimizer == "seed-sgd" and isinstance(fit, MultiMotionFit):
         raise ValueError("the seed-sgd optimiser grows one motion's horizon; use lbfgs or adam with a MultiMotionFit")
     if batch and optimizer not in GLOBAL_OPTIMIZERS:
@@ -815,9 +823,12 @@ def estimate_material(fit: TrajectoryFit | MultiMotionFit, *, initial: wc.Materi
         param = param.with_material(initial) if scene_free else MaterialParameterization(initial)
         iters -= cost
     if optimizer == "lbfgs":
-        theta_free = theta0
+        theta_free, unspent = theta0, 0
         for steps, evaluations in stages:  # L-BFGS starts afresh at each horizon
-            theta_free = lbfgs(lambda t, steps=steps: objective_free(t, steps), theta_free, iters=evaluations)
+            before = len(result.losses)
+            theta_free = lbfgs(lambda t, steps=steps: objective_free(t, steps), theta_free,
+                               iters=evaluations + unspent, backtracks=backtracks)
+            unspent += evaluations - (len(result.losses) - before)
         theta = np.zeros(size)
         theta[mask] = theta_free
     elif optimizer == "adam":

@@ -71,11 +71,22 @@ def adam(f: Objective, theta: np.ndarray, *, iters: int, lr: float = 0.05, betas
     return best[1]
 
 
+def check_backtracks(backtracks) -> None:
+    """ValueError unless ``backtracks`` is None or an integer >= 1 (:func:`lbfgs`'s)."""
+    if backtracks is not None and (isinstance(backtracks, bool) or not isinstance(backtracks, (int, np.integer))
+                                   or backtracks < 1):
+        raise ValueError(f"backtracks must be None or an integer >= 1, got {backtracks!r}")
+
+
 def lbfgs(f: Objective, theta: np.ndarray, *, iters: int, memory: int = 10, max_step: float = 0.5,
-          callback=None, first: tuple[float, np.ndarray] | None = None) -> np.ndarray:
+          callback=None, first: tuple[float, np.ndarray] | None = None, backtracks: int | None = None) -> np.ndarray:
     """L-BFGS (Nocedal and Wright, alg. 7.4), its line search accepting any decrease, its first step sized for a loss
     whose minimum is near 0; ``iters`` counts evaluations, ``first`` (loss and gradient at theta, if known) among them;
-    ``max_step`` bounds a step's change of any entry."""
+    ``max_step`` bounds a step's change of any entry. With ``backtracks``, a line search that shrinks its step that
+    many times without a decrease starts again from steepest descent, and one from steepest descent that fails so
+    returns at once: no step along the gradient lowers the loss (the evaluations left are not spent). Without, the
+    line search shrinks its step until a decrease or the end of ``iters``."""
+    check_backtracks(backtracks)
     loss, g = f(theta) if first is None else first
     evals = 1
     if callback:
@@ -100,6 +111,7 @@ def lbfgs(f: Objective, theta: np.ndarray, *, iters: int, memory: int = 10, max_
             s_hist.clear(), y_hist.clear()
             d = -g * loss / max(g @ g, 1e-300)
         step = min(1.0, max_step / max(np.abs(d).max(), 1e-30))
+        shrinks = 0
         while evals < iters:
             new_theta = theta + step * d
             new_loss, new_g = f(new_theta)
@@ -109,8 +121,16 @@ def lbfgs(f: Objective, theta: np.ndarray, *, iters: int, memory: int = 10, max_
             if new_loss < loss:  # any decrease: contacts make the gradient a poor predictor of the decrease
                 break
             step *= 0.3
+            shrinks += 1
+            if backtracks is not None and shrinks >= backtracks:
+                break
         else:
             break
+        if not new_loss < loss:  # the line search gave up
+            if not s_hist:
+                return theta
+            s_hist.clear(), y_hist.clear()
+            continue
         s, y = new_theta - theta, new_g - g
         if s @ y > 1e-12 * (s @ s):
             s_hist.append(s), y_hist.append(y)
