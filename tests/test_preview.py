@@ -107,15 +107,18 @@ def test_drape_preview_draws_no_sphere_through_the_cloth(tmp_path):
 
 
 def test_a_preview_draws_recorded_points_over_the_cloth(tmp_path):
-    """Points beside a flat sheet are drawn as dots of POINT_COLOUR; without points there are none; points of
-    another frame count or not finite are refused, naming the frame and point."""
+    """Points on a flat sheet are drawn as dots of POINT_COLOUR over it; points far off fall outside the picture (the
+    camera frames the cloth); without points there are none; points of another frame count or not finite are
+    refused, naming the frame and point."""
     from warpcloth.preview import POINT_COLOUR
 
     builder = wc.ModelBuilder()
     builder.add_cloth_grid((4, 4), (0.5, 0.5), material=wc.preset("gray-interlock"))
     model = builder.finalize("cpu")
     x, tris = model.particle_x0.numpy(), model.tri_indices.numpy()
-    beside = np.column_stack([np.full(20, 0.8), np.linspace(0.0, 0.5, 20), np.zeros(20)])
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    beside = lo + np.linspace(0.1, 0.9, 20)[:, None] * (hi - lo)  # along the sheet's diagonal, on it
+    far = beside + 100.0
 
     def red_pixels(points):
         wc.write_preview(tmp_path / "p.png", triangles=tris, frames=[x], fps=50.0, points=points, size=2.0)
@@ -124,6 +127,7 @@ def test_a_preview_draws_recorded_points_over_the_cloth(tmp_path):
         return int(np.sum(np.all(rgb == POINT_COLOUR, axis=-1)))
 
     assert red_pixels([beside]) >= 20 and red_pixels(None) == 0 and red_pixels([None]) == 0
+    assert red_pixels([far]) == 0 and red_pixels([2.0 * x.mean(axis=0) - far]) == 0  # far ahead, far behind
     with pytest.raises(ValueError, match="points has 2 frames, the cloth 1"):
         wc.write_preview(tmp_path / "p.png", triangles=tris, frames=[x], fps=50.0, points=[beside, beside])
     with pytest.raises(ValueError, match="points of frame 0, point 3: not finite"):

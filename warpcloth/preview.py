@@ -259,11 +259,10 @@ class _Scene:
     # the drawn frames, squeezed to MAX_ASPECT, and one camera for all of them
 
     def __init__(self, tris, frames, obstacles, indices, dots=None):
-        self.frames, self.indices, self.dots = frames, indices, dots
+        self.frames, self.indices, self.dots = frames, indices, dots  # dots: drawn over, not framed
         self.renderer = _Renderer(tris, frames[0].shape[0], obstacles)
         points = [frames[i] for i in indices]
         points += [v if v.ndim == 2 else v[indices].reshape(-1, 3) for v, _ in obstacles]
-        points += [dots[i] for i in indices if dots is not None and dots[i] is not None and len(dots[i])]
         points = np.concatenate(points)
         lo, hi = points.min(axis=0), points.max(axis=0)
         extent = hi - lo
@@ -287,7 +286,9 @@ class _Scene:
         rgb = self.renderer.render(points, camera, samples)[0]
         if self.dots is not None and self.dots[i] is not None:  # drawn over the cloth, 2x2 pixels each
             rgb = rgb.copy()
-            rows, cols = np.floor(camera.pixel(self._squeeze(self.dots[i]))).astype(int).T
+            dots = self._squeeze(self.dots[i])
+            dots = dots[(dots - camera.eye) @ camera.forward > 0.0]  # in front of the camera
+            rows, cols = np.floor(camera.pixel(dots)).astype(int).T
             for dr in (0, 1):
                 for dc in (0, 1):
                     r, c = rows + dr, cols + dc
@@ -332,7 +333,8 @@ def write_preview(
         view: Camera elevation and azimuth [degrees] (:meth:`Camera.framing`).
         size: Width and height of one frame [inches]; ``size * dpi`` pixels with ``dpi`` pixels per inch.
         points: Per cloth frame, recorded points (P, 3) [m] or None, drawn as dots of :data:`POINT_COLOUR` over the
-            cloth (a point cloud against the cloth fitted to it).
+            cloth (a point cloud against the cloth fitted to it); the camera frames the cloth and obstacles only, so
+            far points (a background) fall outside the picture.
 
     Returns:
         The indices of the frames drawn, shape (min(F, max_frames),).
